@@ -1,0 +1,743 @@
+//! Run configuration: TOML, every field optional with the defaults of DESIGN §2.4, unknown keys
+//! refused, every value validated with an error that names the field and the allowed range.
+
+use crate::omni::{Geometry, ModelParams};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("config {path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("config: `{field}` = {value} is out of range: allowed {allowed}")]
+    Invalid {
+        field: String,
+        value: String,
+        allowed: String,
+    },
+}
+
+/// Device-independent facts of the Omni's electronics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DeviceConfig {
+    /// Encoder counts per joint revolution.
+    pub counts_per_rev: f64,
+    /// Motor torque per DAC count, N·m (12-bit offset binary, ±2047 counts).
+    pub nm_per_count: [f64; 3],
+    /// Servo rate, Hz.
+    pub rate_hz: f64,
+}
+
+impl Default for DeviceConfig {
+    fn default() -> Self {
+        DeviceConfig {
+            counts_per_rev: 15000.0,
+            nm_per_count: [2.2e-4; 3],
+            rate_hz: 1000.0,
+        }
+    }
+}
+
+impl DeviceConfig {
+    pub fn rad_per_count(&self) -> f64 {
+        std::f64::consts::TAU / self.counts_per_rev
+    }
+}
+
+/// The simulated Omni.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimConfig {
+    /// Seeds all randomness of a run (noise, multisine phases).
+    pub seed: u64,
+    /// Viscous and Coulomb friction in the plant.
+    pub friction: bool,
+    /// Extra point mass at the tip, kg ...
+    pub payload_kg: f64,
+    /// ... added at this time, s.
+    pub payload_at_s: f64,
+    /// RK4 substeps per servo tick.
+    pub substeps: u32,
+    /// Standard deviation of a random torque disturbance (motor ripple), N·m.
+    pub torque_noise_nm: f64,
+    /// Joint angles at power-on, rad (default: stylus in the inkwell).
+    pub start_pose: [f64; 3],
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        SimConfig {
+            seed: 1,
+            friction: true,
+            payload_kg: 0.0,
+            payload_at_s: 0.0,
+            substeps: 4,
+            torque_noise_nm: 2e-4,
+            start_pose: [0.0, 0.27, -0.37],
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct KalmanConfig {
+    /// Spectral density of the white jerk driving the model, rad²/s⁵.
+    pub jerk_psd: f64,
+    /// Measurement variance R, rad² (default Δ²/12 of the encoder step).
+    pub measurement_var: f64,
+}
+
+impl Default for KalmanConfig {
+    fn default() -> Self {
+        let step = std::f64::consts::TAU / 15000.0;
+        KalmanConfig {
+            jerk_psd: 100.0,
+            measurement_var: step * step / 12.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControlConfig {
+    /// Closed-loop natural frequency, rad/s (K_p = ω², K_d = 2ζω, scaled by M₀ for PD).
+    pub omega_n: f64,
+    /// Closed-loop damping ratio.
+    pub zeta: f64,
+}
+
+impl Default for ControlConfig {
+    fn default() -> Self {
+        ControlConfig {
+            omega_n: 25.0,
+            zeta: 1.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReferenceConfig {
+    /// Mid-workspace pose the trajectories move about, rad.
+    pub center: [f64; 3],
+    /// Sine amplitudes, rad.
+    pub amplitude: [f64; 3],
+    /// Sine frequency, Hz.
+    pub frequency_hz: f64,
+    /// Duration of the quintic blend from the start pose onto the reference, s.
+    pub blend_s: f64,
+    /// Tracking statistics start here (after the blend and its transient), s.
+    pub settle_s: f64,
+    /// Multisine: amplitude per joint (sum over components), rad.
+    pub multisine_amplitude: [f64; 3],
+    /// Multisine: lowest and highest component frequency, Hz.
+    pub multisine_band_hz: [f64; 2],
+    /// Multisine: number of components per joint.
+    pub multisine_components: u32,
+}
+
+impl Default for ReferenceConfig {
+    fn default() -> Self {
+        ReferenceConfig {
+            center: [0.0, 0.65, 0.3],
+            amplitude: [0.4, 0.3, 0.3],
+            frequency_hz: 0.5,
+            blend_s: 1.0,
+            settle_s: 2.0,
+            multisine_amplitude: [0.45, 0.32, 0.32],
+            multisine_band_hz: [0.1, 1.5],
+            multisine_components: 6,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SafetyConfig {
+    /// Per-joint torque clamp, N·m.
+    pub max_torque_nm: [f64; 3],
+    /// Consecutive missed or bad packets that make a device fault.
+    pub max_missed_ticks: u32,
+}
+
+impl Default for SafetyConfig {
+    fn default() -> Self {
+        SafetyConfig {
+            max_torque_nm: [0.45; 3],
+            max_missed_ticks: 20,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TelemetryConfig {
+    /// Capacity of the bounded channel from the servo loop to the log writer, ticks.
+    pub channel_capacity: usize,
+}
+
+impl Default for TelemetryConfig {
+    fn default() -> Self {
+        TelemetryConfig {
+            channel_capacity: 8192,
+        }
+    }
+}
+
+/// The whole configuration file.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    pub device: DeviceConfig,
+    pub sim: SimConfig,
+    pub model: ModelParams,
+    pub geometry: Geometry,
+    pub kalman: KalmanConfig,
+    pub control: ControlConfig,
+    pub reference: ReferenceConfig,
+    pub safety: SafetyConfig,
+    pub telemetry: TelemetryConfig,
+}
+
+/// One-line explanations of every key, used by `omnid config --print-default`.
+pub const FIELD_DOCS: &[(&str, &str)] = &[
+    (
+        "device",
+        "Electronics of the Omni, shared by every backend.",
+    ),
+    (
+        "device.counts_per_rev",
+        "encoder counts per joint revolution",
+    ),
+    (
+        "device.nm_per_count",
+        "motor torque per DAC count, N·m (±2047 counts about 0x07FF)",
+    ),
+    ("device.rate_hz", "servo rate, Hz"),
+    ("sim", "The simulated Omni."),
+    (
+        "sim.seed",
+        "seeds all randomness of a run (noise, multisine phases)",
+    ),
+    (
+        "sim.friction",
+        "viscous and Coulomb friction in the simulated plant",
+    ),
+    ("sim.payload_kg", "extra point mass at the tip, kg ..."),
+    ("sim.payload_at_s", "... added at this time, s"),
+    ("sim.substeps", "RK4 integration substeps per servo tick"),
+    (
+        "sim.torque_noise_nm",
+        "standard deviation of a random torque disturbance, N·m",
+    ),
+    (
+        "sim.start_pose",
+        "joint angles at power-on, rad (stylus in the inkwell)",
+    ),
+    (
+        "model",
+        "Rigid-body model (DESIGN §4.2): the simulator's plant and CT's model.",
+    ),
+    ("model.k1", "inertia parameter, kg·m²"),
+    ("model.k2", "inertia parameter, kg·m²"),
+    ("model.k3", "inertia parameter, kg·m²"),
+    ("model.k4", "inertia parameter, kg·m²"),
+    ("model.k5", "inertia parameter, kg·m²"),
+    ("model.k7", "inertia parameter, kg·m²"),
+    ("model.k8", "gravity parameter, N·m"),
+    ("model.k9", "gravity parameter, N·m"),
+    (
+        "model.rotor_inertia",
+        "reflected rotor inertia per joint, kg·m²",
+    ),
+    ("model.viscous", "viscous friction per joint, N·m·s/rad"),
+    ("model.coulomb", "Coulomb friction per joint, N·m"),
+    (
+        "model.coulomb_velocity",
+        "velocity scale of the tanh smoothing Coulomb friction, rad/s",
+    ),
+    ("model.limit_lower", "lower joint limits, rad"),
+    ("model.limit_upper", "upper joint limits, rad"),
+    (
+        "model.limit_stiffness",
+        "joint-limit spring stiffness, N·m/rad",
+    ),
+    (
+        "model.limit_damping",
+        "joint-limit spring damping, N·m·s/rad",
+    ),
+    ("geometry", "Arm geometry (DESIGN §4.1), mm."),
+    ("geometry.l1_mm", "upper arm length, mm"),
+    ("geometry.l2_mm", "lower arm length, mm"),
+    (
+        "geometry.y_offset_mm",
+        "tip y offset of the OpenHaptics origin, mm",
+    ),
+    (
+        "geometry.z_offset_mm",
+        "tip z offset of the OpenHaptics origin, mm",
+    ),
+    ("kalman", "Per-joint Kalman filter (DESIGN §4.3)."),
+    (
+        "kalman.jerk_psd",
+        "white-jerk spectral density q_j, rad²/s⁵ (10 suits 0.5 Hz, 1000 suits 2 Hz)",
+    ),
+    (
+        "kalman.measurement_var",
+        "measurement variance R, rad² (encoder step²/12)",
+    ),
+    ("control", "Controller gains, shared by PD, CT and NNIDC."),
+    ("control.omega_n", "closed-loop natural frequency, rad/s"),
+    ("control.zeta", "closed-loop damping ratio"),
+    ("reference", "Reference trajectories."),
+    ("reference.center", "pose the trajectories move about, rad"),
+    ("reference.amplitude", "sine amplitudes, rad"),
+    ("reference.frequency_hz", "sine frequency, Hz"),
+    (
+        "reference.blend_s",
+        "quintic blend from the start pose onto the reference, s",
+    ),
+    (
+        "reference.settle_s",
+        "tracking statistics are taken from this time on, s",
+    ),
+    (
+        "reference.multisine_amplitude",
+        "multisine peak amplitude per joint, rad",
+    ),
+    (
+        "reference.multisine_band_hz",
+        "multisine lowest and highest frequency, Hz",
+    ),
+    (
+        "reference.multisine_components",
+        "multisine components per joint",
+    ),
+    ("safety", "Limits every command passes through."),
+    ("safety.max_torque_nm", "per-joint torque clamp, N·m"),
+    (
+        "safety.max_missed_ticks",
+        "consecutive missed or bad packets that make a device fault",
+    ),
+    (
+        "telemetry",
+        "Telemetry from the servo loop to the log writer.",
+    ),
+    (
+        "telemetry.channel_capacity",
+        "bounded channel capacity, ticks (drops are counted)",
+    ),
+];
+
+fn finite_in(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(ConfigError::Invalid {
+            field: field.to_string(),
+            value: format!("{v}"),
+            allowed: allowed.to_string(),
+        })
+    }
+}
+
+fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(ConfigError::Invalid {
+            field: field.to_string(),
+            value: format!("{v}"),
+            allowed: "finite and > 0".to_string(),
+        })
+    }
+}
+
+fn each<const N: usize>(
+    field: &str,
+    v: &[f64; N],
+    check: impl Fn(&str, f64) -> Result<(), ConfigError>,
+) -> Result<(), ConfigError> {
+    for (i, x) in v.iter().enumerate() {
+        check(&format!("{field}[{i}]"), *x)?;
+    }
+    Ok(())
+}
+
+impl Config {
+    /// Parse TOML text; `origin` names the source in messages.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, ConfigError> {
+        let cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: origin.to_string(),
+            message: describe_toml_error(text, &e),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Read and validate a config file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    /// Check every value; the first problem is returned naming its field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let d = &self.device;
+        finite_in(
+            "device.counts_per_rev",
+            d.counts_per_rev,
+            100.0,
+            1e7,
+            "100 ..= 1e7",
+        )?;
+        each("device.nm_per_count", &d.nm_per_count, positive)?;
+        finite_in(
+            "device.rate_hz",
+            d.rate_hz,
+            100.0,
+            10_000.0,
+            "100 ..= 10000 Hz",
+        )?;
+
+        let s = &self.sim;
+        finite_in("sim.payload_kg", s.payload_kg, 0.0, 1.0, "0 ..= 1 kg")?;
+        finite_in("sim.payload_at_s", s.payload_at_s, 0.0, 1e6, "0 ..= 1e6 s")?;
+        if !(1..=100).contains(&s.substeps) {
+            return Err(ConfigError::Invalid {
+                field: "sim.substeps".into(),
+                value: s.substeps.to_string(),
+                allowed: "1 ..= 100".into(),
+            });
+        }
+        finite_in(
+            "sim.torque_noise_nm",
+            s.torque_noise_nm,
+            0.0,
+            0.1,
+            "0 ..= 0.1 N·m",
+        )?;
+        each("sim.start_pose", &s.start_pose, |f, v| {
+            finite_in(f, v, -3.2, 3.2, "-3.2 ..= 3.2 rad")
+        })?;
+
+        let m = &self.model;
+        for (name, v) in [("k1", m.k1), ("k5", m.k5), ("k7", m.k7)] {
+            positive(&format!("model.{name}"), v)?;
+        }
+        for (name, v) in [
+            ("k2", m.k2),
+            ("k3", m.k3),
+            ("k4", m.k4),
+            ("k8", m.k8),
+            ("k9", m.k9),
+        ] {
+            finite_in(&format!("model.{name}"), v, -1.0, 1.0, "-1 ..= 1")?;
+        }
+        each("model.rotor_inertia", &m.rotor_inertia, |f, v| {
+            finite_in(f, v, 0.0, 1.0, "0 ..= 1 kg·m²")
+        })?;
+        each("model.viscous", &m.viscous, |f, v| {
+            finite_in(f, v, 0.0, 1.0, "0 ..= 1 N·m·s/rad")
+        })?;
+        each("model.coulomb", &m.coulomb, |f, v| {
+            finite_in(f, v, 0.0, 1.0, "0 ..= 1 N·m")
+        })?;
+        positive("model.coulomb_velocity", m.coulomb_velocity)?;
+        for i in 0..3 {
+            finite_in(
+                &format!("model.limit_lower[{i}]"),
+                m.limit_lower[i],
+                -3.2,
+                m.limit_upper[i],
+                "-3.2 rad ..= model.limit_upper",
+            )?;
+            finite_in(
+                &format!("model.limit_upper[{i}]"),
+                m.limit_upper[i],
+                m.limit_lower[i],
+                3.2,
+                "model.limit_lower ..= 3.2 rad",
+            )?;
+        }
+        finite_in(
+            "model.limit_stiffness",
+            m.limit_stiffness,
+            0.0,
+            1e4,
+            "0 ..= 1e4 N·m/rad",
+        )?;
+        finite_in(
+            "model.limit_damping",
+            m.limit_damping,
+            0.0,
+            100.0,
+            "0 ..= 100 N·m·s/rad",
+        )?;
+        // The inertia must stay positive definite over the whole joint range.
+        let dynamics = crate::omni::Dynamics::new(*m, self.geometry);
+        for q2 in [
+            m.limit_lower[1],
+            0.5 * (m.limit_lower[1] + m.limit_upper[1]),
+            m.limit_upper[1],
+        ] {
+            for q3 in [
+                m.limit_lower[2],
+                0.5 * (m.limit_lower[2] + m.limit_upper[2]),
+                m.limit_upper[2],
+            ] {
+                let q = crate::omni::Joint3::new(0.0, q2, q3);
+                if dynamics.mass(&q).cholesky().is_none() {
+                    return Err(ConfigError::Invalid {
+                        field: "model.k1..k7".into(),
+                        value: format!("M(q) not positive definite at q = [0, {q2:.2}, {q3:.2}]"),
+                        allowed: "parameters that give a positive definite inertia".into(),
+                    });
+                }
+            }
+        }
+
+        let g = &self.geometry;
+        finite_in("geometry.l1_mm", g.l1_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
+        finite_in("geometry.l2_mm", g.l2_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
+        finite_in(
+            "geometry.y_offset_mm",
+            g.y_offset_mm,
+            -1000.0,
+            1000.0,
+            "-1000 ..= 1000 mm",
+        )?;
+        finite_in(
+            "geometry.z_offset_mm",
+            g.z_offset_mm,
+            -1000.0,
+            1000.0,
+            "-1000 ..= 1000 mm",
+        )?;
+
+        positive("kalman.jerk_psd", self.kalman.jerk_psd)?;
+        positive("kalman.measurement_var", self.kalman.measurement_var)?;
+
+        finite_in(
+            "control.omega_n",
+            self.control.omega_n,
+            0.1,
+            200.0,
+            "0.1 ..= 200 rad/s",
+        )?;
+        finite_in("control.zeta", self.control.zeta, 0.05, 10.0, "0.05 ..= 10")?;
+
+        let r = &self.reference;
+        for i in 0..3 {
+            finite_in(
+                &format!("reference.center[{i}]"),
+                r.center[i],
+                m.limit_lower[i],
+                m.limit_upper[i],
+                "inside model.limit_lower ..= model.limit_upper",
+            )?;
+        }
+        each("reference.amplitude", &r.amplitude, |f, v| {
+            finite_in(f, v, 0.0, 1.0, "0 ..= 1 rad")
+        })?;
+        finite_in(
+            "reference.frequency_hz",
+            r.frequency_hz,
+            0.0,
+            10.0,
+            "0 ..= 10 Hz",
+        )?;
+        finite_in("reference.blend_s", r.blend_s, 0.05, 60.0, "0.05 ..= 60 s")?;
+        finite_in("reference.settle_s", r.settle_s, 0.0, 1e6, "0 ..= 1e6 s")?;
+        each(
+            "reference.multisine_amplitude",
+            &r.multisine_amplitude,
+            |f, v| finite_in(f, v, 0.0, 1.0, "0 ..= 1 rad"),
+        )?;
+        finite_in(
+            "reference.multisine_band_hz[0]",
+            r.multisine_band_hz[0],
+            0.01,
+            r.multisine_band_hz[1],
+            "0.01 Hz ..= multisine_band_hz[1]",
+        )?;
+        finite_in(
+            "reference.multisine_band_hz[1]",
+            r.multisine_band_hz[1],
+            r.multisine_band_hz[0],
+            10.0,
+            "multisine_band_hz[0] ..= 10 Hz",
+        )?;
+        if !(1..=32).contains(&r.multisine_components) {
+            return Err(ConfigError::Invalid {
+                field: "reference.multisine_components".into(),
+                value: r.multisine_components.to_string(),
+                allowed: "1 ..= 32".into(),
+            });
+        }
+
+        each(
+            "safety.max_torque_nm",
+            &self.safety.max_torque_nm,
+            |f, v| finite_in(f, v, f64::MIN_POSITIVE, 2.0, "> 0 and ≤ 2 N·m"),
+        )?;
+
+        if !(1..=10_000).contains(&self.safety.max_missed_ticks) {
+            return Err(ConfigError::Invalid {
+                field: "safety.max_missed_ticks".into(),
+                value: self.safety.max_missed_ticks.to_string(),
+                allowed: "1 ..= 10000".into(),
+            });
+        }
+
+        let cap = self.telemetry.channel_capacity;
+        if !(16..=10_000_000).contains(&cap) {
+            return Err(ConfigError::Invalid {
+                field: "telemetry.channel_capacity".into(),
+                value: cap.to_string(),
+                allowed: "16 ..= 10000000".into(),
+            });
+        }
+        Ok(())
+    }
+
+    /// The default configuration as commented TOML.
+    pub fn default_toml() -> String {
+        let text = toml::to_string(&Config::default()).expect("default config serialises");
+        let mut out =
+            String::from("# omnid configuration: every key is optional; these are the defaults.\n");
+        let mut section = String::new();
+        for line in text.lines() {
+            let trimmed = line.trim();
+            if let Some(name) = trimmed.strip_prefix('[').and_then(|s| s.strip_suffix(']')) {
+                section = name.to_string();
+                out.push('\n');
+                if let Some(doc) = doc_for(&section) {
+                    out.push_str(&format!("# {doc}\n"));
+                }
+                out.push_str(line);
+                out.push('\n');
+            } else if let Some((key, _)) = trimmed.split_once(" = ") {
+                match doc_for(&format!("{section}.{key}")) {
+                    Some(doc) => out.push_str(&format!("{line}  # {doc}\n")),
+                    None => out.push_str(&format!("{line}\n")),
+                }
+            } else if !trimmed.is_empty() {
+                out.push_str(line);
+                out.push('\n');
+            }
+        }
+        out
+    }
+}
+
+fn doc_for(key: &str) -> Option<&'static str> {
+    FIELD_DOCS.iter().find(|(k, _)| *k == key).map(|(_, d)| *d)
+}
+
+/// One line from a TOML error: where it is (line and the text there) and what is wrong.
+fn describe_toml_error(text: &str, e: &toml::de::Error) -> String {
+    let message = e.message().trim().replace('\n', " ");
+    match e.span() {
+        Some(span) => {
+            let line_no = text[..span.start.min(text.len())].matches('\n').count() + 1;
+            let line = text.lines().nth(line_no - 1).unwrap_or("").trim();
+            format!("line {line_no} (`{line}`): {message}")
+        }
+        None => message,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn err(text: &str) -> String {
+        Config::from_toml(text, "test.toml")
+            .unwrap_err()
+            .to_string()
+    }
+
+    #[test]
+    fn empty_file_is_the_defaults() {
+        assert_eq!(Config::from_toml("", "x").unwrap(), Config::default());
+        Config::default().validate().unwrap();
+    }
+
+    #[test]
+    fn default_toml_round_trips_and_documents_every_key() {
+        let text = Config::default_toml();
+        assert_eq!(
+            Config::from_toml(&text, "default").unwrap(),
+            Config::default()
+        );
+        for line in text
+            .lines()
+            .filter(|l| !l.starts_with('#') && l.contains(" = "))
+        {
+            assert!(line.contains("  # "), "undocumented key: {line}");
+        }
+    }
+
+    #[test]
+    fn unknown_key_names_the_key_and_line() {
+        let e = err("[kalman]\njerk_psd = 10.0\njerk_pds = 3.0\n");
+        assert!(e.contains("jerk_pds") && e.contains("line 3"), "{e}");
+        assert!(!e.contains('\n'));
+        let e = err("[kalmann]\n");
+        assert!(e.contains("kalmann"), "{e}");
+    }
+
+    #[test]
+    fn wrong_type_names_the_line() {
+        let e = err("[sim]\nseed = \"one\"\n");
+        assert!(e.contains("line 2") && e.contains("seed"), "{e}");
+    }
+
+    #[test]
+    fn negative_gain_names_field_and_range() {
+        let e = err("[control]\nomega_n = -5.0\n");
+        assert!(
+            e.contains("control.omega_n") && e.contains("0.1 ..= 200"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn non_finite_values_are_refused() {
+        let e = err("[kalman]\njerk_psd = nan\n");
+        assert!(e.contains("kalman.jerk_psd") && e.contains("finite"), "{e}");
+        let e = err("[control]\nzeta = inf\n");
+        assert!(e.contains("control.zeta"), "{e}");
+    }
+
+    #[test]
+    fn torque_limit_must_be_positive() {
+        for bad in ["0.0", "-0.1"] {
+            let e = err(&format!("[safety]\nmax_torque_nm = [0.4, {bad}, 0.4]\n"));
+            assert!(
+                e.contains("safety.max_torque_nm[1]") && e.contains("> 0"),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn non_positive_definite_inertia_is_refused() {
+        let e = err("[model]\nk1 = 1e-6\nk2 = 0.5\n");
+        assert!(
+            e.contains("positive definite") || e.contains("model."),
+            "{e}"
+        );
+    }
+}

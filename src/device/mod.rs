@@ -1,0 +1,87 @@
+//! The device boundary: one packet exchange per tick (command out, state in, with the device's
+//! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
+
+pub mod codec;
+pub mod sim;
+
+pub use codec::{
+    decode_state, encode_command, CodecError, DacScale, EncoderUnwrap, MotorCommand, StatePacket,
+    COMMAND_LEN, STATE_LEN,
+};
+
+use thiserror::Error;
+
+/// One state packet as it came off the wire, with the device's own timestamp.
+#[derive(Debug, Clone, Copy)]
+pub struct RawSample {
+    /// Packet bytes; `len` of them are valid.
+    pub bytes: [u8; STATE_LEN],
+    pub len: usize,
+    /// Device time of this sample, seconds since the device started streaming.
+    pub device_time_s: f64,
+}
+
+impl RawSample {
+    pub fn new(bytes: [u8; STATE_LEN], device_time_s: f64) -> Self {
+        RawSample {
+            bytes,
+            len: STATE_LEN,
+            device_time_s,
+        }
+    }
+
+    pub fn packet(&self) -> &[u8] {
+        &self.bytes[..self.len]
+    }
+}
+
+/// Errors at the device boundary. `Missed` is survivable (the loop holds the last torque);
+/// the others end the run.
+#[derive(Debug, Error)]
+pub enum DeviceError {
+    /// No device matched. `looked_for` says what was searched, `hint` how to fix it.
+    #[error("no device found: looked for {looked_for}. {hint}")]
+    NotFound { looked_for: String, hint: String },
+    #[error("permission denied opening {what}. {hint}")]
+    Permission { what: String, hint: String },
+    /// The packet for this tick did not arrive in time or was corrupt: hold and go on.
+    #[error("missed packet: {0}")]
+    Missed(String),
+    #[error("malformed packet: {0}")]
+    Malformed(#[from] CodecError),
+    #[error("device disconnected: {0}")]
+    Disconnected(String),
+    #[error("device I/O error: {0}")]
+    Io(String),
+    /// A recorded log has no more samples: the normal end of a replay.
+    #[error("end of recorded data")]
+    EndOfData,
+    #[error("{0}")]
+    Unsupported(String),
+}
+
+/// A Phantom Omni, real or mock, at the packet level.
+pub trait Device: Send {
+    /// Short name for logs and the summary (`sim`, `replay`, `usb`, `firewire`).
+    fn kind(&self) -> &'static str;
+
+    /// Send one command packet and return the next state packet. Blocks until the device's
+    /// next sample (paced devices) or returns at once (`--fast`).
+    fn exchange(&mut self, command: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError>;
+
+    /// Stop streaming and release the device. Called once, after the last (safe) exchange.
+    fn close(&mut self) -> Result<(), DeviceError> {
+        Ok(())
+    }
+
+    /// The recorded torque for the sample just returned, for replay devices (the identifier
+    /// learns from what the recording applied, not from what this run computes).
+    fn recorded_torque(&self) -> Option<[f64; 3]> {
+        None
+    }
+
+    /// The plant's exact dynamics at this moment, for simulated devices (the oracle model).
+    fn plant_model(&self) -> Option<&crate::omni::Dynamics> {
+        None
+    }
+}

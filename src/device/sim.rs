@@ -1,0 +1,263 @@
+//! The simulated Omni: integrates the rigid-body model of `omni` under the torque its DAC words
+//! command, quantises the joint angles into 16-bit encoder counts, and speaks the packet codec.
+//! Paced by absolute deadlines (one packet per period), or not at all under `--fast`.
+
+use super::codec::{decode_command, encode_state, DacScale, StatePacket};
+use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use crate::config::Config;
+use crate::omni::{Dynamics, Joint3};
+use crate::servo::clock;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// How close to the start pose (rad) counts as "stylus in the inkwell".
+const INKWELL_TOLERANCE: f64 = 0.02;
+
+pub struct SimOmni {
+    plant: Dynamics,
+    payload_kg: f64,
+    payload_at_s: f64,
+    dac: DacScale,
+    rad_per_count: f64,
+    period_s: f64,
+    substeps: u32,
+    noise_nm: f64,
+    rng: ChaCha8Rng,
+    start_pose: Joint3,
+    q: Joint3,
+    qd: Joint3,
+    tick: u64,
+    last_watchdog: Option<u8>,
+    paced: bool,
+    start_ns: u64,
+}
+
+impl SimOmni {
+    pub fn new(cfg: &Config, paced: bool) -> Self {
+        let mut plant = Dynamics::new(cfg.model, cfg.geometry);
+        plant.friction = cfg.sim.friction;
+        let start_pose = Joint3::from(cfg.sim.start_pose);
+        SimOmni {
+            plant,
+            payload_kg: cfg.sim.payload_kg,
+            payload_at_s: cfg.sim.payload_at_s,
+            dac: DacScale {
+                nm_per_count: cfg.device.nm_per_count,
+            },
+            rad_per_count: cfg.device.rad_per_count(),
+            period_s: 1.0 / cfg.device.rate_hz,
+            substeps: cfg.sim.substeps,
+            noise_nm: cfg.sim.torque_noise_nm,
+            // A separate stream from the one the reference uses, from the same seed.
+            rng: ChaCha8Rng::seed_from_u64(cfg.sim.seed ^ 0x5EED_0F_0A1D),
+            start_pose,
+            q: start_pose,
+            qd: Joint3::zeros(),
+            tick: 0,
+            last_watchdog: None,
+            paced,
+            start_ns: 0,
+        }
+    }
+
+    /// True joint angles and velocities (for tests; the servo sees only encoder counts).
+    pub fn true_state(&self) -> (Joint3, Joint3) {
+        (self.q, self.qd)
+    }
+
+    /// Put the arm at a pose with a velocity (tests).
+    pub fn set_state(&mut self, q: Joint3, qd: Joint3) {
+        self.q = q;
+        self.qd = qd;
+    }
+
+    /// Total mechanical energy of the plant, J.
+    pub fn energy(&self) -> f64 {
+        self.plant.kinetic(&self.q, &self.qd) + self.plant.potential(&self.q)
+    }
+
+    fn gaussian(&mut self) -> f64 {
+        // Box–Muller: two uniforms in (0, 1] give one standard normal.
+        let u1: f64 = 1.0 - self.rng.random::<f64>();
+        let u2: f64 = self.rng.random::<f64>();
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
+    /// Advance the plant by `dt` under constant torque `tau` (classic RK4, `substeps` steps).
+    pub fn integrate(&mut self, tau: &Joint3, dt: f64) {
+        let h = dt / self.substeps as f64;
+        let f = |q: &Joint3, qd: &Joint3| self.plant.forward_dynamics(q, qd, tau);
+        let (mut q, mut qd) = (self.q, self.qd);
+        for _ in 0..self.substeps {
+            let a1 = f(&q, &qd);
+            let (q2, v2) = (q + qd * (h / 2.0), qd + a1 * (h / 2.0));
+            let a2 = f(&q2, &v2);
+            let (q3, v3) = (q + v2 * (h / 2.0), qd + a2 * (h / 2.0));
+            let a3 = f(&q3, &v3);
+            let (q4, v4) = (q + v3 * h, qd + a3 * h);
+            let a4 = f(&q4, &v4);
+            q += (qd + v2 * 2.0 + v3 * 2.0 + v4) * (h / 6.0);
+            qd += (a1 + a2 * 2.0 + a3 * 2.0 + a4) * (h / 6.0);
+        }
+        self.q = q;
+        self.qd = qd;
+    }
+
+    fn encoder_words(&self) -> [u16; 3] {
+        let mut w = [0u16; 3];
+        for j in 0..3 {
+            // Counts wrap at 16 bits on the wire, exactly as the hardware's do.
+            w[j] = ((self.q[j] / self.rad_per_count).round() as i64) as u16;
+        }
+        w
+    }
+}
+
+impl Device for SimOmni {
+    fn kind(&self) -> &'static str {
+        "sim"
+    }
+
+    fn exchange(&mut self, command: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError> {
+        let cmd = decode_command(command)?;
+        if self.tick == 0 {
+            self.start_ns = clock::now_ns();
+        } else {
+            // Like the real amplifier board: a watchdog byte that stops advancing drops the
+            // amplifiers.
+            let alive = self.last_watchdog != Some(cmd.watchdog);
+            let mut tau = if cmd.amps_on && alive {
+                Joint3::from(self.dac.to_torque(&cmd.dac))
+            } else {
+                Joint3::zeros()
+            };
+            if self.noise_nm > 0.0 {
+                for j in 0..3 {
+                    tau[j] += self.noise_nm * self.gaussian();
+                }
+            }
+            let t = self.tick as f64 * self.period_s;
+            self.plant.payload_kg = if t >= self.payload_at_s {
+                self.payload_kg
+            } else {
+                0.0
+            };
+            self.integrate(&tau, self.period_s);
+            if self.paced {
+                clock::sleep_until_ns(
+                    self.start_ns + (self.tick as f64 * self.period_s * 1e9) as u64,
+                );
+            }
+        }
+        self.last_watchdog = Some(cmd.watchdog);
+        let state = StatePacket {
+            encoder: self.encoder_words(),
+            gimbal: [0x8000; 3],
+            buttons: [false; 2],
+            inkwell: (self.q - self.start_pose).amax() < INKWELL_TOLERANCE,
+            counter: self.tick as u32,
+        };
+        let sample = RawSample::new(encode_state(&state), self.tick as f64 * self.period_s);
+        self.tick += 1;
+        Ok(sample)
+    }
+
+    fn plant_model(&self) -> Option<&Dynamics> {
+        Some(&self.plant)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::device::codec::{encode_command, MotorCommand, DAC_ZERO};
+
+    fn frictionless() -> Config {
+        let mut cfg = Config::default();
+        cfg.sim.friction = false;
+        cfg.sim.torque_noise_nm = 0.0;
+        cfg
+    }
+
+    #[test]
+    fn free_swing_conserves_energy() {
+        let mut cfg = frictionless();
+        // Gravity in this model is unstable about the centre pose: without the limit springs
+        // (which damp) the arm swings freely through the whole range.
+        cfg.model.limit_lower = [-100.0; 3];
+        cfg.model.limit_upper = [100.0; 3];
+        let mut sim = SimOmni::new(&cfg, false);
+        // Released from a raised pose with some velocity, well inside the joint limits.
+        sim.set_state(Joint3::new(0.3, 1.0, 0.6), Joint3::new(0.5, 0.0, -0.5));
+        let e0 = sim.energy();
+        let (mut lo, mut hi) = (f64::MAX, f64::MIN);
+        let mut swing = 0.0f64;
+        for _ in 0..10_000 {
+            sim.integrate(&Joint3::zeros(), 1e-3);
+            let e = sim.energy();
+            lo = lo.min(e);
+            hi = hi.max(e);
+            swing = swing.max(sim.true_state().1.norm());
+        }
+        // Energy is only defined up to a constant: compare the drift to the kinetic energy
+        // scale of the swing as well as to |E|.
+        let drift = (hi - lo) / e0.abs();
+        assert!(
+            swing > 1.0,
+            "the arm must actually swing, peak speed {swing}"
+        );
+        assert!(drift < 1e-3, "energy drift {drift:e} of |E0| = {e0:e}");
+    }
+
+    #[test]
+    fn zero_dac_and_amps_off_apply_no_torque() {
+        let cfg = frictionless();
+        let mut a = SimOmni::new(&cfg, false);
+        let mut b = SimOmni::new(&cfg, false);
+        let mut on = MotorCommand::safe(0);
+        on.amps_on = true;
+        on.dac = [DAC_ZERO + 500; 3];
+        for k in 0..200u8 {
+            let off = MotorCommand::safe(k);
+            let mut live = on;
+            live.watchdog = k;
+            a.exchange(&encode_command(&off)).unwrap();
+            b.exchange(&encode_command(&live)).unwrap();
+        }
+        // Identical start, but b was pushed: it must have moved differently.
+        assert!((a.true_state().0 - b.true_state().0).norm() > 1e-3);
+    }
+
+    #[test]
+    fn stalled_watchdog_drops_the_amplifiers() {
+        let cfg = frictionless();
+        let mut pushed = SimOmni::new(&cfg, false);
+        let mut stalled = SimOmni::new(&cfg, false);
+        let mut idle = SimOmni::new(&cfg, false);
+        let mut cmd = MotorCommand::safe(0);
+        cmd.amps_on = true;
+        cmd.dac = [DAC_ZERO + 800; 3];
+        for k in 0..100u8 {
+            let mut live = cmd;
+            live.watchdog = k;
+            pushed.exchange(&encode_command(&live)).unwrap();
+            stalled.exchange(&encode_command(&cmd)).unwrap(); // watchdog stuck at 0
+            idle.exchange(&encode_command(&MotorCommand::safe(k)))
+                .unwrap();
+        }
+        assert_eq!(stalled.true_state().0, idle.true_state().0);
+        assert!((pushed.true_state().0 - idle.true_state().0).norm() > 1e-3);
+    }
+
+    #[test]
+    fn encoders_quantise_and_wrap() {
+        let cfg = frictionless();
+        let mut sim = SimOmni::new(&cfg, false);
+        let step = cfg.device.rad_per_count();
+        sim.set_state(Joint3::new(-3.0 * step, 0.4, 10.2 * step), Joint3::zeros());
+        let w = sim.encoder_words();
+        assert_eq!(w[0], 0xFFFD);
+        assert_eq!(w[2], 10);
+        assert_eq!(w[1], (0.4 / step).round() as u16);
+    }
+}

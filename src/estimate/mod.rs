@@ -1,0 +1,5 @@
+//! State estimation: encoder angles → (q, q̇, q̈) per joint.
+
+pub mod kalman;
+
+pub use kalman::{JointKalman, KalmanBank};

@@ -1,0 +1,15 @@
+//! omnid: a hardware I/O daemon for the Phantom Omni haptic device.
+//!
+//! Data flow, one module per stage:
+//! `device` (packets) → `estimate` (Kalman) → `control` (PD, …) → safety in `servo` →
+//! `device`, with `telemetry` carrying each tick to the log and the summary, and `omni` the
+//! geometry and physics shared by the simulator and model-based control.
+
+pub mod config;
+pub mod control;
+pub mod device;
+pub mod estimate;
+pub mod omni;
+pub mod run;
+pub mod servo;
+pub mod telemetry;

@@ -1,0 +1,202 @@
+//! The `omnid` command line: parse, build the pipeline, run, print. Exit codes: 0 success,
+//! 1 internal or log error, 2 bad input, 3 device fault, 4 safety fault, 130 operator stop.
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use omnid::config::Config;
+use omnid::control::{ControllerKind, Trajectory};
+use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
+use omnid::servo::EndReason;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+const EXIT_INTERNAL: u8 = 1;
+const EXIT_BAD_INPUT: u8 = 2;
+const EXIT_DEVICE_FAULT: u8 = 3;
+const EXIT_SAFETY_FAULT: u8 = 4;
+const EXIT_OPERATOR_STOP: u8 = 130;
+
+#[derive(Parser)]
+#[command(
+    name = "omnid",
+    version,
+    about = "Hardware I/O daemon for the Phantom Omni haptic device"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the 1 kHz servo loop on a device and log every tick.
+    Run(RunArgs),
+    /// Configuration helpers.
+    Config {
+        /// Print the full default configuration, commented.
+        #[arg(long)]
+        print_default: bool,
+    },
+}
+
+#[derive(clap::Args)]
+struct RunArgs {
+    /// sim | replay:PATH | usb | firewire
+    #[arg(long, default_value = "sim")]
+    device: DeviceSpec,
+    /// Control law.
+    #[arg(long, value_enum, default_value = "pd")]
+    controller: ControllerKind,
+    /// Reference trajectory.
+    #[arg(long, value_enum, default_value = "sine")]
+    trajectory: Trajectory,
+    /// Run length, seconds of device time.
+    #[arg(long, default_value_t = 10.0)]
+    duration: f64,
+    /// CSV log path (default: logs/omnid-<UTC time>.csv).
+    #[arg(long)]
+    log: Option<PathBuf>,
+    /// Write the run summary as JSON here.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+    /// TOML configuration file (see `omnid config --print-default`).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// No pacing: run as fast as the CPU allows, same results (sim and replay only).
+    #[arg(long)]
+    fast: bool,
+}
+
+/// `logs/omnid-YYYYMMDD-HHMMSS.csv` in UTC.
+fn default_log_path() -> PathBuf {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0) as i64;
+    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    PathBuf::from(format!(
+        "logs/omnid-{year:04}{month:02}{day:02}-{:02}{:02}{:02}.csv",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    ))
+}
+
+fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
+    let cfg = match &args.config {
+        Some(path) => match Config::load(path) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("omnid: {e}");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        None => Config::default(),
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        // With the `termination` feature this also catches SIGTERM (and SIGHUP).
+        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
+            .context("installing the Ctrl-C/SIGTERM handler")?;
+    }
+    let opts = RunOptions {
+        device: args.device,
+        controller: args.controller,
+        trajectory: args.trajectory,
+        duration_s: args.duration,
+        log: args.log.unwrap_or_else(default_log_path),
+        fast: args.fast,
+    };
+    let outcome = match execute(&opts, &cfg, stop) {
+        Ok(o) => o,
+        Err(e @ RunError::BadInput(_)) => {
+            eprintln!("omnid: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+        Err(e @ RunError::Device(_)) => {
+            eprintln!("omnid: {e}");
+            return Ok(EXIT_DEVICE_FAULT);
+        }
+        Err(e @ RunError::Log { .. }) => {
+            eprintln!("omnid: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+        Err(e) => return Err(e.into()),
+    };
+    print!("{}", outcome.summary.human());
+    if let Some(path) = &args.summary_json {
+        let json = serde_json::to_string_pretty(&outcome.summary)?;
+        std::fs::write(path, json + "\n")
+            .with_context(|| format!("writing the summary to {}", path.display()))?;
+    }
+    let mut code = match &outcome.end {
+        EndReason::Completed | EndReason::EndOfData => 0,
+        EndReason::OperatorStop => {
+            eprintln!("omnid: stopped by the operator; zero torque sent, amplifiers off");
+            EXIT_OPERATOR_STOP
+        }
+        EndReason::DeviceFault(m) => {
+            eprintln!("omnid: device fault: {m}; zero torque sent, amplifiers off");
+            EXIT_DEVICE_FAULT
+        }
+        EndReason::SafetyFault(m) => {
+            eprintln!("omnid: safety fault: {m}; zero torque sent, amplifiers off");
+            EXIT_SAFETY_FAULT
+        }
+    };
+    if let Some(e) = &outcome.shutdown_error {
+        eprintln!("omnid: warning: {e}");
+        if code == 0 {
+            code = EXIT_DEVICE_FAULT;
+        }
+    }
+    if let Some(e) = &outcome.log_error {
+        eprintln!("omnid: writing the log failed part-way: {e}");
+        if code == 0 {
+            code = EXIT_INTERNAL;
+        }
+    }
+    if outcome.summary.telemetry_dropped > 0 {
+        eprintln!(
+            "omnid: warning: {} log rows dropped (the writer fell behind)",
+            outcome.summary.telemetry_dropped
+        );
+    }
+    Ok(code)
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run(args) => run(args),
+        Command::Config { print_default } => {
+            if print_default {
+                print!("{}", Config::default_toml());
+                Ok(0)
+            } else {
+                eprintln!("omnid config: nothing to do; try --print-default");
+                Ok(EXIT_BAD_INPUT)
+            }
+        }
+    };
+    match result {
+        Ok(code) => ExitCode::from(code),
+        Err(e) => {
+            eprintln!("omnid: {e:#}");
+            ExitCode::from(EXIT_INTERNAL)
+        }
+    }
+}

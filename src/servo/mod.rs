@@ -1,0 +1,399 @@
+//! The 1 kHz servo loop: device → decode → estimate → control → safety → encode → device, once
+//! per packet. Everything it touches is allocated before the first tick; telemetry leaves
+//! through a bounded channel with `try_send`.
+
+pub mod clock;
+pub mod timing;
+
+use crate::config::Config;
+use crate::control::{ControlInput, Controller, Reference};
+use crate::device::{
+    decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
+    COMMAND_LEN,
+};
+use crate::estimate::KalmanBank;
+use crate::omni::Joint3;
+use crate::telemetry::record::{flags, Mode, TickRecord};
+use crate::telemetry::summary::{FaultEntry, RunStats};
+use crossbeam_channel::{Sender, TrySendError};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use timing::TickTiming;
+
+/// Why a run ended. Each class has its own exit code (see `main.rs` and the README).
+#[derive(Debug, Clone, PartialEq)]
+pub enum EndReason {
+    /// The requested duration was reached.
+    Completed,
+    /// A replayed log ran out.
+    EndOfData,
+    /// Ctrl-C or SIGTERM.
+    OperatorStop,
+    /// The device failed, vanished or stopped answering.
+    DeviceFault(String),
+    /// A safety check tripped.
+    SafetyFault(String),
+}
+
+impl EndReason {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            EndReason::Completed => "completed",
+            EndReason::EndOfData => "end-of-data",
+            EndReason::OperatorStop => "operator-stop",
+            EndReason::DeviceFault(_) => "device-fault",
+            EndReason::SafetyFault(_) => "safety-fault",
+        }
+    }
+}
+
+/// What the loop hands back when it ends.
+pub struct ServoReport {
+    pub end: EndReason,
+    pub stats: RunStats,
+    pub timing: TickTiming,
+    pub faults: Vec<FaultEntry>,
+    pub telemetry_dropped: u64,
+    pub missed_packets: u64,
+    /// The last command packet sent (always the safe one after a clean shutdown).
+    pub last_command: MotorCommand,
+    /// A device error while sending the final safe packet or closing, if any.
+    pub shutdown_error: Option<String>,
+}
+
+/// The servo loop's state. Build it, then call [`Servo::run`] (or [`Servo::tick`] by hand).
+pub struct Servo {
+    device: Box<dyn Device>,
+    controller: Box<dyn Controller>,
+    reference: Reference,
+    kalman: KalmanBank,
+    unwrap: EncoderUnwrap,
+    dac: DacScale,
+    rad_per_count: f64,
+    max_torque: Joint3,
+    blend_s: f64,
+    settle_s: f64,
+    max_missed: u32,
+    telemetry: Sender<TickRecord>,
+    stop: Arc<AtomicBool>,
+    max_ticks: Option<u64>,
+    paced: bool,
+    period_ns: u64,
+    // Running state.
+    command: MotorCommand,
+    tick: u64,
+    t0: Option<f64>,
+    last_t: f64,
+    last_reference: [f64; 3],
+    last_tau_model: [f64; 3],
+    consecutive_missed: u32,
+    held: bool,
+    first_wake_ns: u64,
+    last_wake_ns: u64,
+    // Results.
+    stats: RunStats,
+    timing: TickTiming,
+    dropped: u64,
+    missed: u64,
+}
+
+impl Servo {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        cfg: &Config,
+        device: Box<dyn Device>,
+        controller: Box<dyn Controller>,
+        reference: Reference,
+        telemetry: Sender<TickRecord>,
+        stop: Arc<AtomicBool>,
+        max_ticks: Option<u64>,
+        paced: bool,
+    ) -> Self {
+        let period_ns = (1e9 / cfg.device.rate_hz).round() as u64;
+        Servo {
+            device,
+            controller,
+            reference,
+            kalman: KalmanBank::new(&cfg.kalman),
+            unwrap: EncoderUnwrap::new(),
+            dac: DacScale {
+                nm_per_count: cfg.device.nm_per_count,
+            },
+            rad_per_count: cfg.device.rad_per_count(),
+            max_torque: Joint3::from(cfg.safety.max_torque_nm),
+            blend_s: cfg.reference.blend_s,
+            settle_s: cfg.reference.settle_s,
+            max_missed: cfg.safety.max_missed_ticks,
+            telemetry,
+            stop,
+            max_ticks,
+            paced,
+            period_ns,
+            // Amplifiers stay off until the first valid sample has been seen.
+            command: MotorCommand::safe(0),
+            tick: 0,
+            t0: None,
+            last_t: 0.0,
+            last_reference: cfg.reference.center,
+            last_tau_model: [0.0; 3],
+            consecutive_missed: 0,
+            held: false,
+            first_wake_ns: 0,
+            last_wake_ns: 0,
+            stats: RunStats::default(),
+            timing: TickTiming::new(period_ns),
+            dropped: 0,
+            missed: 0,
+        }
+    }
+
+    /// Ticks completed so far.
+    pub fn ticks(&self) -> u64 {
+        self.tick
+    }
+
+    fn next_watchdog(&mut self) -> u8 {
+        self.command.watchdog = self.command.watchdog.wrapping_add(1);
+        self.command.watchdog
+    }
+
+    /// One exchange with the device and one control step. Returns `Some` when the run must end.
+    pub fn tick(&mut self) -> Option<EndReason> {
+        if self.stop.load(Ordering::Relaxed) {
+            return Some(EndReason::OperatorStop);
+        }
+        if self.max_ticks.is_some_and(|n| self.tick >= n) {
+            return Some(EndReason::Completed);
+        }
+        self.next_watchdog();
+        let bytes = encode_command(&self.command);
+        let result = self.device.exchange(&bytes);
+        let wake = clock::now_ns();
+        let raw = match result {
+            Ok(raw) => raw,
+            Err(DeviceError::EndOfData) => return Some(EndReason::EndOfData),
+            Err(DeviceError::Missed(_)) | Err(DeviceError::Malformed(_)) => {
+                return self.missed_packet();
+            }
+            Err(e) => return Some(self.fault_device(e)),
+        };
+        let packet = match decode_state(raw.packet()) {
+            Ok(p) => p,
+            Err(_) => return self.missed_packet(),
+        };
+        self.consecutive_missed = 0;
+
+        // Decode: continuous counts → joint angles.
+        let enc = self.unwrap.update(packet.encoder);
+        let q = Joint3::new(
+            enc[0] as f64 * self.rad_per_count,
+            enc[1] as f64 * self.rad_per_count,
+            enc[2] as f64 * self.rad_per_count,
+        );
+        let t_dev = raw.device_time_s;
+        let t = t_dev - *self.t0.get_or_insert(t_dev);
+
+        // Estimate.
+        let est = self.kalman.update(t_dev, &q);
+
+        // Control.
+        let reference = self.reference.at(t, &est.q);
+        let tau_cmd = self.controller.torque(&ControlInput {
+            t,
+            estimate: &est,
+            reference: &reference,
+        });
+
+        // Safety: a non-finite output is zero torque; every joint is clamped.
+        let mut tick_flags = if self.held { flags::HELD } else { 0 };
+        self.held = false;
+        let mut tau = tau_cmd;
+        if tau.iter().any(|v| !v.is_finite()) {
+            tau = Joint3::zeros();
+            tick_flags |= flags::NON_FINITE;
+        }
+        for j in 0..3 {
+            let lim = self.max_torque[j];
+            if tau[j].abs() > lim {
+                tau[j] = tau[j].clamp(-lim, lim);
+                tick_flags |= flags::CLAMPED;
+            }
+        }
+
+        // Encode: the next exchange sends it, amplifiers on from now.
+        let words = self.dac.to_words(&tau.into());
+        let tau_applied = self.dac.to_torque(&words);
+        self.command.dac = words;
+        self.command.amps_on = true;
+
+        let tau_model = match self.device.plant_model() {
+            Some(m) => {
+                let tm: [f64; 3] = m.inverse_dynamics(&est.q, &est.qd, &est.qdd).into();
+                self.stats.record_oracle(&tau_applied, &tm);
+                tm
+            }
+            None => [f64::NAN; 3],
+        };
+
+        let mode = if t < self.blend_s {
+            Mode::Blend
+        } else {
+            Mode::Track
+        };
+        self.stats.record_time(t);
+        self.stats.record_torque(&tau_applied);
+        if t >= self.settle_s {
+            self.stats.record_tracking(&(reference.q - est.q).into());
+        }
+        if tick_flags & flags::CLAMPED != 0 {
+            self.stats.clamped_ticks += 1;
+        }
+        self.emit(TickRecord {
+            t,
+            q: q.into(),
+            tau: tau_applied,
+            qf: est.q.into(),
+            qd: est.qd.into(),
+            qdd: est.qdd.into(),
+            reference: reference.q.into(),
+            tau_cmd: tau_cmd.into(),
+            tau_model,
+            enc,
+            amps: true,
+            mode,
+            flags: tick_flags,
+        });
+        self.last_t = t;
+        self.last_reference = reference.q.into();
+        self.last_tau_model = tau_model;
+        self.record_timing(wake);
+        self.tick += 1;
+        None
+    }
+
+    fn emit(&mut self, record: TickRecord) {
+        match self.telemetry.try_send(record) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => self.dropped += 1,
+        }
+    }
+
+    fn record_timing(&mut self, wake: u64) {
+        let done = clock::now_ns();
+        let compute = done.saturating_sub(wake);
+        self.timing.compute.record(compute);
+        if self.tick == 0 {
+            self.first_wake_ns = wake;
+        } else {
+            self.timing
+                .period
+                .record(wake.saturating_sub(self.last_wake_ns));
+            if self.paced {
+                let ideal = self.first_wake_ns + self.tick * self.period_ns;
+                let late = wake.saturating_sub(ideal);
+                self.timing.lateness.record(late);
+                if late + compute > self.period_ns {
+                    self.timing.overruns += 1;
+                }
+            }
+        }
+        self.last_wake_ns = wake;
+    }
+
+    /// A packet did not arrive or was corrupt: hold the last torque, count, and give up after
+    /// `max_missed` in a row.
+    fn missed_packet(&mut self) -> Option<EndReason> {
+        self.missed += 1;
+        self.consecutive_missed += 1;
+        self.held = true;
+        if self.consecutive_missed >= self.max_missed {
+            return Some(EndReason::DeviceFault(format!(
+                "{} consecutive packets missed or corrupt",
+                self.consecutive_missed
+            )));
+        }
+        None
+    }
+
+    fn fault_device(&mut self, e: DeviceError) -> EndReason {
+        EndReason::DeviceFault(e.to_string())
+    }
+
+    /// Send zero torque with the amplifiers off, log that packet, and release the device.
+    fn shutdown(&mut self) -> Option<String> {
+        let watchdog = self.next_watchdog();
+        self.command = MotorCommand::safe(watchdog);
+        let bytes: [u8; COMMAND_LEN] = encode_command(&self.command);
+        let mut error = None;
+        match self.device.exchange(&bytes) {
+            Ok(raw) => {
+                let t = self
+                    .t0
+                    .map(|t0| raw.device_time_s - t0)
+                    .unwrap_or(0.0)
+                    .max(self.last_t);
+                let (q, enc) = match decode_state(raw.packet()) {
+                    Ok(p) => {
+                        let enc = self.unwrap.update(p.encoder);
+                        (enc.map(|c| c as f64 * self.rad_per_count), enc)
+                    }
+                    Err(_) => ([f64::NAN; 3], [0; 3]),
+                };
+                let est = self.kalman.estimate();
+                self.emit(TickRecord {
+                    t,
+                    q,
+                    tau: [0.0; 3],
+                    qf: est.q.into(),
+                    qd: est.qd.into(),
+                    qdd: est.qdd.into(),
+                    reference: self.last_reference,
+                    tau_cmd: [0.0; 3],
+                    tau_model: self.last_tau_model,
+                    enc,
+                    amps: false,
+                    mode: Mode::Stop,
+                    flags: 0,
+                });
+            }
+            // End of a replay: the safe command has nowhere to go, and that is fine.
+            Err(DeviceError::EndOfData) => {}
+            Err(e) => error = Some(format!("sending the final zero-torque packet: {e}")),
+        }
+        if let Err(e) = self.device.close() {
+            error.get_or_insert(format!("closing the device: {e}"));
+        }
+        error
+    }
+
+    /// Run until the duration, the data, an operator stop or a fault ends it; always finishes
+    /// with the safe packet.
+    pub fn run(mut self) -> ServoReport {
+        let end = loop {
+            if let Some(end) = self.tick() {
+                break end;
+            }
+        };
+        let mut faults = Vec::new();
+        match &end {
+            EndReason::DeviceFault(m) | EndReason::SafetyFault(m) => faults.push(FaultEntry {
+                tick: self.tick,
+                t: self.last_t,
+                class: end.as_str().to_string(),
+                message: m.clone(),
+            }),
+            _ => {}
+        }
+        let shutdown_error = self.shutdown();
+        ServoReport {
+            end,
+            stats: self.stats,
+            timing: self.timing,
+            faults,
+            telemetry_dropped: self.dropped,
+            missed_packets: self.missed,
+            last_command: self.command,
+            shutdown_error,
+        }
+    }
+}

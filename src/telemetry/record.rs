@@ -1,0 +1,92 @@
+//! One row of the log: a plain `Copy` struct, so sending it through the bounded channel never
+//! allocates.
+
+/// What the loop was doing at this tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    /// Blending from the start pose onto the reference.
+    Blend,
+    /// Following the reference (tracking statistics are taken here).
+    Track,
+    /// The final packet: zero torque, amplifiers off.
+    Stop,
+}
+
+impl Mode {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Mode::Blend => "blend",
+            Mode::Track => "track",
+            Mode::Stop => "stop",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Mode> {
+        match s {
+            "blend" => Some(Mode::Blend),
+            "track" => Some(Mode::Track),
+            "stop" => Some(Mode::Stop),
+            _ => None,
+        }
+    }
+}
+
+/// Bits of the `flags` column: which safety action touched this tick.
+pub mod flags {
+    /// The torque clamp limited at least one joint.
+    pub const CLAMPED: u32 = 1 << 0;
+    /// The controller's output was not finite; zero torque was sent instead.
+    pub const NON_FINITE: u32 = 1 << 1;
+    /// The previous tick's packet was missed and its torque held.
+    pub const HELD: u32 = 1 << 2;
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TickRecord {
+    /// Device time since start, s.
+    pub t: f64,
+    /// Measured joint angles (from the encoders), rad.
+    pub q: [f64; 3],
+    /// Torque actually commanded to the motors after limits and DAC quantisation, N·m.
+    pub tau: [f64; 3],
+    /// Kalman estimates.
+    pub qf: [f64; 3],
+    pub qd: [f64; 3],
+    pub qdd: [f64; 3],
+    /// Reference position, rad.
+    pub reference: [f64; 3],
+    /// Controller output before the safety layer, N·m.
+    pub tau_cmd: [f64; 3],
+    /// The plant's exact model on the estimated states (simulator only, else NaN).
+    pub tau_model: [f64; 3],
+    /// Continuous encoder counts.
+    pub enc: [i64; 3],
+    pub amps: bool,
+    pub mode: Mode,
+    pub flags: u32,
+}
+
+/// Which optional column groups a log carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LogSchema {
+    /// `tau_model1..3` (simulator runs).
+    pub model: bool,
+}
+
+/// The seven columns every log starts with, and every replayable file must have.
+pub const REQUIRED_COLUMNS: [&str; 7] = ["t", "q1", "q2", "q3", "tau1", "tau2", "tau3"];
+
+impl LogSchema {
+    pub fn columns(&self) -> Vec<String> {
+        let mut c: Vec<String> = REQUIRED_COLUMNS.iter().map(|s| s.to_string()).collect();
+        for group in ["qf", "qd", "qdd", "ref", "tau_cmd"] {
+            c.extend((1..=3).map(|j| format!("{group}{j}")));
+        }
+        if self.model {
+            c.extend((1..=3).map(|j| format!("tau_model{j}")));
+        }
+        c.extend((1..=3).map(|j| format!("enc{j}")));
+        c.extend(["amps", "mode", "flags"].map(String::from));
+        c
+    }
+}

@@ -1,0 +1,250 @@
+//! The run summary (DESIGN §2.3): accumulated in the loop without allocation (`RunStats`),
+//! turned into JSON and a human printout at the end.
+
+use crate::servo::timing::{Percentiles, TickTiming};
+use serde::{Deserialize, Serialize};
+
+/// Running sums for the summary, updated every tick.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RunStats {
+    pub ticks: u64,
+    pub first_t: Option<f64>,
+    pub last_t: f64,
+    tracked: u64,
+    track_sq: [f64; 3],
+    track_max: [f64; 3],
+    torque_n: u64,
+    torque_sq: [f64; 3],
+    torque_tv: [f64; 3],
+    last_tau: Option<[f64; 3]>,
+    oracle_n: u64,
+    oracle_err_sq: [f64; 3],
+    oracle_tau_sq: [f64; 3],
+    pub clamped_ticks: u64,
+}
+
+impl RunStats {
+    pub fn record_time(&mut self, t: f64) {
+        self.ticks += 1;
+        self.first_t.get_or_insert(t);
+        self.last_t = t;
+    }
+
+    pub fn record_tracking(&mut self, error: &[f64; 3]) {
+        self.tracked += 1;
+        for j in 0..3 {
+            self.track_sq[j] += error[j] * error[j];
+            self.track_max[j] = self.track_max[j].max(error[j].abs());
+        }
+    }
+
+    pub fn record_torque(&mut self, tau: &[f64; 3]) {
+        self.torque_n += 1;
+        for j in 0..3 {
+            self.torque_sq[j] += tau[j] * tau[j];
+            if let Some(last) = self.last_tau {
+                self.torque_tv[j] += (tau[j] - last[j]).abs();
+            }
+        }
+        self.last_tau = Some(*tau);
+    }
+
+    /// The plant's exact model against the applied torque (simulator only).
+    pub fn record_oracle(&mut self, tau: &[f64; 3], tau_model: &[f64; 3]) {
+        self.oracle_n += 1;
+        for j in 0..3 {
+            self.oracle_err_sq[j] += (tau[j] - tau_model[j]).powi(2);
+            self.oracle_tau_sq[j] += tau[j] * tau[j];
+        }
+    }
+
+    pub fn tracking_rms(&self) -> Option<[f64; 3]> {
+        (self.tracked > 0).then(|| self.track_sq.map(|s| (s / self.tracked as f64).sqrt()))
+    }
+
+    pub fn tracking_max(&self) -> Option<[f64; 3]> {
+        (self.tracked > 0).then_some(self.track_max)
+    }
+
+    pub fn torque_rms(&self) -> Option<[f64; 3]> {
+        (self.torque_n > 0).then(|| self.torque_sq.map(|s| (s / self.torque_n as f64).sqrt()))
+    }
+
+    pub fn torque_total_variation(&self) -> [f64; 3] {
+        self.torque_tv
+    }
+
+    pub fn oracle_nrmse(&self) -> Option<[f64; 3]> {
+        (self.oracle_n > 0).then(|| {
+            let mut r = [0.0; 3];
+            for j in 0..3 {
+                r[j] =
+                    (self.oracle_err_sq[j] / self.oracle_tau_sq[j].max(f64::MIN_POSITIVE)).sqrt();
+            }
+            r
+        })
+    }
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct IdentifierSummary {
+    pub nrmse: Option<[f64; 3]>,
+    pub nrmse_last_20pct: Option<[f64; 3]>,
+    pub nrmse_oracle: Option<[f64; 3]>,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct TimingSummary {
+    pub period: Option<Percentiles>,
+    /// Null for unpaced (`--fast`) runs, where lateness has no meaning.
+    pub lateness: Option<Percentiles>,
+    pub compute: Option<Percentiles>,
+    pub overruns: u64,
+}
+
+impl TimingSummary {
+    pub fn from_timing(t: &TickTiming) -> Self {
+        TimingSummary {
+            period: t.period.percentiles_us(),
+            lateness: t.lateness.percentiles_us(),
+            compute: t.compute.percentiles_us(),
+            overruns: t.overruns,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FaultEntry {
+    pub tick: u64,
+    pub t: f64,
+    pub class: String,
+    pub message: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunSummary {
+    pub device: String,
+    pub controller: String,
+    pub trajectory: String,
+    pub ticks: u64,
+    pub duration_s: f64,
+    pub tracking_rms_rad: Option<[f64; 3]>,
+    pub tracking_max_rad: Option<[f64; 3]>,
+    pub torque_rms_nm: Option<[f64; 3]>,
+    pub torque_total_variation_nm: [f64; 3],
+    pub identifier: IdentifierSummary,
+    pub timing_us: TimingSummary,
+    pub faults: Vec<FaultEntry>,
+    pub telemetry_dropped: u64,
+    /// How the run ended: completed, end-of-data, operator-stop, device-fault, safety-fault.
+    pub end: String,
+    pub missed_packets: u64,
+    pub clamped_ticks: u64,
+    pub log_path: Option<String>,
+    pub log_rows: u64,
+    pub seed: u64,
+    pub fast: bool,
+}
+
+fn triple(v: Option<[f64; 3]>, scale: f64, unit: &str) -> String {
+    match v {
+        Some(v) => format!(
+            "{:.2} / {:.2} / {:.2} {unit}",
+            v[0] * scale,
+            v[1] * scale,
+            v[2] * scale
+        ),
+        None => "n/a".to_string(),
+    }
+}
+
+fn pct(p: &Option<Percentiles>) -> String {
+    match p {
+        Some(p) => format!(
+            "p50 {:.1}  p99 {:.1}  p99.9 {:.1}  max {:.1} µs",
+            p.p50, p.p99, p.p999, p.max
+        ),
+        None => "n/a".to_string(),
+    }
+}
+
+impl RunSummary {
+    /// The printout at the end of a run.
+    pub fn human(&self) -> String {
+        let mut s = format!(
+            "omnid run: {} ticks ({:.3} s device time) on {} with {} following {}{}; ended: {}\n",
+            self.ticks,
+            self.duration_s,
+            self.device,
+            self.controller,
+            self.trajectory,
+            if self.fast { " (--fast)" } else { "" },
+            self.end
+        );
+        s += &format!(
+            "  tracking RMS    {}   (joints 1/2/3, after the start-up blend)\n",
+            triple(self.tracking_rms_rad, 1e3, "mrad")
+        );
+        s += &format!(
+            "  tracking max    {}\n",
+            triple(self.tracking_max_rad, 1e3, "mrad")
+        );
+        s += &format!(
+            "  torque RMS      {}\n",
+            triple(self.torque_rms_nm, 1e3, "mN·m")
+        );
+        s += &format!(
+            "  torque TV       {}   (total variation: chattering)\n",
+            triple(Some(self.torque_total_variation_nm), 1.0, "N·m")
+        );
+        if self.identifier.nrmse.is_some() || self.identifier.nrmse_oracle.is_some() {
+            s += &format!(
+                "  ident NRMSE     {}   (last 20 %: {}; exact model: {})\n",
+                triple(self.identifier.nrmse, 1.0, ""),
+                triple(self.identifier.nrmse_last_20pct, 1.0, ""),
+                triple(self.identifier.nrmse_oracle, 1.0, "")
+            );
+        }
+        s += &format!("  period          {}\n", pct(&self.timing_us.period));
+        s += &format!("  lateness        {}\n", pct(&self.timing_us.lateness));
+        s += &format!(
+            "  compute         {}   overruns {}\n",
+            pct(&self.timing_us.compute),
+            self.timing_us.overruns
+        );
+        s += &format!(
+            "  packets missed {}  clamped ticks {}  telemetry dropped {}\n",
+            self.missed_packets, self.clamped_ticks, self.telemetry_dropped
+        );
+        for f in &self.faults {
+            s += &format!(
+                "  FAULT at tick {} (t = {:.3} s): {}: {}\n",
+                f.tick, f.t, f.class, f.message
+            );
+        }
+        if let Some(p) = &self.log_path {
+            s += &format!("  log: {} ({} rows)\n", p, self.log_rows);
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stats_match_a_direct_computation() {
+        let mut st = RunStats::default();
+        let taus = [[0.1, -0.2, 0.0], [0.3, 0.2, 0.0], [-0.1, 0.0, 0.05]];
+        for t in &taus {
+            st.record_torque(t);
+            st.record_tracking(t);
+        }
+        let rms0 = ((0.01 + 0.09 + 0.01) / 3.0f64).sqrt();
+        assert!((st.torque_rms().unwrap()[0] - rms0).abs() < 1e-15);
+        assert!((st.torque_total_variation()[0] - (0.2 + 0.4)).abs() < 1e-15);
+        assert_eq!(st.tracking_max().unwrap()[1], 0.2);
+        assert!(RunStats::default().tracking_rms().is_none());
+    }
+}
