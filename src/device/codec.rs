@@ -350,7 +350,7 @@ mod tests {
         b[STATE_LAYOUT.status] = 0xFF;
         let s = decode_state(&b).unwrap();
         assert_eq!((s.buttons, s.inkwell), ([false, false], false));
-        b[STATE_LAYOUT.status] = 0xFF & !(1 << 2);
+        b[STATE_LAYOUT.status] = !(1 << 2);
         assert!(decode_state(&b).unwrap().inkwell);
     }
 

@@ -49,7 +49,7 @@ impl SimOmni {
             substeps: cfg.sim.substeps,
             noise_nm: cfg.sim.torque_noise_nm,
             // A separate stream from the one the reference uses, from the same seed.
-            rng: ChaCha8Rng::seed_from_u64(cfg.sim.seed ^ 0x5EED_0F_0A1D),
+            rng: ChaCha8Rng::seed_from_u64(cfg.sim.seed ^ 0x005E_ED0F_0A1D),
             start_pose,
             q: start_pose,
             qd: Joint3::zeros(),

@@ -374,15 +374,20 @@ impl Servo {
                 break end;
             }
         };
+        self.finish(end)
+    }
+
+    /// End the run for `end`: record the fault if any, send the safe packet, release the
+    /// device, and hand back the results.
+    pub fn finish(mut self, end: EndReason) -> ServoReport {
         let mut faults = Vec::new();
-        match &end {
-            EndReason::DeviceFault(m) | EndReason::SafetyFault(m) => faults.push(FaultEntry {
+        if let EndReason::DeviceFault(m) | EndReason::SafetyFault(m) = &end {
+            faults.push(FaultEntry {
                 tick: self.tick,
                 t: self.last_t,
                 class: end.as_str().to_string(),
                 message: m.clone(),
-            }),
-            _ => {}
+            });
         }
         let shutdown_error = self.shutdown();
         ServoReport {

@@ -1,0 +1,118 @@
+//! The servo loop allocates nothing per tick: a counting global allocator watches the servo
+//! thread (only) over thousands of ticks after warm-up.
+
+use omnid::config::Config;
+use omnid::control::{ControllerKind, Off, Pd, Reference, Trajectory};
+use omnid::device::sim::SimOmni;
+use omnid::servo::{EndReason, Servo};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+struct Counting;
+
+thread_local! {
+    // Per thread, so tests running in parallel do not see each other's allocations.
+    static WATCHED: Cell<bool> = const { Cell::new(false) };
+    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+}
+
+fn note() {
+    // try_with: TLS may be gone while a thread is being torn down.
+    if WATCHED.try_with(|w| w.get()).unwrap_or(false) {
+        let _ = ALLOCATIONS.try_with(|n| n.set(n.get() + 1));
+    }
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        note();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// Allocations on this thread while `f` runs.
+fn count_allocations(f: impl FnOnce()) -> u64 {
+    let before = ALLOCATIONS.with(|n| n.get());
+    WATCHED.with(|w| w.set(true));
+    f();
+    WATCHED.with(|w| w.set(false));
+    ALLOCATIONS.with(|n| n.get()) - before
+}
+
+#[test]
+fn the_counter_sees_an_allocation() {
+    // The instrument itself must be able to fail.
+    let n = count_allocations(|| {
+        std::hint::black_box(vec![1u8; 100]);
+    });
+    assert!(n >= 1);
+}
+
+fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
+    let cfg = Config::default();
+    let device = Box::new(SimOmni::new(&cfg, false));
+    let controller: Box<dyn omnid::control::Controller> = match kind {
+        ControllerKind::Pd => Box::new(Pd::from_config(&cfg)),
+        ControllerKind::Off => Box::new(Off),
+        other => panic!("{other:?} not covered here"),
+    };
+    let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
+    // A small channel drained by a consumer thread: both the send and the full (dropped)
+    // paths are taken.
+    let (tx, rx) = crossbeam_channel::bounded(64);
+    let consumer = std::thread::spawn(move || {
+        let mut n = 0u64;
+        for _ in rx.iter() {
+            n += 1;
+            if n % 512 == 0 {
+                std::thread::yield_now();
+            }
+        }
+        n
+    });
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, false);
+    for _ in 0..2_500 {
+        assert!(servo.tick().is_none());
+    }
+    let n = count_allocations(|| {
+        for _ in 0..5_000 {
+            assert!(servo.tick().is_none());
+        }
+    });
+    assert_eq!(n, 0, "{kind:?}: {n} allocations in 5000 ticks");
+    let report = servo.finish(EndReason::Completed);
+    assert!(report.last_command.is_safe());
+    assert!(consumer.join().unwrap() > 0);
+}
+
+#[test]
+fn sim_pd_sine_allocates_nothing_per_tick() {
+    ticks_allocate_nothing(ControllerKind::Pd, Trajectory::Sine);
+}
+
+#[test]
+fn sim_pd_multisine_allocates_nothing_per_tick() {
+    ticks_allocate_nothing(ControllerKind::Pd, Trajectory::Multisine);
+}
+
+#[test]
+fn sim_off_allocates_nothing_per_tick() {
+    ticks_allocate_nothing(ControllerKind::Off, Trajectory::Hold);
+}

@@ -1,0 +1,123 @@
+//! Bad configuration files: one line naming the field and the allowed range, exit 2, no panic.
+
+mod common;
+use common::{omnid, run_ok};
+
+fn with_config(text: &str) -> (i32, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(&cfg, text).unwrap();
+    let log = dir.path().join("x.csv");
+    let out = omnid()
+        .args([
+            "run",
+            "--fast",
+            "--duration",
+            "0.1",
+            "--config",
+            cfg.to_str().unwrap(),
+        ])
+        .args(["--log", log.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!log.exists(), "nothing may run with a bad config");
+    (
+        out.status.code().unwrap(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn assert_bad(text: &str, must_contain: &[&str]) {
+    let (code, err) = with_config(text);
+    assert_eq!(code, 2, "exit code for {text:?}: {err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    for m in must_contain {
+        assert!(err.contains(m), "{err:?} should mention {m:?}");
+    }
+}
+
+#[test]
+fn unknown_key() {
+    assert_bad("[kalman]\njerk_pds = 10.0\n", &["jerk_pds", "line 2"]);
+}
+
+#[test]
+fn unknown_section() {
+    assert_bad("[kalmann]\njerk_psd = 10.0\n", &["kalmann"]);
+}
+
+#[test]
+fn wrong_type() {
+    assert_bad("[control]\nomega_n = \"fast\"\n", &["omega_n", "line 2"]);
+}
+
+#[test]
+fn negative_gain() {
+    assert_bad(
+        "[control]\nomega_n = -25.0\n",
+        &["control.omega_n", "0.1 ..= 200"],
+    );
+}
+
+#[test]
+fn non_finite_value() {
+    assert_bad(
+        "[kalman]\nmeasurement_var = nan\n",
+        &["kalman.measurement_var", "finite"],
+    );
+}
+
+#[test]
+fn torque_limit_not_positive() {
+    assert_bad(
+        "[safety]\nmax_torque_nm = [0.45, 0.0, 0.45]\n",
+        &["safety.max_torque_nm[1]", "> 0"],
+    );
+    assert_bad(
+        "[safety]\nmax_torque_nm = [-0.1, 0.4, 0.45]\n",
+        &["safety.max_torque_nm[0]"],
+    );
+}
+
+#[test]
+fn unreadable_file() {
+    let out = omnid()
+        .args(["run", "--fast", "--config", "/no/such/omnid.toml"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/no/such/omnid.toml"));
+}
+
+#[test]
+fn printed_default_config_is_accepted() {
+    let out = run_ok(&["config", "--print-default"]);
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("jerk_psd = 100.0") && text.contains("max_torque_nm"));
+    let (code, err) = with_config_ok(&text);
+    assert_eq!(code, 0, "{err}");
+}
+
+fn with_config_ok(text: &str) -> (i32, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(&cfg, text).unwrap();
+    let log = dir.path().join("x.csv");
+    let out = omnid()
+        .args([
+            "run",
+            "--fast",
+            "--duration",
+            "0.1",
+            "--config",
+            cfg.to_str().unwrap(),
+        ])
+        .args(["--log", log.to_str().unwrap()])
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
