@@ -160,7 +160,7 @@ fn unwritable_log_fails_before_running() {
 fn bad_duration_is_bad_input() {
     for d in ["-1", "0", "nan", "inf"] {
         let out = omnid()
-            .args(["run", "--fast", "--duration", d])
+            .args(["run", "--fast", &format!("--duration={d}")])
             .output()
             .unwrap();
         assert_eq!(out.status.code(), Some(2), "--duration {d}");
