@@ -1,0 +1,160 @@
+//! Per-tick cost of each stage of the servo loop and of the whole tick, plus `--fast`
+//! throughput on the simulated Omni. `cargo bench --bench tick`.
+
+use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
+use omnid::config::Config;
+use omnid::control::{ControlInput, Controller, Pd, Reference, Trajectory};
+use omnid::device::codec::encode_state;
+use omnid::device::sim::SimOmni;
+use omnid::device::{
+    decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
+    RawSample, StatePacket, COMMAND_LEN,
+};
+use omnid::estimate::KalmanBank;
+use omnid::omni::Joint3;
+use omnid::servo::Servo;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+/// A device that answers instantly from a precomputed ring of packets: the whole tick's host
+/// cost without the plant simulation.
+struct Canned {
+    packets: Vec<[u8; 44]>,
+    i: usize,
+}
+
+impl Device for Canned {
+    fn kind(&self) -> &'static str {
+        "canned"
+    }
+    fn exchange(&mut self, _c: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError> {
+        let k = self.i;
+        self.i += 1;
+        Ok(RawSample::new(self.packets[k % self.packets.len()], k as f64 * 1e-3))
+    }
+}
+
+fn canned(cfg: &Config) -> Canned {
+    let step = cfg.device.rad_per_count();
+    let packets = (0..4000)
+        .map(|k| {
+            let t = k as f64 * 1e-3;
+            let mut s = StatePacket::default();
+            for j in 0..3 {
+                let q = cfg.reference.center[j] + 0.3 * (std::f64::consts::PI * t).sin();
+                s.encoder[j] = ((q / step).round() as i64) as u16;
+            }
+            s.counter = k;
+            encode_state(&s)
+        })
+        .collect();
+    Canned { packets, i: 0 }
+}
+
+fn stages(c: &mut Criterion) {
+    let cfg = Config::default();
+    let packet = canned(&cfg).packets[100];
+    let mut g = c.benchmark_group("stage");
+    g.bench_function("decode+unwrap", |b| {
+        let mut u = EncoderUnwrap::new();
+        b.iter(|| u.update(decode_state(black_box(&packet)).unwrap().encoder))
+    });
+    g.bench_function("kalman(3 joints)", |b| {
+        let mut k = KalmanBank::new(&cfg.kalman);
+        let mut t = 0.0;
+        b.iter(|| {
+            t += 1e-3;
+            k.update(t, black_box(&Joint3::new(0.1, 0.5, 0.2)))
+        })
+    });
+    g.bench_function("reference(sine)+pd", |b| {
+        let mut pd = Pd::from_config(&cfg);
+        let mut r = Reference::new(Trajectory::Sine, &cfg.reference, 1);
+        let est = KalmanBank::new(&cfg.kalman).update(0.0, &Joint3::new(0.0, 0.6, 0.3));
+        let mut t = 0.0;
+        b.iter(|| {
+            t += 1e-3;
+            let reference = r.at(t, &est.q);
+            pd.torque(&ControlInput {
+                t,
+                estimate: black_box(&est),
+                reference: &reference,
+            })
+        })
+    });
+    g.bench_function("encode", |b| {
+        let dac = DacScale {
+            nm_per_count: cfg.device.nm_per_count,
+        };
+        b.iter(|| {
+            let words = dac.to_words(black_box(&[0.01, -0.2, 0.3]));
+            encode_command(&MotorCommand {
+                dac: words,
+                amps_on: true,
+                lamp: 0,
+                watchdog: 3,
+            })
+        })
+    });
+    g.finish();
+}
+
+fn whole_tick(c: &mut Criterion) {
+    let cfg = Config::default();
+    let mut g = c.benchmark_group("tick");
+    g.bench_function("servo tick, pd, canned device", |b| {
+        let (tx, rx) = crossbeam_channel::bounded(1 << 16);
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(canned(&cfg)),
+            Box::new(Pd::from_config(&cfg)),
+            Reference::new(Trajectory::Sine, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        b.iter(|| {
+            servo.tick();
+            // Keep the channel from filling, as the writer thread would.
+            while rx.try_recv().is_ok() {}
+        })
+    });
+    g.bench_function("sim plant step (4 RK4 substeps)", |b| {
+        let mut sim = SimOmni::new(&cfg, false);
+        let cmd = encode_command(&MotorCommand::safe(0));
+        b.iter(|| sim.exchange(black_box(&cmd)).unwrap())
+    });
+    g.finish();
+}
+
+fn fast_throughput(c: &mut Criterion) {
+    let cfg = Config::default();
+    let ticks = 10_000u64;
+    let mut g = c.benchmark_group("fast");
+    g.throughput(Throughput::Elements(ticks));
+    g.sample_size(20);
+    g.bench_function("sim+pd 10 s run", |b| {
+        b.iter(|| {
+            let (tx, rx) = crossbeam_channel::bounded(1 << 14);
+            let drain = std::thread::spawn(move || rx.iter().count());
+            let servo = Servo::new(
+                &cfg,
+                Box::new(SimOmni::new(&cfg, false)),
+                Box::new(Pd::from_config(&cfg)),
+                Reference::new(Trajectory::Sine, &cfg.reference, 1),
+                tx,
+                Arc::new(AtomicBool::new(false)),
+                Some(ticks),
+                false,
+            );
+            let report = servo.run();
+            drain.join().unwrap();
+            report.stats.ticks
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, stages, whole_tick, fast_throughput);
+criterion_main!(benches);
