@@ -30,7 +30,10 @@ impl Device for Canned {
     fn exchange(&mut self, _c: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError> {
         let k = self.i;
         self.i += 1;
-        Ok(RawSample::new(self.packets[k % self.packets.len()], k as f64 * 1e-3))
+        Ok(RawSample::new(
+            self.packets[k % self.packets.len()],
+            k as f64 * 1e-3,
+        ))
     }
 }
 

@@ -111,6 +111,10 @@ pub struct ControlConfig {
     pub omega_n: f64,
     /// Closed-loop damping ratio.
     pub zeta: f64,
+    /// Computed torque: its rigid-body model is the plant's parameters times this factor.
+    pub ct_model_scale: f64,
+    /// Computed torque: also compensate the model's viscous and Coulomb friction.
+    pub ct_friction: bool,
 }
 
 impl Default for ControlConfig {
@@ -118,6 +122,8 @@ impl Default for ControlConfig {
         ControlConfig {
             omega_n: 25.0,
             zeta: 1.0,
+            ct_model_scale: 1.0,
+            ct_friction: false,
         }
     }
 }
@@ -296,6 +302,14 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
     ("control", "Controller gains, shared by PD, CT and NNIDC."),
     ("control.omega_n", "closed-loop natural frequency, rad/s"),
     ("control.zeta", "closed-loop damping ratio"),
+    (
+        "control.ct_model_scale",
+        "computed torque: model parameters = plant's × this factor",
+    ),
+    (
+        "control.ct_friction",
+        "computed torque: also compensate the model's friction",
+    ),
     ("reference", "Reference trajectories."),
     ("reference.center", "pose the trajectories move about, rad"),
     ("reference.amplitude", "sine amplitudes, rad"),
@@ -536,6 +550,13 @@ impl Config {
             "0.1 ..= 200 rad/s",
         )?;
         finite_in("control.zeta", self.control.zeta, 0.05, 10.0, "0.05 ..= 10")?;
+        finite_in(
+            "control.ct_model_scale",
+            self.control.ct_model_scale,
+            0.1,
+            10.0,
+            "0.1 ..= 10",
+        )?;
 
         let r = &self.reference;
         for i in 0..3 {

@@ -2,7 +2,7 @@
 //! options, run it on its own thread, and turn the result into the run summary.
 
 use crate::config::Config;
-use crate::control::{Controller, ControllerKind, Off, Pd, Reference, Trajectory};
+use crate::control::{ComputedTorque, Controller, ControllerKind, Off, Pd, Reference, Trajectory};
 use crate::device::sim::SimOmni;
 use crate::device::{Device, DeviceError};
 use crate::servo::{EndReason, Servo};
@@ -101,8 +101,9 @@ fn make_controller(kind: ControllerKind, cfg: &Config) -> Result<Box<dyn Control
     match kind {
         ControllerKind::Pd => Ok(Box::new(Pd::from_config(cfg))),
         ControllerKind::Off => Ok(Box::new(Off)),
+        ControllerKind::Ct => Ok(Box::new(ComputedTorque::from_config(cfg))),
         other => Err(RunError::BadInput(format!(
-            "controller `{}` is not available in this build yet; use --controller pd or off",
+            "controller `{}` is not available in this build yet; use --controller pd, ct or off",
             other.as_str()
         ))),
     }

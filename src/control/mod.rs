@@ -1,9 +1,11 @@
 //! Control: reference trajectories and the controllers that turn (estimate, reference) into
 //! joint torque. Every controller is behind one trait and chosen by flag.
 
+pub mod ct;
 pub mod pd;
 pub mod reference;
 
+pub use ct::{ComputedTorque, OuterLoop};
 pub use pd::{Off, Pd};
 pub use reference::{RefPoint, Reference, Trajectory};
 
