@@ -2,6 +2,7 @@
 //! refused, every value validated with an error that names the field and the allowed range.
 
 use crate::omni::{Geometry, ModelParams};
+pub use crate::servo::safety::SafetyConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use thiserror::Error;
@@ -166,24 +167,6 @@ impl Default for ReferenceConfig {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct SafetyConfig {
-    /// Per-joint torque clamp, N·m.
-    pub max_torque_nm: [f64; 3],
-    /// Consecutive missed or bad packets that make a device fault.
-    pub max_missed_ticks: u32,
-}
-
-impl Default for SafetyConfig {
-    fn default() -> Self {
-        SafetyConfig {
-            max_torque_nm: [0.45; 3],
-            max_missed_ticks: 20,
-        }
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
 pub struct TelemetryConfig {
     /// Capacity of the bounded channel from the servo loop to the log writer, ticks.
     pub channel_capacity: usize,
@@ -333,12 +316,6 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
     (
         "reference.multisine_components",
         "multisine components per joint",
-    ),
-    ("safety", "Limits every command passes through."),
-    ("safety.max_torque_nm", "per-joint torque clamp, N·m"),
-    (
-        "safety.max_missed_ticks",
-        "consecutive missed or bad packets that make a device fault",
     ),
     (
         "telemetry",
@@ -607,19 +584,7 @@ impl Config {
             });
         }
 
-        each(
-            "safety.max_torque_nm",
-            &self.safety.max_torque_nm,
-            |f, v| finite_in(f, v, f64::MIN_POSITIVE, 2.0, "> 0 and ≤ 2 N·m"),
-        )?;
-
-        if !(1..=10_000).contains(&self.safety.max_missed_ticks) {
-            return Err(ConfigError::Invalid {
-                field: "safety.max_missed_ticks".into(),
-                value: self.safety.max_missed_ticks.to_string(),
-                allowed: "1 ..= 10000".into(),
-            });
-        }
+        self.safety.validate()?;
 
         let cap = self.telemetry.channel_capacity;
         if !(16..=10_000_000).contains(&cap) {
@@ -663,7 +628,11 @@ impl Config {
 }
 
 fn doc_for(key: &str) -> Option<&'static str> {
-    FIELD_DOCS.iter().find(|(k, _)| *k == key).map(|(_, d)| *d)
+    [FIELD_DOCS, crate::servo::safety::SAFETY_FIELD_DOCS]
+        .into_iter()
+        .flatten()
+        .find(|(k, _)| *k == key)
+        .map(|(_, d)| *d)
 }
 
 /// One line from a TOML error: where it is (line and the text there) and what is wrong.

@@ -3,6 +3,7 @@
 //! through a bounded channel with `try_send`.
 
 pub mod clock;
+pub mod safety;
 pub mod timing;
 
 use crate::config::Config;
@@ -16,6 +17,7 @@ use crate::omni::Joint3;
 use crate::telemetry::record::{flags, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, RunStats};
 use crossbeam_channel::{Sender, TrySendError};
+use safety::SafetyLayer;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use timing::TickTiming;
@@ -70,7 +72,7 @@ pub struct Servo {
     unwrap: EncoderUnwrap,
     dac: DacScale,
     rad_per_count: f64,
-    max_torque: Joint3,
+    safety: SafetyLayer,
     blend_s: f64,
     settle_s: f64,
     max_missed: u32,
@@ -120,7 +122,7 @@ impl Servo {
                 nm_per_count: cfg.device.nm_per_count,
             },
             rad_per_count: cfg.device.rad_per_count(),
-            max_torque: Joint3::from(cfg.safety.max_torque_nm),
+            safety: SafetyLayer::new(&cfg.safety, 1.0 / cfg.device.rate_hz, [0.0; 3]),
             blend_s: cfg.reference.blend_s,
             settle_s: cfg.reference.settle_s,
             max_missed: cfg.safety.max_missed_ticks,
@@ -204,21 +206,17 @@ impl Servo {
             reference: &reference,
         });
 
-        // Safety: a non-finite output is zero torque; every joint is clamped.
-        let mut tick_flags = if self.held { flags::HELD } else { 0 };
-        self.held = false;
-        let mut tau = tau_cmd;
-        if tau.iter().any(|v| !v.is_finite()) {
-            tau = Joint3::zeros();
-            tick_flags |= flags::NON_FINITE;
-        }
-        for j in 0..3 {
-            let lim = self.max_torque[j];
-            if tau[j].abs() > lim {
-                tau[j] = tau[j].clamp(-lim, lim);
-                tick_flags |= flags::CLAMPED;
+        // Safety: every command passes through the limits; a trip ends the run.
+        let limited = match self.safety.apply(&tau_cmd, &est.q, &est.qd) {
+            Ok(l) => l,
+            Err(trip) => {
+                self.last_t = t;
+                return Some(EndReason::SafetyFault(trip.to_string()));
             }
-        }
+        };
+        let tau = limited.tau;
+        let tick_flags = limited.flags | if self.held { flags::HELD } else { 0 };
+        self.held = false;
 
         // Encode: the next exchange sends it, amplifiers on from now.
         let words = self.dac.to_words(&tau.into());

@@ -39,6 +39,16 @@ pub mod flags {
     pub const NON_FINITE: u32 = 1 << 1;
     /// The previous tick's packet was missed and its torque held.
     pub const HELD: u32 = 1 << 2;
+    /// The kick (torque-rate) limit acted.
+    pub const RATE: u32 = 1 << 3;
+    /// The start-up ramp scaled the torque down.
+    pub const RAMP: u32 = 1 << 4;
+    /// A soft joint-limit wall acted.
+    pub const WALL: u32 = 1 << 5;
+    /// A hot motor was held to its continuous torque.
+    pub const THERMAL: u32 = 1 << 6;
+    /// A motor is near its thermal limit.
+    pub const THERMAL_WARN: u32 = 1 << 7;
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]

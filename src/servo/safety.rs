@@ -1,0 +1,482 @@
+//! The safety layer every command passes through (DESIGN §4.7, issue "Safety and faults"):
+//! non-finite guard, joint velocity limit, soft joint-limit walls, start-up ramp, per-joint
+//! clamp, torque-rate (kick) limit and a motor thermal model. It runs in the 1 kHz loop: fixed
+//! state, no allocation. Each limit that acts sets a bit in the tick's `flags`.
+
+use crate::config::ConfigError;
+use crate::omni::Joint3;
+use crate::telemetry::record::flags;
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SafetyConfig {
+    /// Per-joint torque clamp, N·m.
+    pub max_torque_nm: [f64; 3],
+    /// Consecutive missed or bad packets that make a device fault.
+    pub max_missed_ticks: u32,
+    /// Largest torque change per second (kick limit), N·m/s.
+    pub max_torque_rate_nm_s: [f64; 3],
+    /// Start-up ramp from zero to full authority, s.
+    pub ramp_s: f64,
+    /// Joint speed beyond which the run stops with a safety fault, rad/s.
+    pub max_velocity_rad_s: [f64; 3],
+    /// Soft walls: beyond these angles a spring-damper pushes back, rad.
+    pub wall_lower: [f64; 3],
+    pub wall_upper: [f64; 3],
+    /// Wall stiffness (N·m/rad) and damping (N·m·s/rad).
+    pub wall_stiffness: f64,
+    pub wall_damping: f64,
+    /// Continuous torque rating per motor, N·m: the thermal model's unit of heating.
+    pub continuous_torque_nm: [f64; 3],
+    /// Thermal time constant of the motor windings, s.
+    pub thermal_time_constant_s: f64,
+    /// Heat level (1 = steady state at the continuous torque) that warns, and that clamps the
+    /// motor to its continuous torque until it cools below `thermal_release`.
+    pub thermal_warn: f64,
+    pub thermal_limit: f64,
+    pub thermal_release: f64,
+}
+
+impl Default for SafetyConfig {
+    fn default() -> Self {
+        SafetyConfig {
+            max_torque_nm: [0.45; 3],
+            max_missed_ticks: 20,
+            max_torque_rate_nm_s: [50.0; 3],
+            ramp_s: 0.5,
+            max_velocity_rad_s: [10.0; 3],
+            wall_lower: [-0.95, -0.05, -0.55],
+            wall_upper: [0.95, 1.7, 1.15],
+            wall_stiffness: 2.0,
+            wall_damping: 0.02,
+            continuous_torque_nm: [0.13; 3],
+            thermal_time_constant_s: 30.0,
+            thermal_warn: 0.8,
+            thermal_limit: 1.0,
+            thermal_release: 0.9,
+        }
+    }
+}
+
+pub const SAFETY_FIELD_DOCS: &[(&str, &str)] = &[
+    ("safety", "Limits every command passes through (in this order: non-finite guard, velocity fault, walls, ramp, thermal, clamp, kick)."),
+    ("safety.max_torque_nm", "per-joint torque clamp, N·m"),
+    ("safety.max_missed_ticks", "consecutive missed or bad packets that make a device fault"),
+    ("safety.max_torque_rate_nm_s", "kick limit: largest torque change per second, N·m/s"),
+    ("safety.ramp_s", "start-up ramp from zero to full authority, s"),
+    ("safety.max_velocity_rad_s", "joint speed that stops the run with a safety fault, rad/s"),
+    ("safety.wall_lower", "soft wall: lower joint angles, rad"),
+    ("safety.wall_upper", "soft wall: upper joint angles, rad"),
+    ("safety.wall_stiffness", "soft wall stiffness, N·m/rad"),
+    ("safety.wall_damping", "soft wall damping, N·m·s/rad"),
+    ("safety.continuous_torque_nm", "continuous torque rating per motor, N·m"),
+    ("safety.thermal_time_constant_s", "motor winding thermal time constant, s"),
+    ("safety.thermal_warn", "heat level that warns (1 = steady state at continuous torque)"),
+    ("safety.thermal_limit", "heat level that clamps the motor to its continuous torque"),
+    ("safety.thermal_release", "heat level below which the thermal clamp releases"),
+];
+
+fn invalid(field: String, value: String, allowed: &str) -> ConfigError {
+    ConfigError::Invalid {
+        field,
+        value,
+        allowed: allowed.to_string(),
+    }
+}
+
+fn check(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(invalid(field.to_string(), format!("{v}"), allowed))
+    }
+}
+
+impl SafetyConfig {
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        for j in 0..3 {
+            let f = |name: &str| format!("safety.{name}[{j}]");
+            check(
+                &f("max_torque_nm"),
+                self.max_torque_nm[j],
+                f64::MIN_POSITIVE,
+                2.0,
+                "> 0 and ≤ 2 N·m",
+            )?;
+            check(
+                &f("max_torque_rate_nm_s"),
+                self.max_torque_rate_nm_s[j],
+                1e-3,
+                1e6,
+                "1e-3 ..= 1e6 N·m/s",
+            )?;
+            check(
+                &f("max_velocity_rad_s"),
+                self.max_velocity_rad_s[j],
+                0.1,
+                1000.0,
+                "0.1 ..= 1000 rad/s",
+            )?;
+            check(
+                &f("wall_lower"),
+                self.wall_lower[j],
+                -3.2,
+                self.wall_upper[j],
+                "-3.2 rad ..= safety.wall_upper",
+            )?;
+            check(
+                &f("wall_upper"),
+                self.wall_upper[j],
+                self.wall_lower[j],
+                3.2,
+                "safety.wall_lower ..= 3.2 rad",
+            )?;
+            check(
+                &f("continuous_torque_nm"),
+                self.continuous_torque_nm[j],
+                f64::MIN_POSITIVE,
+                self.max_torque_nm[j],
+                "> 0 and ≤ safety.max_torque_nm",
+            )?;
+        }
+        if !(1..=10_000).contains(&self.max_missed_ticks) {
+            return Err(invalid(
+                "safety.max_missed_ticks".into(),
+                self.max_missed_ticks.to_string(),
+                "1 ..= 10000",
+            ));
+        }
+        check("safety.ramp_s", self.ramp_s, 0.0, 60.0, "0 ..= 60 s")?;
+        check(
+            "safety.wall_stiffness",
+            self.wall_stiffness,
+            0.0,
+            1e3,
+            "0 ..= 1000 N·m/rad",
+        )?;
+        check(
+            "safety.wall_damping",
+            self.wall_damping,
+            0.0,
+            10.0,
+            "0 ..= 10 N·m·s/rad",
+        )?;
+        check(
+            "safety.thermal_time_constant_s",
+            self.thermal_time_constant_s,
+            0.1,
+            1e5,
+            "0.1 ..= 1e5 s",
+        )?;
+        check(
+            "safety.thermal_limit",
+            self.thermal_limit,
+            0.1,
+            100.0,
+            "0.1 ..= 100",
+        )?;
+        check(
+            "safety.thermal_warn",
+            self.thermal_warn,
+            0.0,
+            self.thermal_limit,
+            "0 ..= safety.thermal_limit",
+        )?;
+        check(
+            "safety.thermal_release",
+            self.thermal_release,
+            0.0,
+            self.thermal_limit,
+            "0 ..= safety.thermal_limit",
+        )?;
+        Ok(())
+    }
+}
+
+/// Why the safety layer stops a run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SafetyTrip {
+    /// The controller's output was NaN or infinite on this joint.
+    NonFinite { joint: usize },
+    /// A joint moved faster than its limit.
+    Velocity { joint: usize, speed: f64 },
+}
+
+impl std::fmt::Display for SafetyTrip {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SafetyTrip::NonFinite { joint } => {
+                write!(f, "controller output on joint {} is not finite", joint + 1)
+            }
+            SafetyTrip::Velocity { joint, speed } => {
+                write!(
+                    f,
+                    "joint {} speed {speed:.2} rad/s exceeds the limit",
+                    joint + 1
+                )
+            }
+        }
+    }
+}
+
+/// The torque the layer let through and which limits acted.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Limited {
+    pub tau: Joint3,
+    pub flags: u32,
+}
+
+/// State of the safety layer for one run.
+#[derive(Debug, Clone)]
+pub struct SafetyLayer {
+    cfg: SafetyConfig,
+    dt: f64,
+    last_tau: Joint3,
+    /// Seconds of authority since start (or since the last recovery).
+    ramp_elapsed: f64,
+    /// Heat per motor, in units of the continuous-torque steady state.
+    heat: [f64; 3],
+    hot: [bool; 3],
+    warned: [bool; 3],
+}
+
+impl SafetyLayer {
+    /// `dt`: the servo period, s. `heat`: the motors' heat at start (0 = cold).
+    pub fn new(cfg: &SafetyConfig, dt: f64, heat: [f64; 3]) -> Self {
+        SafetyLayer {
+            cfg: cfg.clone(),
+            dt,
+            last_tau: Joint3::zeros(),
+            ramp_elapsed: 0.0,
+            heat,
+            hot: [false; 3],
+            warned: [false; 3],
+        }
+    }
+
+    /// Start the ramp again (after a recovery): authority returns gradually.
+    pub fn restart_ramp(&mut self) {
+        self.ramp_elapsed = 0.0;
+    }
+
+    pub fn heat(&self) -> [f64; 3] {
+        self.heat
+    }
+
+    /// Pass one command through every limit. `q`, `qd`: the estimated joint state.
+    pub fn apply(
+        &mut self,
+        tau_cmd: &Joint3,
+        q: &Joint3,
+        qd: &Joint3,
+    ) -> Result<Limited, SafetyTrip> {
+        let c = &self.cfg;
+        if let Some(joint) = tau_cmd.iter().position(|v| !v.is_finite()) {
+            return Err(SafetyTrip::NonFinite { joint });
+        }
+        for j in 0..3 {
+            if qd[j].abs() > c.max_velocity_rad_s[j] || !qd[j].is_finite() {
+                return Err(SafetyTrip::Velocity {
+                    joint: j,
+                    speed: qd[j],
+                });
+            }
+        }
+        let mut fl = 0;
+        let mut tau = *tau_cmd;
+
+        // Soft walls: a spring-damper pushing back into the workspace.
+        for j in 0..3 {
+            let over = if q[j] < c.wall_lower[j] {
+                q[j] - c.wall_lower[j]
+            } else if q[j] > c.wall_upper[j] {
+                q[j] - c.wall_upper[j]
+            } else {
+                continue;
+            };
+            // Damp only motion that goes further out.
+            let outward = if qd[j] * over > 0.0 { qd[j] } else { 0.0 };
+            tau[j] = -c.wall_stiffness * over - c.wall_damping * outward;
+            fl |= flags::WALL;
+        }
+
+        // Start-up ramp: authority grows linearly from zero.
+        if self.ramp_elapsed < c.ramp_s {
+            self.ramp_elapsed += self.dt;
+            tau *= (self.ramp_elapsed / c.ramp_s).min(1.0);
+            fl |= flags::RAMP;
+        }
+
+        // Thermal model, then the clamp: a hot motor is held to its continuous torque.
+        for j in 0..3 {
+            let lim = if self.hot[j] {
+                c.continuous_torque_nm[j]
+            } else {
+                c.max_torque_nm[j]
+            };
+            if tau[j].abs() > lim {
+                tau[j] = tau[j].clamp(-lim, lim);
+                fl |= if self.hot[j] {
+                    flags::THERMAL
+                } else {
+                    flags::CLAMPED
+                };
+            }
+        }
+
+        // Kick limit: bounded change from the last command.
+        for j in 0..3 {
+            let step = c.max_torque_rate_nm_s[j] * self.dt;
+            let d = tau[j] - self.last_tau[j];
+            if d.abs() > step {
+                tau[j] = self.last_tau[j] + step.copysign(d);
+                fl |= flags::RATE;
+            }
+        }
+
+        self.heat_up(&tau, &mut fl);
+        self.last_tau = tau;
+        Ok(Limited { tau, flags: fl })
+    }
+
+    /// First-order I²R heating: d(heat)/dt = ((τ/τ_cont)² − heat)/T_th.
+    fn heat_up(&mut self, tau: &Joint3, fl: &mut u32) {
+        let c = &self.cfg;
+        let a = (-self.dt / c.thermal_time_constant_s).exp();
+        for j in 0..3 {
+            let load = (tau[j] / c.continuous_torque_nm[j]).powi(2);
+            self.heat[j] = a * self.heat[j] + (1.0 - a) * load;
+            if self.heat[j] >= c.thermal_limit {
+                self.hot[j] = true;
+            } else if self.heat[j] < c.thermal_release {
+                self.hot[j] = false;
+            }
+            if self.heat[j] >= c.thermal_warn {
+                self.warned[j] = true;
+                *fl |= flags::THERMAL_WARN;
+            }
+        }
+    }
+
+    /// Joints that reached the warning level at some point in the run.
+    pub fn thermal_warned(&self) -> [bool; 3] {
+        self.warned
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn layer() -> SafetyLayer {
+        SafetyLayer::new(&SafetyConfig::default(), 1e-3, [0.0; 3])
+    }
+
+    const Q: Joint3 = Joint3::new(0.0, 0.6, 0.3);
+
+    #[test]
+    fn defaults_are_valid() {
+        SafetyConfig::default().validate().unwrap();
+    }
+
+    #[test]
+    fn ramp_starts_at_zero_authority() {
+        let mut s = layer();
+        let first = s
+            .apply(&Joint3::repeat(0.01), &Q, &Joint3::zeros())
+            .unwrap();
+        assert!(first.tau.amax() <= 0.01 * 1e-3 / 0.5 + 1e-15);
+        assert!(first.flags & flags::RAMP != 0);
+        for _ in 0..600 {
+            s.apply(&Joint3::repeat(0.01), &Q, &Joint3::zeros())
+                .unwrap();
+        }
+        let later = s
+            .apply(&Joint3::repeat(0.01), &Q, &Joint3::zeros())
+            .unwrap();
+        assert_eq!(later.tau, Joint3::repeat(0.01));
+        assert_eq!(later.flags, 0);
+    }
+
+    #[test]
+    fn non_finite_and_overspeed_trip() {
+        let mut s = layer();
+        assert_eq!(
+            s.apply(&Joint3::new(0.0, f64::NAN, 0.0), &Q, &Joint3::zeros()),
+            Err(SafetyTrip::NonFinite { joint: 1 })
+        );
+        assert!(matches!(
+            s.apply(&Joint3::zeros(), &Q, &Joint3::new(0.0, 0.0, -12.0)),
+            Err(SafetyTrip::Velocity { joint: 2, .. })
+        ));
+    }
+
+    #[test]
+    fn walls_push_back_into_the_workspace() {
+        let cfg = SafetyConfig {
+            ramp_s: 0.0,
+            ..Default::default()
+        };
+        let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);
+        let q = Joint3::new(1.0, 0.6, -0.6); // beyond j1's upper and j3's lower wall
+        let out = s.apply(&Joint3::zeros(), &q, &Joint3::zeros()).unwrap();
+        assert!(out.tau[0] < 0.0 && out.tau[2] > 0.0 && out.tau[1] == 0.0);
+        assert!(out.flags & flags::WALL != 0);
+    }
+
+    #[test]
+    fn sustained_high_torque_heats_and_clamps_to_continuous() {
+        let cfg = SafetyConfig {
+            ramp_s: 0.0,
+            thermal_time_constant_s: 2.0,
+            ..Default::default()
+        };
+        let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);
+        let demand = Joint3::new(0.4, 0.0, 0.0);
+        let mut clamped_at = None;
+        for k in 0..20_000 {
+            let out = s.apply(&demand, &Q, &Joint3::zeros()).unwrap();
+            if out.flags & flags::THERMAL != 0 {
+                clamped_at.get_or_insert(k);
+                assert!((out.tau[0] - 0.13).abs() < 1e-12 || out.flags & flags::RATE != 0);
+            }
+        }
+        let k = clamped_at.expect("the thermal clamp must act");
+        // Heating toward (0.4/0.13)² ≈ 9.5 reaches 1 after T·ln(9.5/8.5) ≈ 0.22 s.
+        assert!((150..400).contains(&k), "clamped after {k} ticks");
+        assert!(s.thermal_warned()[0] && !s.thermal_warned()[1]);
+        // Held at the continuous torque, the heat settles at ≤ 1 and the clamp releases and
+        // re-engages around the limit rather than running away.
+        assert!(s.heat()[0] < 1.05);
+    }
+
+    proptest! {
+        #[test]
+        fn never_exceeds_clamp_or_kick_limit(cmds in proptest::collection::vec(
+            prop_oneof![
+                (-5.0f64..5.0),
+                Just(f64::NAN), Just(f64::INFINITY), Just(f64::NEG_INFINITY), Just(1e300)
+            ], 3..300)) {
+            let cfg = SafetyConfig::default();
+            let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);
+            let mut last = Joint3::zeros();
+            for chunk in cmds.chunks(3) {
+                let cmd = Joint3::from_fn(|j, _| chunk[j % chunk.len()]);
+                match s.apply(&cmd, &Q, &Joint3::zeros()) {
+                    Ok(out) => {
+                        for j in 0..3 {
+                            prop_assert!(out.tau[j].is_finite());
+                            prop_assert!(out.tau[j].abs() <= cfg.max_torque_nm[j] + 1e-12);
+                            prop_assert!((out.tau[j] - last[j]).abs() <= cfg.max_torque_rate_nm_s[j] * 1e-3 + 1e-12);
+                        }
+                        last = out.tau;
+                    }
+                    Err(SafetyTrip::NonFinite { .. }) => prop_assert!(cmd.iter().any(|v| !v.is_finite())),
+                    Err(e) => prop_assert!(false, "unexpected trip {e}"),
+                }
+            }
+        }
+    }
+}
