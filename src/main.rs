@@ -7,6 +7,7 @@ use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
 use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
 use omnid::servo::EndReason;
+use omnid::telemetry::convert::{convert, ConvertError, SourceFormat};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -33,6 +34,8 @@ struct Cli {
 enum Command {
     /// Run the 1 kHz servo loop on a device and log every tick.
     Run(RunArgs),
+    /// Convert a recording into a replayable log (for `--device replay:OUT`).
+    Convert(ConvertArgs),
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -52,9 +55,9 @@ struct RunArgs {
     /// Reference trajectory.
     #[arg(long, value_enum, default_value = "sine")]
     trajectory: Trajectory,
-    /// Run length, seconds of device time.
-    #[arg(long, default_value_t = 10.0)]
-    duration: f64,
+    /// Run length, seconds of device time [default: 10; replay: the whole log].
+    #[arg(long)]
+    duration: Option<f64>,
     /// CSV log path (default: logs/omnid-<UTC time>.csv).
     #[arg(long)]
     log: Option<PathBuf>,
@@ -67,6 +70,50 @@ struct RunArgs {
     /// No pacing: run as fast as the CPU allows, same results (sim and replay only).
     #[arg(long)]
     fast: bool,
+    /// Replay: skip damaged rows of the log (reported) instead of refusing it.
+    #[arg(long)]
+    lenient: bool,
+}
+
+#[derive(clap::Args)]
+struct ConvertArgs {
+    /// Format of the input.
+    #[arg(long, value_enum)]
+    from: SourceFormat,
+    /// The recording to convert (CSV).
+    input: PathBuf,
+    /// Where to write the replayable log (CSV).
+    #[arg(long)]
+    out: PathBuf,
+    /// Skip damaged rows (reported) instead of refusing the file.
+    #[arg(long)]
+    lenient: bool,
+}
+
+fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
+    match convert(args.from, &args.input, &args.out, args.lenient) {
+        Ok(report) => {
+            println!(
+                "omnid convert: {} rows from {} to {} (columns: {})",
+                report.rows,
+                args.input.display(),
+                args.out.display(),
+                report.columns.join(",")
+            );
+            if report.skipped.count > 0 {
+                eprintln!("omnid: warning: --lenient: {}", report.skipped);
+            }
+            Ok(0)
+        }
+        Err(e @ ConvertError::Write { .. }) => {
+            eprintln!("omnid: {e}");
+            Ok(EXIT_INTERNAL)
+        }
+        Err(e) => {
+            eprintln!("omnid: {e}");
+            Ok(EXIT_BAD_INPUT)
+        }
+    }
 }
 
 /// `logs/omnid-YYYYMMDD-HHMMSS.csv` in UTC.
@@ -112,17 +159,21 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
             .context("installing the Ctrl-C/SIGTERM handler")?;
     }
+    let replay = matches!(args.device, DeviceSpec::Replay(_));
     let opts = RunOptions {
         device: args.device,
         controller: args.controller,
         trajectory: args.trajectory,
-        duration_s: args.duration,
+        duration_s: args
+            .duration
+            .unwrap_or(if replay { f64::INFINITY } else { 10.0 }),
         log: args.log.unwrap_or_else(default_log_path),
         fast: args.fast,
+        lenient: args.lenient,
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
-        Err(e @ RunError::BadInput(_)) => {
+        Err(e @ RunError::BadInput(_)) | Err(e @ RunError::Replay(_)) => {
             eprintln!("omnid: {e}");
             return Ok(EXIT_BAD_INPUT);
         }
@@ -137,6 +188,9 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         Err(e) => return Err(e.into()),
     };
     print!("{}", outcome.summary.human());
+    for w in &outcome.warnings {
+        eprintln!("omnid: warning: {w}");
+    }
     if let Some(path) = &args.summary_json {
         let json = serde_json::to_string_pretty(&outcome.summary)?;
         std::fs::write(path, json + "\n")
@@ -182,6 +236,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => run(args),
+        Command::Convert(args) => convert_cmd(args),
         Command::Config { print_default } => {
             if print_default {
                 print!("{}", Config::default_toml());

@@ -3,6 +3,7 @@
 
 use crate::config::Config;
 use crate::control::{ComputedTorque, Controller, ControllerKind, Off, Pd, Reference, Trajectory};
+use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
 use crate::device::{Device, DeviceError};
 use crate::servo::{EndReason, Servo};
@@ -56,9 +57,12 @@ pub struct RunOptions {
     pub device: DeviceSpec,
     pub controller: ControllerKind,
     pub trajectory: Trajectory,
+    /// Seconds of device time; `f64::INFINITY` (replay only): the whole log.
     pub duration_s: f64,
     pub log: PathBuf,
     pub fast: bool,
+    /// Replay: skip damaged rows (and report them) instead of refusing the log.
+    pub lenient: bool,
 }
 
 /// Problems that stop a run before the loop starts (bad input, no device, no log file).
@@ -73,6 +77,9 @@ pub enum RunError {
     },
     #[error(transparent)]
     Device(#[from] DeviceError),
+    /// The log given to `--device replay:PATH` cannot be replayed.
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -85,11 +92,30 @@ pub struct RunOutcome {
     pub log_error: Option<String>,
     /// Sending the final safe packet or closing the device failed.
     pub shutdown_error: Option<String>,
+    /// Things the operator should know that did not stop the run (e.g. rows skipped with
+    /// `--lenient`).
+    pub warnings: Vec<String>,
 }
 
-fn open_device(spec: &DeviceSpec, cfg: &Config, fast: bool) -> Result<Box<dyn Device>, RunError> {
-    match spec {
-        DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, !fast))),
+fn open_device(
+    opts: &RunOptions,
+    cfg: &Config,
+    warnings: &mut Vec<String>,
+) -> Result<Box<dyn Device>, RunError> {
+    match &opts.device {
+        DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, !opts.fast))),
+        DeviceSpec::Replay(path) => {
+            let device = ReplayDevice::open(path, cfg, !opts.fast, opts.lenient)?
+                .with_duration_limit(opts.duration_s.is_finite().then_some(opts.duration_s));
+            if device.info().skipped.count > 0 {
+                warnings.push(format!(
+                    "--lenient: {}: {}",
+                    path.display(),
+                    device.info().skipped
+                ));
+            }
+            Ok(Box::new(device))
+        }
         other => Err(RunError::BadInput(format!(
             "device `{}` is not available in this build yet; use --device sim",
             other.name()
@@ -115,7 +141,8 @@ pub fn execute(
     cfg: &Config,
     stop: Arc<AtomicBool>,
 ) -> Result<RunOutcome, RunError> {
-    if !(opts.duration_s.is_finite() && opts.duration_s > 0.0) {
+    let replay = matches!(opts.device, DeviceSpec::Replay(_));
+    if !(opts.duration_s > 0.0 && (opts.duration_s.is_finite() || replay)) {
         return Err(RunError::BadInput(format!(
             "--duration {} is out of range: allowed a finite number of seconds > 0",
             opts.duration_s
@@ -127,7 +154,8 @@ pub fn execute(
         ));
     }
     let controller = make_controller(opts.controller, cfg)?;
-    let device = open_device(&opts.device, cfg, opts.fast)?;
+    let mut warnings = Vec::new();
+    let device = open_device(opts, cfg, &mut warnings)?;
     let schema = LogSchema {
         model: device.plant_model().is_some(),
     };
@@ -137,16 +165,10 @@ pub fn execute(
         source,
     })?;
     let reference = Reference::new(opts.trajectory, &cfg.reference, cfg.sim.seed);
-    let max_ticks = (opts.duration_s * cfg.device.rate_hz).round() as u64;
+    // A replay limits itself in device time (its rows need not come at rate_hz).
+    let max_ticks = (!replay).then(|| (opts.duration_s * cfg.device.rate_hz).round() as u64);
     let servo = Servo::new(
-        cfg,
-        device,
-        controller,
-        reference,
-        tx,
-        stop,
-        Some(max_ticks),
-        !opts.fast,
+        cfg, device, controller, reference, tx, stop, max_ticks, !opts.fast,
     );
     let report = std::thread::Builder::new()
         .name("omnid-servo".into())
@@ -190,5 +212,6 @@ pub fn execute(
         end: report.end,
         log_error: written.error.map(|e| e.to_string()),
         shutdown_error: report.shutdown_error,
+        warnings,
     })
 }

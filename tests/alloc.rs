@@ -116,3 +116,43 @@ fn sim_pd_multisine_allocates_nothing_per_tick() {
 fn sim_off_allocates_nothing_per_tick() {
     ticks_allocate_nothing(ControllerKind::Off, Trajectory::Hold);
 }
+
+#[test]
+fn replay_allocates_nothing_per_tick() {
+    // The replay device reads the next row of the file inside `exchange`: that must reuse its
+    // buffers too. Record a simulator log first (outside the watched window).
+    let cfg = Config::default();
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("sim.csv");
+    let opts = omnid::run::RunOptions {
+        device: omnid::run::DeviceSpec::Sim,
+        controller: ControllerKind::Pd,
+        trajectory: Trajectory::Multisine,
+        duration_s: 8.0,
+        log: log.clone(),
+        fast: true,
+        lenient: false,
+    };
+    omnid::run::execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
+
+    let device =
+        Box::new(omnid::device::replay::ReplayDevice::open(&log, &cfg, false, false).unwrap());
+    let reference = Reference::new(Trajectory::Multisine, &cfg.reference, cfg.sim.seed);
+    let (tx, rx) = crossbeam_channel::bounded(64);
+    let consumer = std::thread::spawn(move || rx.iter().count());
+    let stop = Arc::new(AtomicBool::new(false));
+    let controller = Box::new(Pd::from_config(&cfg));
+    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, false);
+    for _ in 0..1_000 {
+        assert!(servo.tick().is_none());
+    }
+    let n = count_allocations(|| {
+        for _ in 0..6_000 {
+            assert!(servo.tick().is_none());
+        }
+    });
+    assert_eq!(n, 0, "replay: {n} allocations in 6000 ticks");
+    let report = servo.finish(EndReason::Completed);
+    assert!(report.last_command.is_safe());
+    assert!(consumer.join().unwrap() > 0);
+}

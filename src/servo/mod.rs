@@ -224,10 +224,14 @@ impl Servo {
         self.command.dac = words;
         self.command.amps_on = true;
 
+        // What the plant got: on a replay, the recorded torque (ours cannot reach it; it is
+        // still logged as `tau_cmd`).
+        let tau_plant = self.device.recorded_torque().unwrap_or(tau_applied);
+
         let tau_model = match self.device.plant_model() {
             Some(m) => {
                 let tm: [f64; 3] = m.inverse_dynamics(&est.q, &est.qd, &est.qdd).into();
-                self.stats.record_oracle(&tau_applied, &tm);
+                self.stats.record_oracle(&tau_plant, &tm);
                 tm
             }
             None => [f64::NAN; 3],
@@ -239,7 +243,7 @@ impl Servo {
             Mode::Track
         };
         self.stats.record_time(t);
-        self.stats.record_torque(&tau_applied);
+        self.stats.record_torque(&tau_plant);
         if t >= self.settle_s {
             self.stats.record_tracking(&(reference.q - est.q).into());
         }
@@ -249,7 +253,7 @@ impl Servo {
         self.emit(TickRecord {
             t,
             q: q.into(),
-            tau: tau_applied,
+            tau: tau_plant,
             qf: est.q.into(),
             qd: est.qd.into(),
             qdd: est.qdd.into(),

@@ -57,7 +57,8 @@ pub struct TickRecord {
     pub t: f64,
     /// Measured joint angles (from the encoders), rad.
     pub q: [f64; 3],
-    /// Torque actually commanded to the motors after limits and DAC quantisation, N·m.
+    /// Torque actually commanded to the motors after limits and DAC quantisation, N·m (on a
+    /// replay: the recorded torque, what the recorded plant got).
     pub tau: [f64; 3],
     /// Kalman estimates.
     pub qf: [f64; 3],

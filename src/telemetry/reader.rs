@@ -1,0 +1,1004 @@
+//! Streaming CSV log reader: omnid's own log (DESIGN §2.2) or any file with the seven required
+//! columns `t, q1, q2, q3, tau1, tau2, tau3` (any order; extra columns ignored; `enc1..3` and
+//! `mode` used when present).
+//!
+//! Two layers:
+//! - [`ColumnReader`]: header → column indices, one reused `ByteRecord`, field-count, number and
+//!   time-order checks, strict or lenient. Every problem is a [`ReadError`] naming the file, the
+//!   line and the column. Other importers (e.g. `convert`) build on it with their own columns.
+//! - [`LogReader`]: the replayable log on top of it, yielding one `Copy` [`LogRow`] per data row.
+//!
+//! Memory is constant: one record buffer, reused; a row allocates nothing (an error does).
+//!
+//! Rules (strict, the default):
+//! - an empty file, a missing/misnamed/duplicated required column, a row with the wrong number
+//!   of fields, a value that is not a number or not finite, a `t` that goes backwards or
+//!   repeats: each an error.
+//! - a last line cut mid-row (wrong field count, no trailing newline) is reported as truncated.
+//!   A complete last line without a trailing newline is accepted (many editors write files so).
+//! - `mode = stop` (omnid's final, safe packet) must be the last row; its `t` may equal the
+//!   previous row's (the servo logs `max(device time, last t)` there). Other `mode` values are
+//!   carried but not interpreted.
+//!
+//! Lenient mode skips bad rows instead (header problems and I/O errors still fail) and keeps a
+//! [`SkipReport`]: how many and the first few line numbers. Time order is checked against the
+//! last *accepted* row.
+
+use super::record::Mode;
+use std::fmt;
+use std::fs::File;
+use std::io::{self, Read};
+use std::path::Path;
+use thiserror::Error;
+
+/// The seven columns a replayable file must have.
+pub use super::record::REQUIRED_COLUMNS;
+
+/// How many skipped line numbers a [`SkipReport`] keeps.
+pub const SKIP_LINES_KEPT: usize = 5;
+
+/// Longest field text quoted in an error message.
+const MAX_QUOTED: usize = 40;
+
+/// A problem reading a log. Every variant names the file; row problems name the line (1 is the
+/// header) and the column.
+#[derive(Debug, Error)]
+pub enum ReadError {
+    #[error("{path}: {source}")]
+    Io { path: String, source: io::Error },
+    #[error(
+        "{path}: line 1: the file is empty: expected a header row with the columns {expected}"
+    )]
+    Empty { path: String, expected: String },
+    #[error("{path}: line 1: required column `{column}` is missing{}; the header has: {header}",
+            suggestion.as_ref().map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default())]
+    MissingColumn {
+        path: String,
+        column: String,
+        suggestion: Option<String>,
+        header: String,
+    },
+    #[error("{path}: line 1: column `{column}` appears twice (fields {first} and {second})")]
+    DuplicateColumn {
+        path: String,
+        column: String,
+        first: usize,
+        second: usize,
+    },
+    #[error("{path}: line {line}: {got} fields, the header has {expected} (column `{column}` {})",
+            if got < expected { "is missing" } else { "is the last one" })]
+    FieldCount {
+        path: String,
+        line: u64,
+        /// The first missing column, or the last column when there are too many fields.
+        column: String,
+        got: usize,
+        expected: usize,
+    },
+    #[error(
+        "{path}: line {line}: truncated last line: the file ends mid-row without a newline \
+             after {got} of {expected} fields (column `{column}` is missing)"
+    )]
+    Truncated {
+        path: String,
+        line: u64,
+        column: String,
+        got: usize,
+        expected: usize,
+    },
+    #[error("{path}: line {line}: column `{column}`: `{value}` is not a number")]
+    NotANumber {
+        path: String,
+        line: u64,
+        column: String,
+        value: String,
+    },
+    #[error("{path}: line {line}: column `{column}`: `{value}` is not an integer")]
+    NotAnInteger {
+        path: String,
+        line: u64,
+        column: String,
+        value: String,
+    },
+    #[error("{path}: line {line}: column `{column}`: `{value}` is not finite")]
+    NotFinite {
+        path: String,
+        line: u64,
+        column: String,
+        value: String,
+    },
+    #[error(
+        "{path}: line {line}: column `{column}`: time goes backwards: {t} after {previous} \
+             (line {previous_line})"
+    )]
+    TimeBackwards {
+        path: String,
+        line: u64,
+        column: String,
+        t: f64,
+        previous: f64,
+        previous_line: u64,
+    },
+    #[error(
+        "{path}: line {line}: column `{column}`: time repeats: {t} again (line {previous_line})"
+    )]
+    TimeRepeats {
+        path: String,
+        line: u64,
+        column: String,
+        t: f64,
+        previous_line: u64,
+    },
+    #[error(
+        "{path}: line {line}: column `{column}`: a row after the final `stop` row (line \
+             {stop_line}); a `mode = stop` row must be the last"
+    )]
+    AfterStop {
+        path: String,
+        line: u64,
+        column: String,
+        stop_line: u64,
+    },
+    #[error("{path}: line {line}: {message}")]
+    Csv {
+        path: String,
+        line: u64,
+        message: String,
+    },
+}
+
+impl ReadError {
+    /// The line the error is about (1 = the header).
+    pub fn line(&self) -> Option<u64> {
+        use ReadError::*;
+        match self {
+            Io { .. } => None,
+            Empty { .. } | MissingColumn { .. } | DuplicateColumn { .. } => Some(1),
+            FieldCount { line, .. }
+            | Truncated { line, .. }
+            | NotANumber { line, .. }
+            | NotAnInteger { line, .. }
+            | NotFinite { line, .. }
+            | TimeBackwards { line, .. }
+            | TimeRepeats { line, .. }
+            | AfterStop { line, .. }
+            | Csv { line, .. } => Some(*line),
+        }
+    }
+}
+
+/// A problem with one data row, before it becomes a [`ReadError`] (`Copy`, so skipping a row in
+/// lenient mode allocates nothing). Columns are field indices.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RowFault {
+    FieldCount {
+        got: usize,
+    },
+    NotANumber {
+        col: usize,
+    },
+    NotAnInteger {
+        col: usize,
+    },
+    NotFinite {
+        col: usize,
+    },
+    TimeBackwards {
+        col: usize,
+        t: f64,
+        previous: f64,
+        previous_line: u64,
+    },
+    TimeRepeats {
+        col: usize,
+        t: f64,
+        previous_line: u64,
+    },
+    AfterStop {
+        col: usize,
+        stop_line: u64,
+    },
+}
+
+/// Rows skipped in lenient mode.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SkipReport {
+    pub count: u64,
+    /// Line numbers of the first [`SKIP_LINES_KEPT`] skipped rows.
+    pub first_lines: Vec<u64>,
+    /// Why the first one was skipped.
+    pub first_reason: Option<String>,
+}
+
+impl fmt::Display for SkipReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.count == 0 {
+            return write!(f, "no rows skipped");
+        }
+        let lines: Vec<String> = self.first_lines.iter().map(|l| l.to_string()).collect();
+        write!(
+            f,
+            "skipped {} bad row{} (line{} {}{})",
+            self.count,
+            if self.count == 1 { "" } else { "s" },
+            if self.count == 1 { "" } else { "s" },
+            lines.join(", "),
+            if self.count > self.first_lines.len() as u64 {
+                ", …"
+            } else {
+                ""
+            }
+        )?;
+        if let Some(r) = &self.first_reason {
+            write!(f, "; first: {r}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Counts bytes and remembers the last one, so a row cut off at the end of the file can be told
+/// from one with a wrong field count.
+struct Tail<R> {
+    inner: R,
+    total: u64,
+    last: Option<u8>,
+    eof: bool,
+}
+
+impl<R: Read> Read for Tail<R> {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        if n == 0 {
+            self.eof = true;
+        } else {
+            self.total += n as u64;
+            self.last = Some(buf[n - 1]);
+        }
+        Ok(n)
+    }
+}
+
+/// One data row, borrowed from the reader's buffer.
+pub struct Row<'a> {
+    record: &'a csv::ByteRecord,
+    /// Line number in the file (1 = the header).
+    pub line: u64,
+    /// The time column's value (already parsed and finite).
+    pub t: f64,
+    time_col: usize,
+    previous: Option<(f64, u64)>,
+}
+
+impl Row<'_> {
+    /// The field's bytes, ASCII whitespace trimmed.
+    pub fn field(&self, col: usize) -> &[u8] {
+        self.record.get(col).unwrap_or(b"").trim_ascii()
+    }
+
+    /// A finite number.
+    pub fn f64(&self, col: usize) -> Result<f64, RowFault> {
+        parse_f64(self.field(col), col)
+    }
+
+    /// An integer (also written as an integral float, e.g. `1234.0`).
+    pub fn i64(&self, col: usize) -> Result<i64, RowFault> {
+        let b = self.field(col);
+        let s = std::str::from_utf8(b).map_err(|_| RowFault::NotAnInteger { col })?;
+        if let Ok(v) = s.parse::<i64>() {
+            return Ok(v);
+        }
+        match s.parse::<f64>() {
+            Ok(v) if v.is_finite() && v.fract() == 0.0 && v.abs() < 9.007_199_254_740_992e15 => {
+                Ok(v as i64)
+            }
+            _ => Err(RowFault::NotAnInteger { col }),
+        }
+    }
+
+    /// `t` must be later than the last accepted row's (`allow_equal`: or the same).
+    pub fn check_time(&self, allow_equal: bool) -> Result<(), RowFault> {
+        let Some((previous, previous_line)) = self.previous else {
+            return Ok(());
+        };
+        if self.t < previous {
+            Err(RowFault::TimeBackwards {
+                col: self.time_col,
+                t: self.t,
+                previous,
+                previous_line,
+            })
+        } else if self.t == previous && !allow_equal {
+            Err(RowFault::TimeRepeats {
+                col: self.time_col,
+                t: self.t,
+                previous_line,
+            })
+        } else {
+            Ok(())
+        }
+    }
+}
+
+fn parse_f64(b: &[u8], col: usize) -> Result<f64, RowFault> {
+    let s = std::str::from_utf8(b).map_err(|_| RowFault::NotANumber { col })?;
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        Ok(_) => Err(RowFault::NotFinite { col }),
+        Err(_) => Err(RowFault::NotANumber { col }),
+    }
+}
+
+/// Quote a field for a message: lossy UTF-8, cut to a sane length.
+fn quote(b: &[u8]) -> String {
+    let s = String::from_utf8_lossy(b);
+    let mut out: String = s.chars().take(MAX_QUOTED).collect();
+    if s.chars().count() > MAX_QUOTED {
+        out.push('…');
+    }
+    out
+}
+
+/// Normalised header name for suggestions: lowercase, without `_ - . [ ] ( )` and spaces.
+fn normalise(s: &str) -> String {
+    s.chars()
+        .filter(|c| !"_-.[]() ".contains(*c))
+        .flat_map(char::to_lowercase)
+        .collect()
+}
+
+fn edit_distance(a: &str, b: &str) -> usize {
+    let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
+    let mut prev: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.iter().enumerate() {
+        let mut cur = vec![i + 1; b.len() + 1];
+        for (j, cb) in b.iter().enumerate() {
+            cur[j + 1] = (prev[j] + usize::from(ca != cb))
+                .min(prev[j + 1] + 1)
+                .min(cur[j] + 1);
+        }
+        prev = cur;
+    }
+    prev[b.len()]
+}
+
+/// Names other tools use for the required columns.
+fn aliases(column: &str) -> &'static [&'static str] {
+    match column {
+        "t" => &[
+            "time",
+            "times",
+            "timestamp",
+            "stamp",
+            "time_s",
+            "t_s",
+            "sec",
+            "seconds",
+        ],
+        "q1" => &["j1", "joint1", "theta1", "angle1", "pos1", "position1"],
+        "q2" => &["j2", "joint2", "theta2", "angle2", "pos2", "position2"],
+        "q3" => &["j3", "joint3", "theta3", "angle3", "pos3", "position3"],
+        "tau1" => &["torque1", "effort1", "u1", "tau_1"],
+        "tau2" => &["torque2", "effort2", "u2", "tau_2"],
+        "tau3" => &["torque3", "effort3", "u3", "tau_3"],
+        _ => &[],
+    }
+}
+
+/// The header field most likely meant for `column`, among those no other column claims.
+fn suggest(column: &str, candidates: &[&str]) -> Option<String> {
+    let want = normalise(column);
+    let mut best: Option<(usize, &str)> = None;
+    for &h in candidates {
+        if h.len() > 64 {
+            continue;
+        }
+        let n = normalise(h);
+        let d = if n == want || aliases(column).iter().any(|a| normalise(a) == n) {
+            0
+        } else {
+            edit_distance(&n, &want)
+        };
+        let limit = if want.len() <= 2 { 1 } else { 2 };
+        if d <= limit && best.map_or(true, |(bd, _)| d < bd) {
+            best = Some((d, h));
+        }
+    }
+    best.map(|(_, h)| h.to_string())
+}
+
+/// Header names omnid writes itself: never offered as a suggestion for another column.
+fn is_known_log_column(name: &str) -> bool {
+    if matches!(name, "t" | "amps" | "mode" | "flags" | "fault") {
+        return true;
+    }
+    let groups = [
+        "q",
+        "tau",
+        "qf",
+        "qd",
+        "qdd",
+        "ref",
+        "tau_cmd",
+        "tau_model",
+        "tau_hat",
+        "enc",
+    ];
+    groups.iter().any(|g| {
+        name.strip_prefix(g)
+            .is_some_and(|rest| matches!(rest, "1" | "2" | "3"))
+    })
+}
+
+/// The CSV layer: named columns, one reused record, strict or lenient row checks.
+pub struct ColumnReader<R: Read> {
+    csv: csv::Reader<Tail<R>>,
+    path: String,
+    header: Vec<String>,
+    record: csv::ByteRecord,
+    time_col: usize,
+    lenient: bool,
+    last: Option<(f64, u64)>,
+    skipped: SkipReport,
+}
+
+impl ColumnReader<File> {
+    /// Open a file; `required` columns must all be present (the first is the time column).
+    pub fn open(path: &Path, required: &[&str], lenient: bool) -> Result<Self, ReadError> {
+        let name = path.display().to_string();
+        let file = File::open(path).map_err(|source| ReadError::Io {
+            path: name.clone(),
+            source,
+        })?;
+        Self::new(file, &name, required, lenient)
+    }
+}
+
+impl<R: Read> ColumnReader<R> {
+    /// Read the header from `input`; `path` names the source in messages; the first of
+    /// `required` is the time column, which must increase from row to row.
+    pub fn new(input: R, path: &str, required: &[&str], lenient: bool) -> Result<Self, ReadError> {
+        assert!(!required.is_empty(), "a time column is required");
+        let mut csv = csv::ReaderBuilder::new()
+            .has_headers(false)
+            .flexible(true)
+            .from_reader(Tail {
+                inner: input,
+                total: 0,
+                last: None,
+                eof: false,
+            });
+        let mut record = csv::ByteRecord::new();
+        let io_err = |e: csv::Error, path: &str| csv_error(e, path, 1);
+        let expected = required.join(", ");
+        if !csv
+            .read_byte_record(&mut record)
+            .map_err(|e| io_err(e, path))?
+        {
+            return Err(ReadError::Empty {
+                path: path.to_string(),
+                expected,
+            });
+        }
+        let mut header: Vec<String> = record
+            .iter()
+            .map(|f| String::from_utf8_lossy(f.trim_ascii()).into_owned())
+            .collect();
+        if let Some(first) = header.first_mut() {
+            if let Some(rest) = first.strip_prefix('\u{feff}') {
+                *first = rest.trim().to_string();
+            }
+        }
+        if header.len() == 1 && header[0].is_empty() {
+            return Err(ReadError::Empty {
+                path: path.to_string(),
+                expected,
+            });
+        }
+        let mut reader = ColumnReader {
+            csv,
+            path: path.to_string(),
+            header,
+            record,
+            time_col: 0,
+            lenient,
+            last: None,
+            skipped: SkipReport {
+                first_lines: Vec::with_capacity(SKIP_LINES_KEPT),
+                ..SkipReport::default()
+            },
+        };
+        for c in required {
+            reader.require(c, required)?;
+        }
+        reader.time_col = reader.require(required[0], required)?;
+        Ok(reader)
+    }
+
+    /// The index of a column that must be present (`family`: the set it belongs to, never
+    /// suggested for it).
+    pub fn require(&self, column: &str, family: &[&str]) -> Result<usize, ReadError> {
+        let mut found = self.header.iter().enumerate().filter(|(_, h)| *h == column);
+        match (found.next(), found.next()) {
+            (Some((first, _)), None) => Ok(first),
+            (Some((first, _)), Some((second, _))) => Err(ReadError::DuplicateColumn {
+                path: self.path.clone(),
+                column: column.to_string(),
+                first: first + 1,
+                second: second + 1,
+            }),
+            (None, _) => {
+                let candidates: Vec<&str> = self
+                    .header
+                    .iter()
+                    .map(String::as_str)
+                    .filter(|h| !family.contains(h) && !is_known_log_column(h))
+                    .collect();
+                Err(ReadError::MissingColumn {
+                    path: self.path.clone(),
+                    column: column.to_string(),
+                    suggestion: suggest(column, &candidates),
+                    header: self.header.join(","),
+                })
+            }
+        }
+    }
+
+    /// The index of an optional column (a duplicate is an error).
+    pub fn optional(&self, column: &str) -> Result<Option<usize>, ReadError> {
+        if self.header.iter().any(|h| h == column) {
+            self.require(column, &[]).map(Some)
+        } else {
+            Ok(None)
+        }
+    }
+
+    pub fn header(&self) -> &[String] {
+        &self.header
+    }
+
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+
+    pub fn lenient(&self) -> bool {
+        self.lenient
+    }
+
+    /// Rows skipped so far (lenient mode).
+    pub fn skipped(&self) -> &SkipReport {
+        &self.skipped
+    }
+
+    /// The next good row, turned into `T` by `parse`; `None` at the end of the file. In lenient
+    /// mode bad rows are skipped and counted; in strict mode the first one is the error.
+    pub fn next_with<T>(
+        &mut self,
+        mut parse: impl FnMut(&Row<'_>) -> Result<T, RowFault>,
+    ) -> Result<Option<T>, ReadError> {
+        loop {
+            let more = self
+                .csv
+                .read_byte_record(&mut self.record)
+                .map_err(|e| csv_error(e, &self.path, self.csv.position().line()))?;
+            if !more {
+                return Ok(None);
+            }
+            let line = self.record.position().map(|p| p.line()).unwrap_or(0);
+            let result = if self.record.len() != self.header.len() {
+                Err(RowFault::FieldCount {
+                    got: self.record.len(),
+                })
+            } else {
+                parse_f64(
+                    self.record.get(self.time_col).unwrap_or(b"").trim_ascii(),
+                    self.time_col,
+                )
+                .and_then(|t| {
+                    let row = Row {
+                        record: &self.record,
+                        line,
+                        t,
+                        time_col: self.time_col,
+                        previous: self.last,
+                    };
+                    parse(&row).map(|v| (v, t))
+                })
+            };
+            match result {
+                Ok((value, t)) => {
+                    self.last = Some((t, line));
+                    return Ok(Some(value));
+                }
+                Err(fault) if self.lenient => {
+                    self.skipped.count += 1;
+                    if self.skipped.first_lines.len() < SKIP_LINES_KEPT {
+                        self.skipped.first_lines.push(line);
+                    }
+                    if self.skipped.first_reason.is_none() {
+                        self.skipped.first_reason = Some(self.error(fault, line).to_string());
+                    }
+                }
+                Err(fault) => return Err(self.error(fault, line)),
+            }
+        }
+    }
+
+    /// The record just read was the file's last and it ends without a newline.
+    fn is_truncated_tail(&self, fault: RowFault) -> bool {
+        let tail = self.csv.get_ref();
+        matches!(fault, RowFault::FieldCount { got } if got < self.header.len())
+            && tail.eof
+            && !matches!(tail.last, Some(b'\n') | Some(b'\r'))
+            && self.csv.position().byte() == tail.total
+    }
+
+    fn column_name(&self, col: usize) -> String {
+        self.header.get(col).cloned().unwrap_or_default()
+    }
+
+    /// Turn a row fault into the full error (the record is still in the buffer).
+    fn error(&self, fault: RowFault, line: u64) -> ReadError {
+        let path = self.path.clone();
+        let value = |col: usize| quote(self.record.get(col).unwrap_or(b"").trim_ascii());
+        match fault {
+            RowFault::FieldCount { got } => {
+                let expected = self.header.len();
+                let column = if got < expected {
+                    self.column_name(got)
+                } else {
+                    self.column_name(expected - 1)
+                };
+                if self.is_truncated_tail(fault) {
+                    ReadError::Truncated {
+                        path,
+                        line,
+                        column,
+                        got,
+                        expected,
+                    }
+                } else {
+                    ReadError::FieldCount {
+                        path,
+                        line,
+                        column,
+                        got,
+                        expected,
+                    }
+                }
+            }
+            RowFault::NotANumber { col } => ReadError::NotANumber {
+                path,
+                line,
+                column: self.column_name(col),
+                value: value(col),
+            },
+            RowFault::NotAnInteger { col } => ReadError::NotAnInteger {
+                path,
+                line,
+                column: self.column_name(col),
+                value: value(col),
+            },
+            RowFault::NotFinite { col } => ReadError::NotFinite {
+                path,
+                line,
+                column: self.column_name(col),
+                value: value(col),
+            },
+            RowFault::TimeBackwards {
+                col,
+                t,
+                previous,
+                previous_line,
+            } => ReadError::TimeBackwards {
+                path,
+                line,
+                column: self.column_name(col),
+                t,
+                previous,
+                previous_line,
+            },
+            RowFault::TimeRepeats {
+                col,
+                t,
+                previous_line,
+            } => ReadError::TimeRepeats {
+                path,
+                line,
+                column: self.column_name(col),
+                t,
+                previous_line,
+            },
+            RowFault::AfterStop { col, stop_line } => ReadError::AfterStop {
+                path,
+                line,
+                column: self.column_name(col),
+                stop_line,
+            },
+        }
+    }
+}
+
+fn csv_error(e: csv::Error, path: &str, line: u64) -> ReadError {
+    let line = e.position().map(|p| p.line()).unwrap_or(line);
+    match e.into_kind() {
+        csv::ErrorKind::Io(source) => ReadError::Io {
+            path: path.to_string(),
+            source,
+        },
+        other => ReadError::Csv {
+            path: path.to_string(),
+            line,
+            message: format!("{other:?}"),
+        },
+    }
+}
+
+/// One data row of a replayable log.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LogRow {
+    /// Line number in the file (1 = the header).
+    pub line: u64,
+    /// Device time, s.
+    pub t: f64,
+    /// Measured joint angles, rad.
+    pub q: [f64; 3],
+    /// Applied torque, N·m.
+    pub tau: [f64; 3],
+    /// Continuous encoder counts, when the file has `enc1..3`.
+    pub enc: Option<[i64; 3]>,
+    /// The `mode` column, when the file has one and it holds a value omnid writes.
+    pub mode: Option<Mode>,
+}
+
+impl LogRow {
+    /// `mode = stop`: omnid's final, safe packet (zero torque, amplifiers off).
+    pub fn is_stop(&self) -> bool {
+        self.mode == Some(Mode::Stop)
+    }
+}
+
+/// Where the columns of a replayable log are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LogColumns {
+    pub t: usize,
+    pub q: [usize; 3],
+    pub tau: [usize; 3],
+    pub enc: Option<[usize; 3]>,
+    pub mode: Option<usize>,
+}
+
+/// Streaming reader of a replayable log.
+pub struct LogReader<R: Read = File> {
+    core: ColumnReader<R>,
+    cols: LogColumns,
+    stop_line: Option<u64>,
+}
+
+impl LogReader<File> {
+    pub fn open(path: &Path, lenient: bool) -> Result<Self, ReadError> {
+        Self::with_core(ColumnReader::open(path, &REQUIRED_COLUMNS, lenient)?)
+    }
+}
+
+impl<R: Read> LogReader<R> {
+    /// Read from any byte stream; `path` names it in messages.
+    pub fn new(input: R, path: &str, lenient: bool) -> Result<Self, ReadError> {
+        Self::with_core(ColumnReader::new(input, path, &REQUIRED_COLUMNS, lenient)?)
+    }
+
+    fn with_core(core: ColumnReader<R>) -> Result<Self, ReadError> {
+        let req = |name: &str| core.require(name, &REQUIRED_COLUMNS);
+        let t = req("t")?;
+        let q = [req("q1")?, req("q2")?, req("q3")?];
+        let tau = [req("tau1")?, req("tau2")?, req("tau3")?];
+        const ENC: [&str; 3] = ["enc1", "enc2", "enc3"];
+        let enc = if ENC.iter().any(|c| core.header().iter().any(|h| h == c)) {
+            // A partial set is a broken header, not an absent one.
+            Some([
+                core.require(ENC[0], &ENC)?,
+                core.require(ENC[1], &ENC)?,
+                core.require(ENC[2], &ENC)?,
+            ])
+        } else {
+            None
+        };
+        let mode = core.optional("mode")?;
+        Ok(LogReader {
+            core,
+            cols: LogColumns {
+                t,
+                q,
+                tau,
+                enc,
+                mode,
+            },
+            stop_line: None,
+        })
+    }
+
+    pub fn columns(&self) -> &LogColumns {
+        &self.cols
+    }
+
+    pub fn path(&self) -> &str {
+        self.core.path()
+    }
+
+    pub fn skipped(&self) -> &SkipReport {
+        self.core.skipped()
+    }
+
+    /// The next good row, `None` at the end. Allocates nothing unless it fails (or, in lenient
+    /// mode, on the first skipped row).
+    pub fn next_row(&mut self) -> Result<Option<LogRow>, ReadError> {
+        let cols = self.cols;
+        let stop_line = self.stop_line;
+        let row = self.core.next_with(|r| {
+            if let Some(stop_line) = stop_line {
+                return Err(RowFault::AfterStop {
+                    col: cols.mode.unwrap_or(cols.t),
+                    stop_line,
+                });
+            }
+            let mode = cols
+                .mode
+                .and_then(|m| std::str::from_utf8(r.field(m)).ok())
+                .and_then(Mode::parse);
+            r.check_time(mode == Some(Mode::Stop))?;
+            let mut q = [0.0; 3];
+            let mut tau = [0.0; 3];
+            for j in 0..3 {
+                q[j] = r.f64(cols.q[j])?;
+            }
+            for j in 0..3 {
+                tau[j] = r.f64(cols.tau[j])?;
+            }
+            let enc = match cols.enc {
+                Some(e) => Some([r.i64(e[0])?, r.i64(e[1])?, r.i64(e[2])?]),
+                None => None,
+            };
+            Ok(LogRow {
+                line: r.line,
+                t: r.t,
+                q,
+                tau,
+                enc,
+                mode,
+            })
+        })?;
+        if let Some(r) = &row {
+            if r.is_stop() {
+                self.stop_line = Some(r.line);
+            }
+        }
+        Ok(row)
+    }
+}
+
+impl<R: Read> Iterator for LogReader<R> {
+    type Item = Result<LogRow, ReadError>;
+    fn next(&mut self) -> Option<Self::Item> {
+        self.next_row().transpose()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn read_all(text: &str, lenient: bool) -> Result<(Vec<LogRow>, SkipReport), ReadError> {
+        let mut r = LogReader::new(text.as_bytes(), "mem.csv", lenient)?;
+        let mut rows = Vec::new();
+        while let Some(row) = r.next_row()? {
+            rows.push(row);
+        }
+        Ok((rows, r.skipped().clone()))
+    }
+
+    const H: &str = "t,q1,q2,q3,tau1,tau2,tau3\n";
+
+    #[test]
+    fn reads_the_seven_columns_in_any_order_with_extras() {
+        let text = "extra,tau3,q2,t,q1,tau1,q3,tau2\nx,6,2,0.5,1,4,3,5\ny,6,2,0.75,1,4,3,5\n";
+        let (rows, _) = read_all(text, false).unwrap();
+        assert_eq!(rows.len(), 2);
+        assert_eq!(rows[0].line, 2);
+        assert_eq!(rows[1].line, 3);
+        assert_eq!(rows[0].t, 0.5);
+        assert_eq!(rows[0].q, [1.0, 2.0, 3.0]);
+        assert_eq!(rows[0].tau, [4.0, 5.0, 6.0]);
+        assert_eq!(rows[0].enc, None);
+    }
+
+    #[test]
+    fn whitespace_bom_and_crlf_are_tolerated() {
+        let text = "\u{feff}t , q1,q2,q3,tau1,tau2,tau3\r\n 0 , 1,2,3,4,5,6\r\n0.1,1,2,3,4,5,6";
+        let (rows, _) = read_all(text, false).unwrap();
+        assert_eq!(
+            rows.len(),
+            2,
+            "a complete last line without newline is accepted"
+        );
+        assert_eq!(rows[1].t, 0.1);
+    }
+
+    #[test]
+    fn enc_and_stop_rows() {
+        let text = "t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3,mode\n\
+                    0,0,0,0,0,0,0,1,-2,70000,track\n\
+                    0.001,0,0,0,0,0,0,1.0,-2,70001,track\n\
+                    0.001,0,0,0,0,0,0,1,-2,70001,stop\n";
+        let (rows, _) = read_all(text, false).unwrap();
+        assert_eq!(rows[1].enc, Some([1, -2, 70001]));
+        assert!(
+            !rows[1].is_stop() && rows[2].is_stop(),
+            "stop may repeat the last t"
+        );
+        assert_eq!(rows[0].mode, Some(Mode::Track));
+        let after = format!("{text}0.002,0,0,0,0,0,0,1,2,3,track\n");
+        let e = read_all(&after, false).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                ReadError::AfterStop {
+                    line: 5,
+                    stop_line: 4,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let (rows, skipped) = read_all(&after, true).unwrap();
+        assert_eq!((rows.len(), skipped.count), (3, 1));
+    }
+
+    #[test]
+    fn partial_enc_set_is_an_error() {
+        let e = read_all("t,q1,q2,q3,tau1,tau2,tau3,enc1,enc3\n", false).unwrap_err();
+        assert!(
+            matches!(&e, ReadError::MissingColumn { column, .. } if column == "enc2"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn suggestions() {
+        let cands = ["Time", "tau_1", "Q2", "qf3", "x"];
+        assert_eq!(suggest("t", &cands).as_deref(), Some("Time"));
+        assert_eq!(suggest("tau1", &cands).as_deref(), Some("tau_1"));
+        assert_eq!(suggest("q2", &cands).as_deref(), Some("Q2"));
+        assert_eq!(suggest("q3", &["banana", "x3y"]), None);
+        assert_eq!(edit_distance("kitten", "sitting"), 3);
+    }
+
+    #[test]
+    fn a_known_log_column_is_not_suggested_for_another() {
+        let e = read_all("t,qf1,q2,q3,tau1,tau2,tau3\n", false).unwrap_err();
+        match e {
+            ReadError::MissingColumn {
+                column, suggestion, ..
+            } => assert_eq!((column.as_str(), suggestion), ("q1", None)),
+            other => panic!("{other}"),
+        }
+    }
+
+    #[test]
+    fn lenient_skips_and_reports() {
+        // Line 3 is damaged; line 4 repeats the last accepted time (line 2's).
+        let text = format!("{H}0,1,2,3,4,5,6\n0.1,x,2,3,4,5,6\n0,1,2,3,4,5,6\n0.2,1,2,3,4,5,6\n");
+        assert!(read_all(&text, false).is_err());
+        let (rows, s) = read_all(&text, true).unwrap();
+        assert_eq!(rows.iter().map(|r| r.line).collect::<Vec<_>>(), [2, 5]);
+        assert_eq!(s.count, 2);
+        assert_eq!(s.first_lines, [3, 4]);
+        assert!(s.to_string().contains("lines 3, 4"), "{s}");
+        assert!(s.first_reason.unwrap().contains("line 3"));
+    }
+
+    #[test]
+    fn huge_values_are_cut_in_messages() {
+        let text = format!("{H}0,{},2,3,4,5,6\n", "z".repeat(10_000));
+        let e = read_all(&text, false).unwrap_err().to_string();
+        assert!(e.len() < 300, "{e}");
+    }
+}

@@ -1,0 +1,289 @@
+//! Malformed logs: every case is a typed error naming the file, the line and the column, never
+//! a panic; `--lenient` skips and counts; random bytes never panic the reader.
+
+use omnid::config::Config;
+use omnid::device::replay::{ReplayDevice, ReplayError};
+use omnid::telemetry::reader::{LogReader, ReadError};
+use proptest::prelude::*;
+use std::path::PathBuf;
+
+const HEADER: &str = "t,q1,q2,q3,tau1,tau2,tau3\n";
+
+/// A file named after the case, so the message can be checked to name it.
+fn file(dir: &tempfile::TempDir, name: &str, text: &str) -> PathBuf {
+    let p = dir.path().join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+/// Read the whole file strictly; the error it fails with.
+fn error_of(name: &str, text: &str) -> (ReadError, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = file(&dir, name, text);
+    let result = LogReader::open(&path, false).and_then(|r| r.collect::<Result<Vec<_>, _>>());
+    let e = result.expect_err("must be refused");
+    let msg = e.to_string();
+    assert!(msg.contains(name), "message does not name the file: {msg}");
+    assert!(!msg.contains('\n'), "one line: {msg}");
+    // The replay device refuses it with the same message, before anything runs.
+    match ReplayDevice::open(&path, &Config::default(), false, false) {
+        Err(ReplayError::Read(r)) => assert_eq!(r.to_string(), msg),
+        Err(other) => panic!("replay: another error: {other}"),
+        Ok(_) => panic!("replay accepted it"),
+    }
+    (e, msg)
+}
+
+fn assert_names(msg: &str, line: u64, column: &str) {
+    assert!(
+        msg.contains(&format!("line {line}:")),
+        "no line {line}: {msg}"
+    );
+    assert!(
+        msg.contains(&format!("`{column}`")),
+        "no column {column}: {msg}"
+    );
+}
+
+#[test]
+fn missing_column() {
+    let (e, msg) = error_of("missing.csv", "t,q1,q2,q3,tau1,tau3\n0,0,0,0,0,0\n");
+    assert!(matches!(e, ReadError::MissingColumn { .. }));
+    assert_names(&msg, 1, "tau2");
+    assert!(!msg.contains("did you mean"), "{msg}");
+}
+
+#[test]
+fn misnamed_column_suggests_the_closest() {
+    let (e, msg) = error_of(
+        "misnamed.csv",
+        "t,q1,q2,q3,tau1,Tau_2,tau3\n0,0,0,0,0,0,0\n",
+    );
+    assert!(matches!(e, ReadError::MissingColumn { .. }));
+    assert_names(&msg, 1, "tau2");
+    assert!(msg.contains("did you mean `Tau_2`?"), "{msg}");
+    let (_, msg) = error_of("time.csv", "time,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n");
+    assert!(
+        msg.contains("`t`") && msg.contains("did you mean `time`?"),
+        "{msg}"
+    );
+}
+
+#[test]
+fn duplicated_column() {
+    let (e, msg) = error_of("dup.csv", "t,q1,q2,q3,tau1,tau2,tau3,q1\n0,0,0,0,0,0,0,0\n");
+    assert!(matches!(e, ReadError::DuplicateColumn { .. }));
+    assert_names(&msg, 1, "q1");
+}
+
+#[test]
+fn non_numeric_value() {
+    let text = format!("{HEADER}0,0,0,0,0,0,0\n0.001,0,abc,0,0,0,0\n");
+    let (e, msg) = error_of("text.csv", &text);
+    assert!(matches!(e, ReadError::NotANumber { line: 3, .. }));
+    assert_names(&msg, 3, "q2");
+    assert!(msg.contains("`abc`"), "{msg}");
+    let text = format!("{HEADER}0,0,0,0,0,,0\n");
+    let (_, msg) = error_of("blank.csv", &text);
+    assert_names(&msg, 2, "tau2");
+}
+
+#[test]
+fn nan_and_infinite_values() {
+    for (name, v) in [
+        ("nan.csv", "NaN"),
+        ("inf.csv", "inf"),
+        ("ninf.csv", "-Infinity"),
+        ("big.csv", "1e999"),
+    ] {
+        let text = format!("{HEADER}0,0,0,0,0,0,0\n0.001,0,0,0,{v},0,0\n");
+        let (e, msg) = error_of(name, &text);
+        assert!(matches!(e, ReadError::NotFinite { line: 3, .. }), "{msg}");
+        assert_names(&msg, 3, "tau1");
+    }
+    let (_, msg) = error_of("nant.csv", &format!("{HEADER}nan,0,0,0,0,0,0\n"));
+    assert_names(&msg, 2, "t");
+}
+
+#[test]
+fn time_goes_backwards() {
+    let text = format!("{HEADER}0,0,0,0,0,0,0\n0.002,0,0,0,0,0,0\n0.001,0,0,0,0,0,0\n");
+    let (e, msg) = error_of("back.csv", &text);
+    assert!(matches!(
+        e,
+        ReadError::TimeBackwards {
+            line: 4,
+            previous_line: 3,
+            ..
+        }
+    ));
+    assert_names(&msg, 4, "t");
+    assert!(msg.contains("backwards"), "{msg}");
+}
+
+#[test]
+fn time_repeats() {
+    let text = format!("{HEADER}0,0,0,0,0,0,0\n0.001,0,0,0,0,0,0\n0.001,1,0,0,0,0,0\n");
+    let (e, msg) = error_of("repeat.csv", &text);
+    assert!(matches!(e, ReadError::TimeRepeats { line: 4, .. }));
+    assert_names(&msg, 4, "t");
+    assert!(msg.contains("repeats"), "{msg}");
+}
+
+#[test]
+fn truncated_last_line() {
+    let text = format!("{HEADER}0,0,0,0,0,0,0\n0.001,0,0,0,0,0,0\n0.002,0.1,0.2");
+    let (e, msg) = error_of("cut.csv", &text);
+    assert!(
+        matches!(
+            e,
+            ReadError::Truncated {
+                line: 4,
+                got: 3,
+                ..
+            }
+        ),
+        "{msg}"
+    );
+    assert_names(&msg, 4, "q3");
+    assert!(msg.contains("truncated"), "{msg}");
+}
+
+#[test]
+fn short_row_in_the_middle() {
+    let text = format!("{HEADER}0,0,0,0,0,0,0\n0.001,0,0,0,0\n0.002,0,0,0,0,0,0\n");
+    let (e, msg) = error_of("short.csv", &text);
+    assert!(
+        matches!(
+            e,
+            ReadError::FieldCount {
+                line: 3,
+                got: 5,
+                expected: 7,
+                ..
+            }
+        ),
+        "{msg}"
+    );
+    assert_names(&msg, 3, "tau2");
+    let text = format!("{HEADER}0,0,0,0,0,0,0,9\n");
+    let (_, msg) = error_of("long.csv", &text);
+    assert_names(&msg, 2, "tau3");
+}
+
+#[test]
+fn empty_file() {
+    for (name, text) in [("empty.csv", ""), ("blank.csv", "\n\n")] {
+        let (e, msg) = error_of(name, text);
+        assert!(matches!(e, ReadError::Empty { .. }), "{msg}");
+        assert!(msg.contains("line 1") && msg.contains("empty"), "{msg}");
+        assert!(msg.contains("t, q1, q2, q3, tau1, tau2, tau3"), "{msg}");
+    }
+}
+
+#[test]
+fn header_only_file_has_nothing_to_replay() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = file(&dir, "header.csv", HEADER);
+    let e = ReplayDevice::open(&path, &Config::default(), false, false)
+        .err()
+        .unwrap();
+    assert!(matches!(e, ReplayError::NoRows { .. }));
+    assert!(e.to_string().contains("header.csv"), "{e}");
+}
+
+#[test]
+fn lenient_counts_skipped_rows_and_where() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut text = String::from("t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3\n");
+    let mut bad = Vec::new();
+    for k in 0..200u64 {
+        let t = k as f64 * 1e-3;
+        let line = k + 2;
+        if k % 25 == 7 {
+            bad.push(line);
+            text += &format!("{t},0,0,0,0,0,0,1.5,0,0\n"); // enc not an integer
+        } else {
+            text += &format!("{t},0,0,0,0,0,0,0,0,0\n");
+        }
+    }
+    text += "0.3,0,0"; // and a cut-off last line
+    bad.push(202);
+    let path = file(&dir, "damaged.csv", &text);
+    assert!(LogReader::open(&path, false)
+        .unwrap()
+        .collect::<Result<Vec<_>, _>>()
+        .is_err());
+    let dev = ReplayDevice::open(&path, &Config::default(), false, true).unwrap();
+    let info = dev.info();
+    assert_eq!(info.rows, 200 - 8);
+    assert_eq!(info.skipped.count, 9);
+    assert_eq!(info.skipped.first_lines, bad[..5]);
+    let msg = info.skipped.to_string();
+    assert!(
+        msg.starts_with("skipped 9 bad rows (lines 9, 34, 59, 84, 109, …)"),
+        "{msg}"
+    );
+    assert!(msg.contains("line 9") && msg.contains("`enc1`"), "{msg}");
+}
+
+#[test]
+fn lenient_with_nothing_good_left_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = file(&dir, "junk.csv", &format!("{HEADER}a,b,c,d,e,f,g\nx\n"));
+    let e = ReplayDevice::open(&path, &Config::default(), false, true)
+        .err()
+        .unwrap();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("no data rows") && msg.contains("skipped 2 bad rows"),
+        "{msg}"
+    );
+}
+
+fn drain(bytes: &[u8], lenient: bool) {
+    if let Ok(reader) = LogReader::new(bytes, "fuzz.csv", lenient) {
+        for row in reader {
+            match row {
+                Ok(r) => assert!(r.t.is_finite() && r.q.iter().all(|v| v.is_finite())),
+                Err(e) => {
+                    // Row faults are skipped in lenient mode, so any error ends the file.
+                    let _ = e.to_string();
+                    break;
+                }
+            }
+        }
+    }
+}
+
+proptest! {
+    #[test]
+    fn reader_never_panics_on_random_bytes(bytes in proptest::collection::vec(any::<u8>(), 0..2048)) {
+        drain(&bytes, false);
+        drain(&bytes, true);
+    }
+
+    #[test]
+    fn reader_never_panics_on_csv_like_text(
+        body in "[0-9eE+\\-.,\\n\\r\" naNiIf]{0,600}",
+        header in prop::sample::select(vec![
+            "t,q1,q2,q3,tau1,tau2,tau3\n",
+            "t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3,mode\n",
+            "q1,t,tau3,q2,q3,tau1,tau2,x\n",
+        ]),
+    ) {
+        let text = format!("{header}{body}");
+        drain(text.as_bytes(), false);
+        drain(text.as_bytes(), true);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+    #[test]
+    fn replay_open_never_panics(body in "[0-9.,\\n-]{0,400}", lenient in any::<bool>()) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = file(&dir, "fuzz.csv", &format!("{HEADER}{body}"));
+        let _ = ReplayDevice::open(&path, &Config::default(), false, lenient);
+    }
+}
