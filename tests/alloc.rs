@@ -73,8 +73,8 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
         other => panic!("{other:?} not covered here"),
     };
     let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
-    // A small channel drained by a consumer thread: both the send and the full (dropped)
-    // paths are taken.
+    // A small channel drained by a consumer thread: both the send and the full (unpaced: wait
+    // for the writer) paths are taken.
     let (tx, rx) = crossbeam_channel::bounded(64);
     let consumer = std::thread::spawn(move || {
         let mut n = 0u64;

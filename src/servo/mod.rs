@@ -273,10 +273,21 @@ impl Servo {
         None
     }
 
-    fn emit(&mut self, record: TickRecord) {
-        match self.telemetry.try_send(record) {
-            Ok(()) => {}
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => self.dropped += 1,
+    fn emit(&mut self, mut record: TickRecord) {
+        loop {
+            match self.telemetry.try_send(record) {
+                Ok(()) => return,
+                // Unpaced (--fast): nothing here is realtime, so wait for the writer rather
+                // than lose rows (the log must match a paced run's, row for row).
+                Err(TrySendError::Full(r)) if !self.paced => {
+                    record = r;
+                    std::thread::yield_now();
+                }
+                Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+                    self.dropped += 1;
+                    return;
+                }
+            }
         }
     }
 
@@ -402,5 +413,59 @@ impl Servo {
             last_command: self.command,
             shutdown_error,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::{Pd, Trajectory};
+    use crate::device::sim::SimOmni;
+
+    /// Ticks `n` times into a 16-row channel that nobody reads until it is full (unpaced: else
+    /// the loop would wait forever) or until the run is over (paced).
+    fn run_with_slow_writer(paced: bool, n: u64) -> (u64, u64) {
+        let cfg = Config::default();
+        let (tx, rx) = crossbeam_channel::bounded(16);
+        let done = Arc::new(AtomicBool::new(false));
+        let reader = {
+            let done = done.clone();
+            std::thread::spawn(move || {
+                while !(if paced {
+                    done.load(Ordering::SeqCst)
+                } else {
+                    rx.is_full()
+                }) {
+                    std::thread::yield_now();
+                }
+                rx.iter().count() as u64
+            })
+        };
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(SimOmni::new(&cfg, false)),
+            Box::new(Pd::from_config(&cfg)),
+            Reference::new(Trajectory::Sine, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            Some(n),
+            paced,
+        );
+        while servo.tick().is_none() {}
+        let report = servo.finish(EndReason::Completed);
+        done.store(true, Ordering::SeqCst);
+        (report.telemetry_dropped, reader.join().unwrap())
+    }
+
+    #[test]
+    fn unpaced_runs_wait_for_the_writer_instead_of_dropping() {
+        // 200 ticks and the stop row through a channel of 16 that fills before anyone reads.
+        assert_eq!(run_with_slow_writer(false, 200), (0, 201));
+    }
+
+    #[test]
+    fn paced_runs_never_wait_for_the_writer() {
+        // The realtime loop keeps going: 16 rows fit, the other 185 are dropped and counted.
+        assert_eq!(run_with_slow_writer(true, 200), (185, 16));
     }
 }
