@@ -3,11 +3,12 @@
 
 use crate::config::Config;
 use crate::control::{ComputedTorque, Controller, ControllerKind, Off, Pd, Reference, Trajectory};
+use crate::device::inject::{Fault, FaultyDevice, NanAfter};
 use crate::device::sim::SimOmni;
 use crate::device::{Device, DeviceError};
 use crate::servo::{EndReason, Servo};
 use crate::telemetry::summary::{IdentifierSummary, RunSummary, TimingSummary};
-use crate::telemetry::{spawn_writer, LogSchema};
+use crate::telemetry::{dump_path, spawn_writer, write_dump, LogSchema};
 use std::path::PathBuf;
 use std::str::FromStr;
 use std::sync::atomic::AtomicBool;
@@ -59,6 +60,8 @@ pub struct RunOptions {
     pub duration_s: f64,
     pub log: PathBuf,
     pub fast: bool,
+    /// Faults to inject (from `--inject`; the config's `[inject]` list is added).
+    pub inject: Vec<Fault>,
 }
 
 /// Problems that stop a run before the loop starts (bad input, no device, no log file).
@@ -85,6 +88,8 @@ pub struct RunOutcome {
     pub log_error: Option<String>,
     /// Sending the final safe packet or closing the device failed.
     pub shutdown_error: Option<String>,
+    /// Where the last ticks before a fault were written.
+    pub dump: Option<PathBuf>,
 }
 
 fn open_device(spec: &DeviceSpec, cfg: &Config, fast: bool) -> Result<Box<dyn Device>, RunError> {
@@ -126,8 +131,32 @@ pub fn execute(
             "--fast works only with the sim and replay devices: real hardware paces itself".into(),
         ));
     }
-    let controller = make_controller(opts.controller, cfg)?;
-    let device = open_device(&opts.device, cfg, opts.fast)?;
+    let mut faults = opts.inject.clone();
+    faults.extend(
+        cfg.inject
+            .parsed()
+            .map_err(|e| RunError::BadInput(e.to_string()))?,
+    );
+    if faults.len() > crate::device::inject::MAX_FAULTS {
+        return Err(RunError::BadInput(format!(
+            "at most {} faults can be injected",
+            crate::device::inject::MAX_FAULTS
+        )));
+    }
+    let mut controller = make_controller(opts.controller, cfg)?;
+    if let Some(at_s) = faults.iter().find_map(|f| match f {
+        Fault::Nan { at_s } => Some(*at_s),
+        _ => None,
+    }) {
+        controller = Box::new(NanAfter {
+            inner: controller,
+            at_s,
+        });
+    }
+    let mut device = open_device(&opts.device, cfg, opts.fast)?;
+    if !faults.is_empty() {
+        device = Box::new(FaultyDevice::new(device, &faults, cfg.sim.seed));
+    }
     let schema = LogSchema {
         model: device.plant_model().is_some(),
     };
@@ -158,6 +187,21 @@ pub fn execute(
         .join()
         .map_err(|_| RunError::Internal("the log writer thread panicked".into()))?;
 
+    let is_fault = matches!(
+        report.end,
+        EndReason::DeviceFault(_) | EndReason::SafetyFault(_)
+    );
+    let mut dump = None;
+    let mut log_error = written.error.map(|e| e.to_string());
+    if is_fault {
+        let path = dump_path(&written.path);
+        match write_dump(&path, &written.schema, &written.tail) {
+            Ok(()) => dump = Some(path),
+            Err(e) => {
+                log_error.get_or_insert(format!("writing the fault dump {}: {e}", path.display()));
+            }
+        }
+    }
     let stats = &report.stats;
     let summary = RunSummary {
         device: opts.device.name().to_string(),
@@ -188,7 +232,8 @@ pub fn execute(
     Ok(RunOutcome {
         summary,
         end: report.end,
-        log_error: written.error.map(|e| e.to_string()),
+        log_error,
         shutdown_error: report.shutdown_error,
+        dump,
     })
 }
