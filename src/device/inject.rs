@@ -147,11 +147,9 @@ impl Device for FaultyDevice {
                 Some(Fault::Stall { at_s, ms }) if t >= at_s && self.stalled_until.is_none() => {
                     self.stalled_until = Some(at_s + ms * 1e-3);
                 }
-                Some(Fault::Corrupt { probability }) => {
-                    if self.rng.random::<f64>() < probability {
-                        // A truncated packet: the codec must reject it.
-                        sample.len = STATE_LAYOUT.counter;
-                    }
+                // A truncated packet: the codec must reject it.
+                Some(Fault::Corrupt { probability }) if self.rng.random::<f64>() < probability => {
+                    sample.len = STATE_LAYOUT.counter;
                 }
                 Some(Fault::EncoderJump { at_s, counts }) if t >= at_s => {
                     let at = STATE_LAYOUT.encoder[0];
