@@ -2,6 +2,7 @@
 //! refused, every value validated with an error that names the field and the allowed range.
 
 use crate::omni::{Geometry, ModelParams};
+pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -218,6 +219,7 @@ pub struct Config {
     pub reference: ReferenceConfig,
     pub safety: SafetyConfig,
     pub telemetry: TelemetryConfig,
+    pub realtime: RealtimeConfig,
     pub inject: InjectConfig,
 }
 
@@ -616,6 +618,7 @@ impl Config {
         }
 
         self.safety.validate()?;
+        self.realtime.validate()?;
 
         let faults = self.inject.parsed()?;
         if faults.len() > crate::device::inject::MAX_FAULTS {
@@ -668,11 +671,15 @@ impl Config {
 }
 
 fn doc_for(key: &str) -> Option<&'static str> {
-    [FIELD_DOCS, crate::servo::safety::SAFETY_FIELD_DOCS]
-        .into_iter()
-        .flatten()
-        .find(|(k, _)| *k == key)
-        .map(|(_, d)| *d)
+    [
+        FIELD_DOCS,
+        crate::servo::safety::SAFETY_FIELD_DOCS,
+        crate::servo::realtime::REALTIME_FIELD_DOCS,
+    ]
+    .into_iter()
+    .flatten()
+    .find(|(k, _)| *k == key)
+    .map(|(_, d)| *d)
 }
 
 /// One line from a TOML error: where it is (line and the text there) and what is wrong.

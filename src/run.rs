@@ -177,9 +177,19 @@ pub fn execute(
         Some(max_ticks),
         !opts.fast,
     );
-    let report = std::thread::Builder::new()
+    // Realtime steps only make sense when the loop is paced.
+    let rt_cfg = (!opts.fast).then(|| cfg.realtime.clone());
+    let (report, realtime) = std::thread::Builder::new()
         .name("omnid-servo".into())
-        .spawn(move || servo.run())
+        .stack_size(2 << 20)
+        .spawn(move || {
+            let realtime = rt_cfg.as_ref().map(crate::servo::realtime::apply);
+            // Before the first tick: one line per step that was not permitted.
+            for w in realtime.iter().flat_map(|r| &r.warnings) {
+                eprintln!("omnid: warning: {w}");
+            }
+            (servo.run(), realtime)
+        })
         .map_err(|e| RunError::Internal(format!("cannot start the servo thread: {e}")))?
         .join()
         .map_err(|_| RunError::Internal("the servo thread panicked".into()))?;
@@ -228,6 +238,7 @@ pub fn execute(
         log_rows: written.rows,
         seed: cfg.sim.seed,
         fast: opts.fast,
+        realtime,
     };
     Ok(RunOutcome {
         summary,

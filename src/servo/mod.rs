@@ -3,6 +3,7 @@
 //! through a bounded channel with `try_send`.
 
 pub mod clock;
+pub mod realtime;
 pub mod safety;
 pub mod timing;
 
