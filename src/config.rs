@@ -2,6 +2,7 @@
 //! refused, every value validated with an error that names the field and the allowed range.
 
 use crate::omni::{Geometry, ModelParams};
+pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -180,6 +181,31 @@ impl Default for TelemetryConfig {
     }
 }
 
+/// Faults to inject (testing the safety layer); same specs as `--inject`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InjectConfig {
+    pub faults: Vec<String>,
+}
+
+impl InjectConfig {
+    pub fn parsed(&self) -> Result<Vec<crate::device::inject::Fault>, ConfigError> {
+        self.faults
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                f.parse().map_err(
+                    |e: crate::device::inject::FaultSpecError| ConfigError::Invalid {
+                        field: format!("inject.faults[{i}]"),
+                        value: format!("{f:?}"),
+                        allowed: e.why,
+                    },
+                )
+            })
+            .collect()
+    }
+}
+
 /// The whole configuration file.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -193,6 +219,8 @@ pub struct Config {
     pub reference: ReferenceConfig,
     pub safety: SafetyConfig,
     pub telemetry: TelemetryConfig,
+    pub realtime: RealtimeConfig,
+    pub inject: InjectConfig,
 }
 
 /// One-line explanations of every key, used by `omnid config --print-default`.
@@ -320,6 +348,11 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
     (
         "telemetry",
         "Telemetry from the servo loop to the log writer.",
+    ),
+    ("inject", "Fault injection for tests of the safety layer (also --inject)."),
+    (
+        "inject.faults",
+        "e.g. [\"disconnect@5\", \"stall@2:50\", \"corrupt:0.01\", \"encoder-jump@3:800\", \"nan@4\", \"slow@1:5\"]",
     ),
     (
         "telemetry.channel_capacity",
@@ -585,6 +618,16 @@ impl Config {
         }
 
         self.safety.validate()?;
+        self.realtime.validate()?;
+
+        let faults = self.inject.parsed()?;
+        if faults.len() > crate::device::inject::MAX_FAULTS {
+            return Err(ConfigError::Invalid {
+                field: "inject.faults".into(),
+                value: format!("{} faults", faults.len()),
+                allowed: format!("at most {}", crate::device::inject::MAX_FAULTS),
+            });
+        }
 
         let cap = self.telemetry.channel_capacity;
         if !(16..=10_000_000).contains(&cap) {
@@ -628,11 +671,15 @@ impl Config {
 }
 
 fn doc_for(key: &str) -> Option<&'static str> {
-    [FIELD_DOCS, crate::servo::safety::SAFETY_FIELD_DOCS]
-        .into_iter()
-        .flatten()
-        .find(|(k, _)| *k == key)
-        .map(|(_, d)| *d)
+    [
+        FIELD_DOCS,
+        crate::servo::safety::SAFETY_FIELD_DOCS,
+        crate::servo::realtime::REALTIME_FIELD_DOCS,
+    ]
+    .into_iter()
+    .flatten()
+    .find(|(k, _)| *k == key)
+    .map(|(_, d)| *d)
 }
 
 /// One line from a TOML error: where it is (line and the text there) and what is wrong.

@@ -5,6 +5,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
+use omnid::device::inject::Fault;
 use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
 use omnid::servo::EndReason;
 use omnid::telemetry::convert::{convert, ConvertError, SourceFormat};
@@ -70,6 +71,10 @@ struct RunArgs {
     /// No pacing: run as fast as the CPU allows, same results (sim and replay only).
     #[arg(long)]
     fast: bool,
+    /// Inject a fault (repeatable): disconnect@T, stall@T:MS, corrupt:P,
+    /// encoder-jump@T:COUNTS, nan@T, slow@T:MS (T in s of device time).
+    #[arg(long, value_name = "SPEC")]
+    inject: Vec<Fault>,
     /// Replay: skip damaged rows of the log (reported) instead of refusing it.
     #[arg(long)]
     lenient: bool,
@@ -170,6 +175,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         log: args.log.unwrap_or_else(default_log_path),
         fast: args.fast,
         lenient: args.lenient,
+        inject: args.inject,
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
@@ -196,21 +202,32 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         std::fs::write(path, json + "\n")
             .with_context(|| format!("writing the summary to {}", path.display()))?;
     }
+    let stopped = if outcome.shutdown_error.is_none() {
+        "zero torque sent, amplifiers off"
+    } else {
+        "the final zero-torque packet could not be delivered; the device's own watchdog turns its amplifiers off when packets stop"
+    };
     let mut code = match &outcome.end {
         EndReason::Completed | EndReason::EndOfData => 0,
         EndReason::OperatorStop => {
-            eprintln!("omnid: stopped by the operator; zero torque sent, amplifiers off");
+            eprintln!("omnid: stopped by the operator; {stopped}");
             EXIT_OPERATOR_STOP
         }
         EndReason::DeviceFault(m) => {
-            eprintln!("omnid: device fault: {m}; zero torque sent, amplifiers off");
+            eprintln!("omnid: device fault: {m}; {stopped}");
             EXIT_DEVICE_FAULT
         }
         EndReason::SafetyFault(m) => {
-            eprintln!("omnid: safety fault: {m}; zero torque sent, amplifiers off");
+            eprintln!("omnid: safety fault: {m}; {stopped}");
             EXIT_SAFETY_FAULT
         }
     };
+    if let Some(dump) = &outcome.dump {
+        eprintln!(
+            "omnid: the last ticks before the fault are in {}",
+            dump.display()
+        );
+    }
     if let Some(e) = &outcome.shutdown_error {
         eprintln!("omnid: warning: {e}");
         if code == 0 {

@@ -3,12 +3,13 @@
 
 use crate::config::Config;
 use crate::control::{ComputedTorque, Controller, ControllerKind, Off, Pd, Reference, Trajectory};
+use crate::device::inject::{Fault, FaultyDevice, NanAfter};
 use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
 use crate::device::{Device, DeviceError};
 use crate::servo::{EndReason, Servo};
 use crate::telemetry::summary::{IdentifierSummary, RunSummary, TimingSummary};
-use crate::telemetry::{spawn_writer, LogSchema};
+use crate::telemetry::{dump_path, spawn_writer, write_dump, LogSchema};
 use std::path::PathBuf;
 use std::str::FromStr;
 use std::sync::atomic::AtomicBool;
@@ -63,6 +64,8 @@ pub struct RunOptions {
     pub fast: bool,
     /// Replay: skip damaged rows (and report them) instead of refusing the log.
     pub lenient: bool,
+    /// Faults to inject (from `--inject`; the config's `[inject]` list is added).
+    pub inject: Vec<Fault>,
 }
 
 /// Problems that stop a run before the loop starts (bad input, no device, no log file).
@@ -95,6 +98,8 @@ pub struct RunOutcome {
     /// Things the operator should know that did not stop the run (e.g. rows skipped with
     /// `--lenient`).
     pub warnings: Vec<String>,
+    /// Where the last ticks before a fault were written.
+    pub dump: Option<PathBuf>,
 }
 
 fn open_device(
@@ -153,9 +158,33 @@ pub fn execute(
             "--fast works only with the sim and replay devices: real hardware paces itself".into(),
         ));
     }
-    let controller = make_controller(opts.controller, cfg)?;
+    let mut faults = opts.inject.clone();
+    faults.extend(
+        cfg.inject
+            .parsed()
+            .map_err(|e| RunError::BadInput(e.to_string()))?,
+    );
+    if faults.len() > crate::device::inject::MAX_FAULTS {
+        return Err(RunError::BadInput(format!(
+            "at most {} faults can be injected",
+            crate::device::inject::MAX_FAULTS
+        )));
+    }
+    let mut controller = make_controller(opts.controller, cfg)?;
+    if let Some(at_s) = faults.iter().find_map(|f| match f {
+        Fault::Nan { at_s } => Some(*at_s),
+        _ => None,
+    }) {
+        controller = Box::new(NanAfter {
+            inner: controller,
+            at_s,
+        });
+    }
     let mut warnings = Vec::new();
-    let device = open_device(opts, cfg, &mut warnings)?;
+    let mut device = open_device(opts, cfg, &mut warnings)?;
+    if !faults.is_empty() {
+        device = Box::new(FaultyDevice::new(device, &faults, cfg.sim.seed));
+    }
     let schema = LogSchema {
         model: device.plant_model().is_some(),
     };
@@ -170,9 +199,19 @@ pub fn execute(
     let servo = Servo::new(
         cfg, device, controller, reference, tx, stop, max_ticks, !opts.fast,
     );
-    let report = std::thread::Builder::new()
+    // Realtime steps only make sense when the loop is paced.
+    let rt_cfg = (!opts.fast).then(|| cfg.realtime.clone());
+    let (report, realtime) = std::thread::Builder::new()
         .name("omnid-servo".into())
-        .spawn(move || servo.run())
+        .stack_size(2 << 20)
+        .spawn(move || {
+            let realtime = rt_cfg.as_ref().map(crate::servo::realtime::apply);
+            // Before the first tick: one line per step that was not permitted.
+            for w in realtime.iter().flat_map(|r| &r.warnings) {
+                eprintln!("omnid: warning: {w}");
+            }
+            (servo.run(), realtime)
+        })
         .map_err(|e| RunError::Internal(format!("cannot start the servo thread: {e}")))?
         .join()
         .map_err(|_| RunError::Internal("the servo thread panicked".into()))?;
@@ -180,6 +219,21 @@ pub fn execute(
         .join()
         .map_err(|_| RunError::Internal("the log writer thread panicked".into()))?;
 
+    let is_fault = matches!(
+        report.end,
+        EndReason::DeviceFault(_) | EndReason::SafetyFault(_)
+    );
+    let mut dump = None;
+    let mut log_error = written.error.map(|e| e.to_string());
+    if is_fault {
+        let path = dump_path(&written.path);
+        match write_dump(&path, &written.schema, &written.tail) {
+            Ok(()) => dump = Some(path),
+            Err(e) => {
+                log_error.get_or_insert(format!("writing the fault dump {}: {e}", path.display()));
+            }
+        }
+    }
     let stats = &report.stats;
     let summary = RunSummary {
         device: opts.device.name().to_string(),
@@ -206,12 +260,14 @@ pub fn execute(
         log_rows: written.rows,
         seed: cfg.sim.seed,
         fast: opts.fast,
+        realtime,
     };
     Ok(RunOutcome {
         summary,
         end: report.end,
-        log_error: written.error.map(|e| e.to_string()),
+        log_error,
         shutdown_error: report.shutdown_error,
         warnings,
+        dump,
     })
 }

@@ -132,6 +132,7 @@ fn replay_allocates_nothing_per_tick() {
         log: log.clone(),
         fast: true,
         lenient: false,
+        inject: Vec::new(),
     };
     omnid::run::execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
 

@@ -27,6 +27,7 @@ fn run(
         log: log.to_path_buf(),
         fast: true,
         lenient: false,
+        inject: Vec::new(),
     };
     let out = execute(&opts, cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
     assert!(out.log_error.is_none() && out.shutdown_error.is_none());
@@ -132,6 +133,7 @@ fn paced_and_fast_replays_agree() {
             log: log.clone(),
             fast,
             lenient: false,
+            inject: Vec::new(),
         };
         let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
         assert_eq!(out.end, EndReason::EndOfData);

@@ -2,6 +2,7 @@
 //! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
 
 pub mod codec;
+pub mod inject;
 pub mod replay;
 pub mod sim;
 

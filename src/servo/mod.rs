@@ -3,6 +3,7 @@
 //! through a bounded channel with `try_send`.
 
 pub mod clock;
+pub mod realtime;
 pub mod safety;
 pub mod timing;
 
@@ -21,6 +22,12 @@ use safety::SafetyLayer;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use timing::TickTiming;
+
+/// Link-quality floor: more than `LINK_MAX_BAD` bad packets in the last `LINK_WINDOW` is a
+/// device fault; fewer are counted, held over and survived.
+const LINK_WINDOW: u32 = 100;
+const LINK_MAX_BAD: u32 = 10;
+const LINK_WINDOW_MASK: u128 = (1u128 << LINK_WINDOW) - 1;
 
 /// Why a run ended. Each class has its own exit code (see `main.rs` and the README).
 #[derive(Debug, Clone, PartialEq)]
@@ -86,9 +93,13 @@ pub struct Servo {
     tick: u64,
     t0: Option<f64>,
     last_t: f64,
+    last_q: [f64; 3],
+    last_enc: [i64; 3],
     last_reference: [f64; 3],
     last_tau_model: [f64; 3],
     consecutive_missed: u32,
+    /// One bit per recent exchange, 1 = lost or corrupt (newest in bit 0).
+    link_history: u128,
     held: bool,
     first_wake_ns: u64,
     last_wake_ns: u64,
@@ -136,9 +147,12 @@ impl Servo {
             tick: 0,
             t0: None,
             last_t: 0.0,
+            last_q: [0.0; 3],
+            last_enc: [0; 3],
             last_reference: cfg.reference.center,
             last_tau_model: [0.0; 3],
             consecutive_missed: 0,
+            link_history: 0,
             held: false,
             first_wake_ns: 0,
             last_wake_ns: 0,
@@ -184,6 +198,7 @@ impl Servo {
             Err(_) => return self.missed_packet(),
         };
         self.consecutive_missed = 0;
+        self.link_history <<= 1;
 
         // Decode: continuous counts → joint angles.
         let enc = self.unwrap.update(packet.encoder);
@@ -266,6 +281,8 @@ impl Servo {
             flags: tick_flags,
         });
         self.last_t = t;
+        self.last_q = q.into();
+        self.last_enc = enc;
         self.last_reference = reference.q.into();
         self.last_tau_model = tau_model;
         self.record_timing(wake);
@@ -319,10 +336,17 @@ impl Servo {
         self.missed += 1;
         self.consecutive_missed += 1;
         self.held = true;
+        self.link_history = (self.link_history << 1) | 1;
         if self.consecutive_missed >= self.max_missed {
             return Some(EndReason::DeviceFault(format!(
-                "{} consecutive packets missed or corrupt",
+                "watchdog: {} consecutive packets missed or corrupt",
                 self.consecutive_missed
+            )));
+        }
+        let bad = (self.link_history & LINK_WINDOW_MASK).count_ones();
+        if bad > LINK_MAX_BAD {
+            return Some(EndReason::DeviceFault(format!(
+                "link quality: {bad} of the last {LINK_WINDOW} packets lost or corrupt"
             )));
         }
         None
@@ -338,41 +362,39 @@ impl Servo {
         self.command = MotorCommand::safe(watchdog);
         let bytes: [u8; COMMAND_LEN] = encode_command(&self.command);
         let mut error = None;
+        // The stop row: the reply's state when one comes back, else the last known state.
+        let period = 1e-9 * self.period_ns as f64;
+        let (mut t, mut q, mut enc) = (self.last_t + period, self.last_q, self.last_enc);
         match self.device.exchange(&bytes) {
             Ok(raw) => {
-                let t = self
-                    .t0
-                    .map(|t0| raw.device_time_s - t0)
-                    .unwrap_or(0.0)
-                    .max(self.last_t);
-                let (q, enc) = match decode_state(raw.packet()) {
-                    Ok(p) => {
-                        let enc = self.unwrap.update(p.encoder);
-                        (enc.map(|c| c as f64 * self.rad_per_count), enc)
-                    }
-                    Err(_) => ([f64::NAN; 3], [0; 3]),
-                };
-                let est = self.kalman.estimate();
-                self.emit(TickRecord {
-                    t,
-                    q,
-                    tau: [0.0; 3],
-                    qf: est.q.into(),
-                    qd: est.qd.into(),
-                    qdd: est.qdd.into(),
-                    reference: self.last_reference,
-                    tau_cmd: [0.0; 3],
-                    tau_model: self.last_tau_model,
-                    enc,
-                    amps: false,
-                    mode: Mode::Stop,
-                    flags: 0,
-                });
+                if let Some(t0) = self.t0 {
+                    t = (raw.device_time_s - t0).max(self.last_t);
+                }
+                if let Ok(p) = decode_state(raw.packet()) {
+                    enc = self.unwrap.update(p.encoder);
+                    q = enc.map(|c| c as f64 * self.rad_per_count);
+                }
             }
-            // End of a replay: the safe command has nowhere to go, and that is fine.
-            Err(DeviceError::EndOfData) => {}
+            // The packet went out; only its reply is missing, or a replay has nowhere to send it.
+            Err(DeviceError::Missed(_)) | Err(DeviceError::EndOfData) => {}
             Err(e) => error = Some(format!("sending the final zero-torque packet: {e}")),
         }
+        let est = self.kalman.estimate();
+        self.emit(TickRecord {
+            t,
+            q,
+            tau: [0.0; 3],
+            qf: est.q.into(),
+            qd: est.qd.into(),
+            qdd: est.qdd.into(),
+            reference: self.last_reference,
+            tau_cmd: [0.0; 3],
+            tau_model: self.last_tau_model,
+            enc,
+            amps: false,
+            mode: Mode::Stop,
+            flags: 0,
+        });
         if let Err(e) = self.device.close() {
             error.get_or_insert(format!("closing the device: {e}"));
         }

@@ -11,4 +11,4 @@ pub mod writer;
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
 pub use summary::RunSummary;
-pub use writer::{spawn_writer, WriterReport};
+pub use writer::{dump_path, spawn_writer, write_dump, WriterReport};

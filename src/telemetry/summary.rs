@@ -144,6 +144,8 @@ pub struct RunSummary {
     pub log_rows: u64,
     pub seed: u64,
     pub fast: bool,
+    /// The realtime steps that took effect (null for `--fast` runs, which skip them).
+    pub realtime: Option<crate::servo::realtime::RealtimeReport>,
 }
 
 fn triple(v: Option<[f64; 3]>, scale: f64, unit: &str) -> String {
@@ -216,6 +218,15 @@ impl RunSummary {
             "  packets missed {}  clamped ticks {}  telemetry dropped {}\n",
             self.missed_packets, self.clamped_ticks, self.telemetry_dropped
         );
+        if let Some(rt) = &self.realtime {
+            s += &format!(
+                "  realtime        SCHED_FIFO {}  memory locked {}  cpu {}  signals blocked {}\n",
+                rt.fifo_priority.map_or("no".to_string(), |p| p.to_string()),
+                if rt.memory_locked { "yes" } else { "no" },
+                rt.cpu.map_or("any".to_string(), |c| c.to_string()),
+                if rt.signals_blocked { "yes" } else { "no" },
+            );
+        }
         for f in &self.faults {
             s += &format!(
                 "  FAULT at tick {} (t = {:.3} s): {}: {}\n",

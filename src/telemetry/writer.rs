@@ -4,17 +4,47 @@
 
 use super::record::{LogSchema, TickRecord};
 use crossbeam_channel::Receiver;
+use std::collections::VecDeque;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
 
+/// Ticks kept for the fault dump.
+pub const DUMP_TICKS: usize = 500;
+
 #[derive(Debug)]
 pub struct WriterReport {
     pub path: PathBuf,
+    pub schema: LogSchema,
     pub rows: u64,
     /// The first write error, if any; rows after it are lost.
     pub error: Option<io::Error>,
+    /// The last [`DUMP_TICKS`] records received, oldest first (for the fault dump).
+    pub tail: VecDeque<TickRecord>,
+}
+
+/// `run.csv` → `run-fault.csv`, beside the log.
+pub fn dump_path(log: &Path) -> PathBuf {
+    let stem = log
+        .file_stem()
+        .map(|s| s.to_string_lossy())
+        .unwrap_or_default();
+    let name = match log.extension() {
+        Some(ext) => format!("{stem}-fault.{}", ext.to_string_lossy()),
+        None => format!("{stem}-fault"),
+    };
+    log.with_file_name(name)
+}
+
+/// Write the fault dump: the same columns as the log, the last ticks before the fault.
+pub fn write_dump(path: &Path, schema: &LogSchema, rows: &VecDeque<TickRecord>) -> io::Result<()> {
+    let mut out = BufWriter::new(File::create(path)?);
+    writeln!(out, "{}", schema.columns().join(","))?;
+    for r in rows {
+        write_row(&mut out, r, schema)?;
+    }
+    out.flush()
 }
 
 fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Result<()> {
@@ -54,10 +84,16 @@ pub fn spawn_writer(
         .spawn(move || {
             let mut report = WriterReport {
                 path,
+                schema,
                 rows: 0,
                 error: None,
+                tail: VecDeque::with_capacity(DUMP_TICKS),
             };
             for record in rx.iter() {
+                if report.tail.len() == DUMP_TICKS {
+                    report.tail.pop_front();
+                }
+                report.tail.push_back(record);
                 if report.error.is_some() {
                     continue; // keep draining: the loop must never block on us
                 }
@@ -118,6 +154,15 @@ mod tests {
             "70000"
         );
         assert_eq!(row[header.len() - 2], "track");
+    }
+
+    #[test]
+    fn dump_sits_beside_the_log() {
+        assert_eq!(
+            dump_path(Path::new("/a/run.csv")),
+            Path::new("/a/run-fault.csv")
+        );
+        assert_eq!(dump_path(Path::new("run")), Path::new("run-fault"));
     }
 
     #[test]

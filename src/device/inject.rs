@@ -1,0 +1,256 @@
+//! Fault injection: a wrapper around any device (and a controller wrapper for `nan@T`) that
+//! makes the faults the safety layer must survive or stop on, at chosen device times.
+//!
+//! Specs (`--inject`, repeatable, or `[inject] faults = [...]`):
+//! `disconnect@T`, `stall@T:MS`, `corrupt:P`, `encoder-jump@T:COUNTS`, `nan@T`, `slow@T:MS`,
+//! with T in seconds of device time, MS in milliseconds, P a probability per packet.
+
+use super::codec::STATE_LAYOUT;
+use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use crate::control::{ControlInput, Controller};
+use crate::omni::{Dynamics, Joint3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::str::FromStr;
+use thiserror::Error;
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Fault {
+    /// From T on, the device is gone.
+    Disconnect { at_s: f64 },
+    /// From T, no packet comes back for MS milliseconds.
+    Stall { at_s: f64, ms: f64 },
+    /// Each packet is corrupt (truncated) with probability P.
+    Corrupt { probability: f64 },
+    /// From T, joint 1's encoder reads COUNTS more.
+    EncoderJump { at_s: f64, counts: i64 },
+    /// At T, the controller's output turns non-finite.
+    Nan { at_s: f64 },
+    /// At T, one packet arrives MS milliseconds late.
+    Slow { at_s: f64, ms: f64 },
+}
+
+#[derive(Debug, Clone, PartialEq, Error)]
+#[error("bad fault spec `{spec}`: {why} (expected disconnect@T, stall@T:MS, corrupt:P, encoder-jump@T:COUNTS, nan@T or slow@T:MS)")]
+pub struct FaultSpecError {
+    pub spec: String,
+    pub why: String,
+}
+
+fn num(spec: &str, what: &str, s: &str) -> Result<f64, FaultSpecError> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(FaultSpecError {
+            spec: spec.to_string(),
+            why: format!("{what} `{s}` is not a finite number ≥ 0"),
+        }),
+    }
+}
+
+impl FromStr for Fault {
+    type Err = FaultSpecError;
+    fn from_str(spec: &str) -> Result<Self, FaultSpecError> {
+        let err = |why: &str| FaultSpecError {
+            spec: spec.to_string(),
+            why: why.to_string(),
+        };
+        if let Some(p) = spec.strip_prefix("corrupt:") {
+            let probability = num(spec, "probability", p)?;
+            if probability > 1.0 {
+                return Err(err("probability must be ≤ 1"));
+            }
+            return Ok(Fault::Corrupt { probability });
+        }
+        let (kind, rest) = spec.split_once('@').ok_or_else(|| err("missing @T"))?;
+        let (at, arg) = match rest.split_once(':') {
+            Some((a, b)) => (a, Some(b)),
+            None => (rest, None),
+        };
+        let at_s = num(spec, "time", at)?;
+        let need = |what: &str| {
+            arg.map(|a| num(spec, what, a))
+                .unwrap_or_else(|| Err(err(&format!("missing :{what}"))))
+        };
+        match kind {
+            "disconnect" => Ok(Fault::Disconnect { at_s }),
+            "nan" => Ok(Fault::Nan { at_s }),
+            "stall" => Ok(Fault::Stall {
+                at_s,
+                ms: need("MS")?,
+            }),
+            "slow" => Ok(Fault::Slow {
+                at_s,
+                ms: need("MS")?,
+            }),
+            "encoder-jump" => {
+                let c = arg.ok_or_else(|| err("missing :COUNTS"))?;
+                let counts = c
+                    .trim()
+                    .parse::<i64>()
+                    .map_err(|_| err(&format!("COUNTS `{c}` is not an integer")))?;
+                Ok(Fault::EncoderJump { at_s, counts })
+            }
+            other => Err(err(&format!("unknown fault `{other}`"))),
+        }
+    }
+}
+
+/// Fixed-capacity list of faults (no allocation in the loop).
+pub const MAX_FAULTS: usize = 16;
+
+/// A device with faults injected.
+pub struct FaultyDevice {
+    inner: Box<dyn Device>,
+    faults: [Option<Fault>; MAX_FAULTS],
+    rng: ChaCha8Rng,
+    last_time: f64,
+    stalled_until: Option<f64>,
+    slow_done: [bool; MAX_FAULTS],
+}
+
+impl FaultyDevice {
+    pub fn new(inner: Box<dyn Device>, faults: &[Fault], seed: u64) -> Self {
+        let mut list = [None; MAX_FAULTS];
+        for (slot, f) in list.iter_mut().zip(faults) {
+            *slot = Some(*f);
+        }
+        FaultyDevice {
+            inner,
+            faults: list,
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0xFA17),
+            last_time: 0.0,
+            stalled_until: None,
+            slow_done: [false; MAX_FAULTS],
+        }
+    }
+}
+
+impl Device for FaultyDevice {
+    fn kind(&self) -> &'static str {
+        self.inner.kind()
+    }
+
+    fn exchange(&mut self, command: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError> {
+        let t = self.last_time;
+        for f in self.faults.iter().flatten() {
+            if let Fault::Disconnect { at_s } = *f {
+                if t >= at_s {
+                    return Err(DeviceError::Disconnected("injected disconnect".into()));
+                }
+            }
+        }
+        let mut sample = self.inner.exchange(command)?;
+        self.last_time = sample.device_time_s;
+        let t = sample.device_time_s;
+        for (i, f) in self.faults.iter().enumerate() {
+            match *f {
+                Some(Fault::Stall { at_s, ms }) if t >= at_s && self.stalled_until.is_none() => {
+                    self.stalled_until = Some(at_s + ms * 1e-3);
+                }
+                // A truncated packet: the codec must reject it.
+                Some(Fault::Corrupt { probability }) if self.rng.random::<f64>() < probability => {
+                    sample.len = STATE_LAYOUT.counter;
+                }
+                Some(Fault::EncoderJump { at_s, counts }) if t >= at_s => {
+                    let at = STATE_LAYOUT.encoder[0];
+                    let raw = u16::from_le_bytes([sample.bytes[at], sample.bytes[at + 1]]);
+                    let jumped = (raw as i64 + counts) as u16;
+                    sample.bytes[at..at + 2].copy_from_slice(&jumped.to_le_bytes());
+                }
+                Some(Fault::Slow { at_s, ms }) if t >= at_s && !self.slow_done[i] => {
+                    self.slow_done[i] = true;
+                    let until = crate::servo::clock::now_ns() + (ms * 1e6) as u64;
+                    crate::servo::clock::sleep_until_ns(until);
+                }
+                _ => {}
+            }
+        }
+        if let Some(until) = self.stalled_until {
+            if t < until {
+                return Err(DeviceError::Missed("injected stall".into()));
+            }
+        }
+        Ok(sample)
+    }
+
+    fn close(&mut self) -> Result<(), DeviceError> {
+        self.inner.close()
+    }
+
+    fn recorded_torque(&self) -> Option<[f64; 3]> {
+        self.inner.recorded_torque()
+    }
+
+    fn plant_model(&self) -> Option<&Dynamics> {
+        self.inner.plant_model()
+    }
+}
+
+/// A controller whose output turns non-finite from time T on (`nan@T`).
+pub struct NanAfter {
+    pub inner: Box<dyn Controller>,
+    pub at_s: f64,
+}
+
+impl Controller for NanAfter {
+    fn name(&self) -> &'static str {
+        self.inner.name()
+    }
+
+    fn torque(&mut self, input: &ControlInput) -> Joint3 {
+        let tau = self.inner.torque(input);
+        if input.t >= self.at_s {
+            Joint3::new(tau[0], f64::NAN, tau[2])
+        } else {
+            tau
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_every_spec() {
+        assert_eq!(
+            "disconnect@2.5".parse(),
+            Ok(Fault::Disconnect { at_s: 2.5 })
+        );
+        assert_eq!(
+            "stall@1:50".parse(),
+            Ok(Fault::Stall {
+                at_s: 1.0,
+                ms: 50.0
+            })
+        );
+        assert_eq!(
+            "corrupt:0.01".parse(),
+            Ok(Fault::Corrupt { probability: 0.01 })
+        );
+        assert_eq!(
+            "encoder-jump@3:-1200".parse(),
+            Ok(Fault::EncoderJump {
+                at_s: 3.0,
+                counts: -1200
+            })
+        );
+        assert_eq!("nan@4".parse(), Ok(Fault::Nan { at_s: 4.0 }));
+        assert_eq!("slow@1:5".parse(), Ok(Fault::Slow { at_s: 1.0, ms: 5.0 }));
+    }
+
+    #[test]
+    fn bad_specs_say_what_is_wrong() {
+        for (spec, says) in [
+            ("explode@1", "unknown fault `explode`"),
+            ("stall@1", "missing :MS"),
+            ("disconnect", "missing @T"),
+            ("corrupt:2", "≤ 1"),
+            ("nan@-1", "time `-1`"),
+            ("encoder-jump@1:x", "COUNTS `x`"),
+        ] {
+            let e = spec.parse::<Fault>().unwrap_err().to_string();
+            assert!(e.contains(says) && e.contains(spec), "{spec}: {e}");
+        }
+    }
+}

@@ -1,0 +1,239 @@
+//! Realtime set-up of the servo thread (DESIGN §4.7): SCHED_FIFO, locked memory, optional CPU
+//! pinning, a prefaulted stack, and SIGINT/SIGTERM blocked so the Ctrl-C handler never runs
+//! on this thread. Each step is configurable; a step that is not permitted gives one warning
+//! naming the fix and the run goes on.
+
+use crate::config::ConfigError;
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RealtimeConfig {
+    /// SCHED_FIFO priority of the servo thread (1..=99); 0 leaves the normal scheduler.
+    pub fifo_priority: i32,
+    /// Lock all current and future memory (mlockall) so no page fault hits the loop.
+    pub lock_memory: bool,
+    /// Pin the servo thread to this CPU (-1: no pinning).
+    pub cpu: i32,
+    /// Touch this much stack before the first tick, KiB.
+    pub prefault_stack_kib: usize,
+}
+
+impl Default for RealtimeConfig {
+    fn default() -> Self {
+        RealtimeConfig {
+            fifo_priority: 80,
+            lock_memory: true,
+            cpu: -1,
+            prefault_stack_kib: 256,
+        }
+    }
+}
+
+pub const REALTIME_FIELD_DOCS: &[(&str, &str)] = &[
+    (
+        "realtime",
+        "Realtime set-up of the servo thread (paced runs only; see udev/omnid-limits.conf).",
+    ),
+    (
+        "realtime.fifo_priority",
+        "SCHED_FIFO priority 1..=99 of the servo thread; 0 = normal scheduling",
+    ),
+    (
+        "realtime.lock_memory",
+        "mlockall: keep every page in RAM so the loop never page-faults",
+    ),
+    (
+        "realtime.cpu",
+        "pin the servo thread to this CPU; -1 = no pinning",
+    ),
+    (
+        "realtime.prefault_stack_kib",
+        "stack touched before the first tick, KiB",
+    ),
+];
+
+impl RealtimeConfig {
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, value: String, allowed: &str| ConfigError::Invalid {
+            field: field.into(),
+            value,
+            allowed: allowed.into(),
+        };
+        if !(0..=99).contains(&self.fifo_priority) {
+            return Err(bad(
+                "realtime.fifo_priority",
+                self.fifo_priority.to_string(),
+                "0 ..= 99",
+            ));
+        }
+        let cpus = std::thread::available_parallelism()
+            .map(|n| n.get() as i32)
+            .unwrap_or(1);
+        if self.cpu < -1 || self.cpu >= cpus.max(1024) {
+            return Err(bad(
+                "realtime.cpu",
+                self.cpu.to_string(),
+                "-1 or a CPU number",
+            ));
+        }
+        if self.prefault_stack_kib > 1024 {
+            return Err(bad(
+                "realtime.prefault_stack_kib",
+                self.prefault_stack_kib.to_string(),
+                "0 ..= 1024 (the servo thread's stack is 2 MiB)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Which steps took effect, for the summary.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RealtimeReport {
+    pub fifo_priority: Option<i32>,
+    pub memory_locked: bool,
+    pub cpu: Option<i32>,
+    pub stack_prefaulted_kib: usize,
+    pub signals_blocked: bool,
+    /// One line per step that was asked for but not permitted.
+    pub warnings: Vec<String>,
+}
+
+const LIMITS_HINT: &str =
+    "install udev/omnid-limits.conf into /etc/security/limits.d/ and log in again (see udev/README.md)";
+
+#[inline(never)]
+fn prefault_stack(kib: usize) {
+    // Touch each page of a stack buffer so later calls find it mapped.
+    let mut buf = [0u8; 1024 * 1024];
+    let n = (kib * 1024).min(buf.len());
+    let mut i = 0;
+    while i < n {
+        // SAFETY: i < buf.len(); volatile keeps the writes from being optimised away.
+        unsafe { std::ptr::write_volatile(buf.as_mut_ptr().add(i), 1) };
+        i += 4096;
+    }
+    std::hint::black_box(&buf);
+}
+
+/// Apply the configured steps to the calling thread (the servo thread, before its first tick).
+pub fn apply(cfg: &RealtimeConfig) -> RealtimeReport {
+    let mut r = RealtimeReport::default();
+
+    // Signals: Ctrl-C and SIGTERM are handled by the ctrlc thread, never in the loop.
+    // SAFETY: plain libc calls on a zeroed, then initialised, sigset_t.
+    unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, libc::SIGINT);
+        libc::sigaddset(&mut set, libc::SIGTERM);
+        libc::sigaddset(&mut set, libc::SIGHUP);
+        r.signals_blocked = libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut()) == 0;
+    }
+
+    if cfg.lock_memory {
+        // SAFETY: mlockall has no memory-safety preconditions.
+        if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } == 0 {
+            r.memory_locked = true;
+        } else {
+            r.warnings.push(format!(
+                "memory lock not permitted ({}): {LIMITS_HINT}",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+
+    if cfg.cpu >= 0 {
+        // SAFETY: cpu_set_t is plain data; CPU_SET is bounds-checked by the check below.
+        let ok = unsafe {
+            let mut set: libc::cpu_set_t = std::mem::zeroed();
+            if (cfg.cpu as usize) < 8 * std::mem::size_of::<libc::cpu_set_t>() {
+                libc::CPU_SET(cfg.cpu as usize, &mut set);
+                libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) == 0
+            } else {
+                false
+            }
+        };
+        if ok {
+            r.cpu = Some(cfg.cpu);
+        } else {
+            r.warnings.push(format!(
+                "pinning to CPU {} failed ({}): set realtime.cpu to an online CPU or -1",
+                cfg.cpu,
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+
+    if cfg.prefault_stack_kib > 0 {
+        prefault_stack(cfg.prefault_stack_kib);
+        r.stack_prefaulted_kib = cfg.prefault_stack_kib;
+    }
+
+    // Priority last, once everything that may block or allocate is done.
+    if cfg.fifo_priority > 0 {
+        let param = libc::sched_param {
+            sched_priority: cfg.fifo_priority,
+        };
+        // SAFETY: param is a valid sched_param; 0 means the calling thread.
+        let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+        if rc == 0 {
+            r.fifo_priority = Some(cfg.fifo_priority);
+        } else {
+            r.warnings.push(format!(
+                "SCHED_FIFO priority {} not permitted ({}): {LIMITS_HINT}",
+                cfg.fifo_priority,
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn steps_that_are_off_do_nothing_and_signals_are_blocked() {
+        let cfg = RealtimeConfig {
+            fifo_priority: 0,
+            lock_memory: false,
+            cpu: -1,
+            prefault_stack_kib: 64,
+        };
+        let r = std::thread::spawn(move || apply(&cfg)).join().unwrap();
+        assert_eq!(r.fifo_priority, None);
+        assert!(!r.memory_locked && r.cpu.is_none() && r.warnings.is_empty());
+        assert!(r.signals_blocked);
+        assert_eq!(r.stack_prefaulted_kib, 64);
+    }
+
+    #[test]
+    fn pinning_to_cpu_zero_works_or_warns() {
+        let cfg = RealtimeConfig {
+            fifo_priority: 0,
+            lock_memory: false,
+            cpu: 0,
+            prefault_stack_kib: 0,
+        };
+        let r = std::thread::spawn(move || apply(&cfg)).join().unwrap();
+        assert!(r.cpu == Some(0) || r.warnings.len() == 1);
+    }
+
+    #[test]
+    fn validation_names_the_field() {
+        let e = RealtimeConfig {
+            fifo_priority: 120,
+            ..Default::default()
+        }
+        .validate()
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("realtime.fifo_priority") && e.contains("0 ..= 99"),
+            "{e}"
+        );
+    }
+}
