@@ -196,9 +196,22 @@ pub fn execute(
     let reference = Reference::new(opts.trajectory, &cfg.reference, cfg.sim.seed);
     // A replay limits itself in device time (its rows need not come at rate_hz).
     let max_ticks = (!replay).then(|| (opts.duration_s * cfg.device.rate_hz).round() as u64);
-    let servo = Servo::new(
+    // A replay drives no motors: it neither inherits nor leaves heat (and stays reproducible).
+    let heat_path = (cfg.safety.persist_heat && !replay)
+        .then(crate::servo::thermal_store::state_dir)
+        .flatten()
+        .map(|d| crate::servo::thermal_store::heat_file(&d, opts.device.name()));
+    let mut servo = Servo::new(
         cfg, device, controller, reference, tx, stop, max_ticks, !opts.fast,
     );
+    if let Some(path) = &heat_path {
+        let (heat, note) =
+            crate::servo::thermal_store::load(path, cfg.safety.thermal_time_constant_s);
+        if let Some(note) = note {
+            eprintln!("omnid: warning: {note}; starting with cold motors");
+        }
+        servo.set_initial_heat(heat);
+    }
     // Realtime steps only make sense when the loop is paced.
     let rt_cfg = (!opts.fast).then(|| cfg.realtime.clone());
     let (report, realtime) = std::thread::Builder::new()
@@ -219,6 +232,23 @@ pub fn execute(
         .join()
         .map_err(|_| RunError::Internal("the log writer thread panicked".into()))?;
 
+    if let Some(path) = &heat_path {
+        if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
+            eprintln!(
+                "omnid: warning: cannot save motor heat to {}: {e}",
+                path.display()
+            );
+        }
+    }
+    for (j, warned) in report.thermal_warned.iter().enumerate() {
+        if *warned {
+            eprintln!(
+                "omnid: warning: motor {} reached its thermal warning level (heat {:.2})",
+                j + 1,
+                report.heat[j]
+            );
+        }
+    }
     let is_fault = matches!(
         report.end,
         EndReason::DeviceFault(_) | EndReason::SafetyFault(_)

@@ -134,7 +134,9 @@ fn replay_allocates_nothing_per_tick() {
         lenient: false,
         inject: Vec::new(),
     };
-    omnid::run::execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
+    let mut sim_cfg = cfg.clone();
+    sim_cfg.safety.persist_heat = false;
+    omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
 
     let device =
         Box::new(omnid::device::replay::ReplayDevice::open(&log, &cfg, false, false).unwrap());

@@ -218,3 +218,49 @@ fn the_first_packet_has_the_amplifiers_off() {
     assert!(!seen[0].amps_on && seen[0].is_safe());
     assert!(seen[1].amps_on);
 }
+
+#[test]
+fn hot_motors_are_held_to_continuous_torque_and_heat_carries_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("hot.toml");
+    std::fs::write(
+        &cfg,
+        "[safety]\ncontinuous_torque_nm = [0.004, 0.004, 0.004]\nthermal_time_constant_s = 1.0\n",
+    )
+    .unwrap();
+    let log = dir.path().join("hot.csv");
+    let state = dir.path().join("state");
+    let out = omnid()
+        .env("OMNID_STATE_DIR", &state)
+        .args([
+            "run",
+            "--fast",
+            "--duration",
+            "4",
+            "--config",
+            cfg.to_str().unwrap(),
+        ])
+        .args(["--log", log.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("thermal warning level"), "{stderr}");
+    let l = Log::read(&log);
+    let flags = l.f64s("flags");
+    let tau3 = l.f64s("tau3");
+    let thermal = omnid::telemetry::record::flags::THERMAL as u64;
+    let hot: Vec<usize> = (0..flags.len())
+        .filter(|&i| flags[i] as u64 & thermal != 0)
+        .collect();
+    assert!(
+        hot.len() > 100,
+        "the thermal clamp must act ({} ticks)",
+        hot.len()
+    );
+    for &i in &hot {
+        assert!(tau3[i].abs() <= 0.004 + 2.2e-4, "tick {i}: {}", tau3[i]);
+    }
+    let saved = std::fs::read_to_string(state.join("thermal-sim.json")).unwrap();
+    assert!(saved.contains("heat"));
+}

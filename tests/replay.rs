@@ -2,7 +2,7 @@
 //! steps, the recorded sessions in `mock/`, the duration limit and `--lenient` on the CLI.
 
 mod common;
-use common::{omnid, run_ok, Log};
+use common::{omnid, Log};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
 use omnid::run::{execute, DeviceSpec, RunOptions, RunOutcome};
@@ -29,7 +29,10 @@ fn run(
         lenient: false,
         inject: Vec::new(),
     };
-    let out = execute(&opts, cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
+    // Motors start cold: no heat carried over from other runs, so every run is reproducible.
+    let mut cfg = cfg.clone();
+    cfg.safety.persist_heat = false;
+    let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
     assert!(out.log_error.is_none() && out.shutdown_error.is_none());
     assert_eq!(out.summary.telemetry_dropped, 0, "rows were dropped");
     out
@@ -113,7 +116,8 @@ fn replaying_a_sim_log_reproduces_it_bit_for_bit() {
 fn paced_and_fast_replays_agree() {
     let dir = tempfile::tempdir().unwrap();
     let sim_log = dir.path().join("sim.csv");
-    let cfg = Config::default();
+    let mut cfg = Config::default();
+    cfg.safety.persist_heat = false;
     run(
         DeviceSpec::Sim,
         ControllerKind::Pd,
@@ -220,6 +224,21 @@ fn duration_limits_replay_in_device_time() {
     assert_eq!(l.rows.len(), played + 1);
 }
 
+/// Run the binary with its state (motor heat) kept in `dir`; it must succeed.
+fn run_ok_in(dir: &Path, args: &[&str]) -> std::process::Output {
+    let out = omnid()
+        .env("OMNID_STATE_DIR", dir)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "omnid {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 fn mock(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("mock")
@@ -302,18 +321,21 @@ fn cli_replays_a_mock_session() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("out.csv");
     let device = format!("replay:{}", mock("pd-multisine.csv").display());
-    let out = run_ok(&[
-        "run",
-        "--device",
-        &device,
-        "--controller",
-        "pd",
-        "--trajectory",
-        "multisine",
-        "--fast",
-        "--log",
-        log.to_str().unwrap(),
-    ]);
+    let out = run_ok_in(
+        dir.path(),
+        &[
+            "run",
+            "--device",
+            &device,
+            "--controller",
+            "pd",
+            "--trajectory",
+            "multisine",
+            "--fast",
+            "--log",
+            log.to_str().unwrap(),
+        ],
+    );
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
         text.contains("on replay") && text.contains("end-of-data"),
@@ -358,7 +380,11 @@ fn cli_refuses_a_bad_log_and_lenient_skips_its_rows() {
         }
         a
     };
-    let strict = omnid().args(args(false)).output().unwrap();
+    let strict = omnid()
+        .env("OMNID_STATE_DIR", dir.path())
+        .args(args(false))
+        .output()
+        .unwrap();
     assert_eq!(strict.status.code(), Some(2));
     let err = String::from_utf8_lossy(&strict.stderr);
     assert!(
@@ -367,7 +393,11 @@ fn cli_refuses_a_bad_log_and_lenient_skips_its_rows() {
     );
     assert!(!log.exists(), "nothing runs on a refused log");
 
-    let lenient = omnid().args(args(true)).output().unwrap();
+    let lenient = omnid()
+        .env("OMNID_STATE_DIR", dir.path())
+        .args(args(true))
+        .output()
+        .unwrap();
     assert!(lenient.status.success());
     let err = String::from_utf8_lossy(&lenient.stderr);
     assert!(

@@ -5,6 +5,7 @@
 pub mod clock;
 pub mod realtime;
 pub mod safety;
+pub mod thermal_store;
 pub mod timing;
 
 use crate::config::Config;
@@ -68,6 +69,10 @@ pub struct ServoReport {
     pub last_command: MotorCommand,
     /// A device error while sending the final safe packet or closing, if any.
     pub shutdown_error: Option<String>,
+    /// Motor heat at the end (for the thermal model of the next run).
+    pub heat: [f64; 3],
+    /// Joints whose heat reached the warning level.
+    pub thermal_warned: [bool; 3],
 }
 
 /// The servo loop's state. Build it, then call [`Servo::run`] (or [`Servo::tick`] by hand).
@@ -161,6 +166,11 @@ impl Servo {
             dropped: 0,
             missed: 0,
         }
+    }
+
+    /// Start from warm motors (heat carried over from earlier runs).
+    pub fn set_initial_heat(&mut self, heat: [f64; 3]) {
+        self.safety.set_heat(heat);
     }
 
     /// Ticks completed so far.
@@ -434,6 +444,8 @@ impl Servo {
             missed_packets: self.missed,
             last_command: self.command,
             shutdown_error,
+            heat: self.safety.heat(),
+            thermal_warned: self.safety.thermal_warned(),
         }
     }
 }

@@ -36,6 +36,8 @@ pub struct SafetyConfig {
     pub thermal_warn: f64,
     pub thermal_limit: f64,
     pub thermal_release: f64,
+    /// Carry motor heat over between runs (a small file in the user's state directory).
+    pub persist_heat: bool,
 }
 
 impl Default for SafetyConfig {
@@ -55,6 +57,7 @@ impl Default for SafetyConfig {
             thermal_warn: 0.8,
             thermal_limit: 1.0,
             thermal_release: 0.9,
+            persist_heat: true,
         }
     }
 }
@@ -75,6 +78,7 @@ pub const SAFETY_FIELD_DOCS: &[(&str, &str)] = &[
     ("safety.thermal_warn", "heat level that warns (1 = steady state at continuous torque)"),
     ("safety.thermal_limit", "heat level that clamps the motor to its continuous torque"),
     ("safety.thermal_release", "heat level below which the thermal clamp releases"),
+    ("safety.persist_heat", "carry motor heat over between runs ($OMNID_STATE_DIR or ~/.local/state/omnid)"),
 ];
 
 fn invalid(field: String, value: String, allowed: &str) -> ConfigError {
@@ -258,6 +262,10 @@ impl SafetyLayer {
     /// Start the ramp again (after a recovery): authority returns gradually.
     pub fn restart_ramp(&mut self) {
         self.ramp_elapsed = 0.0;
+    }
+
+    pub fn set_heat(&mut self, heat: [f64; 3]) {
+        self.heat = heat;
     }
 
     pub fn heat(&self) -> [f64; 3] {
