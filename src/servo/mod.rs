@@ -296,10 +296,20 @@ impl Servo {
         None
     }
 
+    /// Hand a row to the writer. Paced: never wait (a full channel drops the row and counts
+    /// it). Unpaced (`--fast`): there is no deadline to keep, so wait for the writer and lose
+    /// nothing.
     fn emit(&mut self, record: TickRecord) {
-        match self.telemetry.try_send(record) {
-            Ok(()) => {}
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => self.dropped += 1,
+        let sent = if self.paced {
+            match self.telemetry.try_send(record) {
+                Ok(()) => true,
+                Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => false,
+            }
+        } else {
+            self.telemetry.send(record).is_ok()
+        };
+        if !sent {
+            self.dropped += 1;
         }
     }
 
