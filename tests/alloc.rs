@@ -87,7 +87,9 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
         n
     });
     let stop = Arc::new(AtomicBool::new(false));
-    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, false);
+    // paced = true: the realtime configuration (telemetry by try_send; the simulator itself
+    // is unpaced so the test runs fast).
+    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     for _ in 0..2_500 {
         assert!(servo.tick().is_none());
     }
