@@ -73,8 +73,8 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
         other => panic!("{other:?} not covered here"),
     };
     let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
-    // A small channel drained by a consumer thread: both the send and the full (unpaced: wait
-    // for the writer) paths are taken.
+    // A small channel drained by a consumer thread: both the send and the full (dropped)
+    // paths are taken.
     let (tx, rx) = crossbeam_channel::bounded(64);
     let consumer = std::thread::spawn(move || {
         let mut n = 0u64;
@@ -87,7 +87,9 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
         n
     });
     let stop = Arc::new(AtomicBool::new(false));
-    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, false);
+    // paced = true: the realtime configuration (telemetry by try_send; the simulator itself
+    // is unpaced so the test runs fast).
+    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     for _ in 0..2_500 {
         assert!(servo.tick().is_none());
     }

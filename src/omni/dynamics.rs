@@ -75,6 +75,22 @@ impl ModelParams {
     }
 }
 
+/// Sines and cosines of q2 and q3, computed once per model evaluation.
+struct Trig {
+    s2: f64,
+    c2: f64,
+    s3: f64,
+    c3: f64,
+}
+
+impl Trig {
+    fn new(q: &Joint3) -> Self {
+        let (s2, c2) = q[1].sin_cos();
+        let (s3, c3) = q[2].sin_cos();
+        Trig { s2, c2, s3, c3 }
+    }
+}
+
 /// The model evaluated on joint states. `payload_kg` is a point mass at the tip.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Dynamics {
@@ -97,12 +113,26 @@ impl Dynamics {
 
     /// Joint-space inertia M(q), kg·m² (symmetric positive definite).
     pub fn mass(&self, q: &Joint3) -> Mat3 {
+        self.mass_with(q, &Trig::new(q))
+    }
+
+    /// Coriolis/centrifugal matrix C(q, q̇) with Ṁ − 2C skew-symmetric.
+    pub fn coriolis(&self, q: &Joint3, qd: &Joint3) -> Mat3 {
+        self.coriolis_with(q, qd, &Trig::new(q))
+    }
+
+    /// Gravity torque G(q) = ∂V/∂q, N·m.
+    pub fn gravity(&self, q: &Joint3) -> Joint3 {
+        self.gravity_with(q, &Trig::new(q))
+    }
+
+    fn mass_with(&self, q: &Joint3, t: &Trig) -> Mat3 {
         let p = &self.params;
-        let m11 = p.k1
-            + p.k2 * (2.0 * q[1]).cos()
-            + p.k3 * (2.0 * q[2]).cos()
-            + p.k4 * q[1].cos() * q[2].sin();
-        let m23 = -0.5 * p.k4 * (q[1] - q[2]).sin();
+        let cos_2q2 = t.c2 * t.c2 - t.s2 * t.s2;
+        let cos_2q3 = t.c3 * t.c3 - t.s3 * t.s3;
+        let m11 = p.k1 + p.k2 * cos_2q2 + p.k3 * cos_2q3 + p.k4 * t.c2 * t.s3;
+        // sin(q2 − q3)
+        let m23 = -0.5 * p.k4 * (t.s2 * t.c3 - t.c2 * t.s3);
         let mut m = Mat3::new(
             m11 + p.rotor_inertia[0],
             0.0,
@@ -121,14 +151,13 @@ impl Dynamics {
         m
     }
 
-    /// Coriolis/centrifugal matrix C(q, q̇) with Ṁ − 2C skew-symmetric.
-    pub fn coriolis(&self, q: &Joint3, qd: &Joint3) -> Mat3 {
+    fn coriolis_with(&self, q: &Joint3, qd: &Joint3, t: &Trig) -> Mat3 {
         let p = &self.params;
-        let (s2, c2) = q[1].sin_cos();
-        let (s3, c3) = q[2].sin_cos();
-        let a = -(p.k2 * (2.0 * q[1]).sin() + 0.5 * p.k4 * s2 * s3);
-        let b = 0.5 * p.k4 * c2 * c3 - p.k3 * (2.0 * q[2]).sin();
-        let h = 0.5 * p.k4 * (q[1] - q[2]).cos();
+        let (s2, c2, s3, c3) = (t.s2, t.c2, t.s3, t.c3);
+        let a = -(p.k2 * 2.0 * s2 * c2 + 0.5 * p.k4 * s2 * s3);
+        let b = 0.5 * p.k4 * c2 * c3 - p.k3 * 2.0 * s3 * c3;
+        // cos(q2 − q3)
+        let h = 0.5 * p.k4 * (c2 * c3 + s2 * s3);
         let (w1, w2, w3) = (qd[0], qd[1], qd[2]);
         let mut c = Mat3::new(
             a * w2 + b * w3,
@@ -149,10 +178,9 @@ impl Dynamics {
         c
     }
 
-    /// Gravity torque G(q) = ∂V/∂q, N·m.
-    pub fn gravity(&self, q: &Joint3) -> Joint3 {
+    fn gravity_with(&self, q: &Joint3, t: &Trig) -> Joint3 {
         let p = &self.params;
-        let mut g = Joint3::new(0.0, p.k8 * q[1].cos(), p.k9 * q[2].sin());
+        let mut g = Joint3::new(0.0, p.k8 * t.c2, p.k9 * t.s3);
         if self.payload_kg != 0.0 {
             // V = m·g·y with y the tip height: G = m·g·(∂y/∂q).
             let j = jacobian(&self.geometry, q);
@@ -204,18 +232,23 @@ impl Dynamics {
 
     /// Torque needed for acceleration `qdd`: M q̈ + C q̇ + G (+ friction).
     pub fn inverse_dynamics(&self, q: &Joint3, qd: &Joint3, qdd: &Joint3) -> Joint3 {
-        self.mass(q) * qdd + self.coriolis(q, qd) * qd + self.gravity(q) + self.friction_torque(qd)
+        let t = Trig::new(q);
+        self.mass_with(q, &t) * qdd
+            + self.coriolis_with(q, qd, &t) * qd
+            + self.gravity_with(q, &t)
+            + self.friction_torque(qd)
     }
 
     /// Acceleration under applied torque `tau`, including joint-limit springs.
     pub fn forward_dynamics(&self, q: &Joint3, qd: &Joint3, tau: &Joint3) -> Joint3 {
+        let t = Trig::new(q);
         let rhs = tau + self.limit_torque(q, qd)
-            - self.coriolis(q, qd) * qd
-            - self.gravity(q)
+            - self.coriolis_with(q, qd, &t) * qd
+            - self.gravity_with(q, &t)
             - self.friction_torque(qd);
         // M is SPD by construction; Cholesky cannot fail for valid parameters, and a config
         // that made it fail is rejected by validation. Fall back to zero acceleration anyway.
-        match self.mass(q).cholesky() {
+        match self.mass_with(q, &t).cholesky() {
             Some(ch) => ch.solve(&rhs),
             None => Joint3::zeros(),
         }

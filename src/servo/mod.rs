@@ -300,21 +300,20 @@ impl Servo {
         None
     }
 
-    fn emit(&mut self, mut record: TickRecord) {
-        loop {
+    /// Hand a row to the writer. Paced: never wait (a full channel drops the row and counts
+    /// it). Unpaced (`--fast`): there is no deadline to keep, so wait for the writer and lose
+    /// nothing.
+    fn emit(&mut self, record: TickRecord) {
+        let sent = if self.paced {
             match self.telemetry.try_send(record) {
-                Ok(()) => return,
-                // Unpaced (--fast): nothing here is realtime, so wait for the writer rather
-                // than lose rows (the log must match a paced run's, row for row).
-                Err(TrySendError::Full(r)) if !self.paced => {
-                    record = r;
-                    std::thread::yield_now();
-                }
-                Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
-                    self.dropped += 1;
-                    return;
-                }
+                Ok(()) => true,
+                Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => false,
             }
+        } else {
+            self.telemetry.send(record).is_ok()
+        };
+        if !sent {
+            self.dropped += 1;
         }
     }
 

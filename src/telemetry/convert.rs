@@ -8,8 +8,8 @@
 //!   with [`crate::omni::kinematics::from_ros`]. No torque was recorded, so `tau = 0`. Every
 //!   other column (`x_mm, y_mm, z_mm`, the gimbal angles, …) is kept, unchanged, after them.
 //! - `omnid`: an omnid log reduced to what replay reads: `t, q1..3, tau1..3`, then `enc1..3` and
-//!   `mode` when present. Values are written in Rust's shortest round-trip form, which is the
-//!   writer's own, so the kept columns are bit-for-bit the original's. Used for the compact
+//!   `mode` when present. Numbers are written as the log writer writes them (shortest
+//!   round-trip form), so the kept columns are bit-for-bit the original's. Used for the compact
 //!   recorded sessions in `mock/`.
 //!
 //! The input is read with the log reader's checks (strict, or `lenient`: skip damaged rows).
@@ -116,21 +116,24 @@ fn write_err(out: &Path) -> impl Fn(csv::Error) -> ConvertError + '_ {
     }
 }
 
-/// Writes numbers into one reused buffer (shortest round-trip form).
-struct NumBuf(String);
+/// Formats numbers as the log writer does (shortest round-trip floats, ryu; integers, itoa).
+struct NumBuf {
+    f: ryu::Buffer,
+    i: itoa::Buffer,
+}
 
 impl NumBuf {
+    fn new() -> Self {
+        NumBuf {
+            f: ryu::Buffer::new(),
+            i: itoa::Buffer::new(),
+        }
+    }
     fn f64(&mut self, v: f64) -> &[u8] {
-        use std::fmt::Write as _;
-        self.0.clear();
-        let _ = write!(self.0, "{v}");
-        self.0.as_bytes()
+        self.f.format(v).as_bytes()
     }
     fn i64(&mut self, v: i64) -> &[u8] {
-        use std::fmt::Write as _;
-        self.0.clear();
-        let _ = write!(self.0, "{v}");
-        self.0.as_bytes()
+        self.i.format(v).as_bytes()
     }
 }
 
@@ -162,7 +165,7 @@ fn ros_touch<W: Write>(
     }
     let werr = write_err(out);
     w.write_record(&columns).map_err(&werr)?;
-    let mut num = NumBuf(String::new());
+    let mut num = NumBuf::new();
     let mut extra_values: Vec<Vec<u8>> = vec![Vec::new(); extras.len()];
     let mut rows = 0u64;
     loop {
@@ -181,7 +184,7 @@ fn ros_touch<W: Write>(
             w.write_field(num.f64(q[j])).map_err(&werr)?;
         }
         for _ in 0..3 {
-            w.write_field(b"0").map_err(&werr)?;
+            w.write_field(num.f64(0.0)).map_err(&werr)?;
         }
         for v in &extra_values {
             w.write_field(v).map_err(&werr)?;
@@ -210,7 +213,7 @@ fn omnid<W: Write>(
     }
     let werr = write_err(out);
     w.write_record(&columns).map_err(&werr)?;
-    let mut num = NumBuf(String::new());
+    let mut num = NumBuf::new();
     let mut rows = 0u64;
     while let Some(row) = reader.next_row()? {
         w.write_field(num.f64(row.t)).map_err(&werr)?;
@@ -271,8 +274,9 @@ mod tests {
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines[0], "t,q1,q2,q3,tau1,tau2,tau3,x_mm");
         let q = from_ros(0.1, 0.2, 0.3);
-        assert_eq!(lines[1], format!("0,{},{},{},0,0,0,1.5", q[0], q[1], q[2]));
-        assert!(lines[2].ends_with(",0,0,0,\"2,5\""), "{}", lines[2]);
+        let f: Vec<f64> = lines[1].split(',').map(|v| v.parse().unwrap()).collect();
+        assert_eq!(f, [0.0, q[0], q[1], q[2], 0.0, 0.0, 0.0, 1.5]);
+        assert!(lines[2].ends_with(",0.0,0.0,0.0,\"2,5\""), "{}", lines[2]);
         assert!(!partial_path(&out).exists());
     }
 
@@ -310,8 +314,8 @@ mod tests {
         assert_eq!(
             text,
             "t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3,mode\n\
-             0,0.5,0,0,0.0022,0,-0.45,1,0,0,blend\n\
-             0.001,0.5,0,0,0,0,0,1,0,0,stop\n"
+             0.0,0.5,0.0,0.0,0.0022,0.0,-0.45,1,0,0,blend\n\
+             0.001,0.5,0.0,0.0,0.0,0.0,0.0,1,0,0,stop\n"
         );
     }
 }

@@ -47,22 +47,41 @@ pub fn write_dump(path: &Path, schema: &LogSchema, rows: &VecDeque<TickRecord>) 
     out.flush()
 }
 
-fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Result<()> {
-    write!(w, "{}", r.t)?;
-    for group in [&r.q, &r.tau, &r.qf, &r.qd, &r.qdd, &r.reference, &r.tau_cmd] {
+/// Append one CSV row to `line` (shortest round-trip float formatting, so a parsed log gives
+/// back the exact bits the loop had).
+fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema) {
+    let mut f = ryu::Buffer::new();
+    let mut i = itoa::Buffer::new();
+    line.extend_from_slice(f.format(r.t).as_bytes());
+    let groups = [&r.q, &r.tau, &r.qf, &r.qd, &r.qdd, &r.reference, &r.tau_cmd];
+    let model = if schema.model {
+        Some(&r.tau_model)
+    } else {
+        None
+    };
+    for group in groups.into_iter().chain(model) {
         for v in group {
-            write!(w, ",{v}")?;
-        }
-    }
-    if schema.model {
-        for v in &r.tau_model {
-            write!(w, ",{v}")?;
+            line.push(b',');
+            line.extend_from_slice(f.format(*v).as_bytes());
         }
     }
     for v in &r.enc {
-        write!(w, ",{v}")?;
+        line.push(b',');
+        line.extend_from_slice(i.format(*v).as_bytes());
     }
-    writeln!(w, ",{},{},{}", r.amps as u8, r.mode.as_str(), r.flags)
+    line.push(b',');
+    line.push(if r.amps { b'1' } else { b'0' });
+    line.push(b',');
+    line.extend_from_slice(r.mode.as_str().as_bytes());
+    line.push(b',');
+    line.extend_from_slice(i.format(r.flags).as_bytes());
+    line.push(b'\n');
+}
+
+fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Result<()> {
+    let mut line = Vec::with_capacity(512);
+    format_row(&mut line, r, schema);
+    w.write_all(&line)
 }
 
 /// Create the log file now (so an unwritable path fails before torque is enabled) and start
@@ -89,6 +108,7 @@ pub fn spawn_writer(
                 error: None,
                 tail: VecDeque::with_capacity(DUMP_TICKS),
             };
+            let mut line = Vec::with_capacity(512);
             for record in rx.iter() {
                 if report.tail.len() == DUMP_TICKS {
                     report.tail.pop_front();
@@ -97,7 +117,9 @@ pub fn spawn_writer(
                 if report.error.is_some() {
                     continue; // keep draining: the loop must never block on us
                 }
-                match write_row(&mut out, &record, &schema) {
+                line.clear();
+                format_row(&mut line, &record, &schema);
+                match out.write_all(&line) {
                     Ok(()) => report.rows += 1,
                     Err(e) => report.error = Some(e),
                 }
