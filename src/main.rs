@@ -33,6 +33,8 @@ struct Cli {
 enum Command {
     /// Run the 1 kHz servo loop on a device and log every tick.
     Run(RunArgs),
+    /// List candidate devices (USB bridges, FireWire Omnis) with permission problems and fixes.
+    Devices,
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -182,6 +184,13 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => run(args),
+        Command::Devices => {
+            print!(
+                "{}",
+                omnid::device::discovery::list_devices(&omnid::device::usb::UsbConfig::default())
+            );
+            Ok(0)
+        }
         Command::Config { print_default } => {
             if print_default {
                 print!("{}", Config::default_toml());
