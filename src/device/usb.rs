@@ -1023,6 +1023,16 @@ mod tests {
     }
 
     #[test]
+    fn shipped_udev_rule_matches_the_default_ids() {
+        let file = include_str!("../../udev/99-omnid-usb.rules");
+        let rules: Vec<&str> = file
+            .lines()
+            .filter(|l| !l.trim_start().starts_with('#') && !l.trim().is_empty())
+            .collect();
+        assert_eq!(rules, [UsbConfig::default().udev_rule().as_str()]);
+    }
+
+    #[test]
     fn endpoint_check_names_what_is_wrong() {
         let cfg = UsbConfig::default();
         let good = [(0x01, EndpointKind::Bulk), (0x81, EndpointKind::Bulk)];

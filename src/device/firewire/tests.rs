@@ -767,3 +767,34 @@ mod servo_stop_paths {
         assert!(bus.node().sent().iter().any(|c| c.amps_on));
     }
 }
+
+#[test]
+fn shipped_udev_files_match_and_are_not_world_writable() {
+    let fw = include_str!("../../../udev/99-omnid-firewire.rules");
+    let rules: Vec<&str> = fw
+        .lines()
+        .filter(|l| !l.trim_start().starts_with('#') && !l.trim().is_empty())
+        .collect();
+    assert_eq!(rules, [FIREWIRE_UDEV_RULE]);
+    for file in [fw, include_str!("../../../udev/99-omnid-usb.rules")] {
+        for line in file.lines().filter(|l| l.contains("MODE=")) {
+            let mode = line
+                .split("MODE=\"")
+                .nth(1)
+                .unwrap()
+                .split('"')
+                .next()
+                .unwrap();
+            let bits = u32::from_str_radix(mode, 8).unwrap();
+            assert_eq!(bits & 0o007, 0, "world access in {line}");
+            assert!(line.contains("GROUP=\"plugdev\""), "{line}");
+        }
+    }
+    let limits = include_str!("../../../udev/omnid-limits.conf");
+    assert!(limits
+        .lines()
+        .any(|l| l.starts_with("@plugdev") && l.contains("rtprio")));
+    assert!(limits
+        .lines()
+        .any(|l| l.starts_with("@plugdev") && l.contains("memlock")));
+}
