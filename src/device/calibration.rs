@@ -172,7 +172,10 @@ pub fn save(dir: &Path, cal: &Calibration) -> Result<PathBuf, CalibrationError> 
         source,
     };
     std::fs::create_dir_all(dir).map_err(write)?;
-    let text = toml::to_string(cal).expect("a calibration serialises");
+    let text = toml::to_string(cal).map_err(|e| CalibrationError::Invalid {
+        path: path.clone(),
+        message: e.to_string(),
+    })?;
     let tmp = dir.join(format!(".{}.tmp", cal.serial));
     std::fs::write(&tmp, text).map_err(write)?;
     std::fs::rename(&tmp, &path).map_err(write)?;

@@ -173,6 +173,11 @@ impl UsbConfig {
         Ok(())
     }
 
+    /// Whether a device with these ids is the configured bridge.
+    pub fn matches(&self, vendor_id: u16, product_id: u16) -> bool {
+        vendor_id == self.vendor_id && product_id == self.product_id
+    }
+
     /// `1209:0001` style.
     pub fn ids(&self) -> String {
         format!("{:04x}:{:04x}", self.vendor_id, self.product_id)
@@ -723,7 +728,9 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             ),
         });
     }
-    let (m, handle, serial) = opened.pop().expect("one bridge");
+    let Some((m, handle, serial)) = opened.pop() else {
+        return Err(not_found(no_match_hint(cfg, total)));
+    };
     let endpoints = interface_endpoints(&m.device, cfg).map_err(|e| DeviceError::NotFound {
         looked_for: format!(
             "interface {} of the bridge at {}",
@@ -1020,6 +1027,14 @@ mod tests {
         assert!(rule.contains("ATTRS{idProduct}==\"0042\""), "{rule}");
         assert!(rule.contains("MODE=\"0660\"") && rule.contains("GROUP=\"plugdev\""));
         assert!(cfg.permission_hint().contains("usermod -aG plugdev"));
+    }
+
+    #[test]
+    fn only_the_configured_ids_match() {
+        let cfg = UsbConfig::default();
+        assert!(cfg.matches(0x1209, 0x0001));
+        assert!(!cfg.matches(0x1209, 0x0002), "wrong product id accepted");
+        assert!(!cfg.matches(0x0B99, 0x0001), "wrong vendor id accepted");
     }
 
     #[test]

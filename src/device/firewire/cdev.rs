@@ -903,7 +903,9 @@ impl FireWireBus for CdevBus {
             }
             if ready & 2 != 0 {
                 let n = read_event(rx_fd, &mut self.events)?;
-                let rx = self.rx.as_mut().expect("checked above");
+                let Some(rx) = self.rx.as_mut() else {
+                    return Err(BusError::NotStreaming);
+                };
                 if n >= size_of::<fw_cdev_event_iso_interrupt>()
                     && self.events.u32_at(offset_of!(fw_cdev_event_common, type_))
                         == FW_CDEV_EVENT_ISO_INTERRUPT
