@@ -23,7 +23,10 @@ fn memory_kib() -> (u64, u64) {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--bench").collect();
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .collect();
     let secs: f64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(600.0);
     let controller = match args.get(1).map(String::as_str) {
         Some("pd") => ControllerKind::Pd,
