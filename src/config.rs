@@ -1,6 +1,8 @@
 //! Run configuration: TOML, every field optional with the defaults of DESIGN §2.4, unknown keys
 //! refused, every value validated with an error that names the field and the allowed range.
 
+pub use crate::device::firewire::FirewireConfig;
+pub use crate::device::usb::UsbConfig;
 use crate::omni::{Geometry, ModelParams};
 pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
@@ -220,6 +222,8 @@ pub struct Config {
     pub safety: SafetyConfig,
     pub telemetry: TelemetryConfig,
     pub realtime: RealtimeConfig,
+    pub usb: UsbConfig,
+    pub firewire: FirewireConfig,
     pub inject: InjectConfig,
 }
 
@@ -619,6 +623,8 @@ impl Config {
 
         self.safety.validate()?;
         self.realtime.validate()?;
+        self.usb.validate()?;
+        self.firewire.validate()?;
 
         let faults = self.inject.parsed()?;
         if faults.len() > crate::device::inject::MAX_FAULTS {
@@ -675,6 +681,8 @@ fn doc_for(key: &str) -> Option<&'static str> {
         FIELD_DOCS,
         crate::servo::safety::SAFETY_FIELD_DOCS,
         crate::servo::realtime::REALTIME_FIELD_DOCS,
+        crate::device::usb::USB_FIELD_DOCS,
+        crate::device::firewire::FIREWIRE_FIELD_DOCS,
     ]
     .into_iter()
     .flatten()

@@ -37,6 +37,12 @@ enum Command {
     Run(RunArgs),
     /// Convert a recording into a replayable log (for `--device replay:OUT`).
     Convert(ConvertArgs),
+    /// List candidate devices (USB bridges, FireWire Omnis) with permission problems and fixes.
+    Devices {
+        /// TOML configuration file (its [usb] ids are the ones searched for).
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -147,15 +153,8 @@ fn default_log_path() -> PathBuf {
 }
 
 fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
-    let cfg = match &args.config {
-        Some(path) => match Config::load(path) {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("omnid: {e}");
-                return Ok(EXIT_BAD_INPUT);
-            }
-        },
-        None => Config::default(),
+    let Some(cfg) = load_config(args.config.as_deref()) else {
+        return Ok(EXIT_BAD_INPUT);
     };
     let stop = Arc::new(AtomicBool::new(false));
     {
@@ -249,11 +248,30 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     Ok(code)
 }
 
+/// The config file, or the defaults; `None` after printing why a file was refused.
+fn load_config(path: Option<&std::path::Path>) -> Option<Config> {
+    match path.map(Config::load) {
+        None => Some(Config::default()),
+        Some(Ok(c)) => Some(c),
+        Some(Err(e)) => {
+            eprintln!("omnid: {e}");
+            None
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => run(args),
         Command::Convert(args) => convert_cmd(args),
+        Command::Devices { config } => match load_config(config.as_deref()) {
+            Some(cfg) => {
+                print!("{}", omnid::device::discovery::list_devices(&cfg.usb));
+                Ok(0)
+            }
+            None => Ok(EXIT_BAD_INPUT),
+        },
         Command::Config { print_default } => {
             if print_default {
                 print!("{}", Config::default_toml());

@@ -3,9 +3,12 @@
 
 use crate::config::Config;
 use crate::control::{ComputedTorque, Controller, ControllerKind, Off, Pd, Reference, Trajectory};
+use crate::device::calibration::{self, CalibrationError};
+use crate::device::firewire::open_firewire_with_rate;
 use crate::device::inject::{Fault, FaultyDevice, NanAfter};
 use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
+use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
 use crate::servo::{EndReason, Servo};
 use crate::telemetry::summary::{IdentifierSummary, RunSummary, TimingSummary};
@@ -102,6 +105,20 @@ pub struct RunOutcome {
     pub dump: Option<PathBuf>,
 }
 
+/// Real hardware gets encoder zero at the inkwell from its stored calibration before the
+/// loop starts; a device without one is refused (the message says how to calibrate).
+fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Device>, RunError> {
+    calibration::prepare_for_torque(
+        device,
+        calibration::default_dir().as_deref(),
+        cfg.device.rad_per_count(),
+    )
+    .map_err(|e| match e {
+        CalibrationError::Device(d) => RunError::Device(d),
+        e => RunError::BadInput(e.to_string()),
+    })
+}
+
 fn open_device(
     opts: &RunOptions,
     cfg: &Config,
@@ -121,10 +138,11 @@ fn open_device(
             }
             Ok(Box::new(device))
         }
-        other => Err(RunError::BadInput(format!(
-            "device `{}` is not available in this build yet; use --device sim",
-            other.name()
-        ))),
+        DeviceSpec::Usb => ready_for_torque(open_usb_with_rate(&cfg.usb, cfg.device.rate_hz)?, cfg),
+        DeviceSpec::Firewire => ready_for_torque(
+            open_firewire_with_rate(&cfg.firewire, cfg.device.rate_hz)?,
+            cfg,
+        ),
     }
 }
 

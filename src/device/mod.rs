@@ -1,10 +1,17 @@
 //! The device boundary: one packet exchange per tick (command out, state in, with the device's
 //! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
 
+pub mod calibration;
 pub mod codec;
+pub mod discovery;
+pub mod firewire;
 pub mod inject;
 pub mod replay;
 pub mod sim;
+pub mod stream;
+#[cfg(test)]
+pub(crate) mod testkit;
+pub mod usb;
 
 pub use codec::{
     decode_state, encode_command, CodecError, DacScale, EncoderUnwrap, MotorCommand, StatePacket,
@@ -70,6 +77,12 @@ pub trait Device: Send {
     /// Send one command packet and return the next state packet. Blocks until the device's
     /// next sample (paced devices) or returns at once (`--fast`).
     fn exchange(&mut self, command: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError>;
+
+    /// The device's serial number, when the backend knows one (real hardware): calibration
+    /// is stored per serial.
+    fn serial(&self) -> Option<&str> {
+        None
+    }
 
     /// Stop streaming and release the device. Called once, after the last (safe) exchange.
     fn close(&mut self) -> Result<(), DeviceError> {
