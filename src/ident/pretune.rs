@@ -170,7 +170,8 @@ fn split(n: usize, cfg: &PretuneConfig) -> (Vec<usize>, Vec<usize>) {
     (0..n).partition(|i| (i / block) % k != k - 1)
 }
 
-/// Per-joint NRMSE of the identifier's prediction over `samples[idx]` (all if `idx` is None).
+/// Per-joint NRMSE of the identifier's prediction over `samples[idx]` (all if `idx` is None;
+/// indices past the end are ignored).
 pub fn nrmse(id: &mut Identifier, samples: &[Sample], idx: Option<&[usize]>) -> [f64; 3] {
     let mut err2 = Vector3::zeros();
     let mut tau2 = Vector3::zeros();
@@ -180,7 +181,10 @@ pub fn nrmse(id: &mut Identifier, samples: &[Sample], idx: Option<&[usize]>) -> 
         tau2 += s.tau.component_mul(&s.tau);
     };
     match idx {
-        Some(idx) => idx.iter().for_each(|&i| visit(&samples[i])),
+        Some(idx) => idx
+            .iter()
+            .filter_map(|&i| samples.get(i))
+            .for_each(&mut visit),
         None => samples.iter().for_each(&mut visit),
     }
     std::array::from_fn(|j| {
