@@ -9,6 +9,7 @@ pub mod config;
 pub mod control;
 pub mod device;
 pub mod estimate;
+pub mod ident;
 pub mod omni;
 pub mod run;
 pub mod servo;

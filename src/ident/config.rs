@@ -1,0 +1,448 @@
+//! `[identifier]` configuration: every tunable of the adaptive identifier (DESIGN §3), its
+//! defaults, validation naming the field and the allowed range, and one line of documentation
+//! per key for `omnid config --print-default`.
+
+use crate::config::ConfigError;
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct IdentifierConfig {
+    /// Bandwidth of the modified error α·e + ė = ε (eq. 21), 1/s.
+    pub alpha: f64,
+    /// Modified-error filter with unit DC gain, e ← e^(−αT)e + (1 − e^(−αT))ε, so α only sets
+    /// the bandwidth; false is eq. 21 as written (DC gain 1/α, so the effective rate is Γ/α).
+    pub unit_gain_filter: bool,
+    /// Hidden units of every network.
+    pub hidden: usize,
+    /// Adapt the weights online.
+    pub adapt: bool,
+    /// Fourth network for joint friction F̂(q̇); false gives the paper's three networks.
+    pub friction_net: bool,
+    /// WAE weights of e2 (diagonal skew-symmetry), e3 (off-diagonal) and e4 (eigenvalue
+    /// bounds); 0 switches a term off, the paper asks for > 1 when on.
+    pub lambda1: f64,
+    pub lambda2: f64,
+    pub lambda3: f64,
+    /// Learning rates Γ per network, [hidden layer, output layer].
+    pub rate_m: [f64; 2],
+    pub rate_c: [f64; 2],
+    pub rate_g: [f64; 2],
+    pub rate_f: [f64; 2],
+    /// Dead zone: no update while the modified error at the scale of ε (α·‖e‖, or ‖e‖ with
+    /// `unit_gain_filter`), in N·m, is at or below this; 0 switches it off.
+    pub dead_zone: f64,
+    /// σ-modification: leakage −σΓ(θ − θ0) toward the pre-tuned weights; 0 switches it off.
+    pub sigma: f64,
+    /// Projection: bound on each network's parameter norm ‖θ‖_F; 0 switches it off.
+    pub w_max: f64,
+    /// Bounds on the eigenvalues of M̂ enforced by e4, kg·m².
+    pub eig_min: f64,
+    pub eig_max: f64,
+    /// Joint-angle inputs enter as (q − q_center)/q_scale, rad.
+    pub q_center: [f64; 3],
+    pub q_scale: [f64; 3],
+    /// Joint-velocity inputs of the C-net enter as q̇/qd_scale, rad/s.
+    pub qd_scale: [f64; 3],
+    /// Joint-velocity inputs of the F-net enter as q̇/friction_qd_scale, rad/s (smaller than
+    /// qd_scale: Coulomb friction changes sign within a few 0.01 rad/s).
+    pub friction_qd_scale: [f64; 3],
+    /// Output units of the networks: M̂ in kg·m², Ĉ in kg·m² (·rad/s → N·m), Ĝ and F̂ in N·m.
+    pub inertia_scale: f64,
+    pub coriolis_scale: f64,
+    pub gravity_scale: f64,
+    pub friction_scale: f64,
+    /// The errors are made dimensionless with this torque, N·m (e1, e2, e3; e4 with
+    /// inertia_scale), so the rates are O(1)–O(100) instead of O(1e6).
+    pub torque_scale: f64,
+    /// Initial diagonal of M̂ (output biases of the M-net), kg·m²; zeros start from M̂ = 0.
+    pub init_mass_diag: [f64; 3],
+    /// Standard deviation of the initial weights: hidden layer (divided by √inputs) and output
+    /// layer.
+    pub init_std_hidden: f64,
+    pub init_std_output: f64,
+    /// Seed of the initial weights.
+    pub seed: u64,
+}
+
+impl Default for IdentifierConfig {
+    fn default() -> Self {
+        IdentifierConfig {
+            alpha: 50.0,
+            unit_gain_filter: false,
+            hidden: 16,
+            adapt: true,
+            friction_net: true,
+            lambda1: 2.0,
+            lambda2: 2.0,
+            lambda3: 2.0,
+            rate_m: [50.0, 50.0],
+            rate_c: [50.0, 50.0],
+            rate_g: [50.0, 50.0],
+            rate_f: [50.0, 50.0],
+            dead_zone: 1e-4,
+            sigma: 1e-4,
+            w_max: 100.0,
+            eig_min: 2e-4,
+            eig_max: 1.5e-2,
+            q_center: [0.0, 0.65, 0.3],
+            q_scale: [0.5, 0.4, 0.4],
+            qd_scale: [1.0; 3],
+            friction_qd_scale: [0.05; 3],
+            inertia_scale: 1e-3,
+            coriolis_scale: 1e-3,
+            gravity_scale: 3e-2,
+            friction_scale: 1e-2,
+            torque_scale: 1e-2,
+            init_mass_diag: [3.5e-3, 2.6e-3, 1.1e-3],
+            init_std_hidden: 1.0,
+            init_std_output: 0.1,
+            seed: 1,
+        }
+    }
+}
+
+/// One-line explanations of every `[identifier]` key (merge into `config::FIELD_DOCS`).
+pub const IDENTIFIER_FIELD_DOCS: &[(&str, &str)] = &[
+    (
+        "identifier",
+        "Adaptive NN identifier (DESIGN §3): M-, C-, G- (and F-) networks learning online.",
+    ),
+    (
+        "identifier.alpha",
+        "bandwidth α of the modified error α·e + ė = ε (eq. 21), 1/s",
+    ),
+    (
+        "identifier.unit_gain_filter",
+        "modified-error filter with unit DC gain (α = bandwidth only); false = eq. 21 (gain 1/α)",
+    ),
+    ("identifier.hidden", "hidden tanh units of every network"),
+    ("identifier.adapt", "adapt the weights online"),
+    (
+        "identifier.friction_net",
+        "fourth network for joint friction F̂(q̇); false = the paper's three nets",
+    ),
+    (
+        "identifier.lambda1",
+        "WAE weight of e2 (diagonal of Ṁ̂ − 2Ĉ); 0 = off, paper: > 1",
+    ),
+    (
+        "identifier.lambda2",
+        "WAE weight of e3 (off-diagonal skew-symmetry); 0 = off, paper: > 1",
+    ),
+    (
+        "identifier.lambda3",
+        "WAE weight of e4 (eigenvalues of M̂ in [eig_min, eig_max]); 0 = off",
+    ),
+    (
+        "identifier.rate_m",
+        "learning rates Γ of the M-net, [hidden layer, output layer]",
+    ),
+    (
+        "identifier.rate_c",
+        "learning rates Γ of the C-net, [hidden layer, output layer]",
+    ),
+    (
+        "identifier.rate_g",
+        "learning rates Γ of the G-net, [hidden layer, output layer]",
+    ),
+    (
+        "identifier.rate_f",
+        "learning rates Γ of the F-net, [hidden layer, output layer]",
+    ),
+    (
+        "identifier.dead_zone",
+        "no update while the modified error at WAE scale (α·‖e‖) ≤ this, N·m; 0 = off",
+    ),
+    (
+        "identifier.sigma",
+        "σ-modification: leakage −σΓ(θ − θ0) toward the pre-tuned weights; 0 = off",
+    ),
+    (
+        "identifier.w_max",
+        "projection: bound on each network's parameter norm; 0 = off",
+    ),
+    (
+        "identifier.eig_min",
+        "lower bound on the eigenvalues of M̂ (e4), kg·m²",
+    ),
+    (
+        "identifier.eig_max",
+        "upper bound on the eigenvalues of M̂ (e4), kg·m²",
+    ),
+    (
+        "identifier.q_center",
+        "joint angles are fed as (q − q_center)/q_scale, rad",
+    ),
+    ("identifier.q_scale", "joint-angle input scale, rad"),
+    (
+        "identifier.qd_scale",
+        "joint-velocity input scale of the C-net, rad/s",
+    ),
+    (
+        "identifier.friction_qd_scale",
+        "joint-velocity input scale of the F-net, rad/s",
+    ),
+    (
+        "identifier.inertia_scale",
+        "output unit of the M-net and of e4, kg·m²",
+    ),
+    (
+        "identifier.coriolis_scale",
+        "output unit of the C-net, kg·m²",
+    ),
+    ("identifier.gravity_scale", "output unit of the G-net, N·m"),
+    ("identifier.friction_scale", "output unit of the F-net, N·m"),
+    (
+        "identifier.torque_scale",
+        "unit that makes e1, e2, e3 dimensionless, N·m",
+    ),
+    (
+        "identifier.init_mass_diag",
+        "initial diagonal of M̂ for fresh weights, kg·m²",
+    ),
+    (
+        "identifier.init_std_hidden",
+        "std of fresh hidden-layer weights (divided by √inputs)",
+    ),
+    (
+        "identifier.init_std_output",
+        "std of fresh output-layer weights",
+    ),
+    ("identifier.seed", "seed of the fresh random weights"),
+];
+
+fn invalid(field: &str, value: impl std::fmt::Display, allowed: &str) -> ConfigError {
+    ConfigError::Invalid {
+        field: field.to_string(),
+        value: value.to_string(),
+        allowed: allowed.to_string(),
+    }
+}
+
+fn range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(invalid(field, v, allowed))
+    }
+}
+
+fn positive(field: &str, v: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && v > 0.0 && v <= hi {
+        Ok(())
+    } else {
+        Err(invalid(field, v, allowed))
+    }
+}
+
+impl IdentifierConfig {
+    /// Check every value; the first problem is returned naming its field (`identifier.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        positive(
+            "identifier.alpha",
+            self.alpha,
+            1e6,
+            "finite, > 0 and ≤ 1e6 1/s",
+        )?;
+        if !(1..=256).contains(&self.hidden) {
+            return Err(invalid("identifier.hidden", self.hidden, "1 ..= 256"));
+        }
+        for (name, v) in [
+            ("lambda1", self.lambda1),
+            ("lambda2", self.lambda2),
+            ("lambda3", self.lambda3),
+        ] {
+            if !(v == 0.0 || (v.is_finite() && (1.0..=1e6).contains(&v))) {
+                return Err(invalid(
+                    &format!("identifier.{name}"),
+                    v,
+                    "0 (off) or 1 ..= 1e6 (the paper asks > 1)",
+                ));
+            }
+        }
+        for (name, rates) in [
+            ("rate_m", self.rate_m),
+            ("rate_c", self.rate_c),
+            ("rate_g", self.rate_g),
+            ("rate_f", self.rate_f),
+        ] {
+            for (i, v) in rates.iter().enumerate() {
+                range(
+                    &format!("identifier.{name}[{i}]"),
+                    *v,
+                    0.0,
+                    1e9,
+                    "0 ..= 1e9",
+                )?;
+            }
+        }
+        range(
+            "identifier.dead_zone",
+            self.dead_zone,
+            0.0,
+            1.0,
+            "0 (off) ..= 1 N·m",
+        )?;
+        range("identifier.sigma", self.sigma, 0.0, 1e3, "0 (off) ..= 1e3")?;
+        range("identifier.w_max", self.w_max, 0.0, 1e6, "0 (off) ..= 1e6")?;
+        range(
+            "identifier.eig_min",
+            self.eig_min,
+            0.0,
+            1.0,
+            "0 ..= 1 kg·m², below identifier.eig_max",
+        )?;
+        range(
+            "identifier.eig_max",
+            self.eig_max,
+            0.0,
+            1.0,
+            "0 ..= 1 kg·m², above identifier.eig_min",
+        )?;
+        if self.eig_min >= self.eig_max {
+            return Err(invalid(
+                "identifier.eig_min",
+                self.eig_min,
+                "below identifier.eig_max",
+            ));
+        }
+        for (i, v) in self.q_center.iter().enumerate() {
+            range(
+                &format!("identifier.q_center[{i}]"),
+                *v,
+                -3.2,
+                3.2,
+                "-3.2 ..= 3.2 rad",
+            )?;
+        }
+        for (name, vals) in [
+            ("q_scale", self.q_scale),
+            ("qd_scale", self.qd_scale),
+            ("friction_qd_scale", self.friction_qd_scale),
+        ] {
+            for (i, v) in vals.iter().enumerate() {
+                positive(
+                    &format!("identifier.{name}[{i}]"),
+                    *v,
+                    1e3,
+                    "finite, > 0 and ≤ 1e3",
+                )?;
+            }
+        }
+        for (name, v) in [
+            ("inertia_scale", self.inertia_scale),
+            ("coriolis_scale", self.coriolis_scale),
+            ("gravity_scale", self.gravity_scale),
+            ("friction_scale", self.friction_scale),
+            ("torque_scale", self.torque_scale),
+        ] {
+            positive(
+                &format!("identifier.{name}"),
+                v,
+                10.0,
+                "finite, > 0 and ≤ 10",
+            )?;
+        }
+        for (i, v) in self.init_mass_diag.iter().enumerate() {
+            range(
+                &format!("identifier.init_mass_diag[{i}]"),
+                *v,
+                0.0,
+                1.0,
+                "0 ..= 1 kg·m²",
+            )?;
+        }
+        range(
+            "identifier.init_std_hidden",
+            self.init_std_hidden,
+            0.0,
+            10.0,
+            "0 ..= 10",
+        )?;
+        range(
+            "identifier.init_std_output",
+            self.init_std_output,
+            0.0,
+            10.0,
+            "0 ..= 10",
+        )?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Wrapper {
+        identifier: IdentifierConfig,
+    }
+
+    fn parse(text: &str) -> Result<IdentifierConfig, String> {
+        let w: Wrapper = toml::from_str(text).map_err(|e| e.to_string())?;
+        w.identifier.validate().map_err(|e| e.to_string())?;
+        Ok(w.identifier)
+    }
+
+    #[test]
+    fn defaults_are_valid_and_match_design() {
+        let c = IdentifierConfig::default();
+        c.validate().unwrap();
+        assert_eq!((c.alpha, c.hidden, c.adapt), (50.0, 16, true));
+        assert!(c.friction_net);
+        assert_eq!(parse("[identifier]\n").unwrap(), c);
+    }
+
+    #[test]
+    fn every_key_is_documented_and_no_doc_is_stale() {
+        let value = toml::Value::try_from(IdentifierConfig::default()).unwrap();
+        let table = value.as_table().unwrap();
+        for key in table.keys() {
+            let full = format!("identifier.{key}");
+            assert!(
+                IDENTIFIER_FIELD_DOCS.iter().any(|(k, _)| *k == full),
+                "undocumented: {full}"
+            );
+        }
+        for (k, _) in IDENTIFIER_FIELD_DOCS {
+            let key = k.strip_prefix("identifier.");
+            assert!(
+                key.map_or(true, |k| table.contains_key(k)),
+                "stale doc: {k}"
+            );
+        }
+    }
+
+    #[test]
+    fn errors_name_the_field_and_the_range() {
+        let e = parse("[identifier]\nalpha = -1.0\n").unwrap_err();
+        assert!(e.contains("identifier.alpha") && e.contains("> 0"), "{e}");
+        let e = parse("[identifier]\nlambda2 = 0.5\n").unwrap_err();
+        assert!(
+            e.contains("identifier.lambda2") && e.contains("0 (off)"),
+            "{e}"
+        );
+        let e = parse("[identifier]\nhidden = 0\n").unwrap_err();
+        assert!(
+            e.contains("identifier.hidden") && e.contains("1 ..= 256"),
+            "{e}"
+        );
+        let e = parse("[identifier]\nrate_c = [1.0, nan]\n").unwrap_err();
+        assert!(e.contains("identifier.rate_c[1]"), "{e}");
+        let e = parse("[identifier]\neig_min = 0.02\n").unwrap_err();
+        assert!(e.contains("identifier.eig_min"), "{e}");
+        let e = parse("[identifier]\nqd_scale = [1.0, 0.0, 1.0]\n").unwrap_err();
+        assert!(e.contains("identifier.qd_scale[1]"), "{e}");
+        let e = parse("[identifier]\nalhpa = 3.0\n").unwrap_err();
+        assert!(e.contains("alhpa"), "{e}");
+    }
+
+    #[test]
+    fn lambdas_may_be_switched_off() {
+        let c = parse("[identifier]\nlambda1 = 0.0\nlambda2 = 0.0\n").unwrap();
+        assert_eq!((c.lambda1, c.lambda2), (0.0, 0.0));
+    }
+}

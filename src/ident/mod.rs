@@ -1,0 +1,22 @@
+//! The adaptive neural-network identifier (DESIGN §3, Agand & Aliyari Shoorehdeli 2019):
+//! the tanh MLP with hand-derived gradients, the online identifier with its robust update,
+//! the weights file and batch pre-tuning. See `docs/IDENTIFIER.md`.
+
+pub mod config;
+pub mod identifier;
+pub mod mlp;
+pub mod pretune;
+pub mod weights;
+
+#[cfg(test)]
+mod gradcheck;
+#[cfg(test)]
+mod testdata;
+
+pub use config::{IdentifierConfig, IDENTIFIER_FIELD_DOCS};
+pub use identifier::{ErrorSnapshot, Fault, IdentError, Identifier, Net, Wae};
+pub use mlp::{Mlp, MlpError, NetScaling};
+pub use pretune::{
+    nrmse, pretune, EpochReport, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
+};
+pub use weights::{load, save, NetWeights, WeightsError, WeightsFile};

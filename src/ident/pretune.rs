@@ -1,0 +1,481 @@
+//! Batch pre-tuning (`omnid identify`): the identifier's own loss ½‖ε‖² over recorded samples,
+//! mini-batch Adam on the hand-derived gradients, several epochs, a held-out validation split
+//! of every k-th block of consecutive samples (neighbouring samples are nearly equal, so a
+//! random split would validate on the training data), per-joint NRMSE per epoch through a
+//! callback, and the best-validation weights kept at the end.
+
+use super::identifier::{Identifier, Net};
+use nalgebra::Vector3;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// One training sample: estimated state and the torque that acted on it.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Sample {
+    pub q: Vector3<f64>,
+    pub qd: Vector3<f64>,
+    pub qdd: Vector3<f64>,
+    pub tau: Vector3<f64>,
+}
+
+impl Sample {
+    fn is_finite(&self) -> bool {
+        [self.q, self.qd, self.qdd, self.tau]
+            .iter()
+            .all(|v| v.iter().all(|x| x.is_finite()))
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PretuneConfig {
+    pub epochs: usize,
+    pub batch_size: usize,
+    /// Adam step size (the parameters are O(1) thanks to the scalings).
+    pub learning_rate: f64,
+    /// The step size decays geometrically to this fraction of `learning_rate` at the last
+    /// epoch (1 = constant).
+    pub final_rate_fraction: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    /// Share of the samples held out for validation (0 = none).
+    pub validation_fraction: f64,
+    /// Length of the blocks of consecutive samples the split works on.
+    pub block_len: usize,
+    /// Seed of the mini-batch shuffling.
+    pub seed: u64,
+    /// Keep the weights of the epoch with the best mean validation NRMSE.
+    pub keep_best: bool,
+}
+
+impl Default for PretuneConfig {
+    fn default() -> Self {
+        PretuneConfig {
+            epochs: 20,
+            batch_size: 32,
+            learning_rate: 3e-3,
+            final_rate_fraction: 0.1,
+            beta1: 0.9,
+            beta2: 0.999,
+            validation_fraction: 0.2,
+            block_len: 1000,
+            seed: 1,
+            keep_best: true,
+        }
+    }
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum PretuneError {
+    #[error("no samples to pre-tune on")]
+    NoSamples,
+    #[error("{got} samples are too few to pre-tune with a validation split (need {need})")]
+    TooFew { got: usize, need: usize },
+    #[error("sample {index} is not finite (q, q̇, q̈ or τ)")]
+    NonFinite { index: usize },
+    #[error("pre-tuning: `{field}` = {value} is out of range: allowed {allowed}")]
+    Invalid {
+        field: &'static str,
+        value: String,
+        allowed: &'static str,
+    },
+    #[error("pre-tuning diverged in epoch {epoch} (non-finite loss); weights restored")]
+    Diverged { epoch: usize },
+}
+
+/// Errors after one epoch. NRMSE = RMS(τ − τ̂)/RMS(τ) per joint (NaN where RMS(τ) = 0 or the
+/// split is empty).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EpochReport {
+    /// 1-based.
+    pub epoch: usize,
+    pub epochs: usize,
+    /// Mean ½‖ε‖² over the epoch's mini-batches.
+    pub train_loss: f64,
+    pub train_nrmse: [f64; 3],
+    pub val_nrmse: [f64; 3],
+}
+
+/// What the callback sees: every mini-batch (for a progress bar) and every epoch.
+#[derive(Debug, Clone, Copy)]
+pub enum Progress<'a> {
+    Batch {
+        epoch: usize,
+        batch: usize,
+        batches: usize,
+    },
+    Epoch(&'a EpochReport),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PretuneReport {
+    pub epochs: Vec<EpochReport>,
+    /// Epoch whose weights were kept (1-based).
+    pub kept_epoch: usize,
+    pub train_samples: usize,
+    pub val_samples: usize,
+}
+
+impl PretuneConfig {
+    fn validate(&self) -> Result<(), PretuneError> {
+        let bad = |field, value: String, allowed| {
+            Err(PretuneError::Invalid {
+                field,
+                value,
+                allowed,
+            })
+        };
+        if !(1..=100_000).contains(&self.epochs) {
+            return bad("epochs", self.epochs.to_string(), "1 ..= 100000");
+        }
+        if !(1..=1_000_000).contains(&self.batch_size) {
+            return bad("batch_size", self.batch_size.to_string(), "1 ..= 1000000");
+        }
+        let lr = self.learning_rate;
+        if !(lr.is_finite() && lr > 0.0 && lr <= 1.0) {
+            return bad("learning_rate", lr.to_string(), "> 0 and ≤ 1");
+        }
+        let f = self.final_rate_fraction;
+        if !(f.is_finite() && f > 0.0 && f <= 1.0) {
+            return bad("final_rate_fraction", f.to_string(), "> 0 and ≤ 1");
+        }
+        for (field, b) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(b.is_finite() && (0.0..1.0).contains(&b)) {
+                return bad(field, b.to_string(), "0 ..< 1");
+            }
+        }
+        let v = self.validation_fraction;
+        if !(v.is_finite() && (0.0..=0.5).contains(&v)) {
+            return bad("validation_fraction", v.to_string(), "0 ..= 0.5");
+        }
+        if self.block_len == 0 {
+            return bad("block_len", "0".into(), "≥ 1");
+        }
+        Ok(())
+    }
+}
+
+/// Indices of the training and validation samples: every k-th block is held out, k =
+/// round(1/validation_fraction); blocks are shortened for short logs so that at least two
+/// blocks are held out.
+fn split(n: usize, cfg: &PretuneConfig) -> (Vec<usize>, Vec<usize>) {
+    if cfg.validation_fraction == 0.0 {
+        return ((0..n).collect(), Vec::new());
+    }
+    let k = (1.0 / cfg.validation_fraction).round().max(2.0) as usize;
+    let block = cfg.block_len.min(n / (2 * k)).max(1);
+    (0..n).partition(|i| (i / block) % k != k - 1)
+}
+
+/// Per-joint NRMSE of the identifier's prediction over `samples[idx]` (all if `idx` is None;
+/// indices past the end are ignored).
+pub fn nrmse(id: &mut Identifier, samples: &[Sample], idx: Option<&[usize]>) -> [f64; 3] {
+    let mut err2 = Vector3::zeros();
+    let mut tau2 = Vector3::zeros();
+    let mut visit = |s: &Sample| {
+        let e = s.tau - id.predict(&s.q, &s.qd, &s.qdd);
+        err2 += e.component_mul(&e);
+        tau2 += s.tau.component_mul(&s.tau);
+    };
+    match idx {
+        Some(idx) => idx
+            .iter()
+            .filter_map(|&i| samples.get(i))
+            .for_each(&mut visit),
+        None => samples.iter().for_each(&mut visit),
+    }
+    std::array::from_fn(|j| {
+        if tau2[j] > 0.0 {
+            (err2[j] / tau2[j]).sqrt()
+        } else {
+            f64::NAN
+        }
+    })
+}
+
+/// Adam's moment estimates for one network.
+struct Moments {
+    m: Vec<f64>,
+    v: Vec<f64>,
+}
+
+fn snapshot(id: &Identifier) -> Vec<Vec<f64>> {
+    Net::ALL
+        .iter()
+        .map(|&n| id.net(n).map(|m| m.params().to_vec()).unwrap_or_default())
+        .collect()
+}
+
+fn restore(id: &mut Identifier, saved: &[Vec<f64>]) {
+    for (n, p) in Net::ALL.iter().zip(saved) {
+        if let Some(m) = id.net_mut(*n) {
+            // Same identifier, same sizes: cannot fail.
+            let _ = m.set_params(p);
+        }
+    }
+}
+
+/// Pre-tune `id` on `samples` (in recording order). On success the kept weights become the
+/// σ-modification's anchor θ0.
+pub fn pretune(
+    id: &mut Identifier,
+    samples: &[Sample],
+    cfg: &PretuneConfig,
+    mut progress: impl FnMut(Progress<'_>),
+) -> Result<PretuneReport, PretuneError> {
+    cfg.validate()?;
+    if samples.is_empty() {
+        return Err(PretuneError::NoSamples);
+    }
+    if let Some(index) = samples.iter().position(|s| !s.is_finite()) {
+        return Err(PretuneError::NonFinite { index });
+    }
+    let need = if cfg.validation_fraction > 0.0 { 10 } else { 1 };
+    if samples.len() < need {
+        return Err(PretuneError::TooFew {
+            got: samples.len(),
+            need,
+        });
+    }
+    let (mut train, val) = split(samples.len(), cfg);
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let mut moments: Vec<Option<Moments>> = Net::ALL
+        .iter()
+        .map(|&n| {
+            id.net(n).map(|m| Moments {
+                m: vec![0.0; m.params().len()],
+                v: vec![0.0; m.params().len()],
+            })
+        })
+        .collect();
+    let initial = snapshot(id);
+    let mut best: Option<(f64, usize, Vec<Vec<f64>>)> = None;
+    let mut reports = Vec::with_capacity(cfg.epochs);
+    let batches = train.len().div_ceil(cfg.batch_size);
+    let decay = cfg
+        .final_rate_fraction
+        .powf(1.0 / (cfg.epochs.max(2) - 1) as f64);
+    let mut t_adam = 0i32;
+
+    for epoch in 1..=cfg.epochs {
+        let lr = cfg.learning_rate * decay.powi(epoch as i32 - 1);
+        train.shuffle(&mut rng);
+        let mut loss_sum = 0.0;
+        for (b, chunk) in train.chunks(cfg.batch_size).enumerate() {
+            id.zero_grads();
+            for &i in chunk {
+                let s = &samples[i];
+                let eps = id.evaluate_wae(&s.q, &s.qd, &s.qdd, &s.tau);
+                loss_sum += 0.5 * eps.norm_squared();
+                // ∂(½‖ε‖²)/∂θ = (∂ε/∂θ)ᵀε.
+                id.accumulate_gradient(&eps);
+            }
+            t_adam += 1;
+            adam_step(id, &mut moments, cfg, lr, t_adam, chunk.len() as f64);
+            progress(Progress::Batch {
+                epoch,
+                batch: b + 1,
+                batches,
+            });
+        }
+        let train_loss = loss_sum / train.len() as f64;
+        if !train_loss.is_finite() || id.weights_norm().iter().any(|w| !w.is_finite()) {
+            let saved = best.map_or(initial, |b| b.2);
+            restore(id, &saved);
+            return Err(PretuneError::Diverged { epoch });
+        }
+        let report = EpochReport {
+            epoch,
+            epochs: cfg.epochs,
+            train_loss,
+            train_nrmse: nrmse(id, samples, Some(&train)),
+            val_nrmse: if val.is_empty() {
+                [f64::NAN; 3]
+            } else {
+                nrmse(id, samples, Some(&val))
+            },
+        };
+        let score = if val.is_empty() {
+            report.train_nrmse.iter().sum::<f64>()
+        } else {
+            report.val_nrmse.iter().sum::<f64>()
+        };
+        // NaN scores (no torque on a joint) never win against a number.
+        let better = match &best {
+            None => true,
+            Some((s, _, _)) => score < *s || (s.is_nan() && !score.is_nan()),
+        };
+        if cfg.keep_best && better {
+            best = Some((score, epoch, snapshot(id)));
+        }
+        progress(Progress::Epoch(&report));
+        reports.push(report);
+    }
+    let kept_epoch = match best {
+        Some((_, epoch, saved)) if cfg.keep_best => {
+            restore(id, &saved);
+            epoch
+        }
+        _ => cfg.epochs,
+    };
+    id.set_anchor();
+    Ok(PretuneReport {
+        epochs: reports,
+        kept_epoch,
+        train_samples: train.len(),
+        val_samples: val.len(),
+    })
+}
+
+fn adam_step(
+    id: &mut Identifier,
+    moments: &mut [Option<Moments>],
+    cfg: &PretuneConfig,
+    lr: f64,
+    t: i32,
+    batch: f64,
+) {
+    const EPS: f64 = 1e-8;
+    let (b1, b2) = (cfg.beta1, cfg.beta2);
+    let c1 = 1.0 - b1.powi(t);
+    let c2 = 1.0 - b2.powi(t);
+    for (n, mo) in Net::ALL.iter().zip(moments.iter_mut()) {
+        let (Some(net), Some(mo)) = (id.net_mut(*n), mo.as_mut()) else {
+            continue;
+        };
+        let (p, g) = net.params_and_grad_mut();
+        for (((pi, gi), mi), vi) in p.iter_mut().zip(g.iter()).zip(&mut mo.m).zip(&mut mo.v) {
+            let gi = gi / batch;
+            *mi = b1 * *mi + (1.0 - b1) * gi;
+            *vi = b2 * *vi + (1.0 - b2) * gi * gi;
+            *pi -= lr * (*mi / c1) / ((*vi / c2).sqrt() + EPS);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ident::testdata::{multisine_samples, random_samples};
+    use crate::ident::IdentifierConfig;
+
+    #[test]
+    fn split_holds_out_every_kth_block() {
+        let cfg = PretuneConfig {
+            block_len: 10,
+            validation_fraction: 0.2,
+            ..PretuneConfig::default()
+        };
+        let (train, val) = split(200, &cfg);
+        assert_eq!((train.len(), val.len()), (160, 40));
+        assert!(val.contains(&40) && val.contains(&49) && !val.contains(&50));
+        // A short log still gets at least two held-out blocks.
+        let (train, val) = split(30, &PretuneConfig::default());
+        assert!(val.len() >= 2 && train.len() + val.len() == 30);
+    }
+
+    #[test]
+    fn bad_input_is_an_error() {
+        let mut id = Identifier::new(&IdentifierConfig::default()).unwrap();
+        let cfg = PretuneConfig::default();
+        assert_eq!(
+            pretune(&mut id, &[], &cfg, |_| {}),
+            Err(PretuneError::NoSamples)
+        );
+        let mut s = random_samples(50, 1);
+        s[17].qdd[2] = f64::NAN;
+        assert_eq!(
+            pretune(&mut id, &s, &cfg, |_| {}),
+            Err(PretuneError::NonFinite { index: 17 })
+        );
+        let bad = PretuneConfig {
+            validation_fraction: 0.9,
+            ..cfg
+        };
+        let e = pretune(&mut id, &random_samples(50, 1), &bad, |_| {}).unwrap_err();
+        assert!(e.to_string().contains("validation_fraction"), "{e}");
+    }
+
+    #[test]
+    fn pretuning_learns_the_plant_and_generalises() {
+        let cfg = IdentifierConfig::default();
+        let mut id = Identifier::new(&cfg).unwrap();
+        let samples = random_samples(8000, 5);
+        let pcfg = PretuneConfig {
+            epochs: 15,
+            block_len: 200,
+            ..PretuneConfig::default()
+        };
+        let mut epochs_seen = 0;
+        let mut batches_seen = 0;
+        let report = pretune(&mut id, &samples, &pcfg, |p| match p {
+            Progress::Batch { .. } => batches_seen += 1,
+            Progress::Epoch(r) => {
+                epochs_seen += 1;
+                eprintln!(
+                    "epoch {:2} loss {:.4} train {:.3?} val {:.3?}",
+                    r.epoch, r.train_loss, r.train_nrmse, r.val_nrmse
+                );
+            }
+        })
+        .unwrap();
+        assert_eq!(epochs_seen, 15);
+        assert_eq!(batches_seen, 15 * 6400usize.div_ceil(32));
+        let first = &report.epochs[0];
+        let kept = &report.epochs[report.kept_epoch - 1];
+        for j in 0..3 {
+            assert!(kept.val_nrmse[j] < 0.1, "joint {j}: {:?}", kept.val_nrmse);
+            assert!(kept.val_nrmse[j] < first.val_nrmse[j]);
+        }
+        // A fresh trajectory the networks never saw.
+        let fresh = nrmse(&mut id, &multisine_samples(20.0, 0.005, 77), None);
+        eprintln!("fresh multisine NRMSE {fresh:.3?}");
+        assert!(fresh.iter().all(|e| *e < 0.3), "{fresh:?}");
+        // The kept weights are the anchor.
+        assert_eq!(id.weight_change_norm(), 0.0);
+    }
+
+    /// Relative error of Ĉ against the plant's C, and the symmetric part of Ṁ̂ − 2Ĉ relative
+    /// to ‖C‖, over fresh random states.
+    fn coriolis_errors(id: &mut Identifier) -> (f64, f64) {
+        let d = crate::ident::testdata::plant();
+        let (mut ec, mut nc, mut sk) = (0.0, 0.0, 0.0);
+        for s in random_samples(1000, 99) {
+            let c = d.coriolis(&s.q, &s.qd);
+            let ch = id.coriolis(&s.q, &s.qd);
+            let n = id.mass_derivative(&s.q, &s.qd) - 2.0 * ch;
+            ec += (ch - c).norm_squared();
+            nc += c.norm_squared();
+            sk += (n + n.transpose()).norm_squared();
+        }
+        ((ec / nc).sqrt(), (sk / nc).sqrt())
+    }
+
+    #[test]
+    fn skew_symmetry_terms_make_c_identifiable() {
+        let samples = random_samples(6000, 5);
+        let pcfg = PretuneConfig {
+            epochs: 8,
+            block_len: 200,
+            ..PretuneConfig::default()
+        };
+        let mut result = Vec::new();
+        for lambda in [2.0, 0.0] {
+            let mut id = Identifier::new(&IdentifierConfig {
+                lambda1: lambda,
+                lambda2: lambda,
+                ..IdentifierConfig::default()
+            })
+            .unwrap();
+            pretune(&mut id, &samples, &pcfg, |_| {}).unwrap();
+            result.push(coriolis_errors(&mut id));
+        }
+        let ((c_on, skew_on), (c_off, skew_off)) = (result[0], result[1]);
+        eprintln!("Ĉ rel. error on {c_on:.3} off {c_off:.3}; skew residual on {skew_on:.3} off {skew_off:.3}");
+        assert!(skew_on < 0.3 * skew_off);
+        assert!(c_on < 0.6 * c_off);
+    }
+}

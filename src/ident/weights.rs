@@ -1,0 +1,392 @@
+//! Weights file: JSON with the network sizes, the friction-net flag, each network's input and
+//! output scaling and all parameters. Loading refuses, with a message naming both sides, a file
+//! that does not fit the configured networks; bad, truncated or non-finite content is an
+//! error, never a panic.
+//!
+//! The scalings travel with the weights (a network's function is its weights *and* its
+//! scaling), so a loaded network keeps the scaling it was trained with, whatever the
+//! configuration's scaling keys say; those only shape fresh networks.
+
+use super::config::IdentifierConfig;
+use super::identifier::{Identifier, Net};
+use super::mlp::{Mlp, NetScaling};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use thiserror::Error;
+
+/// Value of the `format` field.
+pub const FORMAT: &str = "omnid-identifier-weights";
+/// Current `version`.
+pub const VERSION: u32 = 1;
+
+#[derive(Debug, Error)]
+pub enum WeightsError {
+    #[error("cannot read weights file {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("cannot write weights file {path}: {source}")]
+    Write {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("weights file {path} is not valid weights JSON: {message}")]
+    Parse { path: String, message: String },
+    #[error("weights file {path} has format \"{format}\" version {version}; expected \"{FORMAT}\" version {VERSION}")]
+    Format {
+        path: String,
+        format: String,
+        version: u32,
+    },
+    #[error("weights file {path} does not fit the configuration: {message}")]
+    Mismatch { path: String, message: String },
+    #[error("weights file {path} is inconsistent: {message}")]
+    Invalid { path: String, message: String },
+    #[error("refusing to save weights: {message}")]
+    NotFinite { message: String },
+}
+
+/// One network's sizes, scaling and parameters (layout of `Mlp::params`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetWeights {
+    pub net: Net,
+    pub inputs: usize,
+    pub hidden: usize,
+    pub outputs: usize,
+    pub scaling: NetScaling,
+    pub params: Vec<f64>,
+}
+
+/// The whole file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WeightsFile {
+    pub format: String,
+    pub version: u32,
+    pub hidden: usize,
+    pub friction_net: bool,
+    pub nets: Vec<NetWeights>,
+}
+
+impl WeightsFile {
+    /// Snapshot of an identifier's networks.
+    pub fn from_identifier(id: &Identifier) -> Self {
+        let nets = Net::ALL
+            .iter()
+            .filter_map(|&n| id.net(n).map(|m| (n, m)))
+            .map(|(net, m)| NetWeights {
+                net,
+                inputs: m.inputs(),
+                hidden: m.hidden(),
+                outputs: m.outputs(),
+                scaling: m.scaling().clone(),
+                params: m.params().to_vec(),
+            })
+            .collect();
+        WeightsFile {
+            format: FORMAT.to_string(),
+            version: VERSION,
+            hidden: id.config().hidden,
+            friction_net: id.config().friction_net,
+            nets,
+        }
+    }
+
+    /// Parse and check internal consistency; `origin` names the source in messages.
+    pub fn from_json(text: &str, origin: &str) -> Result<Self, WeightsError> {
+        let w: WeightsFile = serde_json::from_str(text).map_err(|e| WeightsError::Parse {
+            path: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        if w.format != FORMAT || w.version != VERSION {
+            return Err(WeightsError::Format {
+                path: origin.to_string(),
+                format: w.format,
+                version: w.version,
+            });
+        }
+        w.check_consistent(origin)?;
+        Ok(w)
+    }
+
+    fn check_consistent(&self, origin: &str) -> Result<(), WeightsError> {
+        let invalid = |message: String| WeightsError::Invalid {
+            path: origin.to_string(),
+            message,
+        };
+        let expected: Vec<Net> = Net::ALL
+            .into_iter()
+            .filter(|&n| n != Net::F || self.friction_net)
+            .collect();
+        let got: Vec<Net> = self.nets.iter().map(|n| n.net).collect();
+        if got != expected {
+            return Err(invalid(format!(
+                "networks {got:?} listed, expected {expected:?} (friction_net = {})",
+                self.friction_net
+            )));
+        }
+        for nw in &self.nets {
+            let name = nw.net.name();
+            let (inputs, outputs) = nw.net.io();
+            if (nw.inputs, nw.outputs) != (inputs, outputs) || nw.hidden != self.hidden {
+                return Err(invalid(format!(
+                    "{name}-net is {}-{}-{}, expected {inputs}-{}-{outputs}",
+                    nw.inputs, nw.hidden, nw.outputs, self.hidden
+                )));
+            }
+            let n = nw.hidden * (nw.inputs + 1) + nw.outputs * (nw.hidden + 1);
+            if nw.params.len() != n {
+                return Err(invalid(format!(
+                    "{name}-net has {} parameters, a {}-{}-{} network has {n}",
+                    nw.params.len(),
+                    nw.inputs,
+                    nw.hidden,
+                    nw.outputs
+                )));
+            }
+            if let Some(i) = nw.params.iter().position(|p| !p.is_finite()) {
+                return Err(invalid(format!(
+                    "{name}-net parameter {i} is {}",
+                    nw.params[i]
+                )));
+            }
+            // Mlp::new checks the scaling's lengths and values.
+            Mlp::new(nw.inputs, nw.hidden, nw.outputs, nw.scaling.clone())
+                .map_err(|e| invalid(format!("{name}-net scaling: {e}")))?;
+        }
+        Ok(())
+    }
+
+    /// Refuse, naming both sides, weights that do not fit the configured networks.
+    pub fn check_fits(&self, cfg: &IdentifierConfig, origin: &str) -> Result<(), WeightsError> {
+        if self.hidden != cfg.hidden {
+            return Err(WeightsError::Mismatch {
+                path: origin.to_string(),
+                message: format!(
+                    "it has hidden = {} but the config has identifier.hidden = {}",
+                    self.hidden, cfg.hidden
+                ),
+            });
+        }
+        if self.friction_net != cfg.friction_net {
+            return Err(WeightsError::Mismatch {
+                path: origin.to_string(),
+                message: format!(
+                    "it has friction_net = {} but the config has identifier.friction_net = {}",
+                    self.friction_net, cfg.friction_net
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    pub fn to_json(&self) -> String {
+        // Plain data with string keys: serialisation cannot fail.
+        serde_json::to_string_pretty(self).unwrap_or_default()
+    }
+}
+
+/// Write the identifier's weights to `path` (through a temporary file and a rename, so a
+/// crash never leaves a truncated file behind).
+pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
+    let w = WeightsFile::from_identifier(id);
+    for nw in &w.nets {
+        if let Some(i) = nw.params.iter().position(|p| !p.is_finite()) {
+            return Err(WeightsError::NotFinite {
+                message: format!("{}-net parameter {i} is {}", nw.net.name(), nw.params[i]),
+            });
+        }
+    }
+    let write_err = |source| WeightsError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    std::fs::write(&tmp, w.to_json() + "\n").map_err(write_err)?;
+    std::fs::rename(&tmp, path).map_err(write_err)
+}
+
+/// Read and check a weights file (without comparing it to a configuration).
+pub fn load(path: &Path) -> Result<WeightsFile, WeightsError> {
+    let origin = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| WeightsError::Read {
+        path: origin.clone(),
+        source,
+    })?;
+    WeightsFile::from_json(&text, &origin)
+}
+
+impl Identifier {
+    /// Take over the networks of `w` (which must fit this identifier's configuration); they
+    /// become the σ-modification's anchor θ0.
+    pub fn apply_weights(&mut self, w: &WeightsFile, origin: &str) -> Result<(), WeightsError> {
+        w.check_fits(self.config(), origin)?;
+        w.check_consistent(origin)?;
+        let mut nets = Vec::with_capacity(w.nets.len());
+        for nw in &w.nets {
+            let mut mlp =
+                Mlp::new(nw.inputs, nw.hidden, nw.outputs, nw.scaling.clone()).map_err(|e| {
+                    WeightsError::Invalid {
+                        path: origin.to_string(),
+                        message: format!("{}-net: {e}", nw.net.name()),
+                    }
+                })?;
+            mlp.set_params(&nw.params)
+                .map_err(|e| WeightsError::Invalid {
+                    path: origin.to_string(),
+                    message: format!("{}-net: {e}", nw.net.name()),
+                })?;
+            nets.push((nw.net, mlp));
+        }
+        // Only now, with every network built, replace them: a failure leaves self untouched.
+        for (net, mlp) in nets {
+            self.replace_net(net, mlp);
+        }
+        self.set_anchor();
+        Ok(())
+    }
+
+    /// An identifier for `cfg` with the weights of the file at `path`.
+    pub fn from_weights_file(
+        cfg: &IdentifierConfig,
+        path: &Path,
+    ) -> Result<Identifier, WeightsError> {
+        let origin = path.display().to_string();
+        let w = load(path)?;
+        w.check_fits(cfg, &origin)?;
+        let mut id = Identifier::new(cfg).map_err(|e| WeightsError::Mismatch {
+            path: origin.clone(),
+            message: e.to_string(),
+        })?;
+        id.apply_weights(&w, &origin)?;
+        Ok(id)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    fn ident(cfg: &IdentifierConfig) -> Identifier {
+        Identifier::new(cfg).unwrap()
+    }
+
+    #[test]
+    fn save_and_load_round_trip_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("w.json");
+        let cfg = IdentifierConfig {
+            seed: 9,
+            ..IdentifierConfig::default()
+        };
+        let mut a = ident(&cfg);
+        save(&a, &path).unwrap();
+        // Different seed, then load: predictions must be identical.
+        let mut b = ident(&IdentifierConfig {
+            seed: 10,
+            ..cfg.clone()
+        });
+        let q = Vector3::new(0.1, 0.7, 0.2);
+        let qd = Vector3::new(0.3, -0.4, 0.5);
+        let qdd = Vector3::new(2.0, 1.0, -3.0);
+        assert_ne!(a.predict(&q, &qd, &qdd), b.predict(&q, &qd, &qdd));
+        b.apply_weights(&load(&path).unwrap(), "w.json").unwrap();
+        assert_eq!(a.predict(&q, &qd, &qdd), b.predict(&q, &qd, &qdd));
+        assert_eq!(b.weight_change_norm(), 0.0);
+        let c = Identifier::from_weights_file(&cfg, &path).unwrap();
+        assert_eq!(c.weights_norm(), a.weights_norm());
+    }
+
+    #[test]
+    fn loaded_weights_keep_their_scaling() {
+        let cfg = IdentifierConfig::default();
+        let a = ident(&cfg);
+        let w = WeightsFile::from_identifier(&a);
+        let mut other = cfg.clone();
+        other.q_scale = [1.0, 2.0, 3.0];
+        let mut b = ident(&other);
+        b.apply_weights(&w, "w").unwrap();
+        assert_eq!(
+            b.net(Net::G).unwrap().scaling(),
+            a.net(Net::G).unwrap().scaling()
+        );
+    }
+
+    #[test]
+    fn mismatched_sizes_and_flags_are_refused_with_both_values() {
+        let w = WeightsFile::from_identifier(&ident(&IdentifierConfig {
+            hidden: 8,
+            ..IdentifierConfig::default()
+        }));
+        let mut b = ident(&IdentifierConfig::default());
+        let e = b
+            .apply_weights(&w, "pretuned.json")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("pretuned.json")
+                && e.contains("hidden = 8")
+                && e.contains("identifier.hidden = 16"),
+            "{e}"
+        );
+        let w = WeightsFile::from_identifier(&ident(&IdentifierConfig {
+            friction_net: false,
+            ..IdentifierConfig::default()
+        }));
+        let e = b.apply_weights(&w, "w.json").unwrap_err().to_string();
+        assert!(e.contains("identifier.friction_net = true"), "{e}");
+    }
+
+    #[test]
+    fn bad_files_are_errors_not_panics() {
+        let good = WeightsFile::from_identifier(&ident(&IdentifierConfig::default())).to_json();
+        // Truncated anywhere.
+        for cut in [0, 1, good.len() / 3, good.len() / 2, good.len() - 2] {
+            let e = WeightsFile::from_json(&good[..cut], "t.json").unwrap_err();
+            assert!(matches!(e, WeightsError::Parse { .. }), "{e}");
+            assert!(e.to_string().contains("t.json"));
+        }
+        // NaN is not JSON; a NaN saved by a careless tool arrives as null.
+        let nan = good.replacen("\"params\": [", "\"params\": [NaN, ", 1);
+        assert!(WeightsFile::from_json(&nan, "n").is_err());
+        let null = good.replacen("\"params\": [", "\"params\": [null, ", 1);
+        assert!(WeightsFile::from_json(&null, "n").is_err());
+        let huge = good.replacen("\"params\": [", "\"params\": [1e999, ", 1);
+        assert!(WeightsFile::from_json(&huge, "n").is_err());
+        // A parameter too many.
+        let extra = good.replacen("\"params\": [", "\"params\": [0.5, ", 1);
+        let e = WeightsFile::from_json(&extra, "x.json")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("M-net has") && e.contains("parameters"), "{e}");
+        // Wrong format tag, unknown keys, bad scaling.
+        let e = WeightsFile::from_json(&good.replace(FORMAT, "other"), "f")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("\"other\""), "{e}");
+        assert!(WeightsFile::from_json(&good.replacen("{", "{\"extra\": 1,", 1), "u").is_err());
+        let mut w = WeightsFile::from_json(&good, "g").unwrap();
+        w.nets[1].scaling.in_scale[4] = -1.0;
+        let e = WeightsFile::from_json(&w.to_json(), "s")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("C-net scaling"), "{e}");
+        let e = load(Path::new("/nonexistent/w.json")).unwrap_err();
+        assert!(matches!(e, WeightsError::Read { .. }));
+    }
+
+    #[test]
+    fn non_finite_weights_are_not_saved() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut a = ident(&IdentifierConfig::default());
+        a.net_mut(Net::C).unwrap().params_mut()[3] = f64::NAN;
+        let e = save(&a, &dir.path().join("w.json"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("C-net parameter 3"), "{e}");
+    }
+}
