@@ -44,6 +44,8 @@ fn main() {
         fast: false,
         lenient: false,
         inject: Vec::new(),
+        weights: None,
+        no_adapt: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let sampler_stop = stop.clone();

@@ -78,11 +78,14 @@ fn stages(c: &mut Criterion) {
         b.iter(|| {
             t += 1e-3;
             let reference = r.at(t, &est.q);
-            pd.torque(&ControlInput {
-                t,
-                estimate: black_box(&est),
-                reference: &reference,
-            })
+            pd.torque(
+                &ControlInput {
+                    t,
+                    estimate: black_box(&est),
+                    reference: &reference,
+                },
+                None,
+            )
         })
     });
     g.bench_function("encode", |b| {

@@ -3,6 +3,7 @@
 
 pub use crate::device::firewire::FirewireConfig;
 pub use crate::device::usb::UsbConfig;
+pub use crate::ident::IdentifierConfig;
 use crate::omni::{Geometry, ModelParams};
 pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
@@ -221,6 +222,7 @@ pub struct Config {
     pub reference: ReferenceConfig,
     pub safety: SafetyConfig,
     pub telemetry: TelemetryConfig,
+    pub identifier: IdentifierConfig,
     pub realtime: RealtimeConfig,
     pub usb: UsbConfig,
     pub firewire: FirewireConfig,
@@ -622,6 +624,7 @@ impl Config {
         }
 
         self.safety.validate()?;
+        self.identifier.validate()?;
         self.realtime.validate()?;
         self.usb.validate()?;
         self.firewire.validate()?;
@@ -681,6 +684,7 @@ fn doc_for(key: &str) -> Option<&'static str> {
         FIELD_DOCS,
         crate::servo::safety::SAFETY_FIELD_DOCS,
         crate::servo::realtime::REALTIME_FIELD_DOCS,
+        crate::ident::IDENTIFIER_FIELD_DOCS,
         crate::device::usb::USB_FIELD_DOCS,
         crate::device::firewire::FIREWIRE_FIELD_DOCS,
     ]

@@ -37,6 +37,8 @@ enum Command {
     Run(RunArgs),
     /// Convert a recording into a replayable log (for `--device replay:OUT`).
     Convert(ConvertArgs),
+    /// Pre-tune the identifier's networks on recorded logs and save the weights.
+    Identify(IdentifyArgs),
     /// List candidate devices (USB bridges, FireWire Omnis) with permission problems and fixes.
     Devices {
         /// TOML configuration file (its [usb] ids are the ones searched for).
@@ -52,12 +54,86 @@ enum Command {
 }
 
 #[derive(clap::Args)]
+struct IdentifyArgs {
+    /// Logs to learn from (omnid logs, or any CSV with t, q1..3, tau1..3).
+    #[arg(required = true)]
+    logs: Vec<PathBuf>,
+    /// Where to write the weights (JSON).
+    #[arg(long)]
+    out: PathBuf,
+    /// Passes over the data.
+    #[arg(long, default_value_t = 20)]
+    epochs: usize,
+    /// TOML configuration file (its [identifier] and [kalman] sections apply).
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
+    let Some(cfg) = load_config(args.config.as_deref()) else {
+        return Ok(EXIT_BAD_INPUT);
+    };
+    let pretune_cfg = omnid::ident::PretuneConfig {
+        epochs: args.epochs,
+        ..Default::default()
+    };
+    let bar = omnid::progress::bar(args.epochs as u64, "identify");
+    let result = omnid::identify::identify(
+        &args.logs,
+        &args.out,
+        &cfg,
+        &pretune_cfg,
+        |p| match p {
+            omnid::ident::Progress::Batch { .. } => {}
+            omnid::ident::Progress::Epoch(r) => {
+                bar.inc(1);
+                bar.suspend(|| eprintln!(
+                    "epoch {:>3}/{}: train NRMSE {:.3} / {:.3} / {:.3}   validation {:.3} / {:.3} / {:.3}",
+                    r.epoch,
+                    r.epochs,
+                    r.train_nrmse[0],
+                    r.train_nrmse[1],
+                    r.train_nrmse[2],
+                    r.val_nrmse[0],
+                    r.val_nrmse[1],
+                    r.val_nrmse[2]
+                ));
+            }
+        },
+    );
+    bar.finish_and_clear();
+    match result {
+        Ok(report) => {
+            let best = &report.epochs[report.kept_epoch - 1];
+            println!(
+                "identify: {} training and {} validation samples; kept epoch {}: training NRMSE {:.3} / {:.3} / {:.3}, validation NRMSE {:.3} / {:.3} / {:.3}; weights in {}",
+                report.train_samples,
+                report.val_samples,
+                report.kept_epoch,
+                best.train_nrmse[0],
+                best.train_nrmse[1],
+                best.train_nrmse[2],
+                best.val_nrmse[0],
+                best.val_nrmse[1],
+                best.val_nrmse[2],
+                args.out.display()
+            );
+            Ok(0)
+        }
+        Err(e) => {
+            eprintln!("omnid identify: {e}");
+            Ok(EXIT_BAD_INPUT)
+        }
+    }
+}
+
+#[derive(clap::Args)]
 struct RunArgs {
     /// sim | replay:PATH | usb | firewire
     #[arg(long, default_value = "sim")]
     device: DeviceSpec,
     /// Control law.
-    #[arg(long, value_enum, default_value = "pd")]
+    #[arg(long, value_enum, default_value = "nnidc")]
     controller: ControllerKind,
     /// Reference trajectory.
     #[arg(long, value_enum, default_value = "sine")]
@@ -84,6 +160,12 @@ struct RunArgs {
     /// Replay: skip damaged rows of the log (reported) instead of refusing it.
     #[arg(long)]
     lenient: bool,
+    /// Start the identifier from these weights (from `omnid identify`).
+    #[arg(long, value_name = "WEIGHTS.json")]
+    weights: Option<PathBuf>,
+    /// Freeze the identifier: no online adaptation.
+    #[arg(long)]
+    no_adapt: bool,
 }
 
 #[derive(clap::Args)]
@@ -175,6 +257,8 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         fast: args.fast,
         lenient: args.lenient,
         inject: args.inject,
+        weights: args.weights,
+        no_adapt: args.no_adapt,
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
@@ -265,6 +349,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Run(args) => run(args),
         Command::Convert(args) => convert_cmd(args),
+        Command::Identify(args) => identify_cmd(args),
         Command::Devices { config } => match load_config(config.as_deref()) {
             Some(cfg) => {
                 print!("{}", omnid::device::discovery::list_devices(&cfg.usb));

@@ -2,7 +2,9 @@
 //! options, run it on its own thread, and turn the result into the run summary.
 
 use crate::config::Config;
-use crate::control::{ComputedTorque, Controller, ControllerKind, Off, Pd, Reference, Trajectory};
+use crate::control::{
+    ComputedTorque, Controller, ControllerKind, Nnidc, Off, Pd, Reference, Trajectory,
+};
 use crate::device::calibration::{self, CalibrationError};
 use crate::device::firewire::open_firewire_with_rate;
 use crate::device::inject::{Fault, FaultyDevice, NanAfter};
@@ -10,6 +12,7 @@ use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
 use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
+use crate::ident::{Identifier, WeightsFile};
 use crate::servo::{EndReason, Servo};
 use crate::telemetry::summary::{IdentifierSummary, RunSummary, TimingSummary};
 use crate::telemetry::{dump_path, spawn_writer, write_dump, LogSchema};
@@ -69,6 +72,52 @@ pub struct RunOptions {
     pub lenient: bool,
     /// Faults to inject (from `--inject`; the config's `[inject]` list is added).
     pub inject: Vec<Fault>,
+    /// Start the identifier from these weights (else: shipped weights for NNIDC, fresh
+    /// small random weights otherwise).
+    pub weights: Option<PathBuf>,
+    /// Freeze the identifier (no online adaptation).
+    pub no_adapt: bool,
+}
+
+/// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
+/// box (see mock/README.md for how they were made).
+pub const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
+pub const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
+
+/// The identifier a run starts with, and a label for the summary.
+pub fn make_identifier(
+    cfg: &Config,
+    controller: ControllerKind,
+    weights: Option<&std::path::Path>,
+    no_adapt: bool,
+) -> Result<(Identifier, String), RunError> {
+    let mut id_cfg = cfg.identifier.clone();
+    if no_adapt {
+        id_cfg.adapt = false;
+    }
+    let bad = |e: &dyn std::fmt::Display| RunError::BadInput(e.to_string());
+    match weights {
+        Some(path) => Ok((
+            Identifier::from_weights_file(&id_cfg, path).map_err(|e| bad(&e))?,
+            path.display().to_string(),
+        )),
+        None if controller == ControllerKind::Nnidc => {
+            let mut id = Identifier::new(&id_cfg).map_err(|e| bad(&e))?;
+            let w = WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME)
+                .map_err(|e| bad(&e))?;
+            id.apply_weights(&w, SHIPPED_WEIGHTS_NAME).map_err(|e| {
+                RunError::BadInput(format!(
+                    "{e} (the shipped weights fit the default [identifier] sizes; pass --weights \
+                     with weights made by `omnid identify` for other sizes)"
+                ))
+            })?;
+            Ok((id, "shipped".to_string()))
+        }
+        None => Ok((
+            Identifier::new(&id_cfg).map_err(|e| bad(&e))?,
+            "fresh".to_string(),
+        )),
+    }
 }
 
 /// Problems that stop a run before the loop starts (bad input, no device, no log file).
@@ -146,15 +195,12 @@ fn open_device(
     }
 }
 
-fn make_controller(kind: ControllerKind, cfg: &Config) -> Result<Box<dyn Controller>, RunError> {
+pub fn make_controller(kind: ControllerKind, cfg: &Config) -> Box<dyn Controller> {
     match kind {
-        ControllerKind::Pd => Ok(Box::new(Pd::from_config(cfg))),
-        ControllerKind::Off => Ok(Box::new(Off)),
-        ControllerKind::Ct => Ok(Box::new(ComputedTorque::from_config(cfg))),
-        other => Err(RunError::BadInput(format!(
-            "controller `{}` is not available in this build yet; use --controller pd, ct or off",
-            other.as_str()
-        ))),
+        ControllerKind::Pd => Box::new(Pd::from_config(cfg)),
+        ControllerKind::Off => Box::new(Off),
+        ControllerKind::Ct => Box::new(ComputedTorque::from_config(cfg)),
+        ControllerKind::Nnidc => Box::new(Nnidc::from_config(cfg)),
     }
 }
 
@@ -188,7 +234,15 @@ pub fn execute(
             crate::device::inject::MAX_FAULTS
         )));
     }
-    let mut controller = make_controller(opts.controller, cfg)?;
+    let mut controller = make_controller(opts.controller, cfg);
+    let (identifier, weights_label) =
+        make_identifier(cfg, opts.controller, opts.weights.as_deref(), opts.no_adapt)?;
+    if weights_label == "shipped" {
+        eprintln!(
+            "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
+             the simulator); pass --weights FILE for your own (`omnid identify`)"
+        );
+    }
     if let Some(at_s) = faults.iter().find_map(|f| match f {
         Fault::Nan { at_s } => Some(*at_s),
         _ => None,
@@ -222,6 +276,7 @@ pub fn execute(
     let mut servo = Servo::new(
         cfg, device, controller, reference, tx, stop, max_ticks, !opts.fast,
     );
+    servo.set_identifier(identifier);
     if let Some(path) = &heat_path {
         let (heat, note) =
             crate::servo::thermal_store::load(path, cfg.safety.thermal_time_constant_s);
@@ -294,9 +349,17 @@ pub fn execute(
         torque_rms_nm: stats.torque_rms(),
         torque_total_variation_nm: stats.torque_total_variation(),
         identifier: IdentifierSummary {
-            nrmse: None,
-            nrmse_last_20pct: None,
+            nrmse: stats.identifier.nrmse(),
+            nrmse_last_20pct: stats.identifier.nrmse_last_20pct(),
             nrmse_oracle: stats.oracle_nrmse(),
+            nrmse_oracle_last_20pct: stats.oracle_nrmse_last_20pct(),
+            weights: Some(weights_label),
+            adapt: cfg.identifier.adapt && !opts.no_adapt,
+            fault: report
+                .identifier
+                .as_ref()
+                .and_then(|id| id.fault())
+                .map(|f| f.to_string()),
         },
         timing_us: TimingSummary::from_timing(&report.timing),
         faults: report.faults,

@@ -2,7 +2,7 @@
 //! thread (only) over thousands of ticks after warm-up.
 
 use omnid::config::Config;
-use omnid::control::{ControllerKind, Off, Pd, Reference, Trajectory};
+use omnid::control::{ControllerKind, Pd, Reference, Trajectory};
 use omnid::device::sim::SimOmni;
 use omnid::servo::{EndReason, Servo};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -67,11 +67,7 @@ fn the_counter_sees_an_allocation() {
 fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
     let cfg = Config::default();
     let device = Box::new(SimOmni::new(&cfg, false));
-    let controller: Box<dyn omnid::control::Controller> = match kind {
-        ControllerKind::Pd => Box::new(Pd::from_config(&cfg)),
-        ControllerKind::Off => Box::new(Off),
-        other => panic!("{other:?} not covered here"),
-    };
+    let controller = omnid::run::make_controller(kind, &cfg);
     let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
     // A small channel drained by a consumer thread: both the send and the full (dropped)
     // paths are taken.
@@ -90,6 +86,10 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
     // paced = true: the realtime configuration (telemetry by try_send; the simulator itself
     // is unpaced so the test runs fast).
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
+    // Adapting identifier on, from the weights a run of this controller would start with.
+    let (id, _) = omnid::run::make_identifier(&cfg, kind, None, false).unwrap();
+    assert!(cfg.identifier.adapt);
+    servo.set_identifier(id);
     for _ in 0..2_500 {
         assert!(servo.tick().is_none());
     }
@@ -115,6 +115,16 @@ fn sim_pd_multisine_allocates_nothing_per_tick() {
 }
 
 #[test]
+fn sim_nnidc_adapting_allocates_nothing_per_tick() {
+    ticks_allocate_nothing(ControllerKind::Nnidc, Trajectory::Sine);
+}
+
+#[test]
+fn sim_ct_allocates_nothing_per_tick() {
+    ticks_allocate_nothing(ControllerKind::Ct, Trajectory::Multisine);
+}
+
+#[test]
 fn sim_off_allocates_nothing_per_tick() {
     ticks_allocate_nothing(ControllerKind::Off, Trajectory::Hold);
 }
@@ -135,6 +145,8 @@ fn replay_allocates_nothing_per_tick() {
         fast: true,
         lenient: false,
         inject: Vec::new(),
+        weights: None,
+        no_adapt: false,
     };
     let mut sim_cfg = cfg.clone();
     sim_cfg.safety.persist_heat = false;
@@ -147,7 +159,9 @@ fn replay_allocates_nothing_per_tick() {
     let consumer = std::thread::spawn(move || rx.iter().count());
     let stop = Arc::new(AtomicBool::new(false));
     let controller = Box::new(Pd::from_config(&cfg));
-    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, false);
+    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
+    let (id, _) = omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false).unwrap();
+    servo.set_identifier(id);
     for _ in 0..1_000 {
         assert!(servo.tick().is_none());
     }

@@ -28,6 +28,8 @@ fn run(
         fast: true,
         lenient: false,
         inject: Vec::new(),
+        weights: None,
+        no_adapt: false,
     };
     // Motors start cold: no heat carried over from other runs, so every run is reproducible.
     let mut cfg = cfg.clone();
@@ -147,6 +149,8 @@ fn paced_and_fast_replays_agree() {
             fast,
             lenient: false,
             inject: Vec::new(),
+            weights: None,
+            no_adapt: false,
         };
         let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
         assert_eq!(out.end, EndReason::EndOfData);

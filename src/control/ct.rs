@@ -6,6 +6,7 @@
 use super::{ControlInput, Controller, RefPoint};
 use crate::config::Config;
 use crate::estimate::kalman::Estimate;
+use crate::ident::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
 /// Outer-loop gains of the inverse-dynamics laws: K_p = ω², K_d = 2ζω (per unit inertia).
@@ -54,7 +55,7 @@ impl Controller for ComputedTorque {
         "ct"
     }
 
-    fn torque(&mut self, input: &ControlInput) -> Joint3 {
+    fn torque(&mut self, input: &ControlInput, _learned: Option<&mut Identifier>) -> Joint3 {
         let x = input.estimate;
         let v = self.gains.acceleration(x, input.reference);
         self.model.inverse_dynamics(&x.q, &x.qd, &v)
@@ -79,11 +80,14 @@ mod tests {
             qd: r.qd,
             qdd: Joint3::zeros(),
         };
-        let tau = ct.torque(&ControlInput {
-            t: 0.0,
-            estimate: &x,
-            reference: &r,
-        });
+        let tau = ct.torque(
+            &ControlInput {
+                t: 0.0,
+                estimate: &x,
+                reference: &r,
+            },
+            None,
+        );
         let mut plant = Dynamics::new(cfg.model, cfg.geometry);
         plant.friction = false;
         assert!((tau - plant.inverse_dynamics(&r.q, &r.qd, &r.qdd)).norm() < 1e-15);
@@ -101,11 +105,14 @@ mod tests {
             q: r.q - Joint3::new(0.01, 0.0, 0.0),
             ..Default::default()
         };
-        let tau = ct.torque(&ControlInput {
-            t: 0.0,
-            estimate: &x,
-            reference: &r,
-        });
+        let tau = ct.torque(
+            &ControlInput {
+                t: 0.0,
+                estimate: &x,
+                reference: &r,
+            },
+            None,
+        );
         let plant = Dynamics::new(cfg.model, cfg.geometry);
         let m = plant.mass(&x.q);
         let g = plant.gravity(&x.q);

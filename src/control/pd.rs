@@ -4,6 +4,7 @@
 
 use super::{ControlInput, Controller};
 use crate::config::Config;
+use crate::ident::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
 pub struct Pd {
@@ -34,7 +35,7 @@ impl Controller for Pd {
         "pd"
     }
 
-    fn torque(&mut self, input: &ControlInput) -> Joint3 {
+    fn torque(&mut self, input: &ControlInput, _learned: Option<&mut Identifier>) -> Joint3 {
         let e = input.reference.q - input.estimate.q;
         let ed = input.reference.qd - input.estimate.qd;
         self.kp.component_mul(&e) + self.kd.component_mul(&ed)
@@ -49,7 +50,7 @@ impl Controller for Off {
         "off"
     }
 
-    fn torque(&mut self, _input: &ControlInput) -> Joint3 {
+    fn torque(&mut self, _input: &ControlInput, _learned: Option<&mut Identifier>) -> Joint3 {
         Joint3::zeros()
     }
 }
@@ -83,11 +84,14 @@ mod tests {
             qdd: Joint3::zeros(),
         };
         let r = RefPoint::default();
-        let tau = pd.torque(&ControlInput {
-            t: 0.0,
-            estimate: &est,
-            reference: &r,
-        });
+        let tau = pd.torque(
+            &ControlInput {
+                t: 0.0,
+                estimate: &est,
+                reference: &r,
+            },
+            None,
+        );
         assert_eq!(tau, Joint3::new(-0.2, -0.5, 0.2));
     }
 }

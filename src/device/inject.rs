@@ -8,6 +8,7 @@
 use super::codec::STATE_LAYOUT;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
 use crate::control::{ControlInput, Controller};
+use crate::ident::Identifier;
 use crate::omni::{Dynamics, Joint3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -197,8 +198,8 @@ impl Controller for NanAfter {
         self.inner.name()
     }
 
-    fn torque(&mut self, input: &ControlInput) -> Joint3 {
-        let tau = self.inner.torque(input);
+    fn torque(&mut self, input: &ControlInput, learned: Option<&mut Identifier>) -> Joint3 {
+        let tau = self.inner.torque(input, learned);
         if input.t >= self.at_s {
             Joint3::new(tau[0], f64::NAN, tau[2])
         } else {

@@ -15,6 +15,7 @@ use crate::device::{
     COMMAND_LEN,
 };
 use crate::estimate::KalmanBank;
+use crate::ident::Identifier;
 use crate::omni::Joint3;
 use crate::telemetry::record::{flags, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, RunStats};
@@ -69,6 +70,8 @@ pub struct ServoReport {
     pub last_command: MotorCommand,
     /// A device error while sending the final safe packet or closing, if any.
     pub shutdown_error: Option<String>,
+    /// The identifier as it ended (learned weights, fault state).
+    pub identifier: Option<Identifier>,
     /// Motor heat at the end (for the thermal model of the next run).
     pub heat: [f64; 3],
     /// Joints whose heat reached the warning level.
@@ -79,6 +82,8 @@ pub struct ServoReport {
 pub struct Servo {
     device: Box<dyn Device>,
     controller: Box<dyn Controller>,
+    /// The adaptive identifier: runs every tick, whatever the controller.
+    identifier: Option<Identifier>,
     reference: Reference,
     kalman: KalmanBank,
     unwrap: EncoderUnwrap,
@@ -100,6 +105,10 @@ pub struct Servo {
     last_t: f64,
     last_q: [f64; 3],
     last_enc: [i64; 3],
+    /// The torque that acted over the interval ending at this sample (the previous command,
+    /// or the recording's for replays): what the identifier learns from.
+    acting_tau: Option<[f64; 3]>,
+    last_tau_hat: [f64; 3],
     last_reference: [f64; 3],
     last_tau_model: [f64; 3],
     consecutive_missed: u32,
@@ -131,6 +140,7 @@ impl Servo {
         Servo {
             device,
             controller,
+            identifier: Identifier::new(&cfg.identifier).ok(),
             reference,
             kalman: KalmanBank::new(&cfg.kalman),
             unwrap: EncoderUnwrap::new(),
@@ -154,6 +164,8 @@ impl Servo {
             last_t: 0.0,
             last_q: [0.0; 3],
             last_enc: [0; 3],
+            acting_tau: None,
+            last_tau_hat: [0.0; 3],
             last_reference: cfg.reference.center,
             last_tau_model: [0.0; 3],
             consecutive_missed: 0,
@@ -166,6 +178,15 @@ impl Servo {
             dropped: 0,
             missed: 0,
         }
+    }
+
+    /// Replace the identifier (pre-tuned weights, adaptation off, …).
+    pub fn set_identifier(&mut self, identifier: Identifier) {
+        self.identifier = Some(identifier);
+    }
+
+    pub fn identifier(&self) -> Option<&Identifier> {
+        self.identifier.as_ref()
     }
 
     /// Start from warm motors (heat carried over from earlier runs).
@@ -223,13 +244,53 @@ impl Servo {
         // Estimate.
         let est = self.kalman.update(t_dev, &q);
 
+        // Identify: learn from the torque that acted up to this sample.
+        let dt = if self.tick == 0 { 0.0 } else { t - self.last_t };
+        let mut tau_hat = [0.0; 3];
+        let mut ident_flag = 0;
+        if let Some(id) = self.identifier.as_mut() {
+            match self.acting_tau {
+                Some(acting) => {
+                    let predicted = id.update(&est.q, &est.qd, &est.qdd, &acting.into(), dt);
+                    if id.healthy() {
+                        tau_hat = predicted.into();
+                        self.stats.identifier.record(&acting, &tau_hat);
+                    } else {
+                        ident_flag = flags::IDENT_FAULT;
+                    }
+                }
+                // First sample: nothing has acted yet; log the prediction alone.
+                None => tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into(),
+            }
+            if !id.healthy() {
+                // Stopped on a non-finite value: its last good weights still predict.
+                let p: [f64; 3] = id.predict(&est.q, &est.qd, &est.qdd).into();
+                if p.iter().all(|v| v.is_finite()) {
+                    tau_hat = p;
+                }
+            }
+        }
+        let tau_model = match self.device.plant_model() {
+            Some(m) => {
+                let tm: [f64; 3] = m.inverse_dynamics(&est.q, &est.qd, &est.qdd).into();
+                if let Some(acting) = self.acting_tau {
+                    self.stats.record_oracle(&acting, &tm);
+                }
+                tm
+            }
+            None => [f64::NAN; 3],
+        };
+
         // Control.
         let reference = self.reference.at(t, &est.q);
-        let tau_cmd = self.controller.torque(&ControlInput {
-            t,
-            estimate: &est,
-            reference: &reference,
-        });
+        let tau_cmd = self.controller.torque(
+            &ControlInput {
+                t,
+                estimate: &est,
+                reference: &reference,
+            },
+            self.identifier.as_mut(),
+        );
 
         // Safety: every command passes through the limits; a trip ends the run.
         let limited = match self.safety.apply(&tau_cmd, &est.q, &est.qd) {
@@ -240,7 +301,7 @@ impl Servo {
             }
         };
         let tau = limited.tau;
-        let tick_flags = limited.flags | if self.held { flags::HELD } else { 0 };
+        let tick_flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
         self.held = false;
 
         // Encode: the next exchange sends it, amplifiers on from now.
@@ -252,15 +313,6 @@ impl Servo {
         // What the plant got: on a replay, the recorded torque (ours cannot reach it; it is
         // still logged as `tau_cmd`).
         let tau_plant = self.device.recorded_torque().unwrap_or(tau_applied);
-
-        let tau_model = match self.device.plant_model() {
-            Some(m) => {
-                let tm: [f64; 3] = m.inverse_dynamics(&est.q, &est.qd, &est.qdd).into();
-                self.stats.record_oracle(&tau_plant, &tm);
-                tm
-            }
-            None => [f64::NAN; 3],
-        };
 
         let mode = if t < self.blend_s {
             Mode::Blend
@@ -284,6 +336,7 @@ impl Servo {
             qdd: est.qdd.into(),
             reference: reference.q.into(),
             tau_cmd: tau_cmd.into(),
+            tau_hat,
             tau_model,
             enc,
             amps: true,
@@ -295,6 +348,8 @@ impl Servo {
         self.last_enc = enc;
         self.last_reference = reference.q.into();
         self.last_tau_model = tau_model;
+        self.acting_tau = Some(tau_plant);
+        self.last_tau_hat = tau_hat;
         self.record_timing(wake);
         self.tick += 1;
         None
@@ -398,6 +453,7 @@ impl Servo {
             qdd: est.qdd.into(),
             reference: self.last_reference,
             tau_cmd: [0.0; 3],
+            tau_hat: self.last_tau_hat,
             tau_model: self.last_tau_model,
             enc,
             amps: false,
@@ -443,6 +499,7 @@ impl Servo {
             missed_packets: self.missed,
             last_command: self.command,
             shutdown_error,
+            identifier: self.identifier.take(),
             heat: self.safety.heat(),
             thermal_warned: self.safety.thermal_warned(),
         }

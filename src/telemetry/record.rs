@@ -49,6 +49,8 @@ pub mod flags {
     pub const THERMAL: u32 = 1 << 6;
     /// A motor is near its thermal limit.
     pub const THERMAL_WARN: u32 = 1 << 7;
+    /// The identifier has stopped on a non-finite value (NNIDC runs on PD).
+    pub const IDENT_FAULT: u32 = 1 << 8;
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -68,6 +70,8 @@ pub struct TickRecord {
     pub reference: [f64; 3],
     /// Controller output before the safety layer, N·m.
     pub tau_cmd: [f64; 3],
+    /// The identifier's prediction of the torque that acted (NaN when it has none).
+    pub tau_hat: [f64; 3],
     /// The plant's exact model on the estimated states (simulator only, else NaN).
     pub tau_model: [f64; 3],
     /// Continuous encoder counts.
@@ -90,7 +94,7 @@ pub const REQUIRED_COLUMNS: [&str; 7] = ["t", "q1", "q2", "q3", "tau1", "tau2", 
 impl LogSchema {
     pub fn columns(&self) -> Vec<String> {
         let mut c: Vec<String> = REQUIRED_COLUMNS.iter().map(|s| s.to_string()).collect();
-        for group in ["qf", "qd", "qdd", "ref", "tau_cmd"] {
+        for group in ["qf", "qd", "qdd", "ref", "tau_cmd", "tau_hat"] {
             c.extend((1..=3).map(|j| format!("{group}{j}")));
         }
         if self.model {

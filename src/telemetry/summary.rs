@@ -5,7 +5,7 @@ use crate::servo::timing::{Percentiles, TickTiming};
 use serde::{Deserialize, Serialize};
 
 /// Running sums for the summary, updated every tick.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct RunStats {
     pub ticks: u64,
     pub first_t: Option<f64>,
@@ -17,9 +17,11 @@ pub struct RunStats {
     torque_sq: [f64; 3],
     torque_tv: [f64; 3],
     last_tau: Option<[f64; 3]>,
-    oracle_n: u64,
-    oracle_err_sq: [f64; 3],
-    oracle_tau_sq: [f64; 3],
+    /// The identifier's τ̂ against the torque that acted.
+    pub identifier: ErrorBins,
+    /// The plant's exact model against the same torque (simulator only).
+    pub oracle: ErrorBins,
+    oracle_seen: bool,
     pub clamped_ticks: u64,
 }
 
@@ -49,13 +51,10 @@ impl RunStats {
         self.last_tau = Some(*tau);
     }
 
-    /// The plant's exact model against the applied torque (simulator only).
+    /// The plant's exact model against the torque that acted (simulator only).
     pub fn record_oracle(&mut self, tau: &[f64; 3], tau_model: &[f64; 3]) {
-        self.oracle_n += 1;
-        for j in 0..3 {
-            self.oracle_err_sq[j] += (tau[j] - tau_model[j]).powi(2);
-            self.oracle_tau_sq[j] += tau[j] * tau[j];
-        }
+        self.oracle_seen = true;
+        self.oracle.record(tau, tau_model);
     }
 
     pub fn tracking_rms(&self) -> Option<[f64; 3]> {
@@ -75,14 +74,108 @@ impl RunStats {
     }
 
     pub fn oracle_nrmse(&self) -> Option<[f64; 3]> {
-        (self.oracle_n > 0).then(|| {
-            let mut r = [0.0; 3];
-            for j in 0..3 {
-                r[j] =
-                    (self.oracle_err_sq[j] / self.oracle_tau_sq[j].max(f64::MIN_POSITIVE)).sqrt();
+        if self.oracle_seen {
+            self.oracle.nrmse()
+        } else {
+            None
+        }
+    }
+
+    pub fn oracle_nrmse_last_20pct(&self) -> Option<[f64; 3]> {
+        if self.oracle_seen {
+            self.oracle.nrmse_last_20pct()
+        } else {
+            None
+        }
+    }
+}
+
+/// Bins of the identifier's squared errors over time: enough to give the NRMSE of the whole
+/// run and of its last 20 % without storing every tick or knowing the length in advance.
+/// When the bins fill up, neighbours merge and each bin covers twice as many ticks.
+#[derive(Debug, Clone)]
+pub struct ErrorBins {
+    err_sq: Vec<[f64; 3]>,
+    ref_sq: Vec<[f64; 3]>,
+    used: usize,
+    ticks_per_bin: u64,
+    in_bin: u64,
+}
+
+const ERROR_BINS: usize = 1000;
+
+impl Default for ErrorBins {
+    fn default() -> Self {
+        ErrorBins {
+            err_sq: vec![[0.0; 3]; ERROR_BINS],
+            ref_sq: vec![[0.0; 3]; ERROR_BINS],
+            used: 0,
+            ticks_per_bin: 1,
+            in_bin: 0,
+        }
+    }
+}
+
+impl ErrorBins {
+    /// Add one tick: `reference` the measured torque, `estimate` the prediction.
+    pub fn record(&mut self, reference: &[f64; 3], estimate: &[f64; 3]) {
+        if self.in_bin == self.ticks_per_bin {
+            self.used += 1;
+            self.in_bin = 0;
+        }
+        if self.used == ERROR_BINS {
+            for i in 0..ERROR_BINS / 2 {
+                for j in 0..3 {
+                    self.err_sq[i][j] = self.err_sq[2 * i][j] + self.err_sq[2 * i + 1][j];
+                    self.ref_sq[i][j] = self.ref_sq[2 * i][j] + self.ref_sq[2 * i + 1][j];
+                }
             }
-            r
-        })
+            for i in ERROR_BINS / 2..ERROR_BINS {
+                self.err_sq[i] = [0.0; 3];
+                self.ref_sq[i] = [0.0; 3];
+            }
+            self.used = ERROR_BINS / 2;
+            self.ticks_per_bin *= 2;
+        }
+        let b = self.used;
+        for j in 0..3 {
+            self.err_sq[b][j] += (reference[j] - estimate[j]).powi(2);
+            self.ref_sq[b][j] += reference[j] * reference[j];
+        }
+        self.in_bin += 1;
+    }
+
+    fn nrmse_from(&self, first_bin: usize) -> Option<[f64; 3]> {
+        let last = if self.in_bin > 0 {
+            self.used + 1
+        } else {
+            self.used
+        };
+        if first_bin >= last {
+            return None;
+        }
+        let mut r = [0.0; 3];
+        for j in 0..3 {
+            let e: f64 = self.err_sq[first_bin..last].iter().map(|b| b[j]).sum();
+            let t: f64 = self.ref_sq[first_bin..last].iter().map(|b| b[j]).sum();
+            r[j] = (e / t.max(f64::MIN_POSITIVE)).sqrt();
+        }
+        Some(r)
+    }
+
+    /// RMS(error) / RMS(reference) per joint over the whole run.
+    pub fn nrmse(&self) -> Option<[f64; 3]> {
+        self.nrmse_from(0)
+    }
+
+    /// The same over the last 20 % of the run (to the resolution of one bin).
+    pub fn nrmse_last_20pct(&self) -> Option<[f64; 3]> {
+        let bins = if self.in_bin > 0 {
+            self.used + 1
+        } else {
+            self.used
+        };
+        self.nrmse_from((bins as f64 * 0.8).round() as usize)
     }
 }
 
@@ -91,6 +184,13 @@ pub struct IdentifierSummary {
     pub nrmse: Option<[f64; 3]>,
     pub nrmse_last_20pct: Option<[f64; 3]>,
     pub nrmse_oracle: Option<[f64; 3]>,
+    /// The exact model's NRMSE over the last 20 % (simulator only).
+    pub nrmse_oracle_last_20pct: Option<[f64; 3]>,
+    /// Weights the run started from: "fresh", "shipped", or a file path.
+    pub weights: Option<String>,
+    pub adapt: bool,
+    /// Why the identifier stopped adapting, if it did (NNIDC then ran on PD).
+    pub fault: Option<String>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -243,6 +343,35 @@ impl RunSummary {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn error_bins_match_a_direct_computation_across_merges() {
+        // 5003 ticks: bins merge twice; the whole-run NRMSE is exact, the last 20 % is
+        // exact to one bin.
+        let mut b = ErrorBins::default();
+        let (mut e, mut t, mut e_late, mut t_late) = (0.0, 0.0, 0.0, 0.0);
+        let n = 5003;
+        for k in 0..n {
+            let tau = [(k as f64 * 0.01).sin(), 1.0, 0.5];
+            let err = if k > n / 2 { 0.1 } else { 0.3 };
+            let est = [tau[0] + err, 1.0, 0.5];
+            b.record(&tau, &est);
+            e += err * err;
+            t += tau[0] * tau[0];
+            if k >= (n as f64 * 0.8) as usize {
+                e_late += err * err;
+                t_late += tau[0] * tau[0];
+            }
+        }
+        assert!((b.nrmse().unwrap()[0] - (e / t).sqrt()).abs() < 1e-12);
+        assert_eq!(b.nrmse().unwrap()[1], 0.0);
+        let late = b.nrmse_last_20pct().unwrap()[0];
+        assert!(
+            (late - (e_late / t_late).sqrt()).abs() < 0.02 * late,
+            "{late}"
+        );
+        assert!(ErrorBins::default().nrmse().is_none());
+    }
 
     #[test]
     fn stats_match_a_direct_computation() {

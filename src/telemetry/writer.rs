@@ -53,7 +53,16 @@ fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema) {
     let mut f = ryu::Buffer::new();
     let mut i = itoa::Buffer::new();
     line.extend_from_slice(f.format(r.t).as_bytes());
-    let groups = [&r.q, &r.tau, &r.qf, &r.qd, &r.qdd, &r.reference, &r.tau_cmd];
+    let groups = [
+        &r.q,
+        &r.tau,
+        &r.qf,
+        &r.qd,
+        &r.qdd,
+        &r.reference,
+        &r.tau_cmd,
+        &r.tau_hat,
+    ];
     let model = if schema.model {
         Some(&r.tau_model)
     } else {
@@ -152,6 +161,7 @@ mod tests {
             qdd: [0.0; 3],
             reference: [0.0; 3],
             tau_cmd: [0.0; 3],
+            tau_hat: [0.0; 3],
             tau_model: [f64::NAN; 3],
             enc: [-5, 0, 70000],
             amps: true,

@@ -1,0 +1,111 @@
+//! NNIDC (paper Fig. 7, DESIGN §3): the inverse-dynamics law with the networks' model,
+//! τ = M̂(q)·v + Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(q̇), v = q̈_d + K_d(q̇_d − q̇) + K_p(q_d − q),
+//! while the identifier keeps learning. When the identifier has stopped on a non-finite value
+//! (or there is none), it falls back to the PD baseline until the operator resets.
+
+use super::ct::OuterLoop;
+use super::pd::Pd;
+use super::{ControlInput, Controller};
+use crate::config::Config;
+use crate::ident::Identifier;
+use crate::omni::Joint3;
+
+pub struct Nnidc {
+    gains: OuterLoop,
+    fallback: Pd,
+    fell_back: bool,
+}
+
+impl Nnidc {
+    pub fn from_config(cfg: &Config) -> Self {
+        Nnidc {
+            gains: OuterLoop::from_config(cfg),
+            fallback: Pd::from_config(cfg),
+            fell_back: false,
+        }
+    }
+
+    /// True once the law has had to fall back to PD in this run.
+    pub fn fell_back(&self) -> bool {
+        self.fell_back
+    }
+}
+
+impl Controller for Nnidc {
+    fn name(&self) -> &'static str {
+        "nnidc"
+    }
+
+    fn torque(&mut self, input: &ControlInput, learned: Option<&mut Identifier>) -> Joint3 {
+        match learned {
+            Some(id) if id.healthy() => {
+                let x = input.estimate;
+                let v = self.gains.acceleration(x, input.reference);
+                id.inverse_dynamics(&x.q, &x.qd, &v)
+            }
+            _ => {
+                self.fell_back = true;
+                self.fallback.torque(input, None)
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::RefPoint;
+    use crate::estimate::kalman::Estimate;
+
+    fn input_parts() -> (Estimate, RefPoint) {
+        let r = RefPoint {
+            q: Joint3::new(0.1, 0.7, 0.2),
+            qd: Joint3::new(0.3, -0.2, 0.1),
+            qdd: Joint3::new(1.0, 0.5, -0.4),
+        };
+        let x = Estimate {
+            q: r.q + Joint3::new(0.01, -0.02, 0.0),
+            qd: r.qd,
+            qdd: Joint3::zeros(),
+        };
+        (x, r)
+    }
+
+    #[test]
+    fn uses_the_learned_inverse_dynamics() {
+        let cfg = Config::default();
+        let mut id = Identifier::new(&cfg.identifier).unwrap();
+        let mut c = Nnidc::from_config(&cfg);
+        let (x, r) = input_parts();
+        let input = ControlInput {
+            t: 0.0,
+            estimate: &x,
+            reference: &r,
+        };
+        let tau = c.torque(&input, Some(&mut id));
+        let v = OuterLoop::from_config(&cfg).acceleration(&x, &r);
+        assert_eq!(tau, id.inverse_dynamics(&x.q, &x.qd, &v));
+        assert!(!c.fell_back());
+    }
+
+    #[test]
+    fn falls_back_to_pd_without_a_healthy_identifier() {
+        let cfg = Config::default();
+        let mut id = Identifier::new(&cfg.identifier).unwrap();
+        let (x, r) = input_parts();
+        let input = ControlInput {
+            t: 0.0,
+            estimate: &x,
+            reference: &r,
+        };
+        // A non-finite input trips the identifier's guard.
+        let nan = Joint3::repeat(f64::NAN);
+        id.update(&x.q, &x.qd, &nan, &Joint3::zeros(), 1e-3);
+        assert!(!id.healthy());
+        let mut c = Nnidc::from_config(&cfg);
+        let tau = c.torque(&input, Some(&mut id));
+        let pd = Pd::from_config(&cfg).torque(&input, None);
+        assert_eq!(tau, pd);
+        assert!(c.fell_back());
+    }
+}

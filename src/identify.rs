@@ -1,0 +1,86 @@
+//! `omnid identify`: batch pre-tuning of the identifier's networks on recorded logs. Each log
+//! goes through the same estimator as a live run (encoder angles → Kalman → q, q̇, q̈, with the
+//! log's own time steps), paired with the torque that acted up to each sample, so weights
+//! tuned here predict what the identifier sees online.
+
+use crate::config::Config;
+use crate::estimate::KalmanBank;
+use crate::ident::{pretune, save, Identifier, PretuneConfig, PretuneReport, Progress, Sample};
+use crate::omni::Joint3;
+use crate::telemetry::reader::{LogReader, ReadError};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Samples dropped at the start of each log while the Kalman filter settles.
+pub const WARMUP_SAMPLES: usize = 200;
+
+#[derive(Debug, Error)]
+pub enum IdentifyError {
+    #[error(transparent)]
+    Read(#[from] ReadError),
+    #[error("{0}")]
+    Ident(String),
+    #[error("no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows)")]
+    NoSamples(Vec<PathBuf>),
+}
+
+/// The identifier's training samples from one log.
+pub fn samples_from_log(path: &Path, cfg: &Config) -> Result<Vec<Sample>, IdentifyError> {
+    let mut reader = LogReader::open(path, false)?;
+    let mut kalman = KalmanBank::new(&cfg.kalman);
+    let rad_per_count = cfg.device.rad_per_count();
+    let mut acting: Option<[f64; 3]> = None;
+    let mut out = Vec::new();
+    let mut n = 0usize;
+    while let Some(row) = reader.next_row()? {
+        if row.is_stop() {
+            break;
+        }
+        // The live loop sees encoder counts: use them when the log has them.
+        let q = match row.enc {
+            Some(e) => Joint3::new(
+                e[0] as f64 * rad_per_count,
+                e[1] as f64 * rad_per_count,
+                e[2] as f64 * rad_per_count,
+            ),
+            None => Joint3::from(row.q),
+        };
+        let est = kalman.update(row.t, &q);
+        if let Some(tau) = acting {
+            if n >= WARMUP_SAMPLES {
+                out.push(Sample {
+                    q: est.q,
+                    qd: est.qd,
+                    qdd: est.qdd,
+                    tau: Joint3::from(tau),
+                });
+            }
+        }
+        acting = Some(row.tau);
+        n += 1;
+    }
+    Ok(out)
+}
+
+/// Pre-tune fresh networks on `logs` and save them to `out`.
+pub fn identify(
+    logs: &[PathBuf],
+    out: &Path,
+    cfg: &Config,
+    pretune_cfg: &PretuneConfig,
+    progress: impl FnMut(Progress<'_>),
+) -> Result<PretuneReport, IdentifyError> {
+    let mut samples = Vec::new();
+    for log in logs {
+        samples.extend(samples_from_log(log, cfg)?);
+    }
+    if samples.is_empty() {
+        return Err(IdentifyError::NoSamples(logs.to_vec()));
+    }
+    let mut id =
+        Identifier::new(&cfg.identifier).map_err(|e| IdentifyError::Ident(e.to_string()))?;
+    let report = pretune(&mut id, &samples, pretune_cfg, progress)
+        .map_err(|e| IdentifyError::Ident(e.to_string()))?;
+    save(&id, out).map_err(|e| IdentifyError::Ident(e.to_string()))?;
+    Ok(report)
+}
