@@ -61,9 +61,21 @@ fn online_from_scratch_reaches_the_oracle_floor() {
     let oracle = id.nrmse_oracle_last_20pct.unwrap();
     eprintln!("online from scratch: NRMSE {all:?}, last 20 % {late:?}, oracle {oracle:?}");
     for j in 0..3 {
-        assert!(late[j] <= 2.0 * oracle[j], "joint {}: {} vs oracle {}", j + 1, late[j], oracle[j]);
+        assert!(
+            late[j] <= 2.0 * oracle[j],
+            "joint {}: {} vs oracle {}",
+            j + 1,
+            late[j],
+            oracle[j]
+        );
         // Learning: the end is clearly better than the run as a whole (which includes it).
-        assert!(late[j] < 0.9 * all[j], "joint {}: {} vs {}", j + 1, late[j], all[j]);
+        assert!(
+            late[j] < 0.9 * all[j],
+            "joint {}: {} vs {}",
+            j + 1,
+            late[j],
+            all[j]
+        );
     }
 }
 
@@ -99,7 +111,13 @@ fn shipped_pretuned_weights_predict_an_unseen_log_near_the_oracle() {
     let val = rep.summary.identifier.nrmse.unwrap();
     eprintln!("pre-tuned, unseen log: NRMSE {val:?}, oracle {oracle:?}");
     for j in 0..3 {
-        assert!(val[j] <= 1.5 * oracle[j], "joint {}: {} vs oracle {}", j + 1, val[j], oracle[j]);
+        assert!(
+            val[j] <= 1.5 * oracle[j],
+            "joint {}: {} vs oracle {}",
+            j + 1,
+            val[j],
+            oracle[j]
+        );
     }
 }
 
@@ -108,7 +126,11 @@ fn pretuned_nnidc_tracks_better_than_computed_torque_and_pd() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = Config::default();
     let mut rms = Vec::new();
-    for c in [ControllerKind::Pd, ControllerKind::Ct, ControllerKind::Nnidc] {
+    for c in [
+        ControllerKind::Pd,
+        ControllerKind::Ct,
+        ControllerKind::Nnidc,
+    ] {
         let out = run(
             &cfg,
             c,
@@ -130,7 +152,90 @@ fn pretuned_nnidc_tracks_better_than_computed_torque_and_pd() {
     }
     let (pd, ct, nn) = (rms[0], rms[1], rms[2]);
     for j in 0..3 {
-        assert!(nn[j] <= ct[j], "joint {}: nnidc {} vs ct {}", j + 1, nn[j], ct[j]);
+        assert!(
+            nn[j] <= ct[j],
+            "joint {}: nnidc {} vs ct {}",
+            j + 1,
+            nn[j],
+            ct[j]
+        );
         assert!(ct[j] < pd[j]);
+    }
+}
+
+/// Tracking RMS per joint over `from..to` seconds of a log (reference against estimate).
+fn window_rms(log: &Path, from: f64, to: f64) -> [f64; 3] {
+    let mut r = csv::Reader::from_path(log).unwrap();
+    let h = r.headers().unwrap().clone();
+    let col = |n: &str| h.iter().position(|x| x == n).unwrap();
+    let (t, mode) = (col("t"), col("mode"));
+    let refs = [col("ref1"), col("ref2"), col("ref3")];
+    let qf = [col("qf1"), col("qf2"), col("qf3")];
+    let (mut s, mut n) = ([0.0; 3], 0.0);
+    for rec in r.records() {
+        let rec = rec.unwrap();
+        let tt: f64 = rec[t].parse().unwrap();
+        if tt >= from && tt < to && &rec[mode] != "stop" {
+            for j in 0..3 {
+                let e: f64 =
+                    rec[refs[j]].parse::<f64>().unwrap() - rec[qf[j]].parse::<f64>().unwrap();
+                s[j] += e * e;
+            }
+            n += 1.0;
+        }
+    }
+    s.map(|v| (v / n).sqrt())
+}
+
+#[test]
+fn adaptation_absorbs_a_payload_change() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = Config::default();
+    cfg.sim.payload_kg = 0.02;
+    cfg.sim.payload_at_s = 10.0;
+    let mut after = Vec::new();
+    for (name, controller, frozen) in [
+        ("nnidc", ControllerKind::Nnidc, false),
+        ("nnidc-frozen", ControllerKind::Nnidc, true),
+        ("ct", ControllerKind::Ct, false),
+    ] {
+        let mut c = cfg.clone();
+        c.identifier.adapt = !frozen;
+        let log = dir.path().join(format!("{name}.csv"));
+        run(
+            &c,
+            controller,
+            Trajectory::Sine,
+            30.0,
+            &log,
+            None,
+            DeviceSpec::Sim,
+        );
+        let (before, late) = (window_rms(&log, 2.0, 10.0), window_rms(&log, 20.0, 30.0));
+        eprintln!("{name}: tracking RMS 2–10 s {before:?}, 20–30 s {late:?}");
+        if name == "nnidc" {
+            for j in 0..3 {
+                assert!(
+                    late[j] <= 1.5 * before[j],
+                    "joint {}: {} vs {}",
+                    j + 1,
+                    late[j],
+                    before[j]
+                );
+            }
+        }
+        after.push(late);
+    }
+    for j in 0..3 {
+        assert!(
+            after[1][j] > after[0][j],
+            "frozen must be worse on joint {}",
+            j + 1
+        );
+        assert!(
+            after[2][j] > after[0][j],
+            "CT with the old model must be worse on joint {}",
+            j + 1
+        );
     }
 }
