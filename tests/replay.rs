@@ -259,9 +259,10 @@ fn mock(name: &str) -> PathBuf {
 }
 
 /// Every recorded session in `mock/`, with the config it was recorded with.
-const SESSIONS: [(&str, Option<&str>); 2] = [
+const SESSIONS: [(&str, Option<&str>); 3] = [
     ("pd-multisine.csv", None),
     ("pd-sine-payload.csv", Some("payload.toml")),
+    ("nnidc-sine.csv", None),
 ];
 
 #[test]
