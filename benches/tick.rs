@@ -3,6 +3,7 @@
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
 use omnid::config::Config;
+use omnid::control::ControllerKind;
 use omnid::control::{ControlInput, Controller, Pd, Reference, Trajectory};
 use omnid::device::codec::encode_state;
 use omnid::device::sim::SimOmni;
@@ -12,6 +13,7 @@ use omnid::device::{
 };
 use omnid::estimate::KalmanBank;
 use omnid::omni::Joint3;
+use omnid::run::{make_controller, make_identifier};
 use omnid::servo::Servo;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -105,27 +107,73 @@ fn stages(c: &mut Criterion) {
     g.finish();
 }
 
+fn identifier(c: &mut Criterion) {
+    let cfg = Config::default();
+    let mut g = c.benchmark_group("identifier");
+    let (mut id, _) = make_identifier(&cfg, ControllerKind::Nnidc, None, false).unwrap();
+    let q = Joint3::new(0.1, 0.6, 0.3);
+    let qd = Joint3::new(0.4, -0.3, 0.2);
+    let qdd = Joint3::new(1.0, 0.5, -2.0);
+    let tau = Joint3::new(0.01, -0.02, 0.03);
+    g.bench_function("forward (predict)", |b| {
+        b.iter(|| id.predict(black_box(&q), &qd, &qdd))
+    });
+    g.bench_function("update (forward + gradients + step)", |b| {
+        b.iter(|| id.update(black_box(&q), &qd, &qdd, &tau, 1e-3))
+    });
+    g.finish();
+
+    let mut g = c.benchmark_group("controller");
+    let est = KalmanBank::new(&cfg.kalman).update(0.0, &q);
+    let r = Reference::new(Trajectory::Sine, &cfg.reference, 1).target(0.3);
+    let input = ControlInput {
+        t: 0.3,
+        estimate: &est,
+        reference: &r,
+    };
+    for kind in [
+        ControllerKind::Pd,
+        ControllerKind::Ct,
+        ControllerKind::Nnidc,
+    ] {
+        let mut ctl = make_controller(kind, &cfg);
+        g.bench_function(kind.as_str(), |b| {
+            b.iter(|| ctl.torque(black_box(&input), Some(&mut id)))
+        });
+    }
+    g.finish();
+}
+
 fn whole_tick(c: &mut Criterion) {
     let cfg = Config::default();
     let mut g = c.benchmark_group("tick");
-    g.bench_function("servo tick, pd, canned device", |b| {
-        let (tx, rx) = crossbeam_channel::bounded(1 << 16);
-        let mut servo = Servo::new(
-            &cfg,
-            Box::new(canned(&cfg)),
-            Box::new(Pd::from_config(&cfg)),
-            Reference::new(Trajectory::Sine, &cfg.reference, 1),
-            tx,
-            Arc::new(AtomicBool::new(false)),
-            None,
-            false,
-        );
-        b.iter(|| {
-            servo.tick();
-            // Keep the channel from filling, as the writer thread would.
-            while rx.try_recv().is_ok() {}
-        })
-    });
+    for kind in [
+        ControllerKind::Pd,
+        ControllerKind::Ct,
+        ControllerKind::Nnidc,
+    ] {
+        let name = format!("servo tick, {}, adapting, canned device", kind.as_str());
+        g.bench_function(name, |b| {
+            let (tx, rx) = crossbeam_channel::bounded(1 << 16);
+            let mut servo = Servo::new(
+                &cfg,
+                Box::new(canned(&cfg)),
+                make_controller(kind, &cfg),
+                Reference::new(Trajectory::Sine, &cfg.reference, 1),
+                tx,
+                Arc::new(AtomicBool::new(false)),
+                None,
+                true,
+            );
+            let (id, _) = make_identifier(&cfg, kind, None, false).unwrap();
+            servo.set_identifier(id);
+            b.iter(|| {
+                servo.tick();
+                // Keep the channel from filling, as the writer thread would.
+                while rx.try_recv().is_ok() {}
+            })
+        });
+    }
     g.bench_function("sim plant step (4 RK4 substeps)", |b| {
         let mut sim = SimOmni::new(&cfg, false);
         let cmd = encode_command(&MotorCommand::safe(0));
@@ -140,27 +188,36 @@ fn fast_throughput(c: &mut Criterion) {
     let mut g = c.benchmark_group("fast");
     g.throughput(Throughput::Elements(ticks));
     g.sample_size(20);
-    g.bench_function("sim+pd 10 s run", |b| {
-        b.iter(|| {
-            let (tx, rx) = crossbeam_channel::bounded(1 << 14);
-            let drain = std::thread::spawn(move || rx.iter().count());
-            let servo = Servo::new(
-                &cfg,
-                Box::new(SimOmni::new(&cfg, false)),
-                Box::new(Pd::from_config(&cfg)),
-                Reference::new(Trajectory::Sine, &cfg.reference, 1),
-                tx,
-                Arc::new(AtomicBool::new(false)),
-                Some(ticks),
-                false,
-            );
-            let report = servo.run();
-            drain.join().unwrap();
-            report.stats.ticks
-        })
-    });
+    for kind in [
+        ControllerKind::Pd,
+        ControllerKind::Ct,
+        ControllerKind::Nnidc,
+        ControllerKind::Off,
+    ] {
+        g.bench_function(format!("sim+{} 10 s run", kind.as_str()), |b| {
+            b.iter(|| {
+                let (tx, rx) = crossbeam_channel::bounded(1 << 14);
+                let drain = std::thread::spawn(move || rx.iter().count());
+                let mut servo = Servo::new(
+                    &cfg,
+                    Box::new(SimOmni::new(&cfg, false)),
+                    make_controller(kind, &cfg),
+                    Reference::new(Trajectory::Sine, &cfg.reference, 1),
+                    tx,
+                    Arc::new(AtomicBool::new(false)),
+                    Some(ticks),
+                    false,
+                );
+                let (id, _) = make_identifier(&cfg, kind, None, false).unwrap();
+                servo.set_identifier(id);
+                let report = servo.run();
+                drain.join().unwrap();
+                report.stats.ticks
+            })
+        });
+    }
     g.finish();
 }
 
-criterion_group!(benches, stages, whole_tick, fast_throughput);
+criterion_group!(benches, stages, identifier, whole_tick, fast_throughput);
 criterion_main!(benches);
