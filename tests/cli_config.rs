@@ -3,32 +3,33 @@
 mod common;
 use common::{omnid, run_ok};
 
-fn with_config(text: &str) -> (i32, String) {
+/// Run 0.1 s with this config: (exit code, stderr, whether a log was written).
+fn with_config(text: &str) -> (i32, String, bool) {
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("c.toml");
     std::fs::write(&cfg, text).unwrap();
     let log = dir.path().join("x.csv");
     let out = omnid()
+        .env("OMNID_STATE_DIR", dir.path())
+        .args(["run", "--fast", "--duration", "0.1"])
         .args([
-            "run",
-            "--fast",
-            "--duration",
-            "0.1",
             "--config",
             cfg.to_str().unwrap(),
+            "--log",
+            log.to_str().unwrap(),
         ])
-        .args(["--log", log.to_str().unwrap()])
         .output()
         .unwrap();
-    assert!(!log.exists(), "nothing may run with a bad config");
     (
         out.status.code().unwrap(),
         String::from_utf8_lossy(&out.stderr).into_owned(),
+        log.exists(),
     )
 }
 
 fn assert_bad(text: &str, must_contain: &[&str]) {
-    let (code, err) = with_config(text);
+    let (code, err, logged) = with_config(text);
+    assert!(!logged, "nothing may run with a bad config");
     assert_eq!(code, 2, "exit code for {text:?}: {err}");
     assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
     assert!(!err.contains("panicked"), "{err}");
@@ -95,29 +96,7 @@ fn printed_default_config_is_accepted() {
     let out = run_ok(&["config", "--print-default"]);
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(text.contains("jerk_psd = 100.0") && text.contains("max_torque_nm"));
-    let (code, err) = with_config_ok(&text);
+    let (code, err, logged) = with_config(&text);
     assert_eq!(code, 0, "{err}");
-}
-
-fn with_config_ok(text: &str) -> (i32, String) {
-    let dir = tempfile::tempdir().unwrap();
-    let cfg = dir.path().join("c.toml");
-    std::fs::write(&cfg, text).unwrap();
-    let log = dir.path().join("x.csv");
-    let out = omnid()
-        .args([
-            "run",
-            "--fast",
-            "--duration",
-            "0.1",
-            "--config",
-            cfg.to_str().unwrap(),
-        ])
-        .args(["--log", log.to_str().unwrap()])
-        .output()
-        .unwrap();
-    (
-        out.status.code().unwrap(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
+    assert!(logged);
 }
