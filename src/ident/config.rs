@@ -32,7 +32,10 @@ pub struct IdentifierConfig {
     /// Dead zone: no update while the modified error at the scale of ε (α·‖e‖, or ‖e‖ with
     /// `unit_gain_filter`), in N·m, is at or below this; 0 switches it off.
     pub dead_zone: f64,
-    /// σ-modification: leakage −σΓ(θ − θ0) toward the pre-tuned weights; 0 switches it off.
+    /// σ-modification: leakage −σΓ(θ − θ0) toward the pre-tuned (or loaded) weights; 0 switches
+    /// it off. Fresh random weights are no anchor: it acts only once weights are pre-tuned or
+    /// loaded. Without it (1e-4 before) NNIDC's weights drift and the arm goes unstable after
+    /// ~50 s of the sine.
     pub sigma: f64,
     /// Projection: bound on each network's parameter norm ‖θ‖_F; 0 switches it off.
     pub w_max: f64,
@@ -81,7 +84,7 @@ impl Default for IdentifierConfig {
             rate_g: [50.0, 50.0],
             rate_f: [50.0, 50.0],
             dead_zone: 1e-4,
-            sigma: 1e-4,
+            sigma: 3e-3,
             w_max: 100.0,
             eig_min: 2e-4,
             eig_max: 1.5e-2,
@@ -156,7 +159,7 @@ pub const IDENTIFIER_FIELD_DOCS: &[(&str, &str)] = &[
     ),
     (
         "identifier.sigma",
-        "σ-modification: leakage −σΓ(θ − θ0) toward the pre-tuned weights; 0 = off",
+        "σ-modification: leakage −σΓ(θ − θ0) toward pre-tuned or loaded weights (none for fresh ones); 0 = off",
     ),
     (
         "identifier.w_max",

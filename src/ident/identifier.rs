@@ -126,6 +126,9 @@ pub struct Identifier {
     f: Option<Mlp>,
     /// Pre-tuned (or initial) weights: the σ-modification's anchor.
     theta0: [Vec<f64>; 4],
+    /// θ0 holds pre-tuned or loaded weights. Fresh random weights are no anchor worth leaking
+    /// toward, so the σ-modification acts only once this is set.
+    anchored: bool,
     rates: [[f64; 2]; 4],
     /// Modified error e.
     e: Wae,
@@ -197,6 +200,7 @@ impl Identifier {
             g,
             f,
             theta0: Default::default(),
+            anchored: false,
             rates: [cfg.rate_m, cfg.rate_c, cfg.rate_g, cfg.rate_f],
             e: Wae::zeros(),
             fault: None,
@@ -213,6 +217,7 @@ impl Identifier {
             eigvecs: Matrix3::identity(),
         };
         id.set_anchor();
+        id.anchored = false;
         Ok(id)
     }
 
@@ -268,6 +273,7 @@ impl Identifier {
                 .unwrap_or_default();
             self.theta0[net.index()] = p;
         }
+        self.anchored = true;
         self.e = Wae::zeros();
     }
 
@@ -583,7 +589,8 @@ impl Identifier {
         self.zero_grads();
         let e = self.e;
         self.accumulate_gradient(&e);
-        let (sigma, w_max) = (self.cfg.sigma, self.cfg.w_max);
+        let sigma = if self.anchored { self.cfg.sigma } else { 0.0 };
+        let w_max = self.cfg.w_max;
         let rates = self.rates;
         let theta0 = std::mem::take(&mut self.theta0);
         let mut ok = true;
@@ -825,7 +832,8 @@ mod tests {
                 ..IdentifierConfig::default()
             })
             .unwrap();
-            // Move every weight away from the anchor θ0.
+            // Take the current weights as the anchor θ0, then move every weight away from it.
+            id.set_anchor();
             for net in Net::ALL {
                 for (i, p) in id.net_mut(net).unwrap().params_mut().iter_mut().enumerate() {
                     *p += 0.01 * ((i % 7) as f64 - 3.0);
