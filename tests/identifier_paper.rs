@@ -201,7 +201,7 @@ fn three_net_nnidc_beats_pd_and_stays_near_computed_torque() {
         (
             "nnidc-3net",
             ControllerKind::Nnidc,
-            three,
+            three.clone(),
             Some(mock.join("nnidc-pretuned-3net.json")),
         ),
     ];
@@ -224,6 +224,26 @@ fn three_net_nnidc_beats_pd_and_stays_near_computed_torque() {
             s.torque_total_variation_nm
         );
         rms.push(track);
+    }
+    // The feedback gain NNIDC multiplies by: M̂ of each weights file against the plant's M on
+    // the states of the PD run (the torque's total variation scales with it).
+    let states = samples_from_log(&dir.path().join("pd.csv"), &Config::default()).unwrap();
+    let plant = Dynamics::new(ModelParams::default(), Geometry::default());
+    for (file, cfg) in [
+        ("nnidc-pretuned.json", IdentifierConfig::default()),
+        ("nnidc-pretuned-3net.json", three.identifier.clone()),
+    ] {
+        let mut id = Identifier::from_weights_file(&cfg, &mock.join(file)).unwrap();
+        let (mut num, mut den) = ([0.0; 3], [0.0; 3]);
+        for s in &states {
+            let (mh, m) = (id.mass(&s.q), plant.mass(&s.q));
+            for j in 0..3 {
+                num[j] += mh[(j, j)];
+                den[j] += m[(j, j)];
+            }
+        }
+        let ratio: [f64; 3] = std::array::from_fn(|j| num[j] / den[j]);
+        eprintln!("{file}: mean diagonal of M̂ / M on the sine {ratio:.2?}");
     }
     let (pd, ct, nn4, nn3) = (rms[0], rms[1], rms[2], rms[3]);
     for j in 0..3 {
