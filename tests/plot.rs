@@ -117,6 +117,9 @@ fn plots_a_simulator_run() {
         }
     }
     assert!(stdout.contains("3001 rows"), "{stdout}");
+    // The log's `mode` column marks the start-up blend, which is shaded and labelled.
+    let svg = std::fs::read_to_string(out.join("tracking_error.svg")).unwrap();
+    assert!(svg.contains("start-up blend"), "no blend shading legend");
 }
 
 #[test]
@@ -148,6 +151,11 @@ fn plots_a_seven_column_log_and_says_what_it_skipped() {
     assert_skipped(&stdout, "torque_identification", "no tau_hat1..3 columns");
     assert_skipped(&stdout, "identification_error", "no tau_hat1..3 columns");
     assert!(stdout.contains("2000 rows"), "{stdout}");
+    let svg = std::fs::read_to_string(out.join("angles.svg")).unwrap();
+    assert!(
+        !svg.contains("start-up blend"),
+        "no mode column, nothing to shade"
+    );
 }
 
 #[test]
@@ -247,4 +255,20 @@ fn logs_it_cannot_use_are_bad_input() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/log.csv"));
+}
+
+#[test]
+fn extreme_values_are_drawn_without_failing() {
+    // Values near f64::MAX, infinities, gaps and NaN: garbage, but no reason to crash.
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("wild.csv");
+    std::fs::write(
+        &log,
+        "t,q1,q2,q3,tau1,tau2,tau3\n0,1e308,-1e308,0,1,1,1\n1,-1e308,1e308,NaN,inf,,-inf\n",
+    )
+    .unwrap();
+    let out = dir.path().join("figs");
+    let (stdout, _) = plot(&log, &out);
+    assert!(stdout.contains("2 rows"), "{stdout}");
+    assert_eq!(pngs_in(&out), ["angles.png", "control_effort.png"]);
 }

@@ -125,7 +125,7 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
     })?;
     let mut files = Vec::new();
     for planned in &plan.figures {
-        let figure = assemble(planned, &data);
+        let figure = assemble(planned, &data.decimated, data.blend_end);
         for (ext, write) in [
             ("png", render::write_png as fn(&_, &_) -> _),
             ("svg", render::write_svg),
@@ -139,7 +139,7 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
         }
     }
     Ok(PlotReport {
-        rows: data.rows,
+        rows: data.decimated.rows,
         figures: plan.figures.iter().map(|f| f.def.name).collect(),
         files,
         skipped: plan.skipped,
@@ -148,7 +148,11 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
 }
 
 /// The drawable figure: the planned lines' decimated points, scaled to plotted units.
-fn assemble(planned: &PlannedFigure, data: &decimate::Decimated) -> render::Figure {
+fn assemble(
+    planned: &PlannedFigure,
+    data: &decimate::Decimated,
+    blend_end: Option<f64>,
+) -> render::Figure {
     let def = planned.def;
     let panels = (0..3)
         .map(|j| render::Panel {
@@ -170,6 +174,8 @@ fn assemble(planned: &PlannedFigure, data: &decimate::Decimated) -> render::Figu
         title: def.title,
         y_desc: def.y_desc,
         x_range: data.t_range,
+        // Shaded so the start-up transient is not mistaken for tracking behaviour.
+        shade_until: blend_end.filter(|&b| b > data.t_range.0),
         zero_line: def.zero_line,
         legend: planned
             .lines

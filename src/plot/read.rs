@@ -84,6 +84,15 @@ pub enum Formula {
     Difference(usize, usize),
 }
 
+/// What one pass over the rows gives.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LogData {
+    pub decimated: Decimated,
+    /// The last time the `mode` column said `blend` (the start-up blend onto the reference),
+    /// if the log has that column and any such row.
+    pub blend_end: Option<f64>,
+}
+
 /// An open log whose header has been read.
 pub struct LogReader {
     path: PathBuf,
@@ -150,7 +159,9 @@ impl LogReader {
         formulas: &[Formula],
         buckets: usize,
         mut progress: impl FnMut(u64),
-    ) -> Result<Decimated, ReadError> {
+    ) -> Result<LogData, ReadError> {
+        let mode = self.header.find("mode");
+        let mut blend_end: Option<f64> = None;
         let mut decimator = Decimator::new(formulas.len(), buckets);
         let mut record = csv::ByteRecord::new();
         let mut values = vec![0.0; formulas.len()];
@@ -213,6 +224,9 @@ impl LogReader {
                 };
             }
             decimator.push(t, &values);
+            if mode.is_some_and(|m| record[m].trim_ascii() == b"blend") {
+                blend_end = Some(blend_end.map_or(t, |b| b.max(t)));
+            }
             if decimator.rows() % 8192 == 0 {
                 progress(record.position().map(|p| p.byte()).unwrap_or(0));
             }
@@ -221,7 +235,10 @@ impl LogReader {
             return Err(ReadError::NoRows { path: self.path });
         }
         progress(self.bytes);
-        Ok(decimator.finish())
+        Ok(LogData {
+            decimated: decimator.finish(),
+            blend_end,
+        })
     }
 
     /// One field as a number. An empty field is a gap (NaN): other tools write missing values
@@ -258,18 +275,30 @@ mod tests {
         let f = file("t,a,b\n0,1,0.5\n0.001,2,0.5\n0.002,3,\n");
         let r = LogReader::open(f.path()).unwrap();
         let (a, b) = (r.header().find("a").unwrap(), r.header().find("b").unwrap());
-        let d = r
+        let data = r
             .decimate(
                 &[Formula::Column(a), Formula::Difference(a, b)],
                 100,
                 |_| {},
             )
             .unwrap();
+        assert_eq!(data.blend_end, None);
+        let d = data.decimated;
         assert_eq!(d.rows, 3);
         assert_eq!(d.t_range, (0.0, 0.002));
         assert_eq!(d.channels[0], vec![(0.0, 1.0), (0.001, 2.0), (0.002, 3.0)]);
         // The empty field is a gap, not an error.
         assert_eq!(d.channels[1], vec![(0.0, 0.5), (0.001, 1.5)]);
+    }
+
+    #[test]
+    fn finds_the_end_of_the_start_up_blend() {
+        let f = file("t,q1,mode\n0,1,blend\n0.001,1,blend\n0.002,1,track\n0.003,0,stop\n");
+        let data = LogReader::open(f.path())
+            .unwrap()
+            .decimate(&[Formula::Column(1)], 10, |_| {})
+            .unwrap();
+        assert_eq!(data.blend_end, Some(0.001));
     }
 
     #[test]

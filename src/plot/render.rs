@@ -52,14 +52,21 @@ pub struct Figure {
     pub title: &'static str,
     pub y_desc: &'static str,
     pub x_range: (f64, f64),
+    /// Shade the start-up blend, from the first sample to this time.
+    pub shade_until: Option<f64>,
     pub zero_line: bool,
     /// Labels and roles, in drawing order.
     pub legend: Vec<(&'static str, Role)>,
     pub panels: Vec<Panel>,
 }
 
+/// The start-up blend's shading.
+const SHADE: RGBColor = RGBColor(228, 228, 228);
+const SHADE_LABEL: &str = "start-up blend";
+
 /// Colour and width per role: the target wide and pale under the measurement, the estimate
-/// in a contrasting colour on top (colour-blind-safe pairs from the Okabe–Ito palette).
+/// in a contrasting colour on top. Blue against orange stays apart for colour-blind readers;
+/// the thin lines are dark enough to read at one pixel.
 fn pen(role: Role) -> ShapeStyle {
     let (color, width) = match role {
         Role::Target => (RGBColor(230, 159, 0), 3),
@@ -145,7 +152,7 @@ fn draw<DB: DrawingBackend>(
             (WIDTH as i32 / 2, TITLE_H as i32 / 2 + 4),
         )
         .map_err(err)?;
-    draw_legend(&legend_area, &figure.legend).map_err(err)?;
+    draw_legend(&legend_area, &figure.legend, figure.shade_until.is_some()).map_err(err)?;
 
     let panels = panels_area.split_evenly((figure.panels.len().max(1), 1));
     let last = figure.panels.len().saturating_sub(1);
@@ -155,11 +162,17 @@ fn draw<DB: DrawingBackend>(
     Ok(())
 }
 
-/// One centred row: a short stroke in each line's pen, then its label.
+/// One centred row: a short stroke in each line's pen, then its label; last the shading.
 fn draw_legend<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
-    entries: &[(&'static str, Role)],
+    lines: &[(&'static str, Role)],
+    shaded: bool,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let entries: Vec<(&str, Option<Role>)> = lines
+        .iter()
+        .map(|&(label, role)| (label, Some(role)))
+        .chain(shaded.then_some((SHADE_LABEL, None)))
+        .collect();
     const SWATCH: i32 = 32;
     const GAP: i32 = 8;
     const SPACING: i32 = 36;
@@ -176,7 +189,15 @@ fn draw_legend<DB: DrawingBackend>(
     let y = LEGEND_H as i32 / 2;
     let mut x = (WIDTH as i32 - total) / 2;
     for ((label, role), w) in entries.iter().zip(widths) {
-        area.draw(&PathElement::new(vec![(x, y), (x + SWATCH, y)], pen(*role)))?;
+        match role {
+            Some(role) => {
+                area.draw(&PathElement::new(vec![(x, y), (x + SWATCH, y)], pen(*role)))?
+            }
+            None => area.draw(&Rectangle::new(
+                [(x, y - 7), (x + SWATCH, y + 7)],
+                SHADE.filled(),
+            ))?,
+        }
         area.draw_text(label, &style, (x + SWATCH + GAP, y))?;
         x += SWATCH + GAP + w + SPACING;
     }
@@ -190,7 +211,10 @@ fn draw_panel<DB: DrawingBackend>(
     bottom: bool,
     surface: Surface,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
-    let (x0, x1) = widen(figure.x_range, 0.0);
+    let (x0, x1) = widen(
+        (figure.x_range.0.max(-LIMIT), figure.x_range.1.min(LIMIT)),
+        0.0,
+    );
     let (y0, y1) = y_range(panel, figure.zero_line);
     let mut chart = ChartBuilder::on(area)
         .caption(panel.title, font(PANEL_TITLE_PX))
@@ -204,8 +228,15 @@ fn draw_panel<DB: DrawingBackend>(
 
     let x_labels = 12;
     let y_labels = 5;
-    let x_fmt = tick_formatter(x1 - x0, x_labels);
-    let y_fmt = tick_formatter(y1 - y0, y_labels);
+    let x_fmt = tick_formatter((x0, x1), x_labels);
+    let y_fmt = tick_formatter((y0, y1), y_labels);
+    if let Some(end) = figure.shade_until {
+        // Under the mesh and the lines.
+        chart.draw_series(std::iter::once(Rectangle::new(
+            [(x0, y0), (end.min(x1), y1)],
+            SHADE.filled(),
+        )))?;
+    }
     let mut mesh = chart.configure_mesh();
     mesh.x_labels(x_labels)
         .y_labels(y_labels)
@@ -236,6 +267,11 @@ fn draw_panel<DB: DrawingBackend>(
         (x1 - x0) / f64::from(w_px.max(1)),
         (y1 - y0) / f64::from(h_px.max(1)),
     );
+    // Points far off the chart (garbage values beyond LIMIT) would overflow plotters' pixel
+    // arithmetic; pulled to just outside the frame they are still clipped, lines still leave
+    // the chart in their direction.
+    let (xs, ys) = (x1 - x0, y1 - y0);
+    let inside = |(x, y): (f64, f64)| (x.clamp(x0 - xs, x1 + xs), y.clamp(y0 - ys, y1 + ys));
     for line in &panel.lines {
         let style = pen(line.role);
         if surface == Surface::Raster && style.stroke_width > 1 {
@@ -243,11 +279,14 @@ fn draw_panel<DB: DrawingBackend>(
                 let shifted = line
                     .points
                     .iter()
-                    .map(|&(x, y)| (x + dx * pixel.0, y + dy * pixel.1));
+                    .map(|&(x, y)| inside((x + dx * pixel.0, y + dy * pixel.1)));
                 chart.draw_series(LineSeries::new(shifted, style.stroke_width(1)))?;
             }
         } else {
-            chart.draw_series(LineSeries::new(line.points.iter().copied(), style))?;
+            chart.draw_series(LineSeries::new(
+                line.points.iter().map(|&p| inside(p)),
+                style,
+            ))?;
         }
     }
     Ok(())
@@ -285,8 +324,13 @@ fn y_range(panel: &Panel, zero_line: bool) -> (f64, f64) {
         lo = lo.min(0.0);
         hi = hi.max(0.0);
     }
-    widen((lo, hi), 0.06)
+    // A garbage value near f64::MAX would make the span infinite, on which plotters' tick
+    // search never ends; such points are drawn off the chart instead.
+    widen((lo.max(-LIMIT), hi.min(LIMIT)), 0.06)
 }
+
+/// The largest magnitude an axis shows.
+const LIMIT: f64 = 1e300;
 
 /// Pad a range by `frac` of its span each side; a point-like range gets a span of its own.
 fn widen((lo, hi): (f64, f64), frac: f64) -> (f64, f64) {
@@ -300,10 +344,15 @@ fn widen((lo, hi): (f64, f64), frac: f64) -> (f64, f64) {
 }
 
 /// Tick labels with as many decimals as the tick spacing needs, no more: plotters' default
-/// prints long float tails on small ranges.
-fn tick_formatter(span: f64, labels: usize) -> impl Fn(&f64) -> String {
-    let decimals = tick_decimals(span, labels);
+/// prints long float tails on small ranges. Axes that would need very long labels (huge or
+/// tiny values, from a broken log) get scientific notation instead.
+fn tick_formatter((lo, hi): (f64, f64), labels: usize) -> impl Fn(&f64) -> String {
+    let decimals = tick_decimals(hi - lo, labels);
+    let scientific = decimals > 6 || lo.abs().max(hi.abs()) >= 1e7;
     move |v: &f64| {
+        if scientific {
+            return format!("{v:.2e}");
+        }
         let s = format!("{v:.decimals$}");
         // "-0.00" reads as a sign error.
         if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') {
@@ -352,9 +401,16 @@ mod tests {
 
     #[test]
     fn negative_zero_is_printed_as_zero() {
-        let f = tick_formatter(1.0, 5);
+        let f = tick_formatter((-0.5, 0.5), 5);
         assert_eq!(f(&-0.0001), "0.0");
         assert_eq!(f(&-0.2), "-0.2");
+    }
+
+    #[test]
+    fn huge_and_tiny_axes_use_scientific_notation() {
+        assert_eq!(tick_formatter((-1e300, 1e300), 5)(&5e299), "5.00e299");
+        assert_eq!(tick_formatter((0.0, 1e-9), 5)(&5e-10), "5.00e-10");
+        assert_eq!(tick_formatter((0.0, 600.0), 12)(&100.0), "100");
     }
 
     #[test]
@@ -368,5 +424,14 @@ mod tests {
             lines: vec![],
         };
         assert_eq!(y_range(&p, false), (-1.0, 1.0));
+        let p = Panel {
+            title: "x",
+            lines: vec![Line {
+                points: vec![(0.0, f64::MAX), (1.0, -f64::MAX)],
+                role: Role::Measured,
+            }],
+        };
+        let (lo, hi) = y_range(&p, false);
+        assert!((hi - lo).is_finite(), "{lo} {hi}");
     }
 }
