@@ -126,12 +126,9 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
     let mut files = Vec::new();
     for planned in &plan.figures {
         let figure = assemble(planned, &data.decimated, data.blend_end);
-        for (ext, write) in [
-            ("png", render::write_png as fn(&_, &_) -> _),
-            ("svg", render::write_svg),
-        ] {
-            let file = out_dir.join(format!("{}.{ext}", planned.def.name));
-            write(&figure, &file).map_err(|source| PlotError::Render {
+        for format in [render::Format::Png, render::Format::Svg] {
+            let file = out_dir.join(format!("{}.{}", planned.def.name, format.extension()));
+            render::write(&figure, format, &file).map_err(|source| PlotError::Render {
                 file: file.clone(),
                 source,
             })?;

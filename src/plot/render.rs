@@ -88,7 +88,30 @@ fn register_font() -> Result<(), RenderError> {
     }
 }
 
-pub fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
+/// The file formats every figure is written in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    Png,
+    Svg,
+}
+
+impl Format {
+    pub fn extension(self) -> &'static str {
+        match self {
+            Format::Png => "png",
+            Format::Svg => "svg",
+        }
+    }
+}
+
+pub fn write(figure: &Figure, format: Format, path: &Path) -> Result<(), RenderError> {
+    match format {
+        Format::Png => write_png(figure, path),
+        Format::Svg => write_svg(figure, path),
+    }
+}
+
+fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     register_font()?;
     let mut rgb = vec![0u8; (WIDTH * HEIGHT * 3) as usize];
     {
@@ -110,7 +133,7 @@ pub fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     Ok(())
 }
 
-pub fn write_svg(figure: &Figure, path: &Path) -> Result<(), RenderError> {
+fn write_svg(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     register_font()?;
     let mut svg = String::new();
     {
