@@ -3,7 +3,8 @@
 //! Data flow, one module per stage:
 //! `device` (packets) → `estimate` (Kalman) → `control` (PD, …) → safety in `servo` →
 //! `device`, with `telemetry` carrying each tick to the log and the summary, and `omni` the
-//! geometry and physics shared by the simulator and model-based control.
+//! geometry and physics shared by the simulator and model-based control. Off the loop: `plot`
+//! draws figures from a log, `progress` the terminal progress bars of long commands.
 
 pub mod config;
 pub mod control;
@@ -12,6 +13,7 @@ pub mod estimate;
 pub mod ident;
 pub mod identify;
 pub mod omni;
+pub mod plot;
 pub mod progress;
 pub mod run;
 pub mod servo;

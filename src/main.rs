@@ -45,6 +45,15 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
+    /// Figures (PNG and SVG) from a log: angles, torque vs. the identifier's estimate,
+    /// identification and tracking errors, control effort.
+    Plot {
+        /// The CSV log (at least `t`; figures whose columns are missing are skipped).
+        log: PathBuf,
+        /// Directory for the figures (created if needed).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -356,6 +365,20 @@ fn main() -> ExitCode {
                 Ok(0)
             }
             None => Ok(EXIT_BAD_INPUT),
+        },
+        Command::Plot { log, out } => match omnid::plot::plot_log(&log, &out) {
+            Ok(report) => {
+                print!("{report}");
+                Ok(0)
+            }
+            Err(e) => {
+                eprintln!("omnid plot: {e}");
+                Ok(if e.is_bad_input() {
+                    EXIT_BAD_INPUT
+                } else {
+                    EXIT_INTERNAL
+                })
+            }
         },
         Command::Config { print_default } => {
             if print_default {

@@ -8,8 +8,8 @@ use std::io::IsTerminal;
 
 /// Redraws per second: enough to look alive, too few to cost anything.
 const REFRESH_HZ: u8 = 10;
-const ITEMS: &str = "{msg} [{bar:40}] {human_pos}/{human_len} ({eta} left)";
-const BYTES: &str = "{msg} [{bar:40}] {bytes}/{total_bytes} ({eta} left)";
+const ITEMS: &str = "{msg} [{wide_bar}] {human_pos}/{human_len} ({eta} left)";
+const BYTES: &str = "{msg} [{wide_bar}] {bytes}/{total_bytes} ({eta} left)";
 
 /// A bar counting `len` items (epochs, runs, ticks), labelled `message`.
 pub fn bar(len: u64, message: impl Into<Cow<'static, str>>) -> ProgressBar {

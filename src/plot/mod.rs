@@ -1,0 +1,184 @@
+//! `omnid plot`: figures like the paper's from a log, as PNG and SVG.
+//!
+//! [`plot_log`] reads the header, plans which figures the log's columns can feed
+//! ([`figures`]), streams the rows once through a min/max decimator ([`read`], [`decimate`])
+//! and draws each figure ([`render`]). Figures whose columns are missing are skipped and
+//! reported, so a seven-column log from another tool still gets its angle and torque plots.
+
+pub mod decimate;
+pub mod figures;
+pub mod read;
+pub mod render;
+
+pub use figures::Skipped;
+pub use read::ReadError;
+pub use render::RenderError;
+
+use figures::{PlannedFigure, JOINTS};
+use read::LogReader;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// Buckets kept by the decimator: at least this many, at most twice as many, each giving
+/// a min and a max. The plot area is ~1100 px wide, so this is about one point per pixel.
+const BUCKETS: usize = 1024;
+
+/// Logs at least this big get a progress bar (about 10 s of a full log; smaller ones are
+/// read before a bar would be worth drawing).
+const PROGRESS_MIN_BYTES: u64 = 16 << 20;
+
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    #[error(transparent)]
+    Read(#[from] ReadError),
+    #[error("{}: nothing to plot: {}", path.display(), reasons(skipped))]
+    NothingToPlot {
+        path: PathBuf,
+        skipped: Vec<Skipped>,
+    },
+    #[error("creating the output directory {}: {source}", dir.display())]
+    OutDir {
+        dir: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("writing {}: {source}", file.display())]
+    Render { file: PathBuf, source: RenderError },
+}
+
+impl PlotError {
+    /// The user's input is at fault (a bad or unusable log, an output directory that cannot be
+    /// made), not the program.
+    pub fn is_bad_input(&self) -> bool {
+        !matches!(self, PlotError::Render { .. })
+    }
+}
+
+fn reasons(skipped: &[Skipped]) -> String {
+    skipped
+        .iter()
+        .map(|s| format!("{}: {}", s.figure, s.reason))
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// What [`plot_log`] did.
+#[derive(Debug, Clone)]
+pub struct PlotReport {
+    /// Data rows read.
+    pub rows: u64,
+    /// Figures drawn (file stems), in order.
+    pub figures: Vec<&'static str>,
+    /// Every file written (a PNG and an SVG per figure).
+    pub files: Vec<PathBuf>,
+    /// Figures not drawn, and why.
+    pub skipped: Vec<Skipped>,
+    /// Figures drawn without one of their optional lines, and why.
+    pub notes: Vec<String>,
+}
+
+impl fmt::Display for PlotReport {
+    /// The human summary `omnid plot` prints.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "omnid plot: {} rows, {} figures ({} files)",
+            self.rows,
+            self.figures.len(),
+            self.files.len()
+        )?;
+        for file in &self.files {
+            writeln!(f, "  wrote   {}", file.display())?;
+        }
+        for note in &self.notes {
+            writeln!(f, "  note    {note}")?;
+        }
+        for s in &self.skipped {
+            writeln!(f, "  skipped {}: {}", s.figure, s.reason)?;
+        }
+        Ok(())
+    }
+}
+
+/// Draw every figure `log` can feed into `out_dir` (created if needed) as `<name>.png` and
+/// `<name>.svg`.
+pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
+    let reader = LogReader::open(log)?;
+    let plan = figures::plan(reader.header());
+    if plan.figures.is_empty() {
+        return Err(PlotError::NothingToPlot {
+            path: log.to_path_buf(),
+            skipped: plan.skipped,
+        });
+    }
+
+    let bar = if reader.bytes() >= PROGRESS_MIN_BYTES {
+        crate::progress::bytes(reader.bytes(), "reading log")
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let data = reader.decimate(&plan.formulas, BUCKETS, |pos| bar.set_position(pos))?;
+    bar.finish_and_clear();
+
+    std::fs::create_dir_all(out_dir).map_err(|source| PlotError::OutDir {
+        dir: out_dir.to_path_buf(),
+        source,
+    })?;
+    let mut files = Vec::new();
+    for planned in &plan.figures {
+        let figure = assemble(planned, &data.decimated, data.blend_end);
+        for format in [render::Format::Png, render::Format::Svg] {
+            let file = out_dir.join(format!("{}.{}", planned.def.name, format.extension()));
+            render::write(&figure, format, &file).map_err(|source| PlotError::Render {
+                file: file.clone(),
+                source,
+            })?;
+            files.push(file);
+        }
+    }
+    Ok(PlotReport {
+        rows: data.decimated.rows,
+        figures: plan.figures.iter().map(|f| f.def.name).collect(),
+        files,
+        skipped: plan.skipped,
+        notes: plan.notes,
+    })
+}
+
+/// The drawable figure: the planned lines' decimated points, scaled to plotted units.
+fn assemble(
+    planned: &PlannedFigure,
+    data: &decimate::Decimated,
+    blend_end: Option<f64>,
+) -> render::Figure {
+    let def = planned.def;
+    let panels = (0..3)
+        .map(|j| render::Panel {
+            title: JOINTS[j],
+            lines: planned
+                .lines
+                .iter()
+                .map(|line| render::Line {
+                    points: data.channels[line.channels[j]]
+                        .iter()
+                        .map(|&(t, v)| (t, v * def.scale))
+                        .collect(),
+                    role: line.def.role,
+                })
+                .collect(),
+        })
+        .collect();
+    render::Figure {
+        title: def.title,
+        y_desc: def.y_desc,
+        x_range: data.t_range,
+        // Shaded so the start-up transient is not mistaken for tracking behaviour.
+        shade_until: blend_end.filter(|&b| b > data.t_range.0),
+        zero_line: def.zero_line,
+        legend: planned
+            .lines
+            .iter()
+            .map(|l| (l.def.label, l.def.role))
+            .collect(),
+        panels,
+    }
+}

@@ -1,0 +1,460 @@
+//! Drawing one figure (a title, a legend row, three stacked joint panels sharing the time
+//! axis) with plotters, to PNG and to SVG. Text is rasterised by ab_glyph from a font compiled
+//! into the binary, so nothing is needed from the system at build or run time.
+
+use super::figures::Role;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
+use plotters::style::FontStyle;
+use std::path::Path;
+use std::sync::OnceLock;
+
+/// DejaVu Sans (Bitstream Vera licence, see `fonts/LICENSE-DejaVu.txt`).
+const FONT: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
+const FAMILY: &str = "sans-serif";
+
+pub const WIDTH: u32 = 1200;
+pub const HEIGHT: u32 = 900;
+
+const TITLE_H: u32 = 46;
+const LEGEND_H: u32 = 30;
+const TITLE_PX: f64 = 24.0;
+const PANEL_TITLE_PX: f64 = 18.0;
+const LABEL_PX: f64 = 16.0;
+const DESC_PX: f64 = 17.0;
+
+/// Why a figure could not be drawn or written.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("the embedded font could not be loaded")]
+    Font,
+    #[error("drawing: {0}")]
+    Draw(String),
+    #[error("encoding the PNG: {0}")]
+    Png(#[from] png::EncodingError),
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
+/// One line as drawn: its points (already in plotted units) and its pen.
+pub struct Line {
+    pub points: Vec<(f64, f64)>,
+    pub role: Role,
+}
+
+pub struct Panel {
+    pub title: &'static str,
+    pub lines: Vec<Line>,
+}
+
+pub struct Figure {
+    pub title: &'static str,
+    pub y_desc: &'static str,
+    pub x_range: (f64, f64),
+    /// Shade the start-up blend, from the first sample to this time.
+    pub shade_until: Option<f64>,
+    pub zero_line: bool,
+    /// Labels and roles, in drawing order.
+    pub legend: Vec<(&'static str, Role)>,
+    pub panels: Vec<Panel>,
+}
+
+/// The start-up blend's shading.
+const SHADE: RGBColor = RGBColor(228, 228, 228);
+const SHADE_LABEL: &str = "start-up blend";
+
+/// Colour and width per role: the target wide and pale under the measurement, the estimate
+/// in a contrasting colour on top. Blue against orange stays apart for colour-blind readers;
+/// the thin lines are dark enough to read at one pixel.
+fn pen(role: Role) -> ShapeStyle {
+    let (color, width) = match role {
+        Role::Target => (RGBColor(230, 159, 0), 3),
+        Role::Measured => (RGBColor(0, 90, 181), 1),
+        Role::Estimate => (RGBColor(213, 94, 0), 2),
+        Role::Error => (RGBColor(0, 130, 100), 1),
+    };
+    color.stroke_width(width)
+}
+
+fn register_font() -> Result<(), RenderError> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    let ok = *REGISTERED
+        .get_or_init(|| plotters::style::register_font(FAMILY, FontStyle::Normal, FONT).is_ok());
+    if ok {
+        Ok(())
+    } else {
+        Err(RenderError::Font)
+    }
+}
+
+/// The file formats every figure is written in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    Png,
+    Svg,
+}
+
+impl Format {
+    pub fn extension(self) -> &'static str {
+        match self {
+            Format::Png => "png",
+            Format::Svg => "svg",
+        }
+    }
+}
+
+pub fn write(figure: &Figure, format: Format, path: &Path) -> Result<(), RenderError> {
+    match format {
+        Format::Png => write_png(figure, path),
+        Format::Svg => write_svg(figure, path),
+    }
+}
+
+fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
+    register_font()?;
+    let mut rgb = vec![0u8; (WIDTH * HEIGHT * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut rgb, (WIDTH, HEIGHT)).into_drawing_area();
+        draw(&root, figure, Surface::Raster)?;
+        root.present()
+            .map_err(|e| RenderError::Draw(e.to_string()))?;
+    }
+    // Encoded here rather than through plotters' `image` feature: one small crate instead of
+    // a whole image library.
+    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let mut encoder = png::Encoder::new(file, WIDTH, HEIGHT);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::High);
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(&rgb)?;
+    writer.finish()?;
+    Ok(())
+}
+
+fn write_svg(figure: &Figure, path: &Path) -> Result<(), RenderError> {
+    register_font()?;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (WIDTH, HEIGHT)).into_drawing_area();
+        draw(&root, figure, Surface::Vector)?;
+        root.present()
+            .map_err(|e| RenderError::Draw(e.to_string()))?;
+    }
+    std::fs::write(path, svg)?;
+    Ok(())
+}
+
+/// What the figure is drawn on: it decides how wide lines are made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Surface {
+    Raster,
+    Vector,
+}
+
+fn font(px: f64) -> TextStyle<'static> {
+    (FAMILY, px).into_font().color(&BLACK)
+}
+
+fn draw<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    figure: &Figure,
+    surface: Surface,
+) -> Result<(), RenderError> {
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| RenderError::Draw(e.to_string());
+    root.fill(&WHITE).map_err(err)?;
+    let (title_area, rest) = root.split_vertically(TITLE_H);
+    let (legend_area, panels_area) = rest.split_vertically(LEGEND_H);
+
+    let title_style = font(TITLE_PX).pos(Pos::new(HPos::Center, VPos::Center));
+    title_area
+        .draw_text(
+            figure.title,
+            &title_style,
+            (WIDTH as i32 / 2, TITLE_H as i32 / 2 + 4),
+        )
+        .map_err(err)?;
+    draw_legend(&legend_area, &figure.legend, figure.shade_until.is_some()).map_err(err)?;
+
+    let panels = panels_area.split_evenly((figure.panels.len().max(1), 1));
+    let last = figure.panels.len().saturating_sub(1);
+    for (i, (area, panel)) in panels.iter().zip(&figure.panels).enumerate() {
+        draw_panel(area, figure, panel, i == last, surface).map_err(err)?;
+    }
+    Ok(())
+}
+
+/// One centred row: a short stroke in each line's pen, then its label; last the shading.
+fn draw_legend<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    lines: &[(&'static str, Role)],
+    shaded: bool,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let entries: Vec<(&str, Option<Role>)> = lines
+        .iter()
+        .map(|&(label, role)| (label, Some(role)))
+        .chain(shaded.then_some((SHADE_LABEL, None)))
+        .collect();
+    const SWATCH: i32 = 32;
+    const GAP: i32 = 8;
+    const SPACING: i32 = 36;
+    let style = font(LABEL_PX).pos(Pos::new(HPos::Left, VPos::Center));
+    let widths: Vec<i32> = entries
+        .iter()
+        .map(|(label, _)| {
+            area.estimate_text_size(label, &style)
+                .map(|(w, _)| w as i32)
+        })
+        .collect::<Result<_, _>>()?;
+    let total: i32 = widths.iter().map(|w| SWATCH + GAP + w).sum::<i32>()
+        + SPACING * (entries.len() as i32 - 1).max(0);
+    let y = LEGEND_H as i32 / 2;
+    let mut x = (WIDTH as i32 - total) / 2;
+    for ((label, role), w) in entries.iter().zip(widths) {
+        match role {
+            Some(role) => {
+                area.draw(&PathElement::new(vec![(x, y), (x + SWATCH, y)], pen(*role)))?
+            }
+            None => area.draw(&Rectangle::new(
+                [(x, y - 7), (x + SWATCH, y + 7)],
+                SHADE.filled(),
+            ))?,
+        }
+        area.draw_text(label, &style, (x + SWATCH + GAP, y))?;
+        x += SWATCH + GAP + w + SPACING;
+    }
+    Ok(())
+}
+
+fn draw_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    figure: &Figure,
+    panel: &Panel,
+    bottom: bool,
+    surface: Surface,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let (x0, x1) = widen(
+        (figure.x_range.0.max(-LIMIT), figure.x_range.1.min(LIMIT)),
+        0.0,
+    );
+    let (y0, y1) = y_range(panel, figure.zero_line);
+    let mut chart = ChartBuilder::on(area)
+        .caption(panel.title, font(PANEL_TITLE_PX))
+        .margin_left(10)
+        .margin_right(24)
+        .margin_top(2)
+        .margin_bottom(if bottom { 6 } else { 2 })
+        .x_label_area_size(if bottom { 48 } else { 26 })
+        .y_label_area_size(76)
+        .build_cartesian_2d(x0..x1, y0..y1)?;
+
+    let x_labels = 12;
+    let y_labels = 5;
+    let x_fmt = tick_formatter((x0, x1), x_labels);
+    let y_fmt = tick_formatter((y0, y1), y_labels);
+    if let Some(end) = figure.shade_until {
+        // Under the mesh and the lines.
+        chart.draw_series(std::iter::once(Rectangle::new(
+            [(x0, y0), (end.min(x1), y1)],
+            SHADE.filled(),
+        )))?;
+    }
+    let mut mesh = chart.configure_mesh();
+    mesh.x_labels(x_labels)
+        .y_labels(y_labels)
+        .x_label_formatter(&x_fmt)
+        .y_label_formatter(&y_fmt)
+        .label_style(font(LABEL_PX))
+        .axis_desc_style(font(DESC_PX))
+        .y_desc(figure.y_desc)
+        .max_light_lines(4)
+        .bold_line_style(RGBColor(215, 215, 215))
+        .light_line_style(RGBColor(242, 242, 242));
+    if bottom {
+        mesh.x_desc("time (s)");
+    }
+    mesh.draw()?;
+
+    if figure.zero_line && y0 < 0.0 && y1 > 0.0 {
+        chart.draw_series(LineSeries::new(
+            [(x0, 0.0), (x1, 0.0)],
+            RGBColor(90, 90, 90).stroke_width(1),
+        ))?;
+    }
+    // plotters fills a wide polyline as one polygon, which a dense zigzag (min/max pairs,
+    // repeated pixels) turns into specks and spikes. On a bitmap a wide line is therefore
+    // drawn as 1-px lines shifted by whole pixels; SVG strokes width natively.
+    let (w_px, h_px) = chart.plotting_area().dim_in_pixel();
+    let pixel = (
+        (x1 - x0) / f64::from(w_px.max(1)),
+        (y1 - y0) / f64::from(h_px.max(1)),
+    );
+    // Points far off the chart (garbage values beyond LIMIT) would overflow plotters' pixel
+    // arithmetic; pulled to just outside the frame they are still clipped, lines still leave
+    // the chart in their direction.
+    let (xs, ys) = (x1 - x0, y1 - y0);
+    let inside = |(x, y): (f64, f64)| (x.clamp(x0 - xs, x1 + xs), y.clamp(y0 - ys, y1 + ys));
+    for line in &panel.lines {
+        let style = pen(line.role);
+        if surface == Surface::Raster && style.stroke_width > 1 {
+            for (dx, dy) in pixel_offsets(style.stroke_width) {
+                let shifted = line
+                    .points
+                    .iter()
+                    .map(|&(x, y)| inside((x + dx * pixel.0, y + dy * pixel.1)));
+                chart.draw_series(LineSeries::new(shifted, style.stroke_width(1)))?;
+            }
+        } else {
+            chart.draw_series(LineSeries::new(
+                line.points.iter().map(|&p| inside(p)),
+                style,
+            ))?;
+        }
+    }
+    Ok(())
+}
+
+/// Whole-pixel shifts whose union of 1-px lines looks like a line `width` pixels wide.
+fn pixel_offsets(width: u32) -> Vec<(f64, f64)> {
+    let r = width as i32 / 2;
+    let lo = -(width as i32 - 1) / 2;
+    let mut out = Vec::new();
+    for dx in lo..=r {
+        for dy in lo..=r {
+            // A diamond, not a square: square corners make diagonal lines look heavier.
+            if width <= 2 || dx.abs() + dy.abs() <= r {
+                out.push((f64::from(dx), f64::from(dy)));
+            }
+        }
+    }
+    out
+}
+
+/// The y range of a panel: every line's points, 6 % headroom, and y = 0 kept in view for
+/// error plots when it is near (so the sign of the error is obvious).
+fn y_range(panel: &Panel, zero_line: bool) -> (f64, f64) {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for (_, y) in panel.lines.iter().flat_map(|l| l.points.iter()) {
+        lo = lo.min(*y);
+        hi = hi.max(*y);
+    }
+    if lo > hi {
+        // No finite point at all (an all-gap signal): an empty panel with a sane axis.
+        return (-1.0, 1.0);
+    }
+    if zero_line {
+        lo = lo.min(0.0);
+        hi = hi.max(0.0);
+    }
+    // A garbage value near f64::MAX would make the span infinite, on which plotters' tick
+    // search never ends; such points are drawn off the chart instead.
+    widen((lo.max(-LIMIT), hi.min(LIMIT)), 0.06)
+}
+
+/// The largest magnitude an axis shows.
+const LIMIT: f64 = 1e300;
+
+/// Pad a range by `frac` of its span each side; a point-like range gets a span of its own.
+fn widen((lo, hi): (f64, f64), frac: f64) -> (f64, f64) {
+    let span = hi - lo;
+    if span > 0.0 && span.is_finite() {
+        (lo - span * frac, hi + span * frac)
+    } else {
+        let half = (lo.abs() * 0.05).max(1e-3);
+        (lo - half, hi + half)
+    }
+}
+
+/// Tick labels with as many decimals as the tick spacing needs, no more: plotters' default
+/// prints long float tails on small ranges. Axes that would need very long labels (huge or
+/// tiny values, from a broken log) get scientific notation instead.
+fn tick_formatter((lo, hi): (f64, f64), labels: usize) -> impl Fn(&f64) -> String {
+    let decimals = tick_decimals(hi - lo, labels);
+    let scientific = decimals > 6 || lo.abs().max(hi.abs()) >= 1e7;
+    move |v: &f64| {
+        if scientific {
+            return format!("{v:.2e}");
+        }
+        let s = format!("{v:.decimals$}");
+        // "-0.00" reads as a sign error.
+        if s.starts_with('-') && s[1..].chars().all(|c| c == '0' || c == '.') {
+            s[1..].to_string()
+        } else {
+            s
+        }
+    }
+}
+
+/// Decimals for ticks spaced at least `span / labels` apart, rounded to 1, 2 or 5 × 10^k.
+fn tick_decimals(span: f64, labels: usize) -> usize {
+    if !span.is_finite() || span <= 0.0 || labels == 0 {
+        return 2;
+    }
+    let raw = span / labels as f64;
+    let exp = raw.log10().floor();
+    let mantissa = raw / 10f64.powf(exp);
+    // 1, 2 and 5 steps need no more digits than their exponent; 2.5 never occurs.
+    let step_exp = if mantissa > 5.0 { exp + 1.0 } else { exp };
+    (-step_exp).max(0.0) as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tick_decimals_follow_the_spacing() {
+        assert_eq!(tick_decimals(10.0, 10), 0);
+        assert_eq!(tick_decimals(3.0, 12), 1);
+        assert_eq!(tick_decimals(0.06, 5), 2);
+        assert_eq!(tick_decimals(0.006, 5), 3);
+        assert_eq!(tick_decimals(600.0, 12), 0);
+        assert_eq!(tick_decimals(f64::NAN, 5), 2);
+    }
+
+    #[test]
+    fn pixel_offsets_make_the_width() {
+        assert_eq!(pixel_offsets(1), vec![(0.0, 0.0)]);
+        assert_eq!(pixel_offsets(2).len(), 4);
+        let three = pixel_offsets(3);
+        assert_eq!(three.len(), 5);
+        assert!(three.contains(&(0.0, 0.0)) && three.contains(&(-1.0, 0.0)));
+    }
+
+    #[test]
+    fn negative_zero_is_printed_as_zero() {
+        let f = tick_formatter((-0.5, 0.5), 5);
+        assert_eq!(f(&-0.0001), "0.0");
+        assert_eq!(f(&-0.2), "-0.2");
+    }
+
+    #[test]
+    fn huge_and_tiny_axes_use_scientific_notation() {
+        assert_eq!(tick_formatter((-1e300, 1e300), 5)(&5e299), "5.00e299");
+        assert_eq!(tick_formatter((0.0, 1e-9), 5)(&5e-10), "5.00e-10");
+        assert_eq!(tick_formatter((0.0, 600.0), 12)(&100.0), "100");
+    }
+
+    #[test]
+    fn degenerate_ranges_get_a_span() {
+        let (lo, hi) = widen((2.0, 2.0), 0.06);
+        assert!(lo < 2.0 && hi > 2.0);
+        let (lo, hi) = widen((0.0, 0.0), 0.06);
+        assert!(lo < 0.0 && hi > 0.0);
+        let p = Panel {
+            title: "x",
+            lines: vec![],
+        };
+        assert_eq!(y_range(&p, false), (-1.0, 1.0));
+        let p = Panel {
+            title: "x",
+            lines: vec![Line {
+                points: vec![(0.0, f64::MAX), (1.0, -f64::MAX)],
+                role: Role::Measured,
+            }],
+        };
+        let (lo, hi) = y_range(&p, false);
+        assert!((hi - lo).is_finite(), "{lo} {hi}");
+    }
+}

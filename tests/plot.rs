@@ -1,0 +1,274 @@
+//! `omnid plot` end to end: on a simulator log, on a seven-column log from another tool, on a
+//! log with the identifier's estimate, and on logs it must refuse.
+
+mod common;
+use common::{omnid, run_ok, Log};
+use std::fs::File;
+use std::path::Path;
+
+/// The measured-signal colour of the figures: its presence shows a line was drawn.
+const MEASURED_RGB: [u8; 3] = [0, 90, 181];
+
+/// Check that `dir/<name>.png` is a real 1200×900 PNG with a measured line in it, and that
+/// `dir/<name>.svg` is a whole SVG document.
+fn assert_figure(dir: &Path, name: &str) {
+    let png_path = dir.join(format!("{name}.png"));
+    let bytes = std::fs::read(&png_path).unwrap_or_else(|e| panic!("{}: {e}", png_path.display()));
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n", "{name}.png signature");
+    let decoder = png::Decoder::new(std::io::BufReader::new(File::open(&png_path).unwrap()));
+    let mut reader = decoder.read_info().expect("PNG header decodes");
+    let (w, h) = (reader.info().width, reader.info().height);
+    assert_eq!((w, h), (1200, 900), "{name}.png size");
+    let mut pixels = vec![0; reader.output_buffer_size().expect("size fits")];
+    let frame = reader.next_frame(&mut pixels).expect("PNG data decodes");
+    assert_eq!(frame.color_type, png::ColorType::Rgb);
+    let rgb = &pixels[..frame.buffer_size()];
+    let white = rgb
+        .chunks_exact(3)
+        .filter(|p| p == &[255, 255, 255])
+        .count();
+    assert!(white < (w * h) as usize, "{name}.png is blank");
+    let measured = rgb.chunks_exact(3).filter(|p| p == &MEASURED_RGB).count();
+    let error = rgb.chunks_exact(3).filter(|p| p == &[0, 130, 100]).count();
+    assert!(
+        measured + error > 1000,
+        "{name}.png: only {measured} measured and {error} error-line pixels"
+    );
+
+    let svg_path = dir.join(format!("{name}.svg"));
+    let svg = std::fs::read_to_string(&svg_path)
+        .unwrap_or_else(|e| panic!("{}: {e}", svg_path.display()));
+    assert!(
+        svg.starts_with("<svg"),
+        "{name}.svg starts with {:?}",
+        &svg[..20]
+    );
+    assert!(
+        svg.trim_end().ends_with("</svg>"),
+        "{name}.svg is not closed"
+    );
+    assert!(svg.contains("<polyline"), "{name}.svg has no lines");
+    assert!(
+        svg.contains("time (s)"),
+        "{name}.svg has no time axis label"
+    );
+}
+
+fn plot(log: &Path, out: &Path) -> (String, String) {
+    let o = run_ok(&[
+        "plot",
+        log.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    // Not a terminal: the progress bar must stay silent.
+    assert!(
+        !stderr.contains('\x1b'),
+        "control codes on stderr: {stderr:?}"
+    );
+    (String::from_utf8_lossy(&o.stdout).into_owned(), stderr)
+}
+
+fn assert_skipped(stdout: &str, figure: &str, because: &str) {
+    let line = stdout
+        .lines()
+        .find(|l| l.trim_start().starts_with(&format!("skipped {figure}:")))
+        .unwrap_or_else(|| panic!("{figure} not reported as skipped:\n{stdout}"));
+    assert!(line.contains(because), "{line}");
+}
+
+fn pngs_in(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".png"))
+        .collect();
+    names.sort();
+    names
+}
+
+#[test]
+fn plots_a_simulator_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("run.csv");
+    run_ok(&[
+        "run",
+        "--fast",
+        "--duration",
+        "3",
+        "--log",
+        log.to_str().unwrap(),
+    ]);
+    let out = dir.path().join("figures");
+    let (stdout, _) = plot(&log, &out);
+
+    for name in ["angles", "control_effort", "tracking_error"] {
+        assert_figure(&out, name);
+    }
+    // The identifier's estimate is logged by newer builds; until then its figures are skipped.
+    let has_estimate = Log::read(&log).header.iter().any(|h| h == "tau_hat1");
+    for name in ["torque_identification", "identification_error"] {
+        if has_estimate {
+            assert_figure(&out, name);
+        } else {
+            assert_skipped(&stdout, name, "tau_hat1..3");
+            assert!(!out.join(format!("{name}.png")).exists());
+        }
+    }
+    assert!(stdout.contains("3001 rows"), "{stdout}");
+    // The log's `mode` column marks the start-up blend, which is shaded and labelled.
+    let svg = std::fs::read_to_string(out.join("tracking_error.svg")).unwrap();
+    assert!(svg.contains("start-up blend"), "no blend shading legend");
+}
+
+#[test]
+fn plots_a_seven_column_log_and_says_what_it_skipped() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("other-tool.csv");
+    let mut csv = String::from("t,q1,q2,q3,tau1,tau2,tau3\n");
+    for i in 0..2000 {
+        let t = i as f64 * 1e-3;
+        let s = (std::f64::consts::TAU * 0.5 * t).sin();
+        csv += &format!(
+            "{t},{},{},{},{},{},{}\n",
+            0.4 * s,
+            0.6 + 0.3 * s,
+            0.2 * s,
+            0.02 * s,
+            -0.01 + 0.01 * s,
+            -0.03 * s
+        );
+    }
+    std::fs::write(&log, csv).unwrap();
+    let out = dir.path().join("figs");
+    let (stdout, _) = plot(&log, &out);
+
+    assert_eq!(pngs_in(&out), ["angles.png", "control_effort.png"]);
+    assert_figure(&out, "angles");
+    assert_figure(&out, "control_effort");
+    assert_skipped(&stdout, "tracking_error", "no ref1..3 columns");
+    assert_skipped(&stdout, "torque_identification", "no tau_hat1..3 columns");
+    assert_skipped(&stdout, "identification_error", "no tau_hat1..3 columns");
+    assert!(stdout.contains("2000 rows"), "{stdout}");
+    let svg = std::fs::read_to_string(out.join("angles.svg")).unwrap();
+    assert!(
+        !svg.contains("start-up blend"),
+        "no mode column, nothing to shade"
+    );
+}
+
+#[test]
+fn plots_the_identifier_figures_when_the_estimate_is_logged() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("ident.csv");
+    let mut csv =
+        String::from("t,q1,q2,q3,tau1,tau2,tau3,ref1,ref2,ref3,tau_hat1,tau_hat2,tau_hat3,mode\n");
+    for i in 0..3000 {
+        let t = i as f64 * 1e-3;
+        let s = (std::f64::consts::TAU * 0.5 * t).sin();
+        // The estimate converges onto the torque: its error decays.
+        let e = 0.01 * (-t).exp();
+        csv += &format!(
+            "{t},{q1},{q2},{q3},{a},{b},{c},{r1},{r2},{r3},{ha},{hb},{hc},track\n",
+            q1 = 0.4 * s,
+            q2 = 0.6 + 0.3 * s,
+            q3 = 0.2 * s,
+            a = 0.02 * s,
+            b = -0.01,
+            c = -0.03 * s,
+            r1 = 0.41 * s,
+            r2 = 0.6 + 0.31 * s,
+            r3 = 0.21 * s,
+            ha = 0.02 * s + e,
+            hb = -0.01 - e,
+            hc = -0.03 * s + e,
+        );
+    }
+    std::fs::write(&log, csv).unwrap();
+    let out = dir.path().join("figs");
+    let (stdout, _) = plot(&log, &out);
+    for name in [
+        "angles",
+        "torque_identification",
+        "identification_error",
+        "control_effort",
+        "tracking_error",
+    ] {
+        assert_figure(&out, name);
+    }
+    assert!(!stdout.contains("skipped"), "{stdout}");
+    // Only tau_cmd is missing: the effort figure says it is drawn without it.
+    assert!(stdout.contains("control_effort: drawn without"), "{stdout}");
+}
+
+fn plot_fails(csv: &str) -> (i32, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("bad.csv");
+    std::fs::write(&log, csv).unwrap();
+    let out = omnid()
+        .args(["plot", log.to_str().unwrap(), "--out"])
+        .arg(dir.path().join("figs"))
+        .output()
+        .expect("omnid starts");
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    (out.status.code().unwrap_or(-1), stderr)
+}
+
+#[test]
+fn a_non_numeric_value_is_refused_with_its_line_and_column() {
+    let (code, stderr) =
+        plot_fails("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n0.001,0,0,zero,0,0,0\n");
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("bad.csv"), "{stderr}");
+    assert!(stderr.contains("line 3"), "{stderr}");
+    assert!(stderr.contains("column 4 (`q3`)"), "{stderr}");
+    assert!(stderr.contains("\"zero\""), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "one message: {stderr}");
+}
+
+#[test]
+fn logs_it_cannot_use_are_bad_input() {
+    let (code, stderr) = plot_fails("time,q1,q2,q3\n0,0,0,0\n");
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("line 1: no `t` column"), "{stderr}");
+
+    let (code, stderr) = plot_fails("t,q1,q2,q3\n0,0,0,0\n0.001,0,0\n");
+    assert_eq!(code, 2, "{stderr}");
+    assert!(
+        stderr.contains("line 3: 3 fields, but the header has 4"),
+        "{stderr}"
+    );
+
+    let (code, stderr) = plot_fails("t,amps\n0,1\n");
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("nothing to plot"), "{stderr}");
+
+    let (code, stderr) = plot_fails("");
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("empty"), "{stderr}");
+
+    let out = omnid()
+        .args(["plot", "/nonexistent/log.csv", "--out", "/tmp/never"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/log.csv"));
+}
+
+#[test]
+fn extreme_values_are_drawn_without_failing() {
+    // Values near f64::MAX, infinities, gaps and NaN: garbage, but no reason to crash.
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("wild.csv");
+    std::fs::write(
+        &log,
+        "t,q1,q2,q3,tau1,tau2,tau3\n0,1e308,-1e308,0,1,1,1\n1,-1e308,1e308,NaN,inf,,-inf\n",
+    )
+    .unwrap();
+    let out = dir.path().join("figs");
+    let (stdout, _) = plot(&log, &out);
+    assert!(stdout.contains("2 rows"), "{stdout}");
+    assert_eq!(pngs_in(&out), ["angles.png", "control_effort.png"]);
+}
