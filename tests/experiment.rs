@@ -114,3 +114,25 @@ fn unknown_experiment_is_refused() {
         Experiment::Payload
     );
 }
+
+#[test]
+fn cli_refuses_bad_input_with_exit_2() {
+    let omnid = env!("CARGO_BIN_EXE_omnid");
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(omnid)
+        .args(["experiment", "fig13", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    // An output directory under a regular file cannot be made.
+    let file = dir.path().join("file");
+    std::fs::write(&file, "x").unwrap();
+    let out = std::process::Command::new(omnid)
+        .args(["experiment", "alpha", "--quick", "--out"])
+        .arg(file.join("sub"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("output directory"));
+}
