@@ -4,12 +4,13 @@
 //! `device` (packets) → `estimate` (Kalman) → `control` (PD, …) → safety in `servo` →
 //! `device`, with `telemetry` carrying each tick to the log and the summary, and `omni` the
 //! geometry and physics shared by the simulator and model-based control. Off the loop: `plot`
-//! draws figures from a log, `progress` the terminal progress bars of long commands.
+//! draws figures from a log, `experiment` reproduces the paper's experiments, `progress` the terminal progress bars of long commands.
 
 pub mod config;
 pub mod control;
 pub mod device;
 pub mod estimate;
+pub mod experiment;
 pub mod ident;
 pub mod identify;
 pub mod omni;

@@ -54,6 +54,18 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Reproduce the paper's experiments on the simulator (`validation`, `alpha`, `payload`):
+    /// runs, `DIR/report.md` with the tables, and the figures.
+    Experiment {
+        /// validation, alpha or payload.
+        kind: omnid::experiment::Experiment,
+        /// Directory for the report, logs and figures (created if needed).
+        #[arg(long)]
+        out: PathBuf,
+        /// Shortened runs and pre-tuning (seconds, not minutes; not the paper's numbers).
+        #[arg(long)]
+        quick: bool,
+    },
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -380,6 +392,27 @@ fn main() -> ExitCode {
                 })
             }
         },
+        Command::Experiment { kind, out, quick } => {
+            match omnid::experiment::run_experiment(kind, &out, quick) {
+                Ok(report) => {
+                    println!(
+                        "omnid experiment {}: report in {} ({} figure files)",
+                        kind.as_str(),
+                        report.report.display(),
+                        report.figures.len()
+                    );
+                    Ok(0)
+                }
+                Err(e) => {
+                    eprintln!("omnid experiment {}: {e}", kind.as_str());
+                    Ok(if e.is_bad_input() {
+                        EXIT_BAD_INPUT
+                    } else {
+                        EXIT_INTERNAL
+                    })
+                }
+            }
+        }
         Command::Config { print_default } => {
             if print_default {
                 print!("{}", Config::default_toml());

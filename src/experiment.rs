@@ -1,0 +1,669 @@
+//! `omnid experiment`: the paper's experiments in one command each, on the simulated Omni
+//! (`--fast` runs through [`crate::run::execute`], fixed seeds), each writing `report.md`
+//! with its tables and figures into an output directory.
+//!
+//! - [`Experiment::Validation`] (Figs. 8–12): pre-tune the networks on PD multisine logs, then
+//!   PD, computed torque and NNIDC (those weights, adapting) on the same sine.
+//! - [`Experiment::Alpha`] (Figs. 5–6): the α sweep of the adaptation law on one log.
+//! - [`Experiment::Payload`]: a tip payload added mid-run; NNIDC adapting, frozen, and CT.
+//!
+//! `--quick` shortens every run and the pre-tuning so the whole experiment takes seconds (for
+//! tests and smoke checks); its numbers are not the paper's.
+
+use crate::config::Config;
+use crate::control::{ControllerKind, Trajectory};
+use crate::ident::{Identifier, PretuneConfig, Progress, WeightsFile};
+use crate::identify::{identify, samples_from_log, IdentifyError};
+use crate::plot::figures::Role;
+use crate::plot::render::{self, Figure, Format, Line, Panel};
+use crate::plot::{plot_log, PlotError};
+use crate::run::{
+    execute, DeviceSpec, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
+};
+use crate::telemetry::summary::RunSummary;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use thiserror::Error;
+
+/// Which experiment to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Experiment {
+    Validation,
+    Alpha,
+    Payload,
+}
+
+impl FromStr for Experiment {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "validation" => Ok(Experiment::Validation),
+            "alpha" => Ok(Experiment::Alpha),
+            "payload" => Ok(Experiment::Payload),
+            _ => Err(format!(
+                "unknown experiment `{s}`: expected validation, alpha or payload"
+            )),
+        }
+    }
+}
+
+impl Experiment {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Experiment::Validation => "validation",
+            Experiment::Alpha => "alpha",
+            Experiment::Payload => "payload",
+        }
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum ExperimentError {
+    /// The output directory cannot be made (the user's input is at fault).
+    #[error("creating the output directory {}: {source}", dir.display())]
+    OutDir {
+        dir: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("run `{name}`: {source}")]
+    Run { name: String, source: Box<RunError> },
+    #[error("run `{name}` did not complete cleanly: {why}")]
+    RunFailed { name: String, why: String },
+    #[error(transparent)]
+    Identify(Box<IdentifyError>),
+    #[error(transparent)]
+    Plot(Box<PlotError>),
+    #[error("writing {}: {source}", path.display())]
+    Write {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("reading {}: {why}", path.display())]
+    ReadLog { path: PathBuf, why: String },
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl From<IdentifyError> for ExperimentError {
+    fn from(e: IdentifyError) -> Self {
+        ExperimentError::Identify(Box::new(e))
+    }
+}
+
+impl From<PlotError> for ExperimentError {
+    fn from(e: PlotError) -> Self {
+        ExperimentError::Plot(Box::new(e))
+    }
+}
+
+impl ExperimentError {
+    /// The user's input is at fault (exit code 2), not the program.
+    pub fn is_bad_input(&self) -> bool {
+        matches!(self, ExperimentError::OutDir { .. })
+    }
+}
+
+/// What an experiment wrote.
+#[derive(Debug, Clone)]
+pub struct ExperimentReport {
+    /// `DIR/report.md`.
+    pub report: PathBuf,
+    /// Every figure file written (PNG and SVG).
+    pub figures: Vec<PathBuf>,
+    /// The report's text.
+    pub markdown: String,
+}
+
+/// Run `experiment` into `out` (created if needed).
+pub fn run_experiment(
+    experiment: Experiment,
+    out: &Path,
+    quick: bool,
+) -> Result<ExperimentReport, ExperimentError> {
+    std::fs::create_dir_all(out).map_err(|source| ExperimentError::OutDir {
+        dir: out.to_path_buf(),
+        source,
+    })?;
+    let mut figures = Vec::new();
+    let markdown = match experiment {
+        Experiment::Validation => validation(out, quick, &mut figures)?,
+        Experiment::Alpha => alpha(out, quick, &mut figures)?,
+        Experiment::Payload => payload(out, quick, &mut figures)?,
+    };
+    let report = out.join("report.md");
+    std::fs::write(&report, &markdown).map_err(|source| ExperimentError::Write {
+        path: report.clone(),
+        source,
+    })?;
+    Ok(ExperimentReport {
+        report,
+        figures,
+        markdown,
+    })
+}
+
+/// One `--fast` simulator run; a run that faults or loses log rows is an error (its numbers
+/// would not mean what the report says).
+#[allow(clippy::too_many_arguments)]
+fn sim_run(
+    name: &str,
+    cfg: &Config,
+    controller: ControllerKind,
+    trajectory: Trajectory,
+    secs: f64,
+    log: &Path,
+    weights: Option<PathBuf>,
+    no_adapt: bool,
+) -> Result<RunSummary, ExperimentError> {
+    let mut cfg = cfg.clone();
+    // Cold motors every run, so the experiment reproduces.
+    cfg.safety.persist_heat = false;
+    if let Some(dir) = log.parent() {
+        std::fs::create_dir_all(dir).map_err(|source| ExperimentError::Write {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+    }
+    let opts = RunOptions {
+        device: DeviceSpec::Sim,
+        controller,
+        trajectory,
+        duration_s: secs,
+        log: log.to_path_buf(),
+        fast: true,
+        lenient: false,
+        inject: Vec::new(),
+        weights,
+        no_adapt,
+    };
+    let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).map_err(|source| {
+        ExperimentError::Run {
+            name: name.to_string(),
+            source: Box::new(source),
+        }
+    })?;
+    let failed = |why: String| ExperimentError::RunFailed {
+        name: name.to_string(),
+        why,
+    };
+    if let Some(f) = out.summary.faults.first() {
+        return Err(failed(format!(
+            "{} at t = {:.3} s: {}",
+            f.class, f.t, f.message
+        )));
+    }
+    if let Some(e) = out.log_error {
+        return Err(failed(format!("log: {e}")));
+    }
+    if out.summary.telemetry_dropped > 0 {
+        return Err(failed(format!(
+            "{} log rows dropped",
+            out.summary.telemetry_dropped
+        )));
+    }
+    Ok(out.summary)
+}
+
+/// Figures of one run's log into `dir`; returns the markdown that shows them.
+fn figures_of(
+    log: &Path,
+    dir: &Path,
+    rel: &str,
+    files: &mut Vec<PathBuf>,
+) -> Result<String, ExperimentError> {
+    let rep = plot_log(log, dir)?;
+    files.extend(rep.files.iter().cloned());
+    let mut md = String::new();
+    for name in &rep.figures {
+        let _ = writeln!(
+            md,
+            "![{rel}: {name}]({rel}/{name}.png) ([SVG]({rel}/{name}.svg))\n"
+        );
+    }
+    Ok(md)
+}
+
+/// A number for a table: `digits` decimals; a missing or non-finite value is written as such
+/// (the tests refuse reports with them).
+fn num(v: Option<f64>, digits: usize) -> String {
+    match v {
+        Some(v) if v.is_finite() => format!("{v:.digits$}"),
+        Some(v) => format!("{v}"),
+        None => "n/a".to_string(),
+    }
+}
+
+fn joints_row(md: &mut String, label: &str, v: Option<[f64; 3]>, scale: f64, digits: usize) {
+    let cell = |j: usize| num(v.map(|v| v[j] * scale), digits);
+    let _ = writeln!(md, "| {label} | {} | {} | {} |", cell(0), cell(1), cell(2));
+}
+
+fn run_table(md: &mut String, s: &RunSummary) {
+    md.push_str("| | joint 1 | joint 2 | joint 3 |\n|---|---:|---:|---:|\n");
+    joints_row(md, "tracking RMS (mrad)", s.tracking_rms_rad, 1e3, 3);
+    joints_row(md, "tracking max (mrad)", s.tracking_max_rad, 1e3, 3);
+    joints_row(md, "torque RMS (mN·m)", s.torque_rms_nm, 1e3, 3);
+    joints_row(
+        md,
+        "torque total variation (N·m)",
+        Some(s.torque_total_variation_nm),
+        1.0,
+        3,
+    );
+    joints_row(md, "identification NRMSE", s.identifier.nrmse, 1.0, 4);
+    joints_row(md, "oracle NRMSE", s.identifier.nrmse_oracle, 1.0, 4);
+    md.push('\n');
+}
+
+fn shipped_identifier(cfg: &Config) -> Result<Identifier, ExperimentError> {
+    let internal = |e: &dyn std::fmt::Display| ExperimentError::Internal(e.to_string());
+    let mut id = Identifier::new(&cfg.identifier).map_err(|e| internal(&e))?;
+    let w =
+        WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME).map_err(|e| internal(&e))?;
+    id.apply_weights(&w, SHIPPED_WEIGHTS_NAME)
+        .map_err(|e| internal(&e))?;
+    Ok(id)
+}
+
+// ---------------------------------------------------------------------------------------------
+// validation
+
+/// The controllers of the validation experiment, in report order.
+pub const VALIDATION_CONTROLLERS: [&str; 3] = ["pd", "ct", "nnidc"];
+
+fn validation(
+    out: &Path,
+    quick: bool,
+    files: &mut Vec<PathBuf>,
+) -> Result<String, ExperimentError> {
+    // `--quick` keeps one full-length log: weights from 20 s and 3 epochs drive NNIDC into
+    // the joint-speed limit within the first second (measured), which is no validation.
+    let (seeds, ms_secs, epochs): (&[u64], f64, usize) = if quick {
+        (&[11], 60.0, 8)
+    } else {
+        (&[11, 12, 13], 60.0, 20)
+    };
+    let sine_secs = 10.0;
+    let steps = seeds.len() + 1 + VALIDATION_CONTROLLERS.len() * 2;
+    let bar = crate::progress::bar(steps as u64, "validation");
+
+    // Pre-tuning, as mock/README.md makes the shipped weights.
+    let pre = out.join("pretune");
+    let mut logs = Vec::new();
+    for &seed in seeds {
+        let mut cfg = Config::default();
+        cfg.sim.seed = seed;
+        let log = pre.join(format!("pd-multisine-seed{seed}.csv"));
+        sim_run(
+            &format!("pre-tune log, seed {seed}"),
+            &cfg,
+            ControllerKind::Pd,
+            Trajectory::Multisine,
+            ms_secs,
+            &log,
+            None,
+            false,
+        )?;
+        logs.push(log);
+        bar.inc(1);
+    }
+    let weights = pre.join("weights.json");
+    let pcfg = PretuneConfig {
+        epochs,
+        ..PretuneConfig::default()
+    };
+    let epoch_bar = crate::progress::bar(epochs as u64, "pre-tuning");
+    let pre_report = identify(&logs, &weights, &Config::default(), &pcfg, |p| {
+        if let Progress::Epoch(_) = p {
+            epoch_bar.inc(1);
+        }
+    })?;
+    epoch_bar.finish_and_clear();
+    bar.inc(1);
+    let kept = &pre_report.epochs[pre_report.kept_epoch - 1];
+
+    let cfg = Config::default();
+    let mut md = String::new();
+    let _ = writeln!(
+        md,
+        "# Validation: PD, computed torque and NNIDC on the sine (paper Figs. 8–12)\n\n\
+         Simulated Omni, `--fast`, seed {}, 0.5 Hz sine for {sine_secs} s{}.\n\n\
+         Pre-tuning: {} PD multisine log(s) of {ms_secs} s (seeds {}), {epochs} epochs \
+         (`omnid identify`); kept epoch {}: validation NRMSE {} / {} / {}. Weights: \
+         [`pretune/weights.json`](pretune/weights.json). NNIDC starts from them and adapts \
+         online; PD and CT run the identifier alongside (fresh weights, adapting) so their \
+         identification NRMSE is that of learning from scratch.\n\n\
+         The oracle NRMSE is that of the exact plant model against the measured torque: the \
+         floor set by sensor noise and estimation.\n",
+        cfg.sim.seed,
+        if quick {
+            " (`--quick`: shortened pre-tuning)"
+        } else {
+            ""
+        },
+        seeds.len(),
+        seeds
+            .iter()
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        pre_report.kept_epoch,
+        num(Some(kept.val_nrmse[0]), 4),
+        num(Some(kept.val_nrmse[1]), 4),
+        num(Some(kept.val_nrmse[2]), 4),
+    );
+    let mut figs_md = String::new();
+    let mut overview = Vec::new();
+    for name in VALIDATION_CONTROLLERS {
+        let (kind, w) = match name {
+            "pd" => (ControllerKind::Pd, None),
+            "ct" => (ControllerKind::Ct, None),
+            _ => (ControllerKind::Nnidc, Some(weights.clone())),
+        };
+        let dir = out.join(name);
+        let log = dir.join("log.csv");
+        let s = sim_run(
+            name,
+            &cfg,
+            kind,
+            Trajectory::Sine,
+            sine_secs,
+            &log,
+            w,
+            false,
+        )?;
+        bar.inc(1);
+        let _ = writeln!(md, "## {}\n", name.to_uppercase());
+        run_table(&mut md, &s);
+        let _ = writeln!(figs_md, "### {}\n", name.to_uppercase());
+        figs_md.push_str(&figures_of(&log, &dir, name, files)?);
+        bar.inc(1);
+        overview.push((name, s));
+    }
+    if std::fs::read_to_string(&weights).is_ok_and(|w| w == SHIPPED_WEIGHTS) {
+        md.insert_str(
+            md.find("\n## ").unwrap_or(md.len()),
+            "\nThe pre-tuned weights are byte for byte the shipped \
+             `mock/nnidc-pretuned.json`: the pipeline reproduces them.\n",
+        );
+    }
+    md.push_str("## Tracking RMS side by side (mrad)\n\n| controller | joint 1 | joint 2 | joint 3 |\n|---|---:|---:|---:|\n");
+    for (name, s) in &overview {
+        let v = s.tracking_rms_rad;
+        let cell = |j: usize| num(v.map(|v| v[j] * 1e3), 3);
+        let _ = writeln!(md, "| {name} | {} | {} | {} |", cell(0), cell(1), cell(2));
+    }
+    md.push_str("\n## Figures\n\n");
+    md.push_str(&figs_md);
+    bar.finish_and_clear();
+    Ok(md)
+}
+
+// ---------------------------------------------------------------------------------------------
+// alpha
+
+/// The α values of the sweep (paper Figs. 5–6).
+pub const ALPHAS: [f64; 3] = [5.0, 50.0, 500.0];
+/// The running RMS of ‖e1‖: exponential window, s.
+pub const ALPHA_WINDOW_S: f64 = 1.0;
+/// Convergence threshold on the running RMS of ‖e1‖, N·m.
+pub const ALPHA_THRESHOLD_NM: f64 = 0.01;
+
+fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, ExperimentError> {
+    let secs = if quick { 10.0 } else { 30.0 };
+    let seed = 5;
+    let mut cfg = Config::default();
+    cfg.sim.seed = seed;
+    let log = out.join("pd-multisine.csv");
+    sim_run(
+        "α sweep log",
+        &cfg,
+        ControllerKind::Pd,
+        Trajectory::Multisine,
+        secs,
+        &log,
+        None,
+        false,
+    )?;
+    let samples = samples_from_log(&log, &cfg)?;
+    if samples.is_empty() {
+        return Err(ExperimentError::Internal(
+            "the α sweep log has no samples".into(),
+        ));
+    }
+    let dt = 1.0 / cfg.device.rate_hz;
+    let k = dt / ALPHA_WINDOW_S;
+    let n = samples.len();
+    let span = n as f64 * dt;
+    let stride = (n / 3000).max(1);
+    let bar = crate::progress::bar((ALPHAS.len() * n) as u64, "α sweep");
+    let mut rows = Vec::new();
+    let mut lines = Vec::new();
+    for (i, &alpha) in ALPHAS.iter().enumerate() {
+        let mut c = cfg.clone();
+        c.identifier.alpha = alpha;
+        c.identifier.unit_gain_filter = true;
+        c.identifier.sigma = 0.0;
+        let mut id = shipped_identifier(&c)?;
+        id.set_anchor();
+        let mut ms = None::<f64>;
+        let mut reached = None;
+        let mut tail = (0.0, 0usize);
+        let mut points = Vec::with_capacity(n / stride + 1);
+        for (i, s) in samples.iter().enumerate() {
+            id.update(&s.q, &s.qd, &s.qdd, &s.tau, dt);
+            let e2 = id.last_errors().e1.norm_squared();
+            let m = ms.map_or(e2, |m| m + k * (e2 - m));
+            ms = Some(m);
+            let t = i as f64 * dt;
+            if reached.is_none() && t >= ALPHA_WINDOW_S && m.sqrt() < ALPHA_THRESHOLD_NM {
+                reached = Some(t);
+            }
+            if t >= span - 5.0_f64.min(span / 2.0) {
+                tail.0 += e2;
+                tail.1 += 1;
+            }
+            if i % stride == 0 {
+                points.push((t, m.sqrt() * 1e3));
+            }
+            if i % 1000 == 999 {
+                bar.inc(1000);
+            }
+        }
+        let change = id.weight_change_norm();
+        let late = (tail.0 / tail.1.max(1) as f64).sqrt();
+        rows.push((alpha, reached, change, late, id.healthy()));
+        let role = [Role::Measured, Role::Estimate, Role::Error][i];
+        lines.push(Line { points, role });
+    }
+    bar.finish_and_clear();
+
+    let tail_s = 5.0_f64.min(span / 2.0);
+    let mut md = String::new();
+    let _ = writeln!(
+        md,
+        "# α sweep of the adaptation law (paper Figs. 5–6)\n\n\
+         One PD multisine log of {secs} s (simulated Omni, seed {seed}); for each α the \
+         identifier starts from the same weights (the shipped pre-tuned ones) and adapts on \
+         every sample with the log's {:.0} ms, `unit_gain_filter = true` (α sets only the \
+         filter's bandwidth) and σ = 0 (no leakage toward the start weights), as in \
+         `tests/identifier_paper.rs`.{}\n\n\
+         Time to threshold: the first time (after the first {ALPHA_WINDOW_S} s) the running RMS \
+         of ‖e1‖ (exponential window, {ALPHA_WINDOW_S} s) drops below {} mN·m; `> {span:.3}` \
+         means never within the log.\n",
+        dt * 1e3,
+        if quick {
+            " `--quick`: shortened log."
+        } else {
+            ""
+        },
+        ALPHA_THRESHOLD_NM * 1e3,
+    );
+    let _ = writeln!(
+        md,
+        "| α | time to threshold (s) | ‖θ − θ0‖ | RMS ‖e1‖ over the last {tail_s} s (mN·m) |\n|---:|---:|---:|---:|"
+    );
+    for (alpha, reached, change, late, _) in &rows {
+        let t = match reached {
+            Some(t) => num(Some(*t), 3),
+            None => format!("> {span:.3}"),
+        };
+        let _ = writeln!(
+            md,
+            "| {alpha} | {t} | {} | {} |",
+            num(Some(*change), 4),
+            num(Some(late * 1e3), 3)
+        );
+    }
+    for (alpha, _, _, _, healthy) in &rows {
+        if !healthy {
+            let _ = writeln!(md, "\nα = {alpha}: the identifier ended unhealthy.");
+        }
+    }
+    // The threshold, for reading the crossings off the figure.
+    lines.push(Line {
+        points: vec![
+            (0.0, ALPHA_THRESHOLD_NM * 1e3),
+            (span, ALPHA_THRESHOLD_NM * 1e3),
+        ],
+        role: Role::Target,
+    });
+    let figure = Figure {
+        title: "Identification error ‖e1‖ (running RMS, 1 s) for α = 5, 50, 500",
+        y_desc: "‖e1‖ (mN·m)",
+        x_range: (0.0, span),
+        shade_until: None,
+        zero_line: true,
+        legend: vec![
+            ("α = 5", Role::Measured),
+            ("α = 50", Role::Estimate),
+            ("α = 500", Role::Error),
+            ("threshold", Role::Target),
+        ],
+        panels: vec![Panel {
+            title: "norm over the three joints",
+            lines,
+        }],
+    };
+    for format in [Format::Png, Format::Svg] {
+        let file = out.join(format!("alpha-e1.{}", format.extension()));
+        render::write(&figure, format, &file).map_err(|source| {
+            ExperimentError::from(PlotError::Render {
+                file: file.clone(),
+                source,
+            })
+        })?;
+        files.push(file);
+    }
+    md.push_str("\n![‖e1‖ over time per α](alpha-e1.png) ([SVG](alpha-e1.svg))\n");
+    Ok(md)
+}
+
+// ---------------------------------------------------------------------------------------------
+// payload
+
+/// Tracking RMS per joint over `from..to` s of a log: reference against the filtered angle,
+/// control ticks only.
+pub fn window_rms(log: &Path, from: f64, to: f64) -> Result<[f64; 3], ExperimentError> {
+    let bad = |why: String| ExperimentError::ReadLog {
+        path: log.to_path_buf(),
+        why,
+    };
+    let mut r = csv::Reader::from_path(log).map_err(|e| bad(e.to_string()))?;
+    let h = r.headers().map_err(|e| bad(e.to_string()))?.clone();
+    let col = |n: &str| {
+        h.iter()
+            .position(|x| x == n)
+            .ok_or_else(|| bad(format!("no column `{n}`")))
+    };
+    let (t, mode) = (col("t")?, col("mode")?);
+    let refs = [col("ref1")?, col("ref2")?, col("ref3")?];
+    let qf = [col("qf1")?, col("qf2")?, col("qf3")?];
+    let (mut s, mut n) = ([0.0; 3], 0.0);
+    let parse = |v: &str| v.parse::<f64>().map_err(|e| bad(format!("`{v}`: {e}")));
+    for rec in r.records() {
+        let rec = rec.map_err(|e| bad(e.to_string()))?;
+        let tt = parse(&rec[t])?;
+        if tt >= from && tt < to && &rec[mode] != "stop" {
+            for j in 0..3 {
+                let e = parse(&rec[refs[j]])? - parse(&rec[qf[j]])?;
+                s[j] += e * e;
+            }
+            n += 1.0;
+        }
+    }
+    if n == 0.0 {
+        return Err(bad(format!("no control rows in {from}..{to} s")));
+    }
+    Ok(s.map(|v| (v / n).sqrt()))
+}
+
+/// The payload experiment's runs, in report order: name, controller, frozen identifier.
+pub const PAYLOAD_RUNS: [(&str, ControllerKind, bool); 3] = [
+    ("nnidc", ControllerKind::Nnidc, false),
+    ("nnidc-no-adapt", ControllerKind::Nnidc, true),
+    ("ct", ControllerKind::Ct, false),
+];
+
+fn payload(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, ExperimentError> {
+    // (payload at, duration, before window, after window)
+    let (at, secs, before, after) = if quick {
+        (5.0, 10.0, (2.0, 5.0), (7.0, 10.0))
+    } else {
+        (10.0, 30.0, (2.0, 10.0), (20.0, 30.0))
+    };
+    let mass = 0.02;
+    let mut cfg = Config::default();
+    cfg.sim.payload_kg = mass;
+    cfg.sim.payload_at_s = at;
+    let bar = crate::progress::bar(PAYLOAD_RUNS.len() as u64 * 2, "payload");
+    let mut md = String::new();
+    let _ = writeln!(
+        md,
+        "# Payload: {:.0} g added at the tip at t = {at} s\n\n\
+         Simulated Omni, `--fast`, seed {}, 0.5 Hz sine for {secs} s{}. NNIDC starts from the \
+         shipped pre-tuned weights, adapting or frozen (`--no-adapt`); computed torque uses \
+         the nominal model (without the payload).\n\n\
+         Tracking RMS per joint (mrad, reference against the filtered angle) before the \
+         payload ({}–{} s) and after it ({}–{} s, once adaptation has had time):\n\n\
+         | run | before J1 | before J2 | before J3 | after J1 | after J2 | after J3 |\n\
+         |---|---:|---:|---:|---:|---:|---:|",
+        mass * 1e3,
+        cfg.sim.seed,
+        if quick { " (`--quick`: shortened)" } else { "" },
+        before.0,
+        before.1,
+        after.0,
+        after.1,
+    );
+    let mut figs_md = String::new();
+    for (name, kind, frozen) in PAYLOAD_RUNS {
+        let dir = out.join(name);
+        let log = dir.join("log.csv");
+        sim_run(name, &cfg, kind, Trajectory::Sine, secs, &log, None, frozen)?;
+        bar.inc(1);
+        let b = window_rms(&log, before.0, before.1)?;
+        let a = window_rms(&log, after.0, after.1)?;
+        let c = |v: f64| num(Some(v * 1e3), 3);
+        let _ = writeln!(
+            md,
+            "| {name} | {} | {} | {} | {} | {} | {} |",
+            c(b[0]),
+            c(b[1]),
+            c(b[2]),
+            c(a[0]),
+            c(a[1]),
+            c(a[2])
+        );
+        let _ = writeln!(figs_md, "### {name}\n");
+        figs_md.push_str(&figures_of(&log, &dir, name, files)?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    md.push_str("\n## Figures\n\n");
+    md.push_str(&figs_md);
+    Ok(md)
+}

@@ -1,0 +1,138 @@
+//! `omnid experiment … --quick`: each experiment runs end to end on the simulator, writes a
+//! report whose tables hold only finite numbers, and the figures it links.
+
+use omnid::experiment::{run_experiment, Experiment, PAYLOAD_RUNS, VALIDATION_CONTROLLERS};
+use std::path::Path;
+
+/// Every data cell of every markdown table in `md` is a finite number (a lower bound written
+/// `> x` counts as its number). Returns the number of cells checked.
+fn assert_tables_finite(md: &str) -> usize {
+    let mut cells = 0;
+    for line in md.lines().filter(|l| l.starts_with('|')) {
+        let inner: Vec<&str> = line
+            .trim()
+            .trim_matches('|')
+            .split('|')
+            .map(str::trim)
+            .collect();
+        // Header separators and header rows (no number in any data column).
+        if inner.iter().all(|c| c.chars().all(|ch| "-:".contains(ch))) {
+            continue;
+        }
+        if inner[1..]
+            .iter()
+            .all(|c| c.parse::<f64>().is_err() && !c.starts_with('>'))
+        {
+            let lower = line.to_lowercase();
+            assert!(
+                !lower.contains("nan") && !lower.contains("inf") && !lower.contains("n/a"),
+                "{line}"
+            );
+            continue;
+        }
+        for c in &inner[1..] {
+            let v: f64 = c
+                .trim_start_matches('>')
+                .trim()
+                .parse()
+                .unwrap_or_else(|_| panic!("not a number: `{c}` in {line}"));
+            assert!(v.is_finite(), "{line}");
+            cells += 1;
+        }
+    }
+    cells
+}
+
+fn assert_figures(dir: &Path, names: &[&str]) {
+    for name in names {
+        for ext in ["png", "svg"] {
+            let f = dir.join(format!("{name}.{ext}"));
+            assert!(
+                f.metadata().map(|m| m.len() > 0).unwrap_or(false),
+                "{} missing",
+                f.display()
+            );
+        }
+    }
+}
+
+fn state_dir() {
+    // Runs never persist heat here, but keep any stray state out of the user's directory.
+    if std::env::var_os("OMNID_STATE_DIR").is_none() {
+        std::env::set_var(
+            "OMNID_STATE_DIR",
+            std::env::temp_dir().join("omnid-test-state"),
+        );
+    }
+}
+
+#[test]
+fn validation_quick_writes_a_finite_report_and_figures() {
+    state_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let rep = run_experiment(Experiment::Validation, dir.path(), true).unwrap();
+    let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert_eq!(md, rep.markdown);
+    // Six rows of three joints per controller, plus the side-by-side table.
+    assert_eq!(assert_tables_finite(&md), 3 * 6 * 3 + 3 * 3, "{md}");
+    assert!(dir.path().join("pretune/weights.json").exists());
+    for c in VALIDATION_CONTROLLERS {
+        assert_figures(&dir.path().join(c), &["angles", "tracking_error"]);
+        assert!(md.contains(&format!("({c}/angles.png)")), "{md}");
+    }
+    assert!(rep.figures.iter().all(|f| f.exists()));
+}
+
+#[test]
+fn alpha_quick_writes_a_finite_report_and_the_e1_figure() {
+    state_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let rep = run_experiment(Experiment::Alpha, dir.path(), true).unwrap();
+    let md = std::fs::read_to_string(&rep.report).unwrap();
+    assert_eq!(assert_tables_finite(&md), 3 * 3, "{md}");
+    assert_figures(dir.path(), &["alpha-e1"]);
+    assert!(md.contains("(alpha-e1.png)"));
+}
+
+#[test]
+fn payload_quick_writes_a_finite_report_and_figures() {
+    state_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let rep = run_experiment(Experiment::Payload, dir.path(), true).unwrap();
+    let md = std::fs::read_to_string(&rep.report).unwrap();
+    assert_eq!(assert_tables_finite(&md), PAYLOAD_RUNS.len() * 6, "{md}");
+    for (name, _, _) in PAYLOAD_RUNS {
+        assert_figures(&dir.path().join(name), &["angles", "tracking_error"]);
+    }
+}
+
+#[test]
+fn unknown_experiment_is_refused() {
+    assert!("fig13".parse::<Experiment>().is_err());
+    assert_eq!(
+        "payload".parse::<Experiment>().unwrap(),
+        Experiment::Payload
+    );
+}
+
+#[test]
+fn cli_refuses_bad_input_with_exit_2() {
+    let omnid = env!("CARGO_BIN_EXE_omnid");
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(omnid)
+        .args(["experiment", "fig13", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    // An output directory under a regular file cannot be made.
+    let file = dir.path().join("file");
+    std::fs::write(&file, "x").unwrap();
+    let out = std::process::Command::new(omnid)
+        .args(["experiment", "alpha", "--quick", "--out"])
+        .arg(file.join("sub"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("output directory"));
+}
