@@ -413,7 +413,7 @@ mod tests {
         for (k, _) in IDENTIFIER_FIELD_DOCS {
             let key = k.strip_prefix("identifier.");
             assert!(
-                key.map_or(true, |k| table.contains_key(k)),
+                key.is_none_or(|k| table.contains_key(k)),
                 "stale doc: {k}"
             );
         }

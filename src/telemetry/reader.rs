@@ -399,7 +399,7 @@ fn suggest(column: &str, candidates: &[&str]) -> Option<String> {
             edit_distance(&n, &want)
         };
         let limit = if want.len() <= 2 { 1 } else { 2 };
-        if d <= limit && best.map_or(true, |(bd, _)| d < bd) {
+        if d <= limit && best.is_none_or(|(bd, _)| d < bd) {
             best = Some((d, h));
         }
     }
