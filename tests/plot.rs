@@ -156,6 +156,29 @@ fn plots_a_seven_column_log_and_says_what_it_skipped() {
         !svg.contains("start-up blend"),
         "no mode column, nothing to shade"
     );
+
+    // The same file replayed through omnid (identification pass): its log has every figure.
+    let replayed = dir.path().join("replayed.csv");
+    let device = format!("--device=replay:{}", log.display());
+    run_ok(&[
+        "run",
+        &device,
+        "--controller",
+        "off",
+        "--fast",
+        "--log",
+        replayed.to_str().unwrap(),
+    ]);
+    let out2 = dir.path().join("figs-replayed");
+    plot(&replayed, &out2);
+    for name in [
+        "angles",
+        "control_effort",
+        "torque_identification",
+        "identification_error",
+    ] {
+        assert_figure(&out2, name);
+    }
 }
 
 #[test]

@@ -412,10 +412,7 @@ mod tests {
         }
         for (k, _) in IDENTIFIER_FIELD_DOCS {
             let key = k.strip_prefix("identifier.");
-            assert!(
-                key.is_none_or(|k| table.contains_key(k)),
-                "stale doc: {k}"
-            );
+            assert!(key.is_none_or(|k| table.contains_key(k)), "stale doc: {k}");
         }
     }
 
