@@ -10,7 +10,11 @@ use omnid::device::codec::{
 fuzz_target!(|data: &[u8]| {
     match decode_state(data) {
         Ok(s) => assert_eq!(decode_state(&encode_state(&s)), Ok(s)),
-        Err(_) => assert_ne!(data.len(), STATE_LEN, "a {STATE_LEN}-byte state packet always decodes"),
+        Err(_) => assert_ne!(
+            data.len(),
+            STATE_LEN,
+            "a {STATE_LEN}-byte state packet always decodes"
+        ),
     }
     if let Ok(c) = decode_command(data) {
         assert_eq!(data.len(), COMMAND_LEN);

@@ -20,7 +20,10 @@ fuzz_target!(|data: &[u8]| {
         }
         Err(ConfigError::Parse { message, .. }) => {
             assert!(!message.contains('\n'), "multi-line message: {message}");
-            assert!(message.starts_with("line "), "parse error without a line: {message}");
+            assert!(
+                message.starts_with("line "),
+                "parse error without a line: {message}"
+            );
         }
         Err(ConfigError::Invalid { field, .. }) => assert!(!field.is_empty()),
         Err(e @ ConfigError::Read { .. }) => panic!("from_toml reads no file: {e}"),
@@ -33,7 +36,10 @@ fuzz_target!(|data: &[u8]| {
                 Fault::Corrupt { probability } => [probability, 1.0 - probability],
                 Fault::EncoderJump { at_s, .. } => [at_s, 0.0],
             };
-            assert!(values.iter().all(|v| v.is_finite() && *v >= 0.0), "{line:?} -> {f:?}");
+            assert!(
+                values.iter().all(|v| v.is_finite() && *v >= 0.0),
+                "{line:?} -> {f:?}"
+            );
         }
     }
 });

@@ -23,14 +23,20 @@ fn read_all(data: &[u8], lenient: bool) -> (Vec<LogRow>, Option<ReadError>) {
             Err(e) => return (rows, Some(e)),
         }
     }
-    panic!("reader returned more than {MAX_CALLS} rows from {} bytes", data.len());
+    panic!(
+        "reader returned more than {MAX_CALLS} rows from {} bytes",
+        data.len()
+    );
 }
 
 fn check(rows: &[LogRow], err: &Option<ReadError>) {
     if let Some(e) = err {
         assert!(e.line().is_some(), "error without a line: {e}");
         let msg = e.to_string();
-        assert!(msg.starts_with("fuzz.csv: "), "error without the file: {msg}");
+        assert!(
+            msg.starts_with("fuzz.csv: "),
+            "error without the file: {msg}"
+        );
     }
     let mut prev: Option<&LogRow> = None;
     for row in rows {
@@ -61,6 +67,9 @@ fuzz_target!(|data: &[u8]| {
         "strict rows are not a prefix of the lenient rows"
     );
     if strict_err.is_none() {
-        assert_eq!(strict, lenient, "a file the strict reader accepts reads the same leniently");
+        assert_eq!(
+            strict, lenient,
+            "a file the strict reader accepts reads the same leniently"
+        );
     }
 });
