@@ -25,6 +25,7 @@
 //! last *accepted* row.
 
 use super::record::Mode;
+use std::collections::VecDeque;
 use std::fmt;
 use std::fs::File;
 use std::io::{self, Read};
@@ -237,22 +238,60 @@ impl fmt::Display for SkipReport {
 }
 
 /// Counts bytes and remembers the last one, so a row cut off at the end of the file can be told
-/// from one with a wrong field count.
+/// from one with a wrong field count. Also notes what the CSV parser's line numbers miss: it
+/// ends a row at a lone `\r` too but counts only `\n`s, and a row after a `\r\n` starts, for
+/// it, at the `\n`, before that line is counted.
 struct Tail<R> {
     inner: R,
     total: u64,
     last: Option<u8>,
     eof: bool,
+    /// Byte offsets of lone `\r`s not yet passed by a row (empty, never allocated, in a file
+    /// without them).
+    lone_cr: VecDeque<u64>,
+    /// A `\r` that ended the last chunk: lone unless the next chunk starts with `\n`.
+    pending_cr: Option<u64>,
+    /// Byte offsets of the `\n`s of `\r\n`s not yet passed by a row (empty in a `\n` file).
+    crlf_lf: VecDeque<u64>,
+}
+
+impl<R> Tail<R> {
+    fn new(inner: R) -> Self {
+        Tail {
+            inner,
+            total: 0,
+            last: None,
+            eof: false,
+            lone_cr: VecDeque::new(),
+            pending_cr: None,
+            crlf_lf: VecDeque::new(),
+        }
+    }
 }
 
 impl<R: Read> Read for Tail<R> {
     fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
         let n = self.inner.read(buf)?;
+        let base = self.total;
+        if let Some(at) = self.pending_cr.take() {
+            if n > 0 && buf[0] == b'\n' {
+                self.crlf_lf.push_back(base);
+            } else {
+                self.lone_cr.push_back(at);
+            }
+        }
         if n == 0 {
             self.eof = true;
         } else {
             self.total += n as u64;
             self.last = Some(buf[n - 1]);
+            for (i, _) in buf[..n].iter().enumerate().filter(|(_, &b)| b == b'\r') {
+                match buf[..n].get(i + 1) {
+                    Some(b'\n') => self.crlf_lf.push_back(base + i as u64 + 1),
+                    Some(_) => self.lone_cr.push_back(base + i as u64),
+                    None => self.pending_cr = Some(base + i as u64),
+                }
+            }
         }
         Ok(n)
     }
@@ -438,6 +477,8 @@ pub struct ColumnReader<R: Read> {
     time_col: usize,
     lenient: bool,
     last: Option<(f64, u64)>,
+    /// Lone `\r` line ends before the current row (see [`Tail`]).
+    cr_lines: u64,
     skipped: SkipReport,
 }
 
@@ -461,12 +502,7 @@ impl<R: Read> ColumnReader<R> {
         let mut csv = csv::ReaderBuilder::new()
             .has_headers(false)
             .flexible(true)
-            .from_reader(Tail {
-                inner: input,
-                total: 0,
-                last: None,
-                eof: false,
-            });
+            .from_reader(Tail::new(input));
         let mut record = csv::ByteRecord::new();
         let io_err = |e: csv::Error, path: &str| csv_error(e, path, 1);
         let expected = required.join(", ");
@@ -502,6 +538,7 @@ impl<R: Read> ColumnReader<R> {
             time_col: 0,
             lenient,
             last: None,
+            cr_lines: 0,
             skipped: SkipReport {
                 first_lines: Vec::with_capacity(SKIP_LINES_KEPT),
                 ..SkipReport::default()
@@ -583,7 +620,7 @@ impl<R: Read> ColumnReader<R> {
             if !more {
                 return Ok(None);
             }
-            let line = self.record.position().map(|p| p.line()).unwrap_or(0);
+            let line = self.line_of_record();
             let result = if self.record.len() != self.header.len() {
                 Err(RowFault::FieldCount {
                     got: self.record.len(),
@@ -621,6 +658,26 @@ impl<R: Read> ColumnReader<R> {
                 Err(fault) => return Err(self.error(fault, line)),
             }
         }
+    }
+
+    /// The line the record just read starts on: the parser's count of `\n`s plus the lone `\r`s
+    /// before it (a file with `\r` line ends would otherwise put every row on line 1), plus one
+    /// when the parser puts its start on the `\n` of a `\r\n` (every row of a `\r\n` file would
+    /// otherwise be numbered one line early).
+    fn line_of_record(&mut self) -> u64 {
+        let Some(pos) = self.record.position() else {
+            return 0;
+        };
+        let tail = self.csv.get_mut();
+        while tail.lone_cr.front().is_some_and(|&at| at < pos.byte()) {
+            tail.lone_cr.pop_front();
+            self.cr_lines += 1;
+        }
+        while tail.crlf_lf.front().is_some_and(|&at| at < pos.byte()) {
+            tail.crlf_lf.pop_front();
+        }
+        let at_lf = tail.crlf_lf.front() == Some(&pos.byte());
+        pos.line() + self.cr_lines + u64::from(at_lf)
     }
 
     /// The record just read was the file's last and it ends without a newline.
@@ -920,6 +977,64 @@ mod tests {
             "a complete last line without newline is accepted"
         );
         assert_eq!(rows[1].t, 0.1);
+    }
+
+    /// Found by the `log_reader` fuzz target: with lone `\r` line ends the parser still split the
+    /// rows but numbered them all on line 1, and with `\r\n` one line early, so errors and skip
+    /// reports named the wrong line.
+    #[test]
+    fn lone_cr_line_ends_number_lines_like_newlines() {
+        let body = ["0,1,2,3,4,5,6", "0.1,1,2,3,4,5,6", "0.2,1,2,3,4,5,6"];
+        for (name, text) in [
+            ("cr", format!("{}\r{}\r", H.trim_end(), body.join("\r"))),
+            (
+                "crlf",
+                format!("{}\r\n{}\r\n", H.trim_end(), body.join("\r\n")),
+            ),
+            (
+                "mixed",
+                format!("{}\r\n{}\r{}\n{}", H.trim_end(), body[0], body[1], body[2]),
+            ),
+        ] {
+            let (rows, _) = read_all(&text, false).unwrap();
+            let lines: Vec<u64> = rows.iter().map(|r| r.line).collect();
+            assert_eq!(lines, [2, 3, 4], "{name}");
+            // One byte per read: a `\r` at the end of a chunk, its `\n` in the next.
+            let mut r = LogReader::new(OneByte(text.as_bytes()), "mem.csv", false).unwrap();
+            let lines: Vec<u64> = std::iter::from_fn(|| r.next_row().unwrap())
+                .map(|row| row.line)
+                .collect();
+            assert_eq!(lines, [2, 3, 4], "{name}, byte by byte");
+        }
+        let e = read_all(
+            &format!("{}\r0,1,2,3,4,5,6\r0,1,2,3,4,5,6\r", H.trim_end()),
+            false,
+        )
+        .unwrap_err();
+        assert_eq!(e.line(), Some(3), "{e}");
+        assert!(
+            e.to_string().contains("line 3:") && e.to_string().contains("(line 2)"),
+            "{e}"
+        );
+        let (_, skipped) =
+            read_all(&format!("{H}0,1,2,3,4,5,6\rx,1,2,3,4,5,6\r0.5,1"), true).unwrap();
+        assert_eq!(skipped.first_lines, [3, 4]);
+    }
+
+    /// A reader that hands out one byte per call.
+    struct OneByte<'a>(&'a [u8]);
+
+    impl Read for OneByte<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+            match (self.0.split_first(), buf.first_mut()) {
+                (Some((&b, rest)), Some(out)) => {
+                    *out = b;
+                    self.0 = rest;
+                    Ok(1)
+                }
+                _ => Ok(0),
+            }
+        }
     }
 
     #[test]
