@@ -2,6 +2,7 @@
 //! throughput on the simulated Omni. `cargo bench --bench tick`.
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
+use crossbeam_channel::TryRecvError;
 use omnid::config::Config;
 use omnid::control::ControllerKind;
 use omnid::control::{ControlInput, Controller, Pd, Reference, Trajectory};
@@ -15,6 +16,7 @@ use omnid::estimate::KalmanBank;
 use omnid::omni::Joint3;
 use omnid::run::{make_controller, make_identifier};
 use omnid::servo::Servo;
+use omnid::telemetry::writer;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
@@ -115,8 +117,14 @@ fn identifier(c: &mut Criterion) {
     let qd = Joint3::new(0.4, -0.3, 0.2);
     let qdd = Joint3::new(1.0, 0.5, -2.0);
     let tau = Joint3::new(0.01, -0.02, 0.03);
+    // Two points in turn: the identifier reuses a pass at an unchanged point and weights.
+    let q2 = q + Joint3::repeat(1e-3);
+    let mut flip = false;
     g.bench_function("forward (predict)", |b| {
-        b.iter(|| id.predict(black_box(&q), &qd, &qdd))
+        b.iter(|| {
+            flip = !flip;
+            id.predict(black_box(if flip { &q } else { &q2 }), &qd, &qdd)
+        })
     });
     g.bench_function("update (forward + gradients + step)", |b| {
         b.iter(|| id.update(black_box(&q), &qd, &qdd, &tau, 1e-3))
@@ -197,7 +205,17 @@ fn fast_throughput(c: &mut Criterion) {
         g.bench_function(format!("sim+{} 10 s run", kind.as_str()), |b| {
             b.iter(|| {
                 let (tx, rx) = crossbeam_channel::bounded(1 << 14);
-                let drain = std::thread::spawn(move || rx.iter().count());
+                // Polls like the log writer, so the servo never has to wake it.
+                let drain = std::thread::spawn(move || {
+                    let mut n = 0u64;
+                    loop {
+                        match rx.try_recv() {
+                            Ok(_) => n += 1,
+                            Err(TryRecvError::Empty) => std::thread::sleep(writer::POLL),
+                            Err(TryRecvError::Disconnected) => return n,
+                        }
+                    }
+                });
                 let mut servo = Servo::new(
                     &cfg,
                     Box::new(SimOmni::new(&cfg, false)),

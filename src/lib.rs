@@ -11,6 +11,7 @@ pub mod control;
 pub mod device;
 pub mod estimate;
 pub mod experiment;
+pub mod fastmath;
 pub mod ident;
 pub mod identify;
 pub mod omni;

@@ -146,6 +146,13 @@ pub struct Identifier {
     /// ∂e4_n/∂λ_n (0 or 1) and the eigenvectors (columns) of M̂.
     e4_slope: Vector3<f64>,
     eigvecs: Matrix3<f64>,
+    /// (q, q̇) at which M̂, Ĉ, Ĝ, F̂ and the networks' activations were last computed, while
+    /// they are still valid: the controller and the update of one tick evaluate the same
+    /// point with the same weights, so the second pass is skipped. Cleared by every weight
+    /// change and by the single-network accessors.
+    forward_at: Option<(Vector3<f64>, Vector3<f64>)>,
+    /// Ṁ̂ (the M-net's tangent along q̇) is valid for `forward_at`.
+    tangent_done: bool,
 }
 
 fn sym_from6(m: &[f64]) -> Matrix3<f64> {
@@ -215,6 +222,8 @@ impl Identifier {
             qdd: Vector3::zeros(),
             e4_slope: Vector3::zeros(),
             eigvecs: Matrix3::identity(),
+            forward_at: None,
+            tangent_done: false,
         };
         id.set_anchor();
         id.anchored = false;
@@ -236,6 +245,7 @@ impl Identifier {
     }
 
     pub fn net_mut(&mut self, net: Net) -> Option<&mut Mlp> {
+        self.forward_at = None;
         match net {
             Net::M => Some(&mut self.m),
             Net::C => Some(&mut self.c),
@@ -255,6 +265,7 @@ impl Identifier {
 
     /// Replace a network wholesale (weights loading); sizes must match the configuration.
     pub(crate) fn replace_net(&mut self, net: Net, mlp: Mlp) {
+        self.forward_at = None;
         match net {
             Net::M => self.m = mlp,
             Net::C => self.c = mlp,
@@ -338,28 +349,33 @@ impl Identifier {
 
     /// M̂(q), kg·m².
     pub fn mass(&mut self, q: &Vector3<f64>) -> Matrix3<f64> {
+        self.forward_at = None;
         sym_from6(self.m.forward(q.as_slice()))
     }
 
     /// Ṁ̂ = Σ_k ∂M̂/∂q_k q̇_k, exact through the M-net, kg·m²/s.
     pub fn mass_derivative(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Matrix3<f64> {
+        self.forward_at = None;
         self.m.forward(q.as_slice());
         sym_from6(self.m.tangent(qd.as_slice()))
     }
 
     /// Ĉ(q, q̇), kg·m²/s (multiplies q̇).
     pub fn coriolis(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Matrix3<f64> {
+        self.forward_at = None;
         let x = [q[0], q[1], q[2], qd[0], qd[1], qd[2]];
         Matrix3::from_row_slice(self.c.forward(&x))
     }
 
     /// Ĝ(q), N·m.
     pub fn gravity(&mut self, q: &Vector3<f64>) -> Vector3<f64> {
+        self.forward_at = None;
         Vector3::from_column_slice(self.g.forward(q.as_slice()))
     }
 
     /// F̂(q̇), N·m (zero without the F-net).
     pub fn friction(&mut self, qd: &Vector3<f64>) -> Vector3<f64> {
+        self.forward_at = None;
         match &mut self.f {
             Some(f) => Vector3::from_column_slice(f.forward(qd.as_slice())),
             None => Vector3::zeros(),
@@ -388,17 +404,22 @@ impl Identifier {
     }
 
     fn forward(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>, tangent: bool) {
-        self.mhat = sym_from6(self.m.forward(q.as_slice()));
-        if tangent {
-            self.mdot = sym_from6(self.m.tangent(qd.as_slice()));
+        if self.forward_at != Some((*q, *qd)) {
+            self.mhat = sym_from6(self.m.forward(q.as_slice()));
+            let x = [q[0], q[1], q[2], qd[0], qd[1], qd[2]];
+            self.chat = Matrix3::from_row_slice(self.c.forward(&x));
+            self.ghat = Vector3::from_column_slice(self.g.forward(q.as_slice()));
+            self.fhat = match &mut self.f {
+                Some(f) => Vector3::from_column_slice(f.forward(qd.as_slice())),
+                None => Vector3::zeros(),
+            };
+            self.forward_at = Some((*q, *qd));
+            self.tangent_done = false;
         }
-        let x = [q[0], q[1], q[2], qd[0], qd[1], qd[2]];
-        self.chat = Matrix3::from_row_slice(self.c.forward(&x));
-        self.ghat = Vector3::from_column_slice(self.g.forward(q.as_slice()));
-        self.fhat = match &mut self.f {
-            Some(f) => Vector3::from_column_slice(f.forward(qd.as_slice())),
-            None => Vector3::zeros(),
-        };
+        if tangent && !self.tangent_done {
+            self.mdot = sym_from6(self.m.tangent(qd.as_slice()));
+            self.tangent_done = true;
+        }
     }
 
     /// 1/(DC gain) of the modified-error filter: α for eq. 21, 1 with `unit_gain_filter`.
@@ -599,14 +620,25 @@ impl Identifier {
             let Some(net) = net else { continue };
             let hl = net.hidden_len();
             let (p, g) = net.params_and_grad_mut();
-            let mut dot = 0.0;
-            let mut pp = 0.0;
-            for (i, ((gi, pi), p0)) in g.iter_mut().zip(p.iter()).zip(&theta0[k]).enumerate() {
-                let rate = if i < hl { rates[k][0] } else { rates[k][1] };
-                *gi = -t * rate * (*gi + sigma * (pi - p0));
-                dot += *gi * pi;
-                pp += pi * pi;
+            let p0 = &theta0[k];
+            debug_assert_eq!(
+                p0.len(),
+                p.len(),
+                "θ0 is taken from networks of the same size"
+            );
+            // Hidden layer and output layer have their own rates Γ.
+            let mut sums = Lanes::default();
+            for (range, rate) in [(0..hl, rates[k][0]), (hl..p.len(), rates[k][1])] {
+                let gain = -t * rate;
+                sums.step(
+                    &mut g[range.clone()],
+                    &p[range.clone()],
+                    &p0[range],
+                    gain,
+                    sigma,
+                );
             }
+            let (dot, pp) = (sums.dot(), sums.pp());
             // Projection: on or beyond the bound, drop the outward radial part of the step.
             if w_max > 0.0 && pp >= w_max * w_max && dot > 0.0 {
                 let c = dot / pp;
@@ -614,7 +646,7 @@ impl Identifier {
                     *gi -= c * pi;
                 }
             }
-            ok &= g.iter().zip(p.iter()).all(|(gi, pi)| (gi + pi).is_finite());
+            ok &= step_is_finite(g, p);
         }
         self.theta0 = theta0;
         if !ok {
@@ -622,15 +654,12 @@ impl Identifier {
             return;
         }
         // Phase 2: apply all steps (all-or-nothing, so the weights stay the last good ones).
+        self.forward_at = None;
         let mut step2 = 0.0;
         for net in self.nets_mut().into_iter().flatten() {
             let (p, g) = net.params_and_grad_mut();
-            let mut pp = 0.0;
-            for (pi, gi) in p.iter_mut().zip(g.iter()) {
-                *pi += gi;
-                step2 += gi * gi;
-                pp += *pi * *pi;
-            }
+            let (s2, pp) = apply_step(p, g);
+            step2 += s2;
             // The discrete step can still cross the sphere tangentially: pull back onto it.
             if w_max > 0.0 && pp > w_max * w_max {
                 let s = w_max / pp.sqrt();
@@ -640,6 +669,86 @@ impl Identifier {
         self.snap.updated = true;
         self.snap.step_norm = step2.sqrt();
     }
+}
+
+// The update walks every weight (about 660) three times a tick. A single running sum is one
+// long chain of dependent adds, so these kernels keep four independent partial sums.
+const LANES: usize = 4;
+
+/// Partial sums of gᵢ·pᵢ and pᵢ² over the step kernel.
+#[derive(Default)]
+struct Lanes {
+    dot: [f64; LANES],
+    pp: [f64; LANES],
+}
+
+impl Lanes {
+    /// gᵢ ← gain·(gᵢ + σ(pᵢ − p0ᵢ)), accumulating gᵢ·pᵢ and pᵢ².
+    fn step(&mut self, g: &mut [f64], p: &[f64], p0: &[f64], gain: f64, sigma: f64) {
+        let n = g.len() / LANES * LANES;
+        let (g_body, g_tail) = g.split_at_mut(n);
+        for ((gc, pc), p0c) in g_body
+            .chunks_exact_mut(LANES)
+            .zip(p.chunks_exact(LANES))
+            .zip(p0.chunks_exact(LANES))
+        {
+            for l in 0..LANES {
+                gc[l] = gain * (gc[l] + sigma * (pc[l] - p0c[l]));
+                self.dot[l] += gc[l] * pc[l];
+                self.pp[l] += pc[l] * pc[l];
+            }
+        }
+        for ((gi, pi), p0i) in g_tail.iter_mut().zip(&p[n..]).zip(&p0[n..]) {
+            *gi = gain * (*gi + sigma * (pi - p0i));
+            self.dot[0] += *gi * pi;
+            self.pp[0] += pi * pi;
+        }
+    }
+
+    fn dot(&self) -> f64 {
+        self.dot.iter().sum()
+    }
+
+    fn pp(&self) -> f64 {
+        self.pp.iter().sum()
+    }
+}
+
+/// True if every pᵢ + gᵢ is finite. x·0 is 0 for finite x and NaN for ±∞ or NaN, so one
+/// branch-free sum answers for the whole vector.
+fn step_is_finite(g: &[f64], p: &[f64]) -> bool {
+    let mut acc = [0.0; LANES];
+    let n = g.len() / LANES * LANES;
+    for (gc, pc) in g[..n].chunks_exact(LANES).zip(p.chunks_exact(LANES)) {
+        for l in 0..LANES {
+            acc[l] += (gc[l] + pc[l]) * 0.0;
+        }
+    }
+    for (gi, pi) in g[n..].iter().zip(&p[n..]) {
+        acc[0] += (gi + pi) * 0.0;
+    }
+    acc.iter().sum::<f64>() == 0.0
+}
+
+/// p ← p + g; returns (‖g‖², ‖p‖²) of the step and the new weights.
+fn apply_step(p: &mut [f64], g: &[f64]) -> (f64, f64) {
+    let mut s2 = [0.0; LANES];
+    let mut pp = [0.0; LANES];
+    let n = p.len() / LANES * LANES;
+    let (p_body, p_tail) = p.split_at_mut(n);
+    for (pc, gc) in p_body.chunks_exact_mut(LANES).zip(g.chunks_exact(LANES)) {
+        for l in 0..LANES {
+            pc[l] += gc[l];
+            s2[l] += gc[l] * gc[l];
+            pp[l] += pc[l] * pc[l];
+        }
+    }
+    for (pi, gi) in p_tail.iter_mut().zip(&g[n..]) {
+        *pi += gi;
+        s2[0] += gi * gi;
+        pp[0] += *pi * *pi;
+    }
+    (s2.iter().sum(), pp.iter().sum())
 }
 
 /// Input/output scaling of `net` from the configuration.
@@ -707,6 +816,27 @@ mod tests {
         // The update changed the weights, so the next prediction differs.
         assert_ne!(id.predict(&q, &qd, &qdd), p);
         assert!(id.weight_change_norm() > 0.0);
+    }
+
+    #[test]
+    fn a_reused_network_pass_gives_the_update_of_a_fresh_one() {
+        let (q, qd, qdd) = state();
+        let tau = Vector3::new(0.01, 0.02, -0.03);
+        let mut fresh = Identifier::new(&IdentifierConfig::default()).unwrap();
+        let mut reused = fresh.clone();
+        // The controller's pass at (q, q̇) is the one the update reuses.
+        reused.inverse_dynamics(&q, &qd, &Vector3::zeros());
+        let a = reused.update(&q, &qd, &qdd, &tau, 1e-3);
+        let b = fresh.update(&q, &qd, &qdd, &tau, 1e-3);
+        assert_eq!(a, b);
+        assert_eq!(params(&reused), params(&fresh));
+        // A single-network accessor moves the activations elsewhere: nothing may be reused.
+        reused.inverse_dynamics(&q, &qd, &Vector3::zeros());
+        reused.mass(&(q * 0.5));
+        reused.coriolis(&(q * 0.5), &qd);
+        reused.update(&q, &qd, &qdd, &tau, 1e-3);
+        fresh.update(&q, &qd, &qdd, &tau, 1e-3);
+        assert_eq!(params(&reused), params(&fresh));
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //! Parameters live in one flat vector `[W1 (H×P, row-major) | b1 (H) | W2 (O×H) | b2 (O)]`, so
 //! leakage, projection, norms, saving and Adam all work on plain slices.
 
+use crate::fastmath::tanh;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -261,7 +262,7 @@ impl Mlp {
         let (w2, b2) = rest.split_at(self.outputs * self.hidden);
         for ((hj, row), bj) in self.h.iter_mut().zip(w1.chunks_exact(self.inputs)).zip(b1) {
             let a: f64 = row.iter().zip(&self.x).map(|(w, x)| w * x).sum::<f64>() + bj;
-            *hj = a.tanh();
+            *hj = tanh(a);
         }
         for (((yo, row), bo), so) in self
             .y

@@ -244,6 +244,18 @@ impl Servo {
         // Estimate.
         let est = self.kalman.update(t_dev, &q);
 
+        // Control, with the weights as they are; the update below then learns from this
+        // sample at the same point (one network pass serves both).
+        let reference = self.reference.at(t, &est.q);
+        let tau_cmd = self.controller.torque(
+            &ControlInput {
+                t,
+                estimate: &est,
+                reference: &reference,
+            },
+            self.identifier.as_mut(),
+        );
+
         // Identify: learn from the torque that acted up to this sample.
         let dt = if self.tick == 0 { 0.0 } else { t - self.last_t };
         let mut tau_hat = [0.0; 3];
@@ -280,17 +292,6 @@ impl Servo {
             }
             None => [f64::NAN; 3],
         };
-
-        // Control.
-        let reference = self.reference.at(t, &est.q);
-        let tau_cmd = self.controller.torque(
-            &ControlInput {
-                t,
-                estimate: &est,
-                reference: &reference,
-            },
-            self.identifier.as_mut(),
-        );
 
         // Safety: every command passes through the limits; a trip ends the run.
         let limited = match self.safety.apply(&tau_cmd, &est.q, &est.qd) {
