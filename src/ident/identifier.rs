@@ -685,17 +685,20 @@ struct Lanes {
 impl Lanes {
     /// gᵢ ← gain·(gᵢ + σ(pᵢ − p0ᵢ)), accumulating gᵢ·pᵢ and pᵢ².
     fn step(&mut self, g: &mut [f64], p: &[f64], p0: &[f64], gain: f64, sigma: f64) {
-        let (g4, g_tail) = g.as_chunks_mut::<LANES>();
-        let (p4, p_tail) = p.as_chunks::<LANES>();
-        let (p04, p0_tail) = p0.as_chunks::<LANES>();
-        for ((gc, pc), p0c) in g4.iter_mut().zip(p4).zip(p04) {
+        let n = g.len() / LANES * LANES;
+        let (g_body, g_tail) = g.split_at_mut(n);
+        for ((gc, pc), p0c) in g_body
+            .chunks_exact_mut(LANES)
+            .zip(p.chunks_exact(LANES))
+            .zip(p0.chunks_exact(LANES))
+        {
             for l in 0..LANES {
                 gc[l] = gain * (gc[l] + sigma * (pc[l] - p0c[l]));
                 self.dot[l] += gc[l] * pc[l];
                 self.pp[l] += pc[l] * pc[l];
             }
         }
-        for ((gi, pi), p0i) in g_tail.iter_mut().zip(p_tail).zip(p0_tail) {
+        for ((gi, pi), p0i) in g_tail.iter_mut().zip(&p[n..]).zip(&p0[n..]) {
             *gi = gain * (*gi + sigma * (pi - p0i));
             self.dot[0] += *gi * pi;
             self.pp[0] += pi * pi;
@@ -715,14 +718,13 @@ impl Lanes {
 /// branch-free sum answers for the whole vector.
 fn step_is_finite(g: &[f64], p: &[f64]) -> bool {
     let mut acc = [0.0; LANES];
-    let (g4, g_tail) = g.as_chunks::<LANES>();
-    let (p4, p_tail) = p.as_chunks::<LANES>();
-    for (gc, pc) in g4.iter().zip(p4) {
+    let n = g.len() / LANES * LANES;
+    for (gc, pc) in g[..n].chunks_exact(LANES).zip(p.chunks_exact(LANES)) {
         for l in 0..LANES {
             acc[l] += (gc[l] + pc[l]) * 0.0;
         }
     }
-    for (gi, pi) in g_tail.iter().zip(p_tail) {
+    for (gi, pi) in g[n..].iter().zip(&p[n..]) {
         acc[0] += (gi + pi) * 0.0;
     }
     acc.iter().sum::<f64>() == 0.0
@@ -732,16 +734,16 @@ fn step_is_finite(g: &[f64], p: &[f64]) -> bool {
 fn apply_step(p: &mut [f64], g: &[f64]) -> (f64, f64) {
     let mut s2 = [0.0; LANES];
     let mut pp = [0.0; LANES];
-    let (p4, p_tail) = p.as_chunks_mut::<LANES>();
-    let (g4, g_tail) = g.as_chunks::<LANES>();
-    for (pc, gc) in p4.iter_mut().zip(g4) {
+    let n = p.len() / LANES * LANES;
+    let (p_body, p_tail) = p.split_at_mut(n);
+    for (pc, gc) in p_body.chunks_exact_mut(LANES).zip(g.chunks_exact(LANES)) {
         for l in 0..LANES {
             pc[l] += gc[l];
             s2[l] += gc[l] * gc[l];
             pp[l] += pc[l] * pc[l];
         }
     }
-    for (pi, gi) in p_tail.iter_mut().zip(g_tail) {
+    for (pi, gi) in p_tail.iter_mut().zip(&g[n..]) {
         *pi += gi;
         s2[0] += gi * gi;
         pp[0] += *pi * *pi;
