@@ -13,6 +13,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
+use wide::f64x2;
 
 /// Weighted augmented error ε = [e1; λ1·e2; λ2·e3; λ3·e4] (dimensionless, see `torque_scale`).
 pub type Wae = SVector<f64, 12>;
@@ -615,6 +616,8 @@ impl Identifier {
         let rates = self.rates;
         let theta0 = std::mem::take(&mut self.theta0);
         let mut ok = true;
+        let mut step2 = 0.0;
+        let mut new_norm2 = [0.0; 4];
         // Phase 1: turn each gradient buffer into the step, and check it.
         for (k, net) in self.nets_mut().into_iter().enumerate() {
             let Some(net) = net else { continue };
@@ -627,7 +630,7 @@ impl Identifier {
                 "θ0 is taken from networks of the same size"
             );
             // Hidden layer and output layer have their own rates Γ.
-            let mut sums = Lanes::default();
+            let mut sums = Sums::default();
             for (range, rate) in [(0..hl, rates[k][0]), (hl..p.len(), rates[k][1])] {
                 let gain = -t * rate;
                 sums.step(
@@ -638,15 +641,20 @@ impl Identifier {
                     sigma,
                 );
             }
-            let (dot, pp) = (sums.dot(), sums.pp());
-            // Projection: on or beyond the bound, drop the outward radial part of the step.
+            let (dot, pp) = (sums.dot.reduce_add(), sums.pp.reduce_add());
+            // Projection: on or beyond the bound, drop the outward radial part of the step
+            // (rare: the sums for the unprojected step are then taken again).
             if w_max > 0.0 && pp >= w_max * w_max && dot > 0.0 {
                 let c = dot / pp;
                 for (gi, pi) in g.iter_mut().zip(p.iter()) {
                     *gi -= c * pi;
                 }
+                sums = Sums::default();
+                sums.of_step(g, p);
             }
-            ok &= step_is_finite(g, p);
+            ok &= sums.finite.reduce_add() == 0.0;
+            step2 += sums.s2.reduce_add();
+            new_norm2[k] = sums.pp_new.reduce_add();
         }
         self.theta0 = theta0;
         if !ok {
@@ -655,12 +663,12 @@ impl Identifier {
         }
         // Phase 2: apply all steps (all-or-nothing, so the weights stay the last good ones).
         self.forward_at = None;
-        let mut step2 = 0.0;
-        for net in self.nets_mut().into_iter().flatten() {
+        for (k, net) in self.nets_mut().into_iter().enumerate() {
+            let Some(net) = net else { continue };
             let (p, g) = net.params_and_grad_mut();
-            let (s2, pp) = apply_step(p, g);
-            step2 += s2;
+            p.iter_mut().zip(g.iter()).for_each(|(pi, gi)| *pi += gi);
             // The discrete step can still cross the sphere tangentially: pull back onto it.
+            let pp = new_norm2[k];
             if w_max > 0.0 && pp > w_max * w_max {
                 let s = w_max / pp.sqrt();
                 p.iter_mut().for_each(|pi| *pi *= s);
@@ -671,84 +679,62 @@ impl Identifier {
     }
 }
 
-// The update walks every weight (about 660) three times a tick. A single running sum is one
-// long chain of dependent adds, so these kernels keep four independent partial sums.
-const LANES: usize = 4;
-
-/// Partial sums of gᵢ·pᵢ and pᵢ² over the step kernel.
+/// Partial sums over one network's step, two lanes each (a single running sum would be one
+/// long chain of dependent adds over the ~660 weights): gᵢ·pᵢ and pᵢ² (for the projection),
+/// and for the step as it stands gᵢ², (pᵢ + gᵢ)² and the finiteness probe (pᵢ + gᵢ)·0, which
+/// is 0 for a finite value and NaN otherwise, so one branch-free sum checks the whole vector.
 #[derive(Default)]
-struct Lanes {
-    dot: [f64; LANES],
-    pp: [f64; LANES],
+struct Sums {
+    dot: f64x2,
+    pp: f64x2,
+    s2: f64x2,
+    pp_new: f64x2,
+    finite: f64x2,
 }
 
-impl Lanes {
-    /// gᵢ ← gain·(gᵢ + σ(pᵢ − p0ᵢ)), accumulating gᵢ·pᵢ and pᵢ².
+impl Sums {
+    /// gᵢ ← gain·(gᵢ + σ(pᵢ − p0ᵢ)), with all the sums.
     fn step(&mut self, g: &mut [f64], p: &[f64], p0: &[f64], gain: f64, sigma: f64) {
-        let n = g.len() / LANES * LANES;
+        let n = g.len() / 2 * 2;
         let (g_body, g_tail) = g.split_at_mut(n);
+        let (gain2, sigma2) = (f64x2::splat(gain), f64x2::splat(sigma));
         for ((gc, pc), p0c) in g_body
-            .chunks_exact_mut(LANES)
-            .zip(p.chunks_exact(LANES))
-            .zip(p0.chunks_exact(LANES))
+            .chunks_exact_mut(2)
+            .zip(p.chunks_exact(2))
+            .zip(p0.chunks_exact(2))
         {
-            for l in 0..LANES {
-                gc[l] = gain * (gc[l] + sigma * (pc[l] - p0c[l]));
-                self.dot[l] += gc[l] * pc[l];
-                self.pp[l] += pc[l] * pc[l];
-            }
+            let (gv, pv, p0v) = (pair(gc), pair(pc), pair(p0c));
+            let sv = gain2 * (gv + sigma2 * (pv - p0v));
+            gc.copy_from_slice(sv.as_array_ref());
+            self.add(sv, pv);
         }
         for ((gi, pi), p0i) in g_tail.iter_mut().zip(&p[n..]).zip(&p0[n..]) {
             *gi = gain * (*gi + sigma * (pi - p0i));
-            self.dot[0] += *gi * pi;
-            self.pp[0] += pi * pi;
+            self.add(f64x2::new([*gi, 0.0]), f64x2::new([*pi, 0.0]));
         }
     }
 
-    fn dot(&self) -> f64 {
-        self.dot.iter().sum()
+    /// The sums of a step already in `g`.
+    fn of_step(&mut self, g: &[f64], p: &[f64]) {
+        for (gi, pi) in g.iter().zip(p) {
+            self.add(f64x2::new([*gi, 0.0]), f64x2::new([*pi, 0.0]));
+        }
     }
 
-    fn pp(&self) -> f64 {
-        self.pp.iter().sum()
+    #[inline(always)]
+    fn add(&mut self, g: f64x2, p: f64x2) {
+        let q = p + g;
+        self.dot += g * p;
+        self.pp += p * p;
+        self.s2 += g * g;
+        self.pp_new += q * q;
+        self.finite += q * f64x2::ZERO;
     }
 }
 
-/// True if every pᵢ + gᵢ is finite. x·0 is 0 for finite x and NaN for ±∞ or NaN, so one
-/// branch-free sum answers for the whole vector.
-fn step_is_finite(g: &[f64], p: &[f64]) -> bool {
-    let mut acc = [0.0; LANES];
-    let n = g.len() / LANES * LANES;
-    for (gc, pc) in g[..n].chunks_exact(LANES).zip(p.chunks_exact(LANES)) {
-        for l in 0..LANES {
-            acc[l] += (gc[l] + pc[l]) * 0.0;
-        }
-    }
-    for (gi, pi) in g[n..].iter().zip(&p[n..]) {
-        acc[0] += (gi + pi) * 0.0;
-    }
-    acc.iter().sum::<f64>() == 0.0
-}
-
-/// p ← p + g; returns (‖g‖², ‖p‖²) of the step and the new weights.
-fn apply_step(p: &mut [f64], g: &[f64]) -> (f64, f64) {
-    let mut s2 = [0.0; LANES];
-    let mut pp = [0.0; LANES];
-    let n = p.len() / LANES * LANES;
-    let (p_body, p_tail) = p.split_at_mut(n);
-    for (pc, gc) in p_body.chunks_exact_mut(LANES).zip(g.chunks_exact(LANES)) {
-        for l in 0..LANES {
-            pc[l] += gc[l];
-            s2[l] += gc[l] * gc[l];
-            pp[l] += pc[l] * pc[l];
-        }
-    }
-    for (pi, gi) in p_tail.iter_mut().zip(&g[n..]) {
-        *pi += gi;
-        s2[0] += gi * gi;
-        pp[0] += *pi * *pi;
-    }
-    (s2.iter().sum(), pp.iter().sum())
+#[inline(always)]
+fn pair(c: &[f64]) -> f64x2 {
+    f64x2::new([c[0], c[1]])
 }
 
 /// Input/output scaling of `net` from the configuration.
