@@ -13,6 +13,7 @@
 //! leakage, projection, norms, saving and Adam all work on plain slices.
 
 use crate::fastmath::tanh;
+use nalgebra::{Const, Dim, Dyn};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -121,6 +122,53 @@ pub struct Mlp {
     rdot: Vec<f64>,
     abar: Vec<f64>,
     adotbar: Vec<f64>,
+    // Whether omnid's own sizes take the compile-time-sized loops (tests turn it off to
+    // compare the two).
+    specialised: bool,
+}
+
+/// The sizes omnid builds (M̂ 3→6, Ĉ 6→9, Ĝ and F̂ 3→3) run the per-tick loops with
+/// compile-time input and output counts, so their short inner loops unroll; any other size
+/// runs the same code with run-time counts.
+macro_rules! with_dims {
+    ($net:ident, $kernel:ident ( $($arg:expr),* )) => {
+        match ($net.specialised, $net.inputs, $net.outputs) {
+            (true, 3, 6) => $net.$kernel(Const::<3>, Const::<6>, $($arg),*),
+            (true, 6, 9) => $net.$kernel(Const::<6>, Const::<9>, $($arg),*),
+            (true, 3, 3) => $net.$kernel(Const::<3>, Const::<3>, $($arg),*),
+            (_, p, o) => $net.$kernel(Dyn(p), Dyn(o), $($arg),*),
+        }
+    };
+}
+
+/// Dot product of a short (input-sized) row, summed in order.
+#[inline(always)]
+fn dot_short(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(a, b)| a * b).sum()
+}
+
+/// Dot product over the hidden layer, in four independent partial sums: one running sum
+/// would make every multiply wait for the previous add.
+#[inline(always)]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (a[..n].chunks_exact(4), b[..n].chunks_exact(4));
+    let tail: f64 = dot_short(a.remainder(), b.remainder());
+    let mut s = [0.0; 4];
+    for (a, b) in a.zip(b) {
+        for k in 0..4 {
+            s[k] += a[k] * b[k];
+        }
+    }
+    (s[0] + s[1]) + (s[2] + s[3]) + tail
+}
+
+/// y += α·x.
+#[inline(always)]
+fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
+    for (y, x) in y.iter_mut().zip(x) {
+        *y += alpha * x;
+    }
 }
 
 impl Mlp {
@@ -160,6 +208,7 @@ impl Mlp {
             rdot: vec![0.0; outputs],
             abar: vec![0.0; hidden],
             adotbar: vec![0.0; hidden],
+            specialised: true,
         })
     }
 
@@ -249,33 +298,35 @@ impl Mlp {
     /// Forward pass on physical inputs `x`; the activations stay for `tangent`/`backward`.
     pub fn forward(&mut self, x: &[f64]) -> &[f64] {
         debug_assert_eq!(x.len(), self.inputs);
-        for ((xs, xi), (c, g)) in self
-            .x
-            .iter_mut()
-            .zip(x)
-            .zip(self.scaling.in_center.iter().zip(&self.in_gain))
-        {
-            *xs = (xi - c) * g;
-        }
-        let (w1, rest) = self.params.split_at(self.b1_at());
-        let (b1, rest) = rest.split_at(self.hidden);
-        let (w2, b2) = rest.split_at(self.outputs * self.hidden);
-        for ((hj, row), bj) in self.h.iter_mut().zip(w1.chunks_exact(self.inputs)).zip(b1) {
-            let a: f64 = row.iter().zip(&self.x).map(|(w, x)| w * x).sum::<f64>() + bj;
-            *hj = tanh(a);
-        }
-        for (((yo, row), bo), so) in self
-            .y
-            .iter_mut()
-            .zip(w2.chunks_exact(self.hidden))
-            .zip(b2)
-            .zip(&self.scaling.out_scale)
-        {
-            let z: f64 = row.iter().zip(&self.h).map(|(w, h)| w * h).sum::<f64>() + bo;
-            *yo = so * z;
-        }
+        with_dims!(self, forward_dims(x));
         self.has_tangent = false;
         &self.y
+    }
+
+    fn forward_dims<P: Dim, O: Dim>(&mut self, p: P, o: O, x: &[f64]) {
+        let (inp, out, hid) = (p.value(), o.value(), self.hidden);
+        let scaled = self.x[..inp].iter_mut().zip(&x[..inp]);
+        let centre_gain = self.scaling.in_center[..inp]
+            .iter()
+            .zip(&self.in_gain[..inp]);
+        for ((xs, xi), (c, g)) in scaled.zip(centre_gain) {
+            *xs = (xi - c) * g;
+        }
+        let xs = &self.x[..inp];
+        let (w1, rest) = self.params.split_at(hid * inp);
+        let (b1, rest) = rest.split_at(hid);
+        let (w2, b2) = rest.split_at(out * hid);
+        for ((hj, row), bj) in self.h.iter_mut().zip(w1.chunks_exact(inp)).zip(b1) {
+            *hj = tanh(dot_short(row, xs) + bj);
+        }
+        let out_rows = w2.chunks_exact(hid).zip(&b2[..out]);
+        for ((yo, (row, bo)), so) in self.y[..out]
+            .iter_mut()
+            .zip(out_rows)
+            .zip(&self.scaling.out_scale[..out])
+        {
+            *yo = so * (dot(row, &self.h) + bo);
+        }
     }
 
     /// Output of the last forward pass.
@@ -287,31 +338,40 @@ impl Mlp {
     /// direction `u`. `backward` then also accepts a cotangent on ẏ.
     pub fn tangent(&mut self, u: &[f64]) -> &[f64] {
         debug_assert_eq!(u.len(), self.inputs);
-        for ((us, ui), g) in self.u.iter_mut().zip(u).zip(&self.in_gain) {
+        with_dims!(self, tangent_dims(u));
+        self.has_tangent = true;
+        &self.ydot
+    }
+
+    fn tangent_dims<P: Dim, O: Dim>(&mut self, p: P, o: O, u: &[f64]) {
+        let (inp, out, hid) = (p.value(), o.value(), self.hidden);
+        for ((us, ui), g) in self.u[..inp]
+            .iter_mut()
+            .zip(&u[..inp])
+            .zip(&self.in_gain[..inp])
+        {
             *us = ui * g;
         }
-        let (w1, rest) = self.params.split_at(self.b1_at());
-        let w2 = &rest[self.hidden..self.hidden + self.outputs * self.hidden];
+        let us = &self.u[..inp];
+        let w1 = &self.params[..hid * inp];
+        let w2 = &self.params[hid * (inp + 1)..hid * (inp + 1) + out * hid];
         for (((ad, hd), row), hj) in self
             .adot
             .iter_mut()
             .zip(self.hdot.iter_mut())
-            .zip(w1.chunks_exact(self.inputs))
+            .zip(w1.chunks_exact(inp))
             .zip(&self.h)
         {
-            *ad = row.iter().zip(&self.u).map(|(w, u)| w * u).sum();
+            *ad = dot_short(row, us);
             *hd = (1.0 - hj * hj) * *ad;
         }
-        for ((yd, row), so) in self
-            .ydot
+        for ((yd, row), so) in self.ydot[..out]
             .iter_mut()
-            .zip(w2.chunks_exact(self.hidden))
-            .zip(&self.scaling.out_scale)
+            .zip(w2.chunks_exact(hid))
+            .zip(&self.scaling.out_scale[..out])
         {
-            *yd = so * row.iter().zip(&self.hdot).map(|(w, h)| w * h).sum::<f64>();
+            *yd = so * dot(row, &self.hdot);
         }
-        self.has_tangent = true;
-        &self.ydot
     }
 
     /// Tangent of the last `tangent` call.
@@ -342,60 +402,57 @@ impl Mlp {
         for ((r, v), s) in self.r.iter_mut().zip(y_bar).zip(&self.scaling.out_scale) {
             *r = v * s;
         }
-        let (b1_at, w2_at, b2_at) = (self.b1_at(), self.w2_at(), self.b2_at());
-        let (hid, inp) = (self.hidden, self.inputs);
-        let w2 = &self.params[w2_at..b2_at];
-        let (gw1, grest) = self.grad.split_at_mut(b1_at);
-        let (gb1, grest) = grest.split_at_mut(hid);
-        let (gw2, gb2) = grest.split_at_mut(self.outputs * hid);
+        with_dims!(self, backward_dims(tangent));
+    }
 
-        for (g, r) in gb2.iter_mut().zip(&self.r) {
+    fn backward_dims<P: Dim, O: Dim>(&mut self, p: P, o: O, tangent: bool) {
+        let (inp, out, hid) = (p.value(), o.value(), self.hidden);
+        let w2 = &self.params[hid * (inp + 1)..hid * (inp + 1) + out * hid];
+        let (gw1, grest) = self.grad.split_at_mut(hid * inp);
+        let (gb1, grest) = grest.split_at_mut(hid);
+        let (gw2, gb2) = grest.split_at_mut(out * hid);
+        let (r, rdot) = (&self.r[..out], &self.rdot[..out]);
+        let (h, hdot, adot) = (&self.h[..hid], &self.hdot[..hid], &self.adot[..hid]);
+
+        for (g, r) in gb2[..out].iter_mut().zip(r) {
             *g += r;
         }
-        for (o, grow) in gw2.chunks_exact_mut(hid).enumerate() {
-            let r = self.r[o];
-            for (g, h) in grow.iter_mut().zip(&self.h) {
-                *g += r * h;
-            }
+        // W2's rows give ∂L/∂W2 and, summed, W2ᵀr (in `abar`) and W2ᵀṙ (in `adotbar`).
+        let (abar, adotbar) = (&mut self.abar[..hid], &mut self.adotbar[..hid]);
+        abar.fill(0.0);
+        adotbar.fill(0.0);
+        let rows = gw2.chunks_exact_mut(hid).zip(w2.chunks_exact(hid));
+        for ((grow, wrow), (&ro, &rd)) in rows.zip(r.iter().zip(rdot)) {
+            axpy(ro, h, grow);
+            axpy(ro, wrow, abar);
             if tangent {
-                let rd = self.rdot[o];
-                for (g, hd) in grow.iter_mut().zip(&self.hdot) {
-                    *g += rd * hd;
-                }
+                axpy(rd, hdot, grow);
+                axpy(rd, wrow, adotbar);
             }
         }
-        // ā and ǡ per hidden unit; W2 is walked by column j.
-        for j in 0..hid {
-            let mut hbar = 0.0;
-            let mut hdbar = 0.0;
-            for o in 0..self.outputs {
-                let w = w2[o * hid + j];
-                hbar += w * self.r[o];
-                if tangent {
-                    hdbar += w * self.rdot[o];
-                }
+        if tangent {
+            for (((a, ad), hj), adj) in abar.iter_mut().zip(adotbar.iter_mut()).zip(h).zip(adot) {
+                let d = 1.0 - hj * hj;
+                *a = d * (*a - 2.0 * hj * *ad * adj);
+                *ad *= d;
             }
-            let hj = self.h[j];
-            let d = 1.0 - hj * hj;
-            if tangent {
-                hbar -= 2.0 * hj * hdbar * self.adot[j];
-                self.adotbar[j] = d * hdbar;
-            } else {
-                self.adotbar[j] = 0.0;
+        } else {
+            for (a, hj) in abar.iter_mut().zip(h) {
+                *a *= 1.0 - hj * hj;
             }
-            self.abar[j] = d * hbar;
         }
-        for (g, a) in gb1.iter_mut().zip(&self.abar) {
+        for (g, a) in gb1.iter_mut().zip(abar.iter()) {
             *g += a;
         }
-        for ((grow, a), ad) in gw1.chunks_exact_mut(inp).zip(&self.abar).zip(&self.adotbar) {
-            for (g, x) in grow.iter_mut().zip(&self.x) {
-                *g += a * x;
-            }
+        let (xs, us) = (&self.x[..inp], &self.u[..inp]);
+        for ((grow, &a), &ad) in gw1
+            .chunks_exact_mut(inp)
+            .zip(abar.iter())
+            .zip(adotbar.iter())
+        {
+            axpy(a, xs, grow);
             if tangent {
-                for (g, u) in grow.iter_mut().zip(&self.u) {
-                    *g += ad * u;
-                }
+                axpy(ad, us, grow);
             }
         }
     }
@@ -428,17 +485,27 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     fn net(seed: u64) -> Mlp {
+        sized_net(seed, 4, 7, 3)
+    }
+
+    /// A random network of the given size with uneven scalings.
+    fn sized_net(seed: u64, inputs: usize, hidden: usize, outputs: usize) -> Mlp {
         let scaling = NetScaling {
-            in_center: vec![0.1, 0.6, -0.2, 0.0],
-            in_scale: vec![0.5, 0.4, 0.7, 2.0],
-            out_scale: vec![1e-3, 2e-3, 5e-2],
+            in_center: (0..inputs).map(|i| 0.3 * i as f64 - 0.2).collect(),
+            in_scale: (0..inputs).map(|i| 0.4 + 0.3 * i as f64).collect(),
+            out_scale: (0..outputs).map(|o| 1e-3 * (1 + 7 * o) as f64).collect(),
         };
-        let mut m = Mlp::new(4, 7, 3, scaling).unwrap();
+        let mut m = Mlp::new(inputs, hidden, outputs, scaling).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         // Larger than the defaults so every term of the derivatives matters.
         m.init_random(&mut rng, 1.5, 0.8);
         m
     }
+
+    /// omnid's own sizes (compile-time loops) and two others (run-time loops; hidden 7 is
+    /// not a multiple of the four partial sums).
+    const SIZES: [(usize, usize, usize); 5] =
+        [(4, 7, 3), (3, 16, 6), (6, 16, 9), (3, 16, 3), (2, 5, 1)];
 
     fn rand_vec(rng: &mut ChaCha8Rng, n: usize, s: f64) -> Vec<f64> {
         (0..n)
@@ -462,21 +529,21 @@ mod tests {
     #[test]
     fn weight_gradients_match_finite_differences_per_layer_and_term() {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
-        for trial in 0..5 {
-            let mut m = net(trial);
-            let x = rand_vec(&mut rng, 4, 1.0);
-            let u = rand_vec(&mut rng, 4, 2.0);
+        for (trial, &(p, hid, o)) in SIZES.iter().cycle().take(10).enumerate() {
+            let mut m = sized_net(trial as u64, p, hid, o);
+            let x = rand_vec(&mut rng, p, 1.0);
+            let u = rand_vec(&mut rng, p, 2.0);
             // The value term and the tangent term separately, then together.
             for (use_y, use_yd) in [(true, false), (false, true), (true, true)] {
                 let yb = if use_y {
-                    rand_vec(&mut rng, 3, 1.0)
+                    rand_vec(&mut rng, o, 1.0)
                 } else {
-                    vec![0.0; 3]
+                    vec![0.0; o]
                 };
                 let ydb = if use_yd {
-                    rand_vec(&mut rng, 3, 1.0)
+                    rand_vec(&mut rng, o, 1.0)
                 } else {
-                    vec![0.0; 3]
+                    vec![0.0; o]
                 };
                 m.zero_grad();
                 m.forward(&x);
@@ -508,9 +575,34 @@ mod tests {
                         assert!(analytic[range].iter().all(|g| *g == 0.0));
                         continue;
                     }
-                    assert!(e < 1e-6, "{name} (y {use_y}, ẏ {use_yd}): rel err {e:e}");
+                    assert!(
+                        e < 1e-6,
+                        "{name} ({p}→{hid}→{o}, y {use_y}, ẏ {use_yd}): rel err {e:e}"
+                    );
                 }
             }
+        }
+    }
+
+    #[test]
+    fn compile_time_and_run_time_loops_agree_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for &(p, hid, o) in &SIZES {
+            let mut fixed = sized_net(9, p, hid, o);
+            let mut generic = fixed.clone();
+            generic.specialised = false;
+            let (x, u) = (rand_vec(&mut rng, p, 1.0), rand_vec(&mut rng, p, 2.0));
+            let (yb, ydb) = (rand_vec(&mut rng, o, 1.0), rand_vec(&mut rng, o, 1.0));
+            for m in [&mut fixed, &mut generic] {
+                m.forward(&x);
+                m.tangent(&u);
+                m.backward(&yb, Some(&ydb));
+                m.backward(&yb, None);
+            }
+            assert_eq!(fixed.output(), generic.output(), "{p}→{hid}→{o}");
+            assert_eq!(fixed.tangent_output(), generic.tangent_output());
+            assert_eq!(fixed.grad(), generic.grad());
+            assert!(fixed.grad().iter().all(|g| g.is_finite() && *g != 0.0));
         }
     }
 
