@@ -87,30 +87,3 @@ fn update_and_accessors_do_not_allocate() {
         );
     }
 }
-
-/// Run with `cargo test --release --test identifier_no_alloc -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn tick_timing() {
-    let mut id = Identifier::new(&IdentifierConfig::default()).unwrap();
-    let inputs: Vec<_> = (0..20_000).map(tick_inputs).collect();
-    let mut sink = 0.0;
-    for pass in 0..3 {
-        let start = std::time::Instant::now();
-        for [q, qd, qdd, tau] in &inputs {
-            sink += id.update(q, qd, qdd, tau, 1e-3).sum();
-        }
-        let update = start.elapsed().as_secs_f64() / inputs.len() as f64;
-        let start = std::time::Instant::now();
-        for [q, qd, qdd, _] in &inputs {
-            sink += id.inverse_dynamics(q, qd, qdd).sum();
-        }
-        let idyn = start.elapsed().as_secs_f64() / inputs.len() as f64;
-        println!(
-            "pass {pass}: update {:.2} µs/tick, inverse_dynamics {:.2} µs/call",
-            update * 1e6,
-            idyn * 1e6
-        );
-    }
-    assert!(sink.is_finite());
-}
