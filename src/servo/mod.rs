@@ -115,8 +115,6 @@ pub struct Servo {
     /// One bit per recent exchange, 1 = lost or corrupt (newest in bit 0).
     link_history: u128,
     held: bool,
-    first_wake_ns: u64,
-    last_wake_ns: u64,
     // Results.
     stats: RunStats,
     timing: TickTiming,
@@ -171,8 +169,6 @@ impl Servo {
             consecutive_missed: 0,
             link_history: 0,
             held: false,
-            first_wake_ns: 0,
-            last_wake_ns: 0,
             stats: RunStats::default(),
             timing: TickTiming::new(period_ns),
             dropped: 0,
@@ -351,7 +347,7 @@ impl Servo {
         self.last_tau_model = tau_model;
         self.acting_tau = Some(tau_plant);
         self.last_tau_hat = tau_hat;
-        self.record_timing(wake);
+        self.timing.record(wake, clock::now_ns(), t_dev, self.paced);
         self.tick += 1;
         None
     }
@@ -371,28 +367,6 @@ impl Servo {
         if !sent {
             self.dropped += 1;
         }
-    }
-
-    fn record_timing(&mut self, wake: u64) {
-        let done = clock::now_ns();
-        let compute = done.saturating_sub(wake);
-        self.timing.compute.record(compute);
-        if self.tick == 0 {
-            self.first_wake_ns = wake;
-        } else {
-            self.timing
-                .period
-                .record(wake.saturating_sub(self.last_wake_ns));
-            if self.paced {
-                let ideal = self.first_wake_ns + self.tick * self.period_ns;
-                let late = wake.saturating_sub(ideal);
-                self.timing.lateness.record(late);
-                if late + compute > self.period_ns {
-                    self.timing.overruns += 1;
-                }
-            }
-        }
-        self.last_wake_ns = wake;
     }
 
     /// A packet did not arrive or was corrupt: hold the last torque, count, and give up after

@@ -95,6 +95,9 @@ pub struct TickTiming {
     pub compute: Histogram,
     /// Ticks whose lateness plus compute exceeded one period.
     pub overruns: u64,
+    // (host ns, device s) of the first and the last tick recorded.
+    first: Option<(u64, f64)>,
+    last: (u64, f64),
 }
 
 impl TickTiming {
@@ -104,7 +107,36 @@ impl TickTiming {
             lateness: Histogram::new(1_000, 20 * period_ns),
             compute: Histogram::new(50, period_ns.max(1_000_000)),
             overruns: 0,
+            first: None,
+            last: (0, 0.0),
         }
+    }
+
+    /// One tick: the sample arrived at `wake` and the command was ready at `done` (host clock,
+    /// ns); `t_dev` is the sample's device time, s. Lateness (paced runs) is measured against
+    /// the device's own schedule, the first wake plus the device time since the first sample
+    /// (1 ms a tick on the simulator, the log's own steps on a replay, gaps included on
+    /// hardware). An overrun is a tick whose work ends after the next sample is due, taking
+    /// this tick's device step for the next one's.
+    pub fn record(&mut self, wake: u64, done: u64, t_dev: f64, paced: bool) {
+        let compute = done.saturating_sub(wake);
+        self.compute.record(compute);
+        let ns_between = |a: f64, b: f64| ((b - a) * 1e9).round().max(0.0) as u64;
+        match self.first {
+            None => self.first = Some((wake, t_dev)),
+            Some((wake0, t0)) => {
+                let (last_wake, last_t) = self.last;
+                self.period.record(wake.saturating_sub(last_wake));
+                if paced {
+                    let late = wake.saturating_sub(wake0 + ns_between(t0, t_dev));
+                    self.lateness.record(late);
+                    if late + compute > ns_between(last_t, t_dev) {
+                        self.overruns += 1;
+                    }
+                }
+            }
+        }
+        self.last = (wake, t_dev);
     }
 }
 
@@ -123,6 +155,37 @@ mod tests {
         assert!((h.quantile_ns(0.99) as i64 - 9_900).abs() <= 10);
         assert_eq!(h.max_ns(), 10_000);
         assert_eq!(h.count(), 10_000);
+    }
+
+    #[test]
+    fn lateness_follows_the_device_schedule() {
+        // A 100 Hz log replayed in a 1 kHz configuration, with jittered steps: each wake 30 µs
+        // after its sample is due, work taking 20 µs, except one tick whose work runs past
+        // the next sample.
+        let mut t = TickTiming::new(1_000_000);
+        let start = 5_000_000_000u64;
+        let times: [f64; 6] = [0.0, 0.010, 0.0201, 0.0299, 0.040, 0.050];
+        for (k, &t_dev) in times.iter().enumerate() {
+            let due = start + (t_dev * 1e9).round() as u64;
+            let wake = if k == 0 { start } else { due + 30_000 };
+            let work = if k == 3 { 9_900_000 } else { 20_000 };
+            t.record(wake, wake + work, t_dev, true);
+        }
+        assert_eq!(t.lateness.count(), 5);
+        assert_eq!(t.lateness.max_ns(), 30_000);
+        assert_eq!(t.overruns, 1);
+        assert_eq!(t.period.count(), 5);
+        assert_eq!(t.compute.max_ns(), 9_900_000);
+
+        // Unpaced: no lateness, no overruns.
+        let mut u = TickTiming::new(1_000_000);
+        for k in 0..4u64 {
+            u.record(k * 5_000, k * 5_000 + 4_000, k as f64 * 1e-3, false);
+        }
+        assert_eq!(
+            (u.lateness.count(), u.overruns, u.period.count()),
+            (0, 0, 3)
+        );
     }
 
     #[test]

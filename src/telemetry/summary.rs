@@ -158,7 +158,12 @@ impl ErrorBins {
         for j in 0..3 {
             let e: f64 = self.err_sq[first_bin..last].iter().map(|b| b[j]).sum();
             let t: f64 = self.ref_sq[first_bin..last].iter().map(|b| b[j]).sum();
-            r[j] = (e / t.max(f64::MIN_POSITIVE)).sqrt();
+            // A joint whose measured torque is zero throughout (a recording without torque,
+            // e.g. a converted hand-guided log) has nothing to normalise by: no NRMSE.
+            if t <= 0.0 {
+                return None;
+            }
+            r[j] = (e / t).sqrt();
         }
         Some(r)
     }
@@ -371,6 +376,13 @@ mod tests {
             "{late}"
         );
         assert!(ErrorBins::default().nrmse().is_none());
+
+        // No measured torque on a joint: undefined, not a huge number.
+        let mut z = ErrorBins::default();
+        for _ in 0..100 {
+            z.record(&[0.1, 0.0, 0.2], &[0.1, 1e-3, 0.2]);
+        }
+        assert!(z.nrmse().is_none() && z.nrmse_last_20pct().is_none());
     }
 
     #[test]
