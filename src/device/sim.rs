@@ -9,6 +9,7 @@ use crate::omni::{Dynamics, Joint3};
 use crate::servo::clock;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
 
 /// How close to the start pose (rad) counts as "stylus in the inkwell".
 const INKWELL_TOLERANCE: f64 = 0.02;
@@ -76,13 +77,6 @@ impl SimOmni {
         self.plant.kinetic(&self.q, &self.qd) + self.plant.potential(&self.q)
     }
 
-    fn gaussian(&mut self) -> f64 {
-        // Box–Muller: two uniforms in (0, 1] give one standard normal.
-        let u1: f64 = 1.0 - self.rng.random::<f64>();
-        let u2: f64 = self.rng.random::<f64>();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-
     /// Advance the plant by `dt` under constant torque `tau` (classic RK4, `substeps` steps).
     pub fn integrate(&mut self, tau: &Joint3, dt: f64) {
         let h = dt / self.substeps as f64;
@@ -133,7 +127,7 @@ impl Device for SimOmni {
             };
             if self.noise_nm > 0.0 {
                 for j in 0..3 {
-                    tau[j] += self.noise_nm * self.gaussian();
+                    tau[j] += self.noise_nm * self.rng.sample::<f64, _>(StandardNormal);
                 }
             }
             let t = self.tick as f64 * self.period_s;
