@@ -2,7 +2,6 @@
 //! throughput on the simulated Omni. `cargo bench --bench tick`.
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
-use crossbeam_channel::TryRecvError;
 use omnid::config::Config;
 use omnid::control::ControllerKind;
 use omnid::control::{ControlInput, Controller, Pd, Reference, Trajectory};
@@ -208,13 +207,8 @@ fn fast_throughput(c: &mut Criterion) {
                 // Polls like the log writer, so the servo never has to wake it.
                 let drain = std::thread::spawn(move || {
                     let mut n = 0u64;
-                    loop {
-                        match rx.try_recv() {
-                            Ok(_) => n += 1,
-                            Err(TryRecvError::Empty) => std::thread::sleep(writer::POLL),
-                            Err(TryRecvError::Disconnected) => return n,
-                        }
-                    }
+                    writer::for_each_polled(&rx, |_| n += 1);
+                    n
                 });
                 let mut servo = Servo::new(
                     &cfg,

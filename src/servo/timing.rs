@@ -93,7 +93,7 @@ pub struct TickTiming {
     pub lateness: Histogram,
     /// Time from the sample's arrival to the command being ready.
     pub compute: Histogram,
-    /// Ticks whose lateness plus compute exceeded one period.
+    /// Ticks whose lateness plus compute exceeded the device's step (see `record`).
     pub overruns: u64,
     // (host ns, device s) of the first and the last tick recorded.
     first: Option<(u64, f64)>,

@@ -21,6 +21,18 @@ pub const DUMP_TICKS: usize = 500;
 /// per wake-up; the channel (8192 rows by default) has seconds of slack.
 pub const POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
+/// Hand every item to `each` until the senders are gone, sleeping [`POLL`] whenever the
+/// channel is empty (never parked in `recv`, so a send never has to wake this thread).
+pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
+    loop {
+        match rx.try_recv() {
+            Ok(item) => each(item),
+            Err(TryRecvError::Empty) => std::thread::sleep(POLL),
+            Err(TryRecvError::Disconnected) => return,
+        }
+    }
+}
+
 #[derive(Debug)]
 pub struct WriterReport {
     pub path: PathBuf,
@@ -126,21 +138,13 @@ pub fn spawn_writer(
                 tail: VecDeque::with_capacity(DUMP_TICKS),
             };
             let mut line = Vec::with_capacity(512);
-            loop {
-                let record = match rx.try_recv() {
-                    Ok(r) => r,
-                    Err(TryRecvError::Empty) => {
-                        std::thread::sleep(POLL);
-                        continue;
-                    }
-                    Err(TryRecvError::Disconnected) => break,
-                };
+            for_each_polled(&rx, |record| {
                 if report.tail.len() == DUMP_TICKS {
                     report.tail.pop_front();
                 }
                 report.tail.push_back(record);
                 if report.error.is_some() {
-                    continue; // keep draining: the loop must never block on us
+                    return; // keep draining: the loop must never block on us
                 }
                 line.clear();
                 format_row(&mut line, &record, &schema);
@@ -148,7 +152,7 @@ pub fn spawn_writer(
                     Ok(()) => report.rows += 1,
                     Err(e) => report.error = Some(e),
                 }
-            }
+            });
             if let Err(e) = out.flush() {
                 report.error.get_or_insert(e);
             }
