@@ -353,8 +353,8 @@ impl Mlp {
             *us = ui * g;
         }
         let us = &self.u[..inp];
-        let w1 = &self.params[..hid * inp];
-        let w2 = &self.params[hid * (inp + 1)..hid * (inp + 1) + out * hid];
+        let w1 = &self.params[..self.b1_at()];
+        let w2 = &self.params[self.w2_at()..self.b2_at()];
         for (((ad, hd), row), hj) in self
             .adot
             .iter_mut()
@@ -407,8 +407,9 @@ impl Mlp {
 
     fn backward_dims<P: Dim, O: Dim>(&mut self, p: P, o: O, tangent: bool) {
         let (inp, out, hid) = (p.value(), o.value(), self.hidden);
-        let w2 = &self.params[hid * (inp + 1)..hid * (inp + 1) + out * hid];
-        let (gw1, grest) = self.grad.split_at_mut(hid * inp);
+        let (b1_at, w2_at, b2_at) = (self.b1_at(), self.w2_at(), self.b2_at());
+        let w2 = &self.params[w2_at..b2_at];
+        let (gw1, grest) = self.grad.split_at_mut(b1_at);
         let (gb1, grest) = grest.split_at_mut(hid);
         let (gw2, gb2) = grest.split_at_mut(out * hid);
         let (r, rdot) = (&self.r[..out], &self.rdot[..out]);
