@@ -6,6 +6,20 @@
 /// libm's tanh goes through `expm1`. Saturates cleanly (e^{2a} = ∞ gives 1, 0 gives −1).
 #[inline]
 pub fn tanh(a: f64) -> f64 {
+    // Beyond |a| = 19.1 the formula rounds to exactly ±1 (2/(e^{2a}+1) < 2⁻⁵⁴ above, e^{2a} <
+    // 2⁻⁵³ below), so skip the exp: the simulator's friction curve (a = q̇ / 0.01 rad/s) is
+    // out there whenever a joint moves faster than 0.2 rad/s.
+    if a.abs() > SATURATED {
+        return 1.0f64.copysign(a);
+    }
+    by_exp(a)
+}
+
+/// Where `by_exp` has already saturated to ±1 in double precision.
+const SATURATED: f64 = 19.1;
+
+#[inline(always)]
+fn by_exp(a: f64) -> f64 {
     1.0 - 2.0 / ((2.0 * a).exp() + 1.0)
 }
 
@@ -21,6 +35,21 @@ mod tests {
             worst = worst.max((tanh(a) - a.tanh()).abs());
         }
         assert!(worst < 1e-15, "worst absolute error {worst:e}");
+    }
+
+    #[test]
+    fn the_saturation_shortcut_changes_no_bit() {
+        // Every value the shortcut returns is what the exp formula gives there, from just past
+        // the threshold out to where e^{2a} overflows.
+        let mut a = SATURATED;
+        while a < 400.0 {
+            for x in [a, -a] {
+                assert_eq!(tanh(x).to_bits(), by_exp(x).to_bits(), "a = {x}");
+            }
+            a = a * (1.0 + 1e-6) + 1e-12;
+        }
+        // and the threshold is not needlessly far out: just inside it the formula is not ±1 yet.
+        assert!(by_exp(18.0) < 1.0 && by_exp(-18.0) > -1.0);
     }
 
     #[test]

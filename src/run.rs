@@ -338,12 +338,14 @@ pub fn execute(
         }
     }
     let stats = &report.stats;
+    let duration_s = stats.first_t.map(|t0| stats.last_t - t0).unwrap_or(0.0);
+    let wall_s = report.timing.wall_s();
     let summary = RunSummary {
         device: opts.device.name().to_string(),
         controller: opts.controller.as_str().to_string(),
         trajectory: format!("{:?}", opts.trajectory).to_lowercase(),
         ticks: stats.ticks,
-        duration_s: stats.first_t.map(|t0| stats.last_t - t0).unwrap_or(0.0),
+        duration_s,
         tracking_rms_rad: stats.tracking_rms(),
         tracking_max_rad: stats.tracking_max(),
         torque_rms_nm: stats.torque_rms(),
@@ -372,6 +374,8 @@ pub fn execute(
         seed: cfg.sim.seed,
         fast: opts.fast,
         realtime,
+        wall_s,
+        realtime_factor: wall_s.filter(|&w| w > 0.0).map(|w| duration_s / w),
     };
     Ok(RunOutcome {
         summary,

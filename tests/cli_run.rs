@@ -59,6 +59,11 @@ fn ten_second_pd_run_writes_log_and_summary() {
     for key in ["period", "compute"] {
         assert!(s["timing_us"][key]["p99"].as_f64().unwrap() > 0.0);
     }
+    // Speed: device time over host time, consistent with the two it comes from.
+    let wall = s["wall_s"].as_f64().unwrap();
+    let factor = s["realtime_factor"].as_f64().unwrap();
+    let duration = s["duration_s"].as_f64().unwrap();
+    assert!(wall > 0.0 && (factor * wall - duration).abs() < 1e-9 * duration);
 }
 
 #[test]

@@ -98,6 +98,8 @@ pub struct TickTiming {
     // (host ns, device s) of the first and the last tick recorded.
     first: Option<(u64, f64)>,
     last: (u64, f64),
+    // Host ns when the last tick's command was ready.
+    last_done: u64,
 }
 
 impl TickTiming {
@@ -109,6 +111,7 @@ impl TickTiming {
             overruns: 0,
             first: None,
             last: (0, 0.0),
+            last_done: 0,
         }
     }
 
@@ -137,6 +140,13 @@ impl TickTiming {
             }
         }
         self.last = (wake, t_dev);
+        self.last_done = done;
+    }
+
+    /// Host time from the first sample's arrival to the last command, s (None before a tick).
+    pub fn wall_s(&self) -> Option<f64> {
+        let (wake0, _) = self.first?;
+        Some(self.last_done.saturating_sub(wake0) as f64 * 1e-9)
     }
 }
 
@@ -186,6 +196,9 @@ mod tests {
             (u.lateness.count(), u.overruns, u.period.count()),
             (0, 0, 3)
         );
+        // First wake at 0, last command ready at 19 µs.
+        assert_eq!(u.wall_s(), Some(19e-6));
+        assert_eq!(TickTiming::new(1_000_000).wall_s(), None);
     }
 
     #[test]

@@ -251,6 +251,12 @@ pub struct RunSummary {
     pub fast: bool,
     /// The realtime steps that took effect (null for `--fast` runs, which skip them).
     pub realtime: Option<crate::servo::realtime::RealtimeReport>,
+    /// Host time from the first sample to the last command, s, and device time over it: 1 on
+    /// a paced run, the speed-up of a `--fast` one.
+    #[serde(default)]
+    pub wall_s: Option<f64>,
+    #[serde(default)]
+    pub realtime_factor: Option<f64>,
 }
 
 fn triple(v: Option<[f64; 3]>, scale: f64, unit: &str) -> String {
@@ -319,6 +325,9 @@ impl RunSummary {
             pct(&self.timing_us.compute),
             self.timing_us.overruns
         );
+        if let (Some(w), Some(f)) = (self.wall_s, self.realtime_factor) {
+            s += &format!("  wall clock      {w:.3} s   ({f:.0}× real time)\n");
+        }
         s += &format!(
             "  packets missed {}  clamped ticks {}  telemetry dropped {}\n",
             self.missed_packets, self.clamped_ticks, self.telemetry_dropped
