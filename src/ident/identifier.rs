@@ -618,11 +618,12 @@ impl Identifier {
         let mut ok = true;
         let mut step2 = 0.0;
         let mut new_norm2 = [0.0; 4];
-        // Phase 1: turn each gradient buffer into the step, and check it.
+        // Phase 1: turn each gradient buffer into the step, write the stepped weights beside
+        // the current ones, and check them.
         for (k, net) in self.nets_mut().into_iter().enumerate() {
             let Some(net) = net else { continue };
             let hl = net.hidden_len();
-            let (p, g) = net.params_and_grad_mut();
+            let (p, g, next) = net.step_buffers();
             let p0 = &theta0[k];
             debug_assert_eq!(
                 p0.len(),
@@ -635,43 +636,49 @@ impl Identifier {
                 let gain = -t * rate;
                 sums.step(
                     &mut g[range.clone()],
+                    &mut next[range.clone()],
                     &p[range.clone()],
                     &p0[range],
                     gain,
                     sigma,
                 );
             }
-            let (dot, pp) = (sums.dot.reduce_add(), sums.pp.reduce_add());
             // Projection: on or beyond the bound, drop the outward radial part of the step
-            // (rare: the sums for the unprojected step are then taken again).
-            if w_max > 0.0 && pp >= w_max * w_max && dot > 0.0 {
-                let c = dot / pp;
-                for (gi, pi) in g.iter_mut().zip(p.iter()) {
-                    *gi -= c * pi;
+            // (rare: only then is g·p needed, and the step's sums are taken again).
+            let pp = sums.pp.reduce_add();
+            if w_max > 0.0 && pp >= w_max * w_max {
+                let dot = outward(g, p, hl);
+                if dot > 0.0 {
+                    let c = dot / pp;
+                    for (gi, pi) in g.iter_mut().zip(p.iter()) {
+                        *gi -= c * pi;
+                    }
+                    sums = Sums::default();
+                    sums.of_step(g, next, p);
                 }
-                sums = Sums::default();
-                sums.of_step(g, p);
             }
-            ok &= sums.finite.reduce_add() == 0.0;
-            step2 += sums.s2.reduce_add();
-            new_norm2[k] = sums.pp_new.reduce_add();
+            let (s2, pp_new) = (sums.s2.reduce_add(), sums.pp_new.reduce_add());
+            // A non-finite step or weight makes these sums non-finite (so would weights
+            // beyond 1e154, which are as unusable).
+            ok &= s2.is_finite() && pp_new.is_finite();
+            step2 += s2;
+            new_norm2[k] = pp_new;
         }
         self.theta0 = theta0;
         if !ok {
             self.trip(Fault::NonFiniteUpdate);
             return;
         }
-        // Phase 2: apply all steps (all-or-nothing, so the weights stay the last good ones).
+        // Phase 2: take all steps (all-or-nothing, so the weights stay the last good ones).
         self.forward_at = None;
         for (k, net) in self.nets_mut().into_iter().enumerate() {
             let Some(net) = net else { continue };
-            let (p, g) = net.params_and_grad_mut();
-            p.iter_mut().zip(g.iter()).for_each(|(pi, gi)| *pi += gi);
+            net.commit_step();
             // The discrete step can still cross the sphere tangentially: pull back onto it.
             let pp = new_norm2[k];
             if w_max > 0.0 && pp > w_max * w_max {
                 let s = w_max / pp.sqrt();
-                p.iter_mut().for_each(|pi| *pi *= s);
+                net.params_mut().iter_mut().for_each(|pi| *pi *= s);
             }
         }
         self.snap.updated = true;
@@ -680,56 +687,91 @@ impl Identifier {
 }
 
 /// Partial sums over one network's step, two lanes each (a single running sum would be one
-/// long chain of dependent adds over the ~660 weights): gᵢ·pᵢ and pᵢ² (for the projection),
-/// and for the step as it stands gᵢ², (pᵢ + gᵢ)² and the finiteness probe (pᵢ + gᵢ)·0, which
-/// is 0 for a finite value and NaN otherwise, so one branch-free sum checks the whole vector.
+/// long chain of dependent adds over the ~660 weights): pᵢ² (for the projection), and for the
+/// step as it stands gᵢ² and (pᵢ + gᵢ)².
 #[derive(Default)]
 struct Sums {
-    dot: f64x2,
     pp: f64x2,
     s2: f64x2,
     pp_new: f64x2,
-    finite: f64x2,
 }
 
 impl Sums {
-    /// gᵢ ← gain·(gᵢ + σ(pᵢ − p0ᵢ)), with all the sums.
-    fn step(&mut self, g: &mut [f64], p: &[f64], p0: &[f64], gain: f64, sigma: f64) {
+    /// gᵢ ← gain·(gᵢ + σ(pᵢ − p0ᵢ)) and nextᵢ ← pᵢ + gᵢ, with the sums.
+    fn step(
+        &mut self,
+        g: &mut [f64],
+        next: &mut [f64],
+        p: &[f64],
+        p0: &[f64],
+        gain: f64,
+        sigma: f64,
+    ) {
         let n = g.len() / 2 * 2;
         let (g_body, g_tail) = g.split_at_mut(n);
+        let (next_body, next_tail) = next.split_at_mut(n);
         let (gain2, sigma2) = (f64x2::splat(gain), f64x2::splat(sigma));
-        for ((gc, pc), p0c) in g_body
+        for (((gc, nc), pc), p0c) in g_body
             .chunks_exact_mut(2)
+            .zip(next_body.chunks_exact_mut(2))
             .zip(p.chunks_exact(2))
             .zip(p0.chunks_exact(2))
         {
             let (gv, pv, p0v) = (pair(gc), pair(pc), pair(p0c));
             let sv = gain2 * (gv + sigma2 * (pv - p0v));
+            let qv = pv + sv;
             gc.copy_from_slice(sv.as_array_ref());
-            self.add(sv, pv);
+            nc.copy_from_slice(qv.as_array_ref());
+            self.add(sv, pv, qv);
         }
-        for ((gi, pi), p0i) in g_tail.iter_mut().zip(&p[n..]).zip(&p0[n..]) {
+        for (((gi, ni), pi), p0i) in g_tail
+            .iter_mut()
+            .zip(next_tail.iter_mut())
+            .zip(&p[n..])
+            .zip(&p0[n..])
+        {
             *gi = gain * (*gi + sigma * (pi - p0i));
-            self.add(f64x2::new([*gi, 0.0]), f64x2::new([*pi, 0.0]));
+            *ni = pi + *gi;
+            self.add(lane0(*gi), lane0(*pi), lane0(*ni));
         }
     }
 
-    /// The sums of a step already in `g`.
-    fn of_step(&mut self, g: &[f64], p: &[f64]) {
-        for (gi, pi) in g.iter().zip(p) {
-            self.add(f64x2::new([*gi, 0.0]), f64x2::new([*pi, 0.0]));
+    /// nextᵢ ← pᵢ + gᵢ for a step already in `g`, with its sums.
+    fn of_step(&mut self, g: &[f64], next: &mut [f64], p: &[f64]) {
+        for ((gi, ni), pi) in g.iter().zip(next.iter_mut()).zip(p) {
+            *ni = pi + gi;
+            self.add(lane0(*gi), lane0(*pi), lane0(*ni));
         }
     }
 
     #[inline(always)]
-    fn add(&mut self, g: f64x2, p: f64x2) {
-        let q = p + g;
-        self.dot += g * p;
+    fn add(&mut self, g: f64x2, p: f64x2, q: f64x2) {
         self.pp += p * p;
         self.s2 += g * g;
         self.pp_new += q * q;
-        self.finite += q * f64x2::ZERO;
     }
+}
+
+/// g·p over a network's step, summed in the same lanes and order as `Sums::step` walks the
+/// hidden layer (`..hl`) and the output layer.
+fn outward(g: &[f64], p: &[f64], hl: usize) -> f64 {
+    let mut dot = f64x2::ZERO;
+    for range in [0..hl, hl..g.len()] {
+        let (g, p) = (&g[range.clone()], &p[range]);
+        let n = g.len() / 2 * 2;
+        for (gc, pc) in g[..n].chunks_exact(2).zip(p[..n].chunks_exact(2)) {
+            dot += pair(gc) * pair(pc);
+        }
+        for (gi, pi) in g[n..].iter().zip(&p[n..]) {
+            dot += lane0(gi * pi);
+        }
+    }
+    dot.reduce_add()
+}
+
+#[inline(always)]
+fn lane0(x: f64) -> f64x2 {
+    f64x2::new([x, 0.0])
 }
 
 #[inline(always)]

@@ -107,6 +107,8 @@ pub struct Mlp {
     in_gain: Vec<f64>,
     params: Vec<f64>,
     grad: Vec<f64>,
+    // The weight update writes the stepped parameters here, then swaps them in (`commit_step`).
+    next: Vec<f64>,
     // Last forward pass: scaled input, activations, physical output.
     x: Vec<f64>,
     h: Vec<f64>,
@@ -196,6 +198,7 @@ impl Mlp {
             scaling,
             params: vec![0.0; n],
             grad: vec![0.0; n],
+            next: vec![0.0; n],
             x: vec![0.0; inputs],
             h: vec![0.0; hidden],
             y: vec![0.0; outputs],
@@ -263,6 +266,16 @@ impl Mlp {
     /// Parameters and gradient together (the update reads one and writes the other).
     pub fn params_and_grad_mut(&mut self) -> (&mut [f64], &mut [f64]) {
         (&mut self.params, &mut self.grad)
+    }
+    /// The online update's buffers: the parameters, the gradient (the update turns it into
+    /// the step) and the stepped parameters, written in the same pass and taken by
+    /// `commit_step` once every network's step has been checked.
+    pub fn step_buffers(&mut self) -> (&[f64], &mut [f64], &mut [f64]) {
+        (&self.params, &mut self.grad, &mut self.next)
+    }
+    /// Make the parameters written by the update through `step_buffers` the current ones.
+    pub fn commit_step(&mut self) {
+        std::mem::swap(&mut self.params, &mut self.next);
     }
 
     /// Small random weights: hidden layer uniform with standard deviation

@@ -65,7 +65,9 @@ pub fn load(path: &Path, time_constant_s: f64) -> ([f64; 3], Option<String>) {
     }
 }
 
-/// Save the heat at the end of a run.
+/// Save the heat at the end of a run: written beside the file and renamed over it, so a run
+/// killed meanwhile leaves the old file whole (and ext4 need not wait, as it does when
+/// truncating a file, for the run's log to reach the disk first).
 pub fn save(path: &Path, heat: [f64; 3]) -> std::io::Result<()> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir)?;
@@ -74,7 +76,10 @@ pub fn save(path: &Path, heat: [f64; 3]) -> std::io::Result<()> {
         heat,
         unix_time_s: now_s(),
     };
-    std::fs::write(path, serde_json::to_string(&saved)? + "\n")
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".new");
+    std::fs::write(&tmp, serde_json::to_string(&saved)? + "\n")?;
+    std::fs::rename(&tmp, path)
 }
 
 #[cfg(test)]
@@ -87,6 +92,7 @@ mod tests {
         let path = heat_file(dir.path(), "sim");
         assert_eq!(load(&path, 30.0), ([0.0; 3], None));
         save(&path, [0.5, 0.0, 2.0]).unwrap();
+        assert!(!dir.path().join("thermal-sim.json.new").exists());
         let (h, note) = load(&path, 30.0);
         assert!(note.is_none());
         // Saved a moment ago: barely cooled.

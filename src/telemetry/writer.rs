@@ -113,6 +113,17 @@ fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Resu
     w.write_all(&line)
 }
 
+/// Create `path` as a new, empty file. An old regular file there is unlinked rather than
+/// truncated: ext4 flushes a file that was truncated and rewritten when it is closed, and the
+/// next file created then waits for those tens of MB to reach the disk (~25 ms at the end of a
+/// 60 s `--fast` run). Anything else (a symlink, /dev/null) is opened as `File::create` does.
+fn create_replacing(path: &Path) -> io::Result<File> {
+    if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_file()) {
+        std::fs::remove_file(path)?;
+    }
+    File::create(path)
+}
+
 /// Create the log file now (so an unwritable path fails before torque is enabled) and start
 /// the thread that fills it.
 pub fn spawn_writer(
@@ -123,7 +134,7 @@ pub fn spawn_writer(
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
-    let mut out = BufWriter::with_capacity(1 << 16, File::create(path)?);
+    let mut out = BufWriter::with_capacity(1 << 16, create_replacing(path)?);
     writeln!(out, "{}", schema.columns().join(","))?;
     out.flush()?;
     let path = path.to_path_buf();
@@ -164,6 +175,36 @@ pub fn spawn_writer(
 mod tests {
     use super::*;
     use crate::telemetry::record::Mode;
+
+    #[test]
+    fn an_old_log_is_replaced_by_a_new_file_and_a_symlink_is_followed() {
+        use std::os::unix::fs::MetadataExt;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        std::fs::write(&path, "old contents\n").unwrap();
+        let old_inode = std::fs::metadata(&path).unwrap().ino();
+        // Hold the old file open so its inode cannot be reused for the new one.
+        let _old = File::open(&path).unwrap();
+        drop(create_replacing(&path).unwrap());
+        let new = std::fs::metadata(&path).unwrap();
+        assert_eq!(new.len(), 0);
+        assert_ne!(
+            new.ino(),
+            old_inode,
+            "the old file was truncated, not replaced"
+        );
+
+        let target = dir.path().join("target.csv");
+        std::fs::write(&target, "old contents\n").unwrap();
+        let link = dir.path().join("link.csv");
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        drop(create_replacing(&link).unwrap());
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::metadata(&target).unwrap().len(), 0);
+    }
 
     #[test]
     fn writes_header_and_rows_that_round_trip() {
