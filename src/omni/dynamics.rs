@@ -6,6 +6,7 @@ use super::kinematics::{jacobian, jacobian_dot, tip_position_mm, Geometry};
 use super::{Joint3, Mat3, GRAVITY};
 use crate::fastmath::tanh;
 use serde::{Deserialize, Serialize};
+use wide::f64x2;
 
 /// Every constant of the plant model. Units: kg·m², N·m, N·m·s/rad, rad, rad/s.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -76,7 +77,9 @@ impl ModelParams {
     }
 }
 
-/// Sines and cosines of q2 and q3, computed once per model evaluation.
+/// Sines and cosines of q2 and q3, computed once per model evaluation, both angles in one
+/// two-lane `wide` call (the simulator evaluates the model 16 times a tick; two libm `sin_cos`
+/// calls were a tenth of the servo thread's time). Agrees with libm to a few 1e-16.
 struct Trig {
     s2: f64,
     c2: f64,
@@ -86,8 +89,8 @@ struct Trig {
 
 impl Trig {
     fn new(q: &Joint3) -> Self {
-        let (s2, c2) = q[1].sin_cos();
-        let (s3, c3) = q[2].sin_cos();
+        let (s, c) = f64x2::new([q[1], q[2]]).sin_cos();
+        let ([s2, s3], [c2, c3]) = (s.to_array(), c.to_array());
         Trig { s2, c2, s3, c3 }
     }
 }
@@ -376,6 +379,25 @@ mod tests {
         let qdd = Joint3::new(3.0, -2.0, 1.0);
         let tau = d.inverse_dynamics(&q, &qd, &qdd);
         assert!((d.forward_dynamics(&q, &qd, &tau) - qdd).norm() < 1e-9);
+    }
+
+    #[test]
+    fn trig_agrees_with_libm() {
+        // Over the joints' range and well beyond it (a joint pushed through its limit spring).
+        let mut worst: f64 = 0.0;
+        for i in -100_000..=100_000 {
+            let a = i as f64 * 1e-4; // −10 … 10 rad
+            let t = Trig::new(&Joint3::new(0.0, a, -0.5 * a));
+            for (got, want) in [
+                (t.s2, a.sin()),
+                (t.c2, a.cos()),
+                (t.s3, (-0.5 * a).sin()),
+                (t.c3, (-0.5 * a).cos()),
+            ] {
+                worst = worst.max((got - want).abs());
+            }
+        }
+        assert!(worst < 5e-16, "worst absolute error {worst:e}");
     }
 
     #[test]
