@@ -181,7 +181,7 @@ fn whole_tick(c: &mut Criterion) {
             })
         });
     }
-    g.bench_function("sim plant step (4 RK4 substeps)", |b| {
+    g.bench_function("sim plant step (default RK4 substeps)", |b| {
         let mut sim = SimOmni::new(&cfg, false);
         let cmd = encode_command(&MotorCommand::safe(0));
         b.iter(|| sim.exchange(black_box(&cmd)).unwrap())
