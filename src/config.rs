@@ -421,6 +421,93 @@ impl Config {
         Self::from_toml(&text, &path.display().to_string())
     }
 
+    /// What the simulated Omni needs beyond `validate` (checked when the simulator is the
+    /// device, so a hardware configuration at another servo rate is not refused for it).
+    pub fn check_sim(&self) -> Result<(), ConfigError> {
+        let (d, s, m) = (&self.device, &self.sim, &self.model);
+        // Smallest inertia over the joint range (M does not depend on q1).
+        let dynamics = crate::omni::Dynamics::new(*m, self.geometry);
+        let across = |i: usize, k: usize| {
+            m.limit_lower[i] + (m.limit_upper[i] - m.limit_lower[i]) * k as f64 / 4.0
+        };
+        let least_inertia = (0..=4)
+            .flat_map(|a| (0..=4).map(move |b| (across(1, a), across(2, b))))
+            .map(|(q2, q3)| {
+                let q = crate::omni::Joint3::new(0.0, q2, q3);
+                dynamics.mass(&q).symmetric_eigenvalues().min()
+            })
+            .fold(f64::INFINITY, f64::min);
+        // The RK4 substep must resolve the plant's fastest mode: near zero velocity
+        // the smoothed Coulomb curve is a damper of slope coulomb/coulomb_velocity, on as little
+        // as the smallest inertia. Past h·rate ≈ 2.8 RK4 blows up; we ask for h·rate ≤ 1.
+        let coulomb = (0..3)
+            .map(|i| m.coulomb[i] / m.coulomb_velocity)
+            .fold(0.0, f64::max);
+        let viscous = m.viscous.iter().copied().fold(0.0, f64::max);
+        let terms = [
+            (
+                "model.coulomb_velocity",
+                m.coulomb_velocity,
+                coulomb / least_inertia,
+            ),
+            ("model.viscous", viscous, viscous / least_inertia),
+            (
+                "model.limit_damping",
+                m.limit_damping,
+                m.limit_damping / least_inertia,
+            ),
+            (
+                "model.limit_stiffness",
+                m.limit_stiffness,
+                (m.limit_stiffness / least_inertia).sqrt(),
+            ),
+        ];
+        let rate: f64 = terms.iter().map(|t| t.2).sum();
+        let needed = (rate / d.rate_hz).ceil().max(1.0);
+        if (s.substeps as f64) < needed {
+            let why = format!(
+                "its fastest mode, damping and limit spring on the smallest inertia \
+                 {least_inertia:.2e} kg·m², runs at {rate:.0}/s"
+            );
+            // Blame the servo rate if the default rate would do, the substeps if the default
+            // substeps would, else the model's stiffest term.
+            let at_default_rate = (rate / DeviceConfig::default().rate_hz).ceil();
+            return Err(if at_default_rate <= s.substeps as f64 {
+                ConfigError::Invalid {
+                    field: "device.rate_hz".into(),
+                    value: d.rate_hz.to_string(),
+                    allowed: format!(
+                        "≥ {:.0} Hz with sim.substeps = {}, or sim.substeps ≥ {needed} at \
+                         {} Hz ({why})",
+                        rate / s.substeps as f64,
+                        s.substeps,
+                        d.rate_hz
+                    ),
+                }
+            } else if needed <= SimConfig::default().substeps as f64 {
+                ConfigError::Invalid {
+                    field: "sim.substeps".into(),
+                    value: s.substeps.to_string(),
+                    allowed: format!("sim.substeps ≥ {needed} for this model ({why})"),
+                }
+            } else {
+                let (field, value, _) = terms
+                    .iter()
+                    .fold(terms[0], |a, &b| if b.2 > a.2 { b } else { a });
+                ConfigError::Invalid {
+                    field: field.into(),
+                    value: value.to_string(),
+                    allowed: format!(
+                        "a plant that sim.substeps = {} resolves; this one needs \
+                         sim.substeps ≥ {needed} ({why})",
+                        s.substeps
+                    ),
+                }
+            });
+        }
+        Ok(())
+    }
+
     /// Check every value; the first problem is returned naming its field.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let d = &self.device;
@@ -516,91 +603,21 @@ impl Config {
         )?;
         // The inertia must stay positive definite over the whole joint range.
         let dynamics = crate::omni::Dynamics::new(*m, self.geometry);
-        let mut least_inertia = f64::INFINITY;
         let across = |i: usize, k: usize| {
             m.limit_lower[i] + (m.limit_upper[i] - m.limit_lower[i]) * k as f64 / 4.0
         };
         for q2 in (0..=4).map(|k| across(1, k)) {
             for q3 in (0..=4).map(|k| across(2, k)) {
                 let q = crate::omni::Joint3::new(0.0, q2, q3);
-                let mass = dynamics.mass(&q);
-                if mass.cholesky().is_none() {
+                if dynamics.mass(&q).cholesky().is_none() {
                     return Err(ConfigError::Invalid {
                         field: "model.k1..k7".into(),
                         value: format!("M(q) not positive definite at q = [0, {q2:.2}, {q3:.2}]"),
                         allowed: "parameters that give a positive definite inertia".into(),
                     });
                 }
-                least_inertia = least_inertia.min(mass.symmetric_eigenvalues().min());
             }
         }
-        // The simulator's RK4 substep must resolve the plant's fastest mode: near zero velocity
-        // the smoothed Coulomb curve is a damper of slope coulomb/coulomb_velocity, on as little
-        // as the smallest inertia. Past h·rate ≈ 2.8 RK4 blows up; we ask for h·rate ≤ 1.
-        let coulomb = (0..3)
-            .map(|i| m.coulomb[i] / m.coulomb_velocity)
-            .fold(0.0, f64::max);
-        let viscous = m.viscous.iter().copied().fold(0.0, f64::max);
-        let terms = [
-            (
-                "model.coulomb_velocity",
-                m.coulomb_velocity,
-                coulomb / least_inertia,
-            ),
-            ("model.viscous", viscous, viscous / least_inertia),
-            (
-                "model.limit_damping",
-                m.limit_damping,
-                m.limit_damping / least_inertia,
-            ),
-            (
-                "model.limit_stiffness",
-                m.limit_stiffness,
-                (m.limit_stiffness / least_inertia).sqrt(),
-            ),
-        ];
-        let rate: f64 = terms.iter().map(|t| t.2).sum();
-        let needed = (rate / d.rate_hz).ceil().max(1.0);
-        if (s.substeps as f64) < needed {
-            let why = format!(
-                "its fastest mode, damping and limit spring on the smallest inertia \
-                 {least_inertia:.2e} kg·m², runs at {rate:.0}/s"
-            );
-            // Blame the servo rate if the default rate would do, the substeps if the default
-            // substeps would, else the model's stiffest term.
-            let at_default_rate = (rate / DeviceConfig::default().rate_hz).ceil();
-            return Err(if at_default_rate <= s.substeps as f64 {
-                ConfigError::Invalid {
-                    field: "device.rate_hz".into(),
-                    value: d.rate_hz.to_string(),
-                    allowed: format!(
-                        "≥ {:.0} Hz with sim.substeps = {} ({why})",
-                        rate / s.substeps as f64,
-                        s.substeps
-                    ),
-                }
-            } else if needed <= SimConfig::default().substeps as f64 {
-                ConfigError::Invalid {
-                    field: "sim.substeps".into(),
-                    value: s.substeps.to_string(),
-                    allowed: format!("sim.substeps ≥ {needed} for this model ({why})"),
-                }
-            } else {
-                let (field, value, _) = terms
-                    .iter()
-                    .fold(terms[0], |a, &b| if b.2 > a.2 { b } else { a });
-                ConfigError::Invalid {
-                    field: field.into(),
-                    value: value.to_string(),
-                    allowed: format!(
-                        "a plant that sim.substeps = {} resolves; this one needs \
-                         sim.substeps ≥ {needed} ({why})",
-                        s.substeps
-                    ),
-                }
-            });
-        }
-
         let g = &self.geometry;
         finite_in("geometry.l1_mm", g.l1_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
         finite_in("geometry.l2_mm", g.l2_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
@@ -789,6 +806,11 @@ mod tests {
 
     #[test]
     fn too_few_substeps_for_a_stiff_friction_curve_are_refused() {
+        let err = |text: &str| {
+            let cfg = Config::from_toml(text, "test.toml").unwrap();
+            cfg.check_sim().unwrap_err().to_string()
+        };
+        Config::default().check_sim().unwrap();
         // Ten times steeper Coulomb smoothing needs ten times the substeps.
         let e = err("[model]\ncoulomb_velocity = 0.001\n");
         assert!(
@@ -799,6 +821,8 @@ mod tests {
             "[model]\ncoulomb_velocity = 0.001\n[sim]\nsubsteps = 11\n",
             "x",
         )
+        .unwrap()
+        .check_sim()
         .unwrap();
         // The defaults sit at the bound: one substep is too few for them.
         let e = err("[sim]\nsubsteps = 1\n");

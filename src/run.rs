@@ -222,6 +222,10 @@ pub fn execute(
             "--fast works only with the sim and replay devices: real hardware paces itself".into(),
         ));
     }
+    if matches!(opts.device, DeviceSpec::Sim) {
+        cfg.check_sim()
+            .map_err(|e| RunError::BadInput(e.to_string()))?;
+    }
     let mut faults = opts.inject.clone();
     faults.extend(
         cfg.inject

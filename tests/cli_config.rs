@@ -39,6 +39,14 @@ fn assert_bad(text: &str, must_contain: &[&str]) {
 }
 
 #[test]
+fn too_few_simulator_substeps_for_the_model() {
+    assert_bad(
+        "[model]\ncoulomb_velocity = 0.001\n",
+        &["model.coulomb_velocity", "sim.substeps ≥ 11"],
+    );
+}
+
+#[test]
 fn unknown_key() {
     assert_bad("[kalman]\njerk_pds = 10.0\n", &["jerk_pds", "line 2"]);
 }
