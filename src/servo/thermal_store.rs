@@ -76,8 +76,9 @@ pub fn save(path: &Path, heat: [f64; 3]) -> std::io::Result<()> {
         heat,
         unix_time_s: now_s(),
     };
+    // Per process, so two runs ending together cannot rename each other's file away.
     let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".new");
+    tmp.push(format!(".{}.new", std::process::id()));
     std::fs::write(&tmp, serde_json::to_string(&saved)? + "\n")?;
     std::fs::rename(&tmp, path)
 }
@@ -92,7 +93,11 @@ mod tests {
         let path = heat_file(dir.path(), "sim");
         assert_eq!(load(&path, 30.0), ([0.0; 3], None));
         save(&path, [0.5, 0.0, 2.0]).unwrap();
-        assert!(!dir.path().join("thermal-sim.json.new").exists());
+        let files: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(files, ["thermal-sim.json"], "nothing left beside it");
         let (h, note) = load(&path, 30.0);
         assert!(note.is_none());
         // Saved a moment ago: barely cooled.
