@@ -421,21 +421,31 @@ impl Config {
         Self::from_toml(&text, &path.display().to_string())
     }
 
+    /// M(q) of the configured model on a 5×5 grid of (q2, q3) spanning the joint limits
+    /// (M does not depend on q1), with the grid point.
+    fn mass_over_joint_range(&self) -> impl Iterator<Item = ((f64, f64), crate::omni::Mat3)> {
+        let (m, dynamics) = (
+            self.model,
+            crate::omni::Dynamics::new(self.model, self.geometry),
+        );
+        let across = move |i: usize, k: usize| {
+            m.limit_lower[i] + (m.limit_upper[i] - m.limit_lower[i]) * k as f64 / 4.0
+        };
+        (0..=4)
+            .flat_map(move |a| (0..=4).map(move |b| (across(1, a), across(2, b))))
+            .map(move |(q2, q3)| {
+                let q = crate::omni::Joint3::new(0.0, q2, q3);
+                ((q2, q3), dynamics.mass(&q))
+            })
+    }
+
     /// What the simulated Omni needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
     pub fn check_sim(&self) -> Result<(), ConfigError> {
         let (d, s, m) = (&self.device, &self.sim, &self.model);
-        // Smallest inertia over the joint range (M does not depend on q1).
-        let dynamics = crate::omni::Dynamics::new(*m, self.geometry);
-        let across = |i: usize, k: usize| {
-            m.limit_lower[i] + (m.limit_upper[i] - m.limit_lower[i]) * k as f64 / 4.0
-        };
-        let least_inertia = (0..=4)
-            .flat_map(|a| (0..=4).map(move |b| (across(1, a), across(2, b))))
-            .map(|(q2, q3)| {
-                let q = crate::omni::Joint3::new(0.0, q2, q3);
-                dynamics.mass(&q).symmetric_eigenvalues().min()
-            })
+        let least_inertia = self
+            .mass_over_joint_range()
+            .map(|(_, mass)| mass.symmetric_eigenvalues().min())
             .fold(f64::INFINITY, f64::min);
         // The RK4 substep must resolve the plant's fastest mode: near zero velocity
         // the smoothed Coulomb curve is a damper of slope coulomb/coulomb_velocity, on as little
@@ -602,20 +612,13 @@ impl Config {
             "0 ..= 100 N·m·s/rad",
         )?;
         // The inertia must stay positive definite over the whole joint range.
-        let dynamics = crate::omni::Dynamics::new(*m, self.geometry);
-        let across = |i: usize, k: usize| {
-            m.limit_lower[i] + (m.limit_upper[i] - m.limit_lower[i]) * k as f64 / 4.0
-        };
-        for q2 in (0..=4).map(|k| across(1, k)) {
-            for q3 in (0..=4).map(|k| across(2, k)) {
-                let q = crate::omni::Joint3::new(0.0, q2, q3);
-                if dynamics.mass(&q).cholesky().is_none() {
-                    return Err(ConfigError::Invalid {
-                        field: "model.k1..k7".into(),
-                        value: format!("M(q) not positive definite at q = [0, {q2:.2}, {q3:.2}]"),
-                        allowed: "parameters that give a positive definite inertia".into(),
-                    });
-                }
+        for ((q2, q3), mass) in self.mass_over_joint_range() {
+            if mass.cholesky().is_none() {
+                return Err(ConfigError::Invalid {
+                    field: "model.k1..k7".into(),
+                    value: format!("M(q) not positive definite at q = [0, {q2:.2}, {q3:.2}]"),
+                    allowed: "parameters that give a positive definite inertia".into(),
+                });
             }
         }
         let g = &self.geometry;

@@ -46,15 +46,20 @@ fn seeded(seed: u64) -> Config {
 #[test]
 fn online_from_scratch_reaches_the_oracle_floor() {
     let dir = tempfile::tempdir().unwrap();
-    let out = run(
-        &seeded(5),
-        ControllerKind::Pd,
-        Trajectory::Multisine,
-        60.0,
-        &dir.path().join("pd.csv"),
-        None,
-        DeviceSpec::Sim,
-    );
+    // 60 s of PD on the multisine from fresh weights.
+    let pd_run = |cfg: &Config, log: &str| {
+        let log = dir.path().join(log);
+        run(
+            cfg,
+            ControllerKind::Pd,
+            Trajectory::Multisine,
+            60.0,
+            &log,
+            None,
+            DeviceSpec::Sim,
+        )
+    };
+    let out = pd_run(&seeded(5), "pd.csv");
     let id = &out.summary.identifier;
     assert_eq!(id.weights.as_deref(), Some("fresh"));
     let (all, late) = (id.nrmse.unwrap(), id.nrmse_last_20pct.unwrap());
@@ -73,15 +78,7 @@ fn online_from_scratch_reaches_the_oracle_floor() {
     // off sees the same torques; its fresh, frozen networks predict them far worse.
     let mut frozen_cfg = seeded(5);
     frozen_cfg.identifier.adapt = false;
-    let frozen = run(
-        &frozen_cfg,
-        ControllerKind::Pd,
-        Trajectory::Multisine,
-        60.0,
-        &dir.path().join("frozen.csv"),
-        None,
-        DeviceSpec::Sim,
-    );
+    let frozen = pd_run(&frozen_cfg, "frozen.csv");
     assert_eq!(
         frozen.summary.torque_rms_nm, out.summary.torque_rms_nm,
         "the same run"

@@ -326,9 +326,10 @@ impl Mlp {
             *xs = (xi - c) * g;
         }
         let xs = &self.x[..inp];
-        let (w1, rest) = self.params.split_at(hid * inp);
-        let (b1, rest) = rest.split_at(hid);
-        let (w2, b2) = rest.split_at(out * hid);
+        let w1 = &self.params[..self.b1_at()];
+        let b1 = &self.params[self.b1_at()..self.w2_at()];
+        let w2 = &self.params[self.w2_at()..self.b2_at()];
+        let b2 = &self.params[self.b2_at()..];
         for ((hj, row), bj) in self.h.iter_mut().zip(w1.chunks_exact(inp)).zip(b1) {
             *hj = tanh(dot_short(row, xs) + bj);
         }
