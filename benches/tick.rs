@@ -3,8 +3,8 @@
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
 use omnid::config::Config;
-use omnid::control::ControllerKind;
 use omnid::control::{ControlInput, Controller, Pd, Reference, Trajectory};
+use omnid::control::{ControllerKind, ControllerSet};
 use omnid::device::codec::encode_state;
 use omnid::device::sim::SimOmni;
 use omnid::device::{
@@ -165,7 +165,7 @@ fn whole_tick(c: &mut Criterion) {
             let mut servo = Servo::new(
                 &cfg,
                 Box::new(canned(&cfg)),
-                make_controller(kind, &cfg),
+                ControllerSet::new(&cfg, kind, 0.0),
                 Reference::new(Trajectory::Sine, &cfg.reference, 1),
                 tx,
                 Arc::new(AtomicBool::new(false)),
@@ -213,7 +213,7 @@ fn fast_throughput(c: &mut Criterion) {
                 let mut servo = Servo::new(
                     &cfg,
                     Box::new(SimOmni::new(&cfg, false)),
-                    make_controller(kind, &cfg),
+                    ControllerSet::new(&cfg, kind, 0.0),
                     Reference::new(Trajectory::Sine, &cfg.reference, 1),
                     tx,
                     Arc::new(AtomicBool::new(false)),

@@ -227,6 +227,7 @@ pub struct Config {
     pub usb: UsbConfig,
     pub firewire: FirewireConfig,
     pub inject: InjectConfig,
+    pub serve: crate::serve::ServeConfig,
 }
 
 /// One-line explanations of every key, used by `omnid config --print-default`.
@@ -710,6 +711,7 @@ impl Config {
         self.safety.validate()?;
         self.identifier.validate()?;
         self.realtime.validate()?;
+        self.serve.validate()?;
         self.usb.validate()?;
         self.firewire.validate()?;
 
@@ -768,6 +770,7 @@ fn doc_for(key: &str) -> Option<&'static str> {
         FIELD_DOCS,
         crate::servo::safety::SAFETY_FIELD_DOCS,
         crate::servo::realtime::REALTIME_FIELD_DOCS,
+        crate::serve::config::SERVE_FIELD_DOCS,
         crate::ident::IDENTIFIER_FIELD_DOCS,
         crate::device::usb::USB_FIELD_DOCS,
         crate::device::firewire::FIREWIRE_FIELD_DOCS,

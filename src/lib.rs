@@ -18,5 +18,6 @@ pub mod omni;
 pub mod plot;
 pub mod progress;
 pub mod run;
+pub mod serve;
 pub mod servo;
 pub mod telemetry;

@@ -35,6 +35,14 @@ struct Cli {
 enum Command {
     /// Run the 1 kHz servo loop on a device and log every tick.
     Run(RunArgs),
+    /// The daemon: hold the device and serve clients on a Unix socket until SIGTERM
+    /// (docs/PROTOCOL.md). Starts with the amplifiers off.
+    Serve(ServeArgs),
+    /// Live state from a running `omnid serve`.
+    Watch(WatchArgs),
+    /// Command a running `omnid serve`: status, mode, controller, record, weights, freeze,
+    /// adapt, shutdown.
+    Ctl(CtlArgs),
     /// Convert a recording into a replayable log (for `--device replay:OUT`).
     Convert(ConvertArgs),
     /// Pre-tune the identifier's networks on recorded logs and save the weights.
@@ -190,6 +198,91 @@ struct RunArgs {
 }
 
 #[derive(clap::Args)]
+struct ServeArgs {
+    /// sim | replay:PATH | usb | firewire
+    #[arg(long, default_value = "sim")]
+    device: DeviceSpec,
+    /// The control law in effect when a client asks for hold, track or free (switchable).
+    #[arg(long, value_enum, default_value = "nnidc")]
+    controller: ControllerKind,
+    /// Socket path [default: $XDG_RUNTIME_DIR/omnid/<device>.sock, /run/omnid/ as root].
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    /// TOML configuration file (its [serve] section: access groups, stream time to live).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Start the identifier from these weights (from `omnid identify`).
+    #[arg(long, value_name = "WEIGHTS.json")]
+    weights: Option<PathBuf>,
+    /// Freeze the identifier: no online adaptation.
+    #[arg(long)]
+    no_adapt: bool,
+    /// Replay: skip damaged rows of the log (reported) instead of refusing it.
+    #[arg(long)]
+    lenient: bool,
+    /// Inject a fault (repeatable; as `run --inject`).
+    #[arg(long, value_name = "SPEC")]
+    inject: Vec<Fault>,
+}
+
+#[derive(clap::Args)]
+struct WatchArgs {
+    /// The daemon's socket [default: $OMNID_SOCKET, else the one in the default directory].
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    /// Stop after this many samples.
+    #[arg(long)]
+    count: Option<u64>,
+    /// Samples per second (up to the device's rate).
+    #[arg(long, default_value_t = 10.0)]
+    rate: f64,
+    /// One JSON object per sample per line.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+struct CtlArgs {
+    /// The daemon's socket [default: $OMNID_SOCKET, else the one in the default directory].
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    #[command(subcommand)]
+    command: CtlCommand,
+}
+
+#[derive(Subcommand)]
+enum CtlCommand {
+    /// The run summary so far, the mode, the controller, the lease and the clients (JSON).
+    Status,
+    /// idle, hold, track or free (track follows --trajectory).
+    Mode {
+        mode: String,
+        #[arg(long, default_value = "sine")]
+        trajectory: String,
+    },
+    /// Switch the control law (bumpless): pd, ct, nnidc, off.
+    Controller { controller: String },
+    /// Start or stop recording every tick to a log (CSV, as `omnid run` writes).
+    Record {
+        /// start or stop
+        action: String,
+        path: Option<PathBuf>,
+    },
+    /// Save the identifier's weights to a file, or load them from one.
+    Weights {
+        /// save or load
+        action: String,
+        path: PathBuf,
+    },
+    /// Freeze the identifier's online adaptation.
+    Freeze,
+    /// Resume the identifier's online adaptation.
+    Adapt,
+    /// Stop the daemon (zero torque, amplifiers off).
+    Shutdown,
+}
+
+#[derive(clap::Args)]
 struct ConvertArgs {
     /// Format of the input.
     #[arg(long, value_enum)]
@@ -232,26 +325,9 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
 
 /// `logs/omnid-YYYYMMDD-HHMMSS.csv` in UTC.
 fn default_log_path() -> PathBuf {
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0) as i64;
-    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
     PathBuf::from(format!(
-        "logs/omnid-{year:04}{month:02}{day:02}-{:02}{:02}{:02}.csv",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
+        "logs/omnid-{}.csv",
+        omnid::telemetry::utc_stamp(std::time::SystemTime::now())
     ))
 }
 
@@ -353,6 +429,243 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     Ok(code)
 }
 
+const EXIT_REFUSED: u8 = 1;
+
+fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
+    let Some(cfg) = load_config(args.config.as_deref()) else {
+        return Ok(EXIT_BAD_INPUT);
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
+            .context("installing the Ctrl-C/SIGTERM handler")?;
+    }
+    let opts = omnid::serve::ServeOptions {
+        device: args.device,
+        controller: args.controller,
+        socket: args.socket,
+        weights: args.weights,
+        no_adapt: args.no_adapt,
+        lenient: args.lenient,
+        inject: args.inject,
+    };
+    let outcome = match omnid::serve::serve(&opts, &cfg, stop) {
+        Ok(o) => o,
+        Err(e @ RunError::Device(_)) => {
+            eprintln!("omnid: {e}");
+            return Ok(EXIT_DEVICE_FAULT);
+        }
+        Err(e @ RunError::Internal(_)) => return Err(e.into()),
+        Err(e) => {
+            eprintln!("omnid: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+    };
+    let stopped = if outcome.shutdown_error.is_none() {
+        "zero torque sent, amplifiers off"
+    } else {
+        "the final zero-torque packet could not be delivered; the device's own watchdog turns its amplifiers off when packets stop"
+    };
+    for dump in &outcome.dumps {
+        eprintln!("omnid serve: fault dump: {}", dump.display());
+    }
+    if let Some(e) = &outcome.recording_error {
+        eprintln!("omnid serve: the recording is incomplete: {e}");
+    }
+    if let Some(e) = &outcome.shutdown_error {
+        eprintln!("omnid: warning: {e}");
+    }
+    let code = match &outcome.end {
+        EndReason::OperatorStop if outcome.shutdown_requested => {
+            eprintln!(
+                "omnid serve: shut down by a client; {stopped}; socket {} removed",
+                outcome.socket.display()
+            );
+            0
+        }
+        EndReason::OperatorStop => {
+            eprintln!(
+                "omnid serve: stopped by the operator; {stopped}; socket {} removed",
+                outcome.socket.display()
+            );
+            EXIT_OPERATOR_STOP
+        }
+        EndReason::Completed | EndReason::EndOfData => {
+            eprintln!("omnid serve: the replayed log ended; {stopped}");
+            0
+        }
+        EndReason::DeviceFault(m) => {
+            eprintln!("omnid serve: device fault: {m}; {stopped}");
+            EXIT_DEVICE_FAULT
+        }
+        EndReason::SafetyFault(m) => {
+            eprintln!("omnid serve: safety fault: {m}; {stopped}");
+            EXIT_SAFETY_FAULT
+        }
+    };
+    Ok(if code == 0 && outcome.shutdown_error.is_some() {
+        EXIT_DEVICE_FAULT
+    } else {
+        code
+    })
+}
+
+/// Connect to the daemon (exit code 3 and the reason when there is none).
+fn connect(socket: Option<PathBuf>, name: &str) -> Result<omnid::serve::client::Client, u8> {
+    let path = match socket.map(Ok).unwrap_or_else(omnid::serve::find_socket) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("omnid: {e}");
+            return Err(EXIT_DEVICE_FAULT);
+        }
+    };
+    omnid::serve::client::Client::connect(&path, name).map_err(|e| {
+        eprintln!("omnid: {e}");
+        match e {
+            omnid::serve::client::ClientError::Refused(_) => EXIT_REFUSED,
+            _ => EXIT_DEVICE_FAULT,
+        }
+    })
+}
+
+fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
+    use omnid::serve::client::Message;
+    use std::io::Write;
+    if !(args.rate.is_finite() && args.rate > 0.0) {
+        eprintln!("omnid watch: --rate {} must be a number > 0", args.rate);
+        return Ok(EXIT_BAD_INPUT);
+    }
+    let mut client = match connect(args.socket, "omnid watch") {
+        Ok(c) => c,
+        Err(code) => return Ok(code),
+    };
+    if let Err(e) = client.request(serde_json::json!({ "op": "stream", "rate_hz": args.rate })) {
+        eprintln!("omnid watch: {e}");
+        return Ok(EXIT_REFUSED);
+    }
+    let stdout = std::io::stdout();
+    let mut out = stdout.lock();
+    let mut seen = 0u64;
+    while args.count.is_none_or(|n| seen < n) {
+        let line = match client.recv(-1) {
+            Ok(Message::State(s)) => {
+                seen += 1;
+                if args.json {
+                    let mut v = serde_json::to_value(&s)?;
+                    v["type"] = serde_json::json!("state");
+                    v.to_string()
+                } else {
+                    format!(
+                        "{:>8} {:>9.3} s  {:<8} {:<5}  q {:>7.4} {:>7.4} {:>7.4} rad  tip {:>7.1} {:>7.1} {:>7.1} mm  buttons {}{}  tau {:>6.1} {:>6.1} {:>6.1} mN·m{}",
+                        s.seq, s.t, s.mode, s.controller, s.q[0], s.q[1], s.q[2],
+                        s.tip_mm[0], s.tip_mm[1], s.tip_mm[2],
+                        u8::from(s.buttons[0]), u8::from(s.buttons[1]),
+                        s.tau[0] * 1e3, s.tau[1] * 1e3, s.tau[2] * 1e3,
+                        if s.flags != 0 { format!("  flags {}", s.flags) } else { String::new() }
+                    )
+                }
+            }
+            Ok(Message::Other(v)) if v["type"] == "bye" => {
+                eprintln!("omnid watch: the daemon is stopping");
+                return Ok(0);
+            }
+            Ok(Message::Other(v)) => {
+                if args.json {
+                    v.to_string()
+                } else {
+                    eprintln!("omnid watch: {v}");
+                    continue;
+                }
+            }
+            Err(omnid::serve::client::ClientError::Closed) => {
+                eprintln!("omnid watch: the daemon closed the connection");
+                return Ok(0);
+            }
+            Err(e) => {
+                eprintln!("omnid watch: {e}");
+                return Ok(EXIT_INTERNAL);
+            }
+        };
+        // A closed or full stdout (`| head`) ends the watch quietly.
+        if writeln!(out, "{line}").and_then(|()| out.flush()).is_err() {
+            return Ok(0);
+        }
+    }
+    Ok(0)
+}
+
+fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
+    use serde_json::json;
+    let request = match &args.command {
+        CtlCommand::Status => json!({ "op": "status" }),
+        CtlCommand::Mode { mode, trajectory } => {
+            json!({ "op": "mode", "mode": mode, "trajectory": trajectory })
+        }
+        CtlCommand::Controller { controller } => {
+            json!({ "op": "controller", "controller": controller })
+        }
+        CtlCommand::Record { action, path } => match action.as_str() {
+            "start" => json!({ "op": "record_start", "path": path }),
+            "stop" => json!({ "op": "record_stop" }),
+            other => {
+                eprintln!("omnid ctl: record {other}: expected start or stop");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        CtlCommand::Weights { action, path } => match action.as_str() {
+            "save" => json!({ "op": "weights_save", "path": absolute(path) }),
+            "load" => json!({ "op": "weights_load", "path": absolute(path) }),
+            other => {
+                eprintln!("omnid ctl: weights {other}: expected save or load");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
+        CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
+        CtlCommand::Shutdown => json!({ "op": "shutdown" }),
+    };
+    // Paths are the daemon's to open: make relative ones relative to where ctl runs.
+    let mut request = request;
+    if let Some(p) = request
+        .get("path")
+        .and_then(|p| p.as_str())
+        .map(String::from)
+    {
+        request["path"] = json!(absolute(std::path::Path::new(&p)));
+    }
+    let mut client = match connect(args.socket, "omnid ctl") {
+        Ok(c) => c,
+        Err(code) => return Ok(code),
+    };
+    match client.request(request) {
+        Ok(reply) => {
+            use std::io::Write;
+            let text = match &args.command {
+                CtlCommand::Status => serde_json::to_string_pretty(&reply["status"])?,
+                _ => {
+                    let mut r = reply.clone();
+                    if let Some(o) = r.as_object_mut() {
+                        o.remove("type");
+                        o.remove("id");
+                    }
+                    r.to_string()
+                }
+            };
+            let _ = writeln!(std::io::stdout(), "{text}");
+            Ok(0)
+        }
+        Err(e) => {
+            eprintln!("omnid ctl: {e}");
+            Ok(EXIT_REFUSED)
+        }
+    }
+}
+
+fn absolute(p: &std::path::Path) -> PathBuf {
+    std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf())
+}
+
 /// The config file, or the defaults; `None` after printing why a file was refused.
 fn load_config(path: Option<&std::path::Path>) -> Option<Config> {
     match path.map(Config::load) {
@@ -369,6 +682,9 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => run(args),
+        Command::Serve(args) => serve_cmd(args),
+        Command::Watch(args) => watch_cmd(args),
+        Command::Ctl(args) => ctl_cmd(args),
         Command::Convert(args) => convert_cmd(args),
         Command::Identify(args) => identify_cmd(args),
         Command::Devices { config } => match load_config(config.as_deref()) {

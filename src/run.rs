@@ -2,9 +2,8 @@
 //! options, run it on its own thread, and turn the result into the run summary.
 
 use crate::config::Config;
-use crate::control::{
-    ComputedTorque, Controller, ControllerKind, Nnidc, Off, Pd, Reference, Trajectory,
-};
+pub use crate::control::make_controller;
+use crate::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use crate::device::calibration::{self, CalibrationError};
 use crate::device::firewire::open_firewire_with_rate;
 use crate::device::inject::{Fault, FaultyDevice, NanAfter};
@@ -13,8 +12,8 @@ use crate::device::sim::SimOmni;
 use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
 use crate::ident::{Identifier, WeightsFile};
-use crate::servo::{EndReason, Servo};
-use crate::telemetry::summary::{IdentifierSummary, RunSummary, TimingSummary};
+use crate::servo::{EndReason, Servo, ServoReport};
+use crate::telemetry::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::telemetry::{dump_path, spawn_writer, write_dump, LogSchema};
 use std::path::PathBuf;
 use std::str::FromStr;
@@ -195,21 +194,9 @@ fn open_device(
     }
 }
 
-pub fn make_controller(kind: ControllerKind, cfg: &Config) -> Box<dyn Controller> {
-    match kind {
-        ControllerKind::Pd => Box::new(Pd::from_config(cfg)),
-        ControllerKind::Off => Box::new(Off),
-        ControllerKind::Ct => Box::new(ComputedTorque::from_config(cfg)),
-        ControllerKind::Nnidc => Box::new(Nnidc::from_config(cfg)),
-    }
-}
-
-/// Validate options, open the device and the log, run the loop to its end.
-pub fn execute(
-    opts: &RunOptions,
-    cfg: &Config,
-    stop: Arc<AtomicBool>,
-) -> Result<RunOutcome, RunError> {
+/// Check the options that do not need the device: duration, `--fast`, the simulator's
+/// substeps, the faults to inject (the command line's and the config's).
+pub fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
     let replay = matches!(opts.device, DeviceSpec::Replay(_));
     if !(opts.duration_s > 0.0 && (opts.duration_s.is_finite() || replay)) {
         return Err(RunError::BadInput(format!(
@@ -217,6 +204,11 @@ pub fn execute(
             opts.duration_s
         )));
     }
+    check_device_options(opts, cfg)
+}
+
+/// The checks `run` and `serve` share.
+pub fn check_device_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
     if opts.fast && matches!(opts.device, DeviceSpec::Usb | DeviceSpec::Firewire) {
         return Err(RunError::BadInput(
             "--fast works only with the sim and replay devices: real hardware paces itself".into(),
@@ -238,7 +230,38 @@ pub fn execute(
             crate::device::inject::MAX_FAULTS
         )));
     }
-    let mut controller = make_controller(opts.controller, cfg);
+    Ok(faults)
+}
+
+/// A servo loop ready to start: the device open, the controllers and the identifier built,
+/// the motors' heat loaded. `run` and `serve` both assemble it here.
+pub struct Pipeline {
+    pub servo: Servo,
+    /// The log columns this device feeds.
+    pub schema: LogSchema,
+    /// Where the identifier's weights came from (`shipped`, `fresh` or a path).
+    pub weights_label: String,
+    /// The identifier as it started (its shape; `serve` copies live weights into clones).
+    pub identifier: Identifier,
+    /// Where motor heat is carried over between runs (none for replays).
+    pub heat_path: Option<PathBuf>,
+    /// Things the operator should know that do not stop the run.
+    pub warnings: Vec<String>,
+    /// Realtime steps to take on the servo thread (paced runs only).
+    pub realtime: Option<crate::servo::realtime::RealtimeConfig>,
+}
+
+/// Build the pipeline for `opts` with `faults` (from [`check_options`]); telemetry leaves
+/// through `telemetry`, `stop` ends the loop.
+pub fn assemble(
+    opts: &RunOptions,
+    cfg: &Config,
+    faults: &[Fault],
+    telemetry: crossbeam_channel::Sender<crate::telemetry::record::TickRecord>,
+    stop: Arc<AtomicBool>,
+) -> Result<Pipeline, RunError> {
+    let replay = matches!(opts.device, DeviceSpec::Replay(_));
+    let mut controllers = ControllerSet::new(cfg, opts.controller, cfg.serve.switch_fade_s);
     let (identifier, weights_label) =
         make_identifier(cfg, opts.controller, opts.weights.as_deref(), opts.no_adapt)?;
     if weights_label == "shipped" {
@@ -251,36 +274,37 @@ pub fn execute(
         Fault::Nan { at_s } => Some(*at_s),
         _ => None,
     }) {
-        controller = Box::new(NanAfter {
-            inner: controller,
-            at_s,
-        });
+        let inner = controllers.take(opts.controller);
+        controllers.replace(opts.controller, Box::new(NanAfter { inner, at_s }));
     }
     let mut warnings = Vec::new();
     let mut device = open_device(opts, cfg, &mut warnings)?;
     if !faults.is_empty() {
-        device = Box::new(FaultyDevice::new(device, &faults, cfg.sim.seed));
+        device = Box::new(FaultyDevice::new(device, faults, cfg.sim.seed));
     }
     let schema = LogSchema {
         model: device.plant_model().is_some(),
     };
-    let (tx, rx) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
-    let writer = spawn_writer(&opts.log, schema, rx).map_err(|source| RunError::Log {
-        path: opts.log.display().to_string(),
-        source,
-    })?;
     let reference = Reference::new(opts.trajectory, &cfg.reference, cfg.sim.seed);
     // A replay limits itself in device time (its rows need not come at rate_hz).
-    let max_ticks = (!replay).then(|| (opts.duration_s * cfg.device.rate_hz).round() as u64);
+    let max_ticks = (!replay && opts.duration_s.is_finite())
+        .then(|| (opts.duration_s * cfg.device.rate_hz).round() as u64);
     // A replay drives no motors: it neither inherits nor leaves heat (and stays reproducible).
     let heat_path = (cfg.safety.persist_heat && !replay)
         .then(crate::servo::thermal_store::state_dir)
         .flatten()
         .map(|d| crate::servo::thermal_store::heat_file(&d, opts.device.name()));
     let mut servo = Servo::new(
-        cfg, device, controller, reference, tx, stop, max_ticks, !opts.fast,
+        cfg,
+        device,
+        controllers,
+        reference,
+        telemetry,
+        stop,
+        max_ticks,
+        !opts.fast,
     );
-    servo.set_identifier(identifier);
+    servo.set_identifier(identifier.clone());
     if let Some(path) = &heat_path {
         let (heat, note) =
             crate::servo::thermal_store::load(path, cfg.safety.thermal_time_constant_s);
@@ -289,43 +313,123 @@ pub fn execute(
         }
         servo.set_initial_heat(heat);
     }
-    // Realtime steps only make sense when the loop is paced.
-    let rt_cfg = (!opts.fast).then(|| cfg.realtime.clone());
-    let (report, realtime) = std::thread::Builder::new()
-        .name("omnid-servo".into())
-        .stack_size(2 << 20)
-        .spawn(move || {
-            let realtime = rt_cfg.as_ref().map(crate::servo::realtime::apply);
-            // Before the first tick: one line per step that was not permitted.
-            for w in realtime.iter().flat_map(|r| &r.warnings) {
-                eprintln!("omnid: warning: {w}");
+    Ok(Pipeline {
+        servo,
+        schema,
+        weights_label,
+        identifier,
+        heat_path,
+        warnings,
+        // Realtime steps only make sense when the loop is paced.
+        realtime: (!opts.fast).then(|| cfg.realtime.clone()),
+    })
+}
+
+/// The servo thread's result: the loop's report and which realtime steps took effect.
+pub type ServoThreadResult = (ServoReport, Option<crate::servo::realtime::RealtimeReport>);
+
+impl Pipeline {
+    /// Start the loop on its own thread (realtime steps taken there, before the first tick).
+    /// Returns what the caller keeps: the thread and the bookkeeping for the end.
+    pub fn spawn(self) -> Result<(std::thread::JoinHandle<ServoThreadResult>, Ending), RunError> {
+        let Pipeline {
+            mut servo,
+            schema,
+            weights_label,
+            identifier: _,
+            heat_path,
+            warnings,
+            realtime,
+        } = self;
+        let handle = std::thread::Builder::new()
+            .name("omnid-servo".into())
+            .stack_size(2 << 20)
+            .spawn(move || {
+                let realtime = realtime.as_ref().map(crate::servo::realtime::apply);
+                // Before the first tick: one line per step that was not permitted.
+                for w in realtime.iter().flat_map(|r| &r.warnings) {
+                    eprintln!("omnid: warning: {w}");
+                }
+                let end = loop {
+                    if let Some(end) = servo.tick() {
+                        break end;
+                    }
+                };
+                (servo.finish(end), realtime)
+            })
+            .map_err(|e| RunError::Internal(format!("cannot start the servo thread: {e}")))?;
+        Ok((
+            handle,
+            Ending {
+                schema,
+                weights_label,
+                heat_path,
+                warnings,
+            },
+        ))
+    }
+}
+
+/// What is needed once the loop has ended.
+pub struct Ending {
+    pub schema: LogSchema,
+    pub weights_label: String,
+    pub heat_path: Option<PathBuf>,
+    pub warnings: Vec<String>,
+}
+
+impl Ending {
+    /// Keep the motors' heat for the next run and warn about motors that ran hot.
+    pub fn save_heat(&self, report: &ServoReport) {
+        if let Some(path) = &self.heat_path {
+            if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
+                eprintln!(
+                    "omnid: warning: cannot save motor heat to {}: {e}",
+                    path.display()
+                );
             }
-            (servo.run(), realtime)
-        })
-        .map_err(|e| RunError::Internal(format!("cannot start the servo thread: {e}")))?
+        }
+        for (j, warned) in report.thermal_warned.iter().enumerate() {
+            if *warned {
+                eprintln!(
+                    "omnid: warning: motor {} reached its thermal warning level (heat {:.2})",
+                    j + 1,
+                    report.heat[j]
+                );
+            }
+        }
+    }
+}
+
+/// Join the servo thread.
+pub fn join_servo(
+    handle: std::thread::JoinHandle<ServoThreadResult>,
+) -> Result<ServoThreadResult, RunError> {
+    handle
         .join()
-        .map_err(|_| RunError::Internal("the servo thread panicked".into()))?;
+        .map_err(|_| RunError::Internal("the servo thread panicked".into()))
+}
+
+/// Validate options, open the device and the log, run the loop to its end.
+pub fn execute(
+    opts: &RunOptions,
+    cfg: &Config,
+    stop: Arc<AtomicBool>,
+) -> Result<RunOutcome, RunError> {
+    let faults = check_options(opts, cfg)?;
+    let (tx, rx) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
+    let pipeline = assemble(opts, cfg, &faults, tx, stop)?;
+    let writer = spawn_writer(&opts.log, pipeline.schema, rx).map_err(|source| RunError::Log {
+        path: opts.log.display().to_string(),
+        source,
+    })?;
+    let (handle, ending) = pipeline.spawn()?;
+    let (report, realtime) = join_servo(handle)?;
     let written = writer
         .join()
         .map_err(|_| RunError::Internal("the log writer thread panicked".into()))?;
+    ending.save_heat(&report);
 
-    if let Some(path) = &heat_path {
-        if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
-            eprintln!(
-                "omnid: warning: cannot save motor heat to {}: {e}",
-                path.display()
-            );
-        }
-    }
-    for (j, warned) in report.thermal_warned.iter().enumerate() {
-        if *warned {
-            eprintln!(
-                "omnid: warning: motor {} reached its thermal warning level (heat {:.2})",
-                j + 1,
-                report.heat[j]
-            );
-        }
-    }
     let is_fault = matches!(
         report.end,
         EndReason::DeviceFault(_) | EndReason::SafetyFault(_)
@@ -341,52 +445,35 @@ pub fn execute(
             }
         }
     }
-    let stats = &report.stats;
-    let duration_s = stats.first_t.map(|t0| stats.last_t - t0).unwrap_or(0.0);
-    let wall_s = report.timing.wall_s();
-    let summary = RunSummary {
-        device: opts.device.name().to_string(),
-        controller: opts.controller.as_str().to_string(),
-        trajectory: format!("{:?}", opts.trajectory).to_lowercase(),
-        ticks: stats.ticks,
-        duration_s,
-        tracking_rms_rad: stats.tracking_rms(),
-        tracking_max_rad: stats.tracking_max(),
-        torque_rms_nm: stats.torque_rms(),
-        torque_total_variation_nm: stats.torque_total_variation(),
-        identifier: IdentifierSummary {
-            nrmse: stats.identifier.nrmse(),
-            nrmse_last_20pct: stats.identifier.nrmse_last_20pct(),
-            nrmse_oracle: stats.oracle_nrmse(),
-            nrmse_oracle_last_20pct: stats.oracle_nrmse_last_20pct(),
-            weights: Some(weights_label),
-            adapt: cfg.identifier.adapt && !opts.no_adapt,
-            fault: report
-                .identifier
-                .as_ref()
-                .and_then(|id| id.fault())
-                .map(|f| f.to_string()),
+    let mut summary = RunSummary::from_results(
+        &SummaryLabels {
+            device: opts.device.name(),
+            controller: opts.controller.as_str(),
+            trajectory: format!("{:?}", opts.trajectory).to_lowercase(),
+            weights: ending.weights_label.clone(),
+            seed: cfg.sim.seed,
+            fast: opts.fast,
         },
-        timing_us: TimingSummary::from_timing(&report.timing),
-        faults: report.faults,
-        telemetry_dropped: report.telemetry_dropped,
-        end: report.end.as_str().to_string(),
-        missed_packets: report.missed_packets,
-        clamped_ticks: stats.clamped_ticks,
-        log_path: Some(written.path.display().to_string()),
-        log_rows: written.rows,
-        seed: cfg.sim.seed,
-        fast: opts.fast,
-        realtime,
-        wall_s,
-        realtime_factor: wall_s.filter(|&w| w > 0.0).map(|w| duration_s / w),
-    };
+        &report.stats,
+        &report.timing,
+        IdentifierState {
+            adapt: cfg.identifier.adapt && !opts.no_adapt,
+            fault: report.identifier.as_ref().and_then(|id| id.fault()),
+        },
+        report.telemetry_dropped,
+        report.missed_packets,
+    );
+    summary.faults = report.faults;
+    summary.end = report.end.as_str().to_string();
+    summary.log_path = Some(written.path.display().to_string());
+    summary.log_rows = written.rows;
+    summary.realtime = realtime;
     Ok(RunOutcome {
         summary,
         end: report.end,
         log_error,
         shutdown_error: report.shutdown_error,
-        warnings,
+        warnings: ending.warnings,
         dump,
     })
 }

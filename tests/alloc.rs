@@ -2,7 +2,7 @@
 //! thread (only) over thousands of ticks after warm-up.
 
 use omnid::config::Config;
-use omnid::control::{ControllerKind, Pd, Reference, Trajectory};
+use omnid::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use omnid::device::sim::SimOmni;
 use omnid::servo::{EndReason, Servo};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -67,7 +67,7 @@ fn the_counter_sees_an_allocation() {
 fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
     let cfg = Config::default();
     let device = Box::new(SimOmni::new(&cfg, false));
-    let controller = omnid::run::make_controller(kind, &cfg);
+    let controller = ControllerSet::new(&cfg, kind, 0.0);
     let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
     // A small channel drained by a consumer thread: both the send and the full (dropped)
     // paths are taken.
@@ -158,7 +158,7 @@ fn replay_allocates_nothing_per_tick() {
     let (tx, rx) = crossbeam_channel::bounded(64);
     let consumer = std::thread::spawn(move || rx.iter().count());
     let stop = Arc::new(AtomicBool::new(false));
-    let controller = Box::new(Pd::from_config(&cfg));
+    let controller = ControllerSet::new(&cfg, ControllerKind::Pd, 0.0);
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     let (id, _) = omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false).unwrap();
     servo.set_identifier(id);

@@ -6,7 +6,7 @@
 mod common;
 use common::{omnid, Log};
 use omnid::config::Config;
-use omnid::control::{Pd, Reference, Trajectory};
+use omnid::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use omnid::device::codec::{decode_command, MotorCommand};
 use omnid::device::inject::{Fault, FaultyDevice};
 use omnid::device::sim::SimOmni;
@@ -177,7 +177,7 @@ fn plant_commands(fault: &str) -> (EndReason, u64, Vec<MotorCommand>) {
     let servo = Servo::new(
         &cfg,
         Box::new(device),
-        Box::new(Pd::from_config(&cfg)),
+        ControllerSet::new(&cfg, ControllerKind::Pd, 0.0),
         Reference::new(Trajectory::Sine, &cfg.reference, 1),
         tx,
         Arc::new(AtomicBool::new(false)),

@@ -60,6 +60,10 @@ impl Controller for ComputedTorque {
         let v = self.gains.acceleration(x, input.reference);
         self.model.inverse_dynamics(&x.q, &x.qd, &v)
     }
+
+    fn compensation(&mut self, x: &Estimate, _learned: Option<&mut Identifier>) -> Joint3 {
+        self.model.inverse_dynamics(&x.q, &x.qd, &Joint3::zeros())
+    }
 }
 
 #[cfg(test)]

@@ -5,11 +5,13 @@ pub mod ct;
 pub mod nnidc;
 pub mod pd;
 pub mod reference;
+pub mod set;
 
 pub use ct::{ComputedTorque, OuterLoop};
 pub use nnidc::Nnidc;
 pub use pd::{Off, Pd};
 pub use reference::{RefPoint, Reference, Trajectory};
+pub use set::ControllerSet;
 
 use crate::estimate::kalman::Estimate;
 use crate::ident::Identifier;
@@ -30,10 +32,29 @@ pub struct ControlInput<'a> {
 pub trait Controller: Send {
     fn name(&self) -> &'static str;
     fn torque(&mut self, input: &ControlInput, learned: Option<&mut Identifier>) -> Joint3;
+
+    /// The law's own model of what holds the arm up and drags on it (gravity, Coriolis and
+    /// friction at zero commanded acceleration): what free mode sends, so the arm feels
+    /// weightless. Laws without a model compensate nothing.
+    fn compensation(&mut self, _estimate: &Estimate, _learned: Option<&mut Identifier>) -> Joint3 {
+        Joint3::zeros()
+    }
+}
+
+/// A fresh law of `kind` from the config.
+pub fn make_controller(kind: ControllerKind, cfg: &crate::config::Config) -> Box<dyn Controller> {
+    match kind {
+        ControllerKind::Pd => Box::new(Pd::from_config(cfg)),
+        ControllerKind::Off => Box::new(Off),
+        ControllerKind::Ct => Box::new(ComputedTorque::from_config(cfg)),
+        ControllerKind::Nnidc => Box::new(Nnidc::from_config(cfg)),
+    }
 }
 
 /// Controllers selectable with `--controller`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum ControllerKind {
     Pd,
@@ -43,6 +64,17 @@ pub enum ControllerKind {
 }
 
 impl ControllerKind {
+    pub const ALL: [ControllerKind; 4] = [
+        ControllerKind::Pd,
+        ControllerKind::Nnidc,
+        ControllerKind::Ct,
+        ControllerKind::Off,
+    ];
+
+    pub fn parse(s: &str) -> Option<ControllerKind> {
+        ControllerKind::ALL.into_iter().find(|k| k.as_str() == s)
+    }
+
     pub fn as_str(self) -> &'static str {
         match self {
             ControllerKind::Pd => "pd",

@@ -49,6 +49,18 @@ impl Controller for Nnidc {
             }
         }
     }
+
+    fn compensation(
+        &mut self,
+        x: &crate::estimate::kalman::Estimate,
+        learned: Option<&mut Identifier>,
+    ) -> Joint3 {
+        match learned {
+            Some(id) if id.healthy() => id.inverse_dynamics(&x.q, &x.qd, &Joint3::zeros()),
+            // The PD fallback has no model to compensate with.
+            _ => Joint3::zeros(),
+        }
+    }
 }
 
 #[cfg(test)]

@@ -66,7 +66,7 @@ pub struct Reference {
 }
 
 /// Quintic smoothstep s(τ) = 10τ³ − 15τ⁴ + 6τ⁵ and its first two derivatives in τ.
-fn quintic(tau: f64) -> (f64, f64, f64) {
+pub(crate) fn quintic(tau: f64) -> (f64, f64, f64) {
     let t = tau.clamp(0.0, 1.0);
     let (t2, t3) = (t * t, t * t * t);
     (

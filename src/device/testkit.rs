@@ -1,7 +1,7 @@
 //! Test helpers shared by the backend tests: drive the real servo loop over a device.
 
 use crate::config::Config;
-use crate::control::{Pd, Reference, Trajectory};
+use crate::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use crate::device::codec::{decode_command, MotorCommand};
 use crate::device::Device;
 use crate::servo::{Servo, ServoReport};
@@ -21,7 +21,7 @@ pub fn run_servo(
     let servo = Servo::new(
         cfg,
         device,
-        Box::new(Pd::from_config(cfg)),
+        ControllerSet::new(cfg, ControllerKind::Pd, 0.0),
         reference,
         tx,
         stop,

@@ -325,6 +325,32 @@ impl Identifier {
         self.fault
     }
 
+    /// Freeze (`false`) or resume (`true`) online adaptation.
+    pub fn set_adapt(&mut self, on: bool) {
+        self.cfg.adapt = on;
+    }
+
+    /// Copy `other`'s network weights into this identifier without allocating (the servo
+    /// loop uses this to hand its weights out). False, and nothing changed, when the networks
+    /// differ in size.
+    pub fn copy_weights_from(&mut self, other: &Identifier) -> bool {
+        let nets = [Net::M, Net::C, Net::G, Net::F];
+        let fits = nets.iter().all(|&n| match (self.net(n), other.net(n)) {
+            (Some(a), Some(b)) => a.params().len() == b.params().len(),
+            (None, None) => true,
+            _ => false,
+        });
+        if !fits {
+            return false;
+        }
+        for n in nets {
+            if let (Some(dst), Some(src)) = (self.net_mut(n), other.net(n)) {
+                dst.params_mut().copy_from_slice(src.params());
+            }
+        }
+        true
+    }
+
     /// Operator reset: adapt again from the current (last good) weights.
     pub fn reset_fault(&mut self) {
         self.fault = None;

@@ -3,13 +3,14 @@
 //! through a bounded channel with `try_send`.
 
 pub mod clock;
+pub mod command;
 pub mod realtime;
 pub mod safety;
 pub mod thermal_store;
 pub mod timing;
 
-use crate::config::Config;
-use crate::control::{ControlInput, Controller, Reference};
+use crate::config::{Config, ReferenceConfig};
+use crate::control::{ControlInput, ControllerSet, RefPoint, Reference};
 use crate::device::{
     decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
     COMMAND_LEN,
@@ -17,8 +18,9 @@ use crate::device::{
 use crate::estimate::KalmanBank;
 use crate::ident::Identifier;
 use crate::omni::Joint3;
-use crate::telemetry::record::{flags, Mode, TickRecord};
+use crate::telemetry::record::{flags, Live, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, RunStats};
+pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
 use crossbeam_channel::{Sender, TrySendError};
 use safety::SafetyLayer;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -78,13 +80,34 @@ pub struct ServoReport {
     pub thermal_warned: [bool; 3],
 }
 
+/// Where the reference comes from.
+#[derive(Debug, Clone, Copy)]
+enum Target {
+    /// A trajectory started at loop time `t0`.
+    Trajectory { reference: Reference, t0: f64 },
+    /// A fixed point (hold, the latest `servo_jp` setpoint).
+    Point(RefPoint),
+}
+
 /// The servo loop's state. Build it, then call [`Servo::run`] (or [`Servo::tick`] by hand).
 pub struct Servo {
     device: Box<dyn Device>,
-    controller: Box<dyn Controller>,
+    controllers: ControllerSet,
     /// The adaptive identifier: runs every tick, whatever the controller.
     identifier: Option<Identifier>,
-    reference: Reference,
+    activity: Activity,
+    target: Target,
+    reference_cfg: ReferenceConfig,
+    seed: u64,
+    wall_lower: [f64; 3],
+    wall_upper: [f64; 3],
+    /// `omnid serve`: commands in, replies and wake-ups out.
+    link: Option<ServoLink>,
+    /// The client stream's torque (servo_jf), its last sequence number and its deadline.
+    stream_tau: crate::omni::Joint3,
+    cmd_seq: u64,
+    stream_deadline: f64,
+    event: Option<ServoEvent>,
     kalman: KalmanBank,
     unwrap: EncoderUnwrap,
     dac: DacScale,
@@ -127,7 +150,7 @@ impl Servo {
     pub fn new(
         cfg: &Config,
         device: Box<dyn Device>,
-        controller: Box<dyn Controller>,
+        controllers: ControllerSet,
         reference: Reference,
         telemetry: Sender<TickRecord>,
         stop: Arc<AtomicBool>,
@@ -137,9 +160,19 @@ impl Servo {
         let period_ns = (1e9 / cfg.device.rate_hz).round() as u64;
         Servo {
             device,
-            controller,
+            controllers,
             identifier: Identifier::new(&cfg.identifier).ok(),
-            reference,
+            activity: Activity::Track,
+            target: Target::Trajectory { reference, t0: 0.0 },
+            reference_cfg: cfg.reference.clone(),
+            seed: cfg.sim.seed,
+            wall_lower: cfg.safety.wall_lower,
+            wall_upper: cfg.safety.wall_upper,
+            link: None,
+            stream_tau: Joint3::zeros(),
+            cmd_seq: 0,
+            stream_deadline: f64::NEG_INFINITY,
+            event: None,
             kalman: KalmanBank::new(&cfg.kalman),
             unwrap: EncoderUnwrap::new(),
             dac: DacScale {
@@ -174,6 +207,17 @@ impl Servo {
             dropped: 0,
             missed: 0,
         }
+    }
+
+    /// Serve clients: take commands from `link` and start in `Idle` (amplifiers off) instead
+    /// of tracking; a safety trip then drops to `Idle` instead of ending the run.
+    pub fn attach(&mut self, link: ServoLink) {
+        self.link = Some(link);
+        self.activity = Activity::Idle;
+    }
+
+    pub fn activity(&self) -> Activity {
+        self.activity
     }
 
     /// Replace the identifier (pre-tuned weights, adaptation off, …).
@@ -240,17 +284,15 @@ impl Servo {
         // Estimate.
         let est = self.kalman.update(t_dev, &q);
 
+        // Clients' commands that arrived while the loop waited for this sample.
+        if self.link.is_some() {
+            self.take_commands(t, &est.q);
+            self.expire_stream(t, &est.q);
+        }
+
         // Control, with the weights as they are; the update below then learns from this
         // sample at the same point (one network pass serves both).
-        let reference = self.reference.at(t, &est.q);
-        let tau_cmd = self.controller.torque(
-            &ControlInput {
-                t,
-                estimate: &est,
-                reference: &reference,
-            },
-            self.identifier.as_mut(),
-        );
+        let (reference, tau_cmd) = self.control(t, &est);
 
         // Identify: learn from the torque that acted up to this sample.
         let dt = if self.tick == 0 { 0.0 } else { t - self.last_t };
@@ -258,6 +300,11 @@ impl Servo {
         let mut ident_flag = 0;
         if let Some(id) = self.identifier.as_mut() {
             match self.acting_tau {
+                // Amplifiers off: whatever holds the arm (its rest, a hand) is not in the
+                // torque, so there is nothing true to learn from. Predict only.
+                Some(_) if self.activity == Activity::Idle => {
+                    tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
+                }
                 Some(acting) => {
                     let predicted = id.update(&est.q, &est.qd, &est.qdd, &acting.into(), dt);
                     if id.healthy() {
@@ -289,9 +336,28 @@ impl Servo {
             None => [f64::NAN; 3],
         };
 
-        // Safety: every command passes through the limits; a trip ends the run.
-        let limited = match self.safety.apply(&tau_cmd, &est.q, &est.qd) {
+        // Safety: every command passes through the limits; a trip ends the run (under
+        // `serve`: zero torque, amplifiers off, mode idle, every client told).
+        let limited = if self.activity == Activity::Idle {
+            self.safety.rest();
+            Ok(safety::Limited {
+                tau: Joint3::zeros(),
+                flags: 0,
+            })
+        } else {
+            self.safety.apply(&tau_cmd, &est.q, &est.qd)
+        };
+        let limited = match limited {
             Ok(l) => l,
+            Err(trip) if self.link.is_some() => {
+                self.enter(Activity::Idle, &est.q);
+                self.safety.rest();
+                self.event = Some(ServoEvent::SafetyTrip(trip));
+                safety::Limited {
+                    tau: Joint3::zeros(),
+                    flags: 0,
+                }
+            }
             Err(trip) => {
                 self.last_t = t;
                 return Some(EndReason::SafetyFault(trip.to_string()));
@@ -301,26 +367,32 @@ impl Servo {
         let tick_flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
         self.held = false;
 
-        // Encode: the next exchange sends it, amplifiers on from now.
+        // Encode: the next exchange sends it, amplifiers on from now (unless idle).
         let words = self.dac.to_words(&tau.into());
         let tau_applied = self.dac.to_torque(&words);
         self.command.dac = words;
-        self.command.amps_on = true;
+        self.command.amps_on = self.activity != Activity::Idle;
 
         // What the plant got: on a replay, the recorded torque (ours cannot reach it; it is
         // still logged as `tau_cmd`).
         let tau_plant = self.device.recorded_torque().unwrap_or(tau_applied);
 
-        let mode = if t < self.blend_s {
-            Mode::Blend
-        } else {
-            Mode::Track
+        let mode = match (self.activity, self.target) {
+            (Activity::Track, Target::Trajectory { t0, .. }) => {
+                if t - t0 < self.blend_s {
+                    Mode::Blend
+                } else {
+                    if t - t0 >= self.settle_s {
+                        self.stats.record_tracking(&(reference.q - est.q).into());
+                    }
+                    Mode::Track
+                }
+            }
+            (activity, _) => activity.mode(),
         };
         self.stats.record_time(t);
         self.stats.record_torque(&tau_plant);
-        if t >= self.settle_s {
-            self.stats.record_tracking(&(reference.q - est.q).into());
-        }
+        let event = self.event.take();
         if tick_flags & flags::CLAMPED != 0 {
             self.stats.clamped_ticks += 1;
         }
@@ -336,9 +408,17 @@ impl Servo {
             tau_hat,
             tau_model,
             enc,
-            amps: true,
+            amps: self.command.amps_on,
             mode,
             flags: tick_flags,
+            live: Live {
+                seq: self.tick,
+                buttons: packet.buttons,
+                inkwell: packet.inkwell,
+                controller: Some(self.controllers.active()),
+                cmd_seq: self.cmd_seq,
+                event,
+            },
         });
         self.last_t = t;
         self.last_q = q.into();
@@ -367,6 +447,163 @@ impl Servo {
         if !sent {
             self.dropped += 1;
         }
+        if let Some(link) = &self.link {
+            link.wake.notify();
+        }
+    }
+
+    /// The reference and the controller's torque for this tick, by activity.
+    fn control(&mut self, t: f64, est: &crate::estimate::kalman::Estimate) -> (RefPoint, Joint3) {
+        let here = RefPoint {
+            q: est.q,
+            ..RefPoint::default()
+        };
+        let reference = match &mut self.target {
+            Target::Trajectory { reference, t0 } => reference.at(t - *t0, &est.q),
+            Target::Point(p) => *p,
+        };
+        let input = ControlInput {
+            t,
+            estimate: est,
+            reference: &reference,
+        };
+        let id = self.identifier.as_mut();
+        match self.activity {
+            Activity::Idle => (here, Joint3::zeros()),
+            Activity::Track | Activity::Hold | Activity::ServoJp => {
+                (reference, self.controllers.torque(&input, id))
+            }
+            Activity::Free => (here, self.controllers.compensation(t, est, id)),
+            Activity::ServoJf => (
+                here,
+                self.controllers.compensation(t, est, id) + self.stream_tau,
+            ),
+        }
+    }
+
+    /// Change activity at the pose `q`: hold and setpoint modes start from it, tracking blends
+    /// in from it, and authority ramps up again after idle.
+    fn enter(&mut self, activity: Activity, q: &Joint3) {
+        if self.activity == Activity::Idle && activity != Activity::Idle {
+            self.safety.restart_ramp();
+        }
+        if matches!(activity, Activity::Hold | Activity::Idle) {
+            self.target = Target::Point(RefPoint {
+                q: self.inside_walls(q),
+                ..RefPoint::default()
+            });
+        }
+        self.activity = activity;
+    }
+
+    /// A target beyond the soft walls would only fight them: the nearest pose inside.
+    fn inside_walls(&self, q: &Joint3) -> Joint3 {
+        Joint3::from_fn(|j, _| q[j].clamp(self.wall_lower[j], self.wall_upper[j]))
+    }
+
+    /// Apply the commands that arrived since the last tick (at most
+    /// [`command::MAX_COMMANDS_PER_TICK`]; the rest wait).
+    fn take_commands(&mut self, t: f64, q: &Joint3) {
+        for _ in 0..command::MAX_COMMANDS_PER_TICK {
+            let Some(cmd) = self.link.as_ref().and_then(|l| l.commands.try_recv().ok()) else {
+                return;
+            };
+            match cmd {
+                ServoCommand::Idle => self.enter(Activity::Idle, q),
+                ServoCommand::Hold => self.enter(Activity::Hold, q),
+                ServoCommand::Free => self.enter(Activity::Free, q),
+                ServoCommand::Track(kind) => {
+                    self.enter(Activity::Track, q);
+                    self.target = Target::Trajectory {
+                        reference: Reference::new(kind, &self.reference_cfg, self.seed),
+                        t0: t,
+                    };
+                }
+                ServoCommand::ServoJp { seq, q: sp, ttl_s } => {
+                    if sp.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
+                        self.enter(Activity::ServoJp, q);
+                        self.target = Target::Point(RefPoint {
+                            q: self.inside_walls(&sp.into()),
+                            ..RefPoint::default()
+                        });
+                        self.cmd_seq = seq;
+                        self.stream_deadline = t + ttl_s;
+                    }
+                }
+                ServoCommand::ServoJf { seq, tau, ttl_s } => {
+                    if tau.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
+                        self.enter(Activity::ServoJf, q);
+                        self.stream_tau = tau.into();
+                        self.cmd_seq = seq;
+                        self.stream_deadline = t + ttl_s;
+                    }
+                }
+                ServoCommand::StreamEnded => {
+                    if self.activity.is_stream() {
+                        let fallback = self.stream_fallback(q);
+                        self.event = Some(ServoEvent::StreamEnded { fallback });
+                    }
+                }
+                ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
+                ServoCommand::Adapt(on) => {
+                    if let Some(id) = self.identifier.as_mut() {
+                        id.set_adapt(on);
+                    }
+                }
+                ServoCommand::LoadIdentifier(mut incoming) => {
+                    if let Some(id) = self.identifier.as_mut() {
+                        std::mem::swap(id, &mut *incoming);
+                    }
+                    self.reply(ServoReply::Identifier(incoming));
+                }
+                ServoCommand::Snapshot(mut snap) => {
+                    self.fill(&mut snap);
+                    self.reply(ServoReply::Snapshot(snap));
+                }
+            }
+        }
+    }
+
+    /// Leave a stream mode for the configured fallback; returns the mode fallen back to.
+    fn stream_fallback(&mut self, q: &Joint3) -> Mode {
+        let to = self
+            .link
+            .as_ref()
+            .map_or(Activity::Hold, |l| l.stale_fallback);
+        self.stream_tau = Joint3::zeros();
+        self.enter(to, q);
+        to.mode()
+    }
+
+    /// A stream whose last command is older than its time to live is stale: never hold a
+    /// stale torque or setpoint.
+    fn expire_stream(&mut self, t: f64, q: &Joint3) {
+        if self.activity.is_stream() && t > self.stream_deadline {
+            let fallback = self.stream_fallback(q);
+            self.event = Some(ServoEvent::StreamStale { fallback });
+        }
+    }
+
+    fn reply(&mut self, reply: ServoReply) {
+        if let Some(link) = &self.link {
+            // The receiver keeps far more room than requests in flight; should it be gone,
+            // the box is dropped here (the daemon is shutting down anyway).
+            let _ = link.replies.try_send(reply);
+        }
+    }
+
+    fn fill(&self, snap: &mut Snapshot) {
+        snap.stats.copy_from(&self.stats);
+        snap.timing.copy_from(&self.timing);
+        snap.weights_copied = match (&mut snap.weights, &self.identifier) {
+            (Some(out), Some(id)) => out.copy_weights_from(id),
+            _ => false,
+        };
+        snap.adapt = self.identifier.as_ref().is_some_and(|id| id.config().adapt);
+        snap.ident_fault = self.identifier.as_ref().and_then(|id| id.fault());
+        snap.telemetry_dropped = self.dropped;
+        snap.missed_packets = self.missed;
+        snap.heat = self.safety.heat();
     }
 
     /// A packet did not arrive or was corrupt: hold the last torque, count, and give up after
@@ -434,6 +671,12 @@ impl Servo {
             amps: false,
             mode: Mode::Stop,
             flags: 0,
+            live: Live {
+                seq: self.tick,
+                controller: Some(self.controllers.active()),
+                cmd_seq: self.cmd_seq,
+                ..Live::default()
+            },
         });
         if let Err(e) = self.device.close() {
             error.get_or_insert(format!("closing the device: {e}"));
@@ -484,7 +727,7 @@ impl Servo {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::control::{Pd, Trajectory};
+    use crate::control::{ControllerKind, Trajectory};
     use crate::device::sim::SimOmni;
 
     /// Ticks `n` times into a 16-row channel that nobody reads until it is full (unpaced: else
@@ -509,7 +752,7 @@ mod tests {
         let mut servo = Servo::new(
             &cfg,
             Box::new(SimOmni::new(&cfg, false)),
-            Box::new(Pd::from_config(&cfg)),
+            ControllerSet::new(&cfg, ControllerKind::Pd, 0.0),
             Reference::new(Trajectory::Sine, &cfg.reference, 1),
             tx,
             Arc::new(AtomicBool::new(false)),

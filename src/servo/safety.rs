@@ -259,6 +259,12 @@ impl SafetyLayer {
         }
     }
 
+    /// Amplifiers off: nothing is being sent, and authority will ramp up again from zero.
+    pub fn rest(&mut self) {
+        self.last_tau = Joint3::zeros();
+        self.ramp_elapsed = 0.0;
+    }
+
     /// Start the ramp again (after a recovery): authority returns gradually.
     pub fn restart_ramp(&mut self) {
         self.ramp_elapsed = 0.0;

@@ -35,6 +35,15 @@ impl Histogram {
         }
     }
 
+    /// Become a copy of `other` without allocating (same range: the bins are reused).
+    pub fn copy_from(&mut self, other: &Histogram) {
+        self.bin_ns = other.bin_ns;
+        self.bins.clone_from(&other.bins);
+        self.overflow = other.overflow;
+        self.count = other.count;
+        self.max_ns = other.max_ns;
+    }
+
     pub fn record(&mut self, ns: u64) {
         let i = (ns / self.bin_ns) as usize;
         match self.bins.get_mut(i) {
@@ -113,6 +122,17 @@ impl TickTiming {
             last: (0, 0.0),
             last_done: 0,
         }
+    }
+
+    /// Become a copy of `other` without allocating (built for the same period).
+    pub fn copy_from(&mut self, other: &TickTiming) {
+        self.period.copy_from(&other.period);
+        self.lateness.copy_from(&other.lateness);
+        self.compute.copy_from(&other.compute);
+        self.overruns = other.overruns;
+        self.first = other.first;
+        self.last = other.last;
+        self.last_done = other.last_done;
     }
 
     /// One tick: the sample arrived at `wake` and the command was ready at `done` (host clock,

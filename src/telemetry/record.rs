@@ -1,7 +1,7 @@
 //! One row of the log: a plain `Copy` struct, so sending it through the bounded channel never
 //! allocates.
 
-/// What the loop was doing at this tick.
+/// What the loop was doing at this tick (the log's `mode` column).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mode {
     /// Blending from the start pose onto the reference.
@@ -10,24 +10,45 @@ pub enum Mode {
     Track,
     /// The final packet: zero torque, amplifiers off.
     Stop,
+    /// `omnid serve` only: amplifiers off, state streaming.
+    Idle,
+    /// Holding the pose where the mode began.
+    Hold,
+    /// Compensation by the active controller's model only (the arm moves freely).
+    Free,
+    /// Following a client's joint setpoint stream.
+    ServoJp,
+    /// A client's joint torque stream on top of the compensation.
+    ServoJf,
 }
 
 impl Mode {
+    pub const ALL: [Mode; 8] = [
+        Mode::Blend,
+        Mode::Track,
+        Mode::Stop,
+        Mode::Idle,
+        Mode::Hold,
+        Mode::Free,
+        Mode::ServoJp,
+        Mode::ServoJf,
+    ];
+
     pub fn as_str(self) -> &'static str {
         match self {
             Mode::Blend => "blend",
             Mode::Track => "track",
             Mode::Stop => "stop",
+            Mode::Idle => "idle",
+            Mode::Hold => "hold",
+            Mode::Free => "free",
+            Mode::ServoJp => "servo_jp",
+            Mode::ServoJf => "servo_jf",
         }
     }
 
     pub fn parse(s: &str) -> Option<Mode> {
-        match s {
-            "blend" => Some(Mode::Blend),
-            "track" => Some(Mode::Track),
-            "stop" => Some(Mode::Stop),
-            _ => None,
-        }
+        Mode::ALL.into_iter().find(|m| m.as_str() == s)
     }
 }
 
@@ -79,6 +100,24 @@ pub struct TickRecord {
     pub amps: bool,
     pub mode: Mode,
     pub flags: u32,
+    /// What the daemon's clients see beyond the log's columns (not written to the log).
+    pub live: Live,
+}
+
+/// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Live {
+    /// Tick number since the servo started (the state stream's sequence number).
+    pub seq: u64,
+    /// Stylus buttons pressed, and the stylus in its inkwell.
+    pub buttons: [bool; 2],
+    pub inkwell: bool,
+    /// The controller whose law is in effect (the new one during a bumpless switch).
+    pub controller: Option<crate::control::ControllerKind>,
+    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`) applied.
+    pub cmd_seq: u64,
+    /// Something happened this tick that every client is told about.
+    pub event: Option<crate::servo::ServoEvent>,
 }
 
 /// Which optional column groups a log carries.

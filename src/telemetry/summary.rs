@@ -26,6 +26,34 @@ pub struct RunStats {
 }
 
 impl RunStats {
+    /// Become a copy of `other` without allocating (the error bins are reused).
+    pub fn copy_from(&mut self, other: &RunStats) {
+        let RunStats {
+            ticks,
+            first_t,
+            last_t,
+            tracked,
+            track_sq,
+            track_max,
+            torque_n,
+            torque_sq,
+            torque_tv,
+            last_tau,
+            identifier,
+            oracle,
+            oracle_seen,
+            clamped_ticks,
+        } = other;
+        (self.ticks, self.first_t, self.last_t) = (*ticks, *first_t, *last_t);
+        (self.tracked, self.track_sq, self.track_max) = (*tracked, *track_sq, *track_max);
+        (self.torque_n, self.torque_sq, self.torque_tv) = (*torque_n, *torque_sq, *torque_tv);
+        self.last_tau = *last_tau;
+        self.identifier.copy_from(identifier);
+        self.oracle.copy_from(oracle);
+        self.oracle_seen = *oracle_seen;
+        self.clamped_ticks = *clamped_ticks;
+    }
+
     pub fn record_time(&mut self, t: f64) {
         self.ticks += 1;
         self.first_t.get_or_insert(t);
@@ -117,6 +145,15 @@ impl Default for ErrorBins {
 }
 
 impl ErrorBins {
+    /// Become a copy of `other` without allocating.
+    pub fn copy_from(&mut self, other: &ErrorBins) {
+        self.err_sq.clone_from(&other.err_sq);
+        self.ref_sq.clone_from(&other.ref_sq);
+        self.used = other.used;
+        self.ticks_per_bin = other.ticks_per_bin;
+        self.in_bin = other.in_bin;
+    }
+
     /// Add one tick: `reference` the measured torque, `estimate` the prediction.
     pub fn record(&mut self, reference: &[f64; 3], estimate: &[f64; 3]) {
         if self.in_bin == self.ticks_per_bin {
@@ -281,7 +318,71 @@ fn pct(p: &Option<Percentiles>) -> String {
     }
 }
 
+/// What names a run in its summary.
+pub struct SummaryLabels<'a> {
+    pub device: &'a str,
+    pub controller: &'a str,
+    pub trajectory: String,
+    /// Weights the identifier started from.
+    pub weights: String,
+    pub seed: u64,
+    pub fast: bool,
+}
+
+/// The identifier's state at the time of the summary.
+pub struct IdentifierState {
+    pub adapt: bool,
+    pub fault: Option<crate::ident::Fault>,
+}
+
 impl RunSummary {
+    /// The summary of the loop's results so far. How the run ended, its faults, log and
+    /// realtime report are the caller's to fill in (`end` is "running" until then).
+    pub fn from_results(
+        labels: &SummaryLabels,
+        stats: &RunStats,
+        timing: &TickTiming,
+        identifier: IdentifierState,
+        telemetry_dropped: u64,
+        missed_packets: u64,
+    ) -> RunSummary {
+        let duration_s = stats.first_t.map(|t0| stats.last_t - t0).unwrap_or(0.0);
+        let wall_s = timing.wall_s();
+        RunSummary {
+            device: labels.device.to_string(),
+            controller: labels.controller.to_string(),
+            trajectory: labels.trajectory.clone(),
+            ticks: stats.ticks,
+            duration_s,
+            tracking_rms_rad: stats.tracking_rms(),
+            tracking_max_rad: stats.tracking_max(),
+            torque_rms_nm: stats.torque_rms(),
+            torque_total_variation_nm: stats.torque_total_variation(),
+            identifier: IdentifierSummary {
+                nrmse: stats.identifier.nrmse(),
+                nrmse_last_20pct: stats.identifier.nrmse_last_20pct(),
+                nrmse_oracle: stats.oracle_nrmse(),
+                nrmse_oracle_last_20pct: stats.oracle_nrmse_last_20pct(),
+                weights: Some(labels.weights.clone()),
+                adapt: identifier.adapt,
+                fault: identifier.fault.map(|f| f.to_string()),
+            },
+            timing_us: TimingSummary::from_timing(timing),
+            faults: Vec::new(),
+            telemetry_dropped,
+            end: "running".to_string(),
+            missed_packets,
+            clamped_ticks: stats.clamped_ticks,
+            log_path: None,
+            log_rows: 0,
+            seed: labels.seed,
+            fast: labels.fast,
+            realtime: None,
+            wall_s,
+            realtime_factor: wall_s.filter(|&w| w > 0.0).map(|w| duration_s / w),
+        }
+    }
+
     /// The printout at the end of a run.
     pub fn human(&self) -> String {
         let mut s = format!(

@@ -228,6 +228,7 @@ mod tests {
             amps: true,
             mode: Mode::Track,
             flags: 1,
+            live: Default::default(),
         };
         tx.send(rec).unwrap();
         drop(tx);

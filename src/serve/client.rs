@@ -1,0 +1,190 @@
+//! A small blocking client of `omnid serve` (used by `omnid watch`, `omnid ctl`, the tests
+//! and the benchmark): connect and greet, send requests, wait for their replies, read the
+//! state stream.
+
+use super::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
+use super::socket::Conn;
+use serde_json::{json, Value};
+use std::path::Path;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum ClientError {
+    #[error("cannot connect to {path}: {source}")]
+    Connect {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    /// The daemon refused the request; its reason.
+    #[error("{0}")]
+    Refused(String),
+    #[error("the daemon closed the connection")]
+    Closed,
+    #[error("no answer within {0} ms")]
+    Timeout(i32),
+    #[error("unreadable message from the daemon: {0}")]
+    Protocol(String),
+}
+
+/// A message from the daemon.
+#[derive(Debug, Clone)]
+pub enum Message {
+    State(State),
+    /// Anything else (`reply`, `error`, `event`, `lost`, `bye`), as JSON.
+    Other(Value),
+}
+
+pub struct Client {
+    conn: Conn,
+    hello: Hello,
+    buf: Vec<u8>,
+    next_id: u64,
+    /// Messages read while waiting for a reply, handed out by `recv` first.
+    backlog: std::collections::VecDeque<Message>,
+}
+
+impl Client {
+    /// Connect to the daemon at `path` and say hello as `name`.
+    pub fn connect(path: &Path, name: &str) -> Result<Client, ClientError> {
+        let conn = Conn::connect(path).map_err(|source| ClientError::Connect {
+            path: path.display().to_string(),
+            source,
+        })?;
+        let mut c = Client {
+            conn,
+            hello: Hello {
+                protocol: 0,
+                server: String::new(),
+                device: String::new(),
+                rate_hz: 0.0,
+                access: String::new(),
+                client: 0,
+                stream_ttl_ms: 0.0,
+                controllers: Vec::new(),
+                modes: Vec::new(),
+            },
+            buf: vec![0; MAX_MESSAGE + 1],
+            next_id: 1,
+            backlog: Default::default(),
+        };
+        c.send(&json!({ "op": "hello", "protocol": PROTOCOL_VERSION, "name": name }))?;
+        loop {
+            match c.read(5000)? {
+                Message::Other(v) if v["type"] == "hello" => {
+                    c.hello = serde_json::from_value(v)
+                        .map_err(|e| ClientError::Protocol(e.to_string()))?;
+                    return Ok(c);
+                }
+                Message::Other(v) if v["type"] == "error" => {
+                    return Err(ClientError::Refused(
+                        v["message"].as_str().unwrap_or("refused").to_string(),
+                    ))
+                }
+                _ => {}
+            }
+        }
+    }
+
+    pub fn hello(&self) -> &Hello {
+        &self.hello
+    }
+
+    /// Send one request as it is (no reply awaited).
+    pub fn send(&self, msg: &Value) -> Result<(), ClientError> {
+        let bytes = serde_json::to_vec(msg).map_err(|e| ClientError::Protocol(e.to_string()))?;
+        self.conn.send(&bytes).map_err(|e| match e.kind() {
+            std::io::ErrorKind::BrokenPipe | std::io::ErrorKind::ConnectionReset => {
+                ClientError::Closed
+            }
+            _ => ClientError::Io(e),
+        })
+    }
+
+    /// Send raw bytes (tests of malformed input).
+    pub fn send_raw(&self, bytes: &[u8]) -> Result<(), ClientError> {
+        Ok(self.conn.send(bytes)?)
+    }
+
+    fn read(&mut self, timeout_ms: i32) -> Result<Message, ClientError> {
+        if !self.conn.wait_readable(timeout_ms)? {
+            return Err(ClientError::Timeout(timeout_ms));
+        }
+        let n = self.conn.recv(&mut self.buf)?;
+        if n == 0 {
+            return Err(ClientError::Closed);
+        }
+        let bytes = &self.buf[..n.min(self.buf.len())];
+        let v: Value =
+            serde_json::from_slice(bytes).map_err(|e| ClientError::Protocol(e.to_string()))?;
+        if v["type"] == "state" {
+            return serde_json::from_value(v)
+                .map(Message::State)
+                .map_err(|e| ClientError::Protocol(e.to_string()));
+        }
+        Ok(Message::Other(v))
+    }
+
+    /// The next message, waiting at most `timeout_ms` (negative: forever).
+    pub fn recv(&mut self, timeout_ms: i32) -> Result<Message, ClientError> {
+        match self.backlog.pop_front() {
+            Some(m) => Ok(m),
+            None => self.read(timeout_ms),
+        }
+    }
+
+    /// The next state sample, skipping other messages (kept for `recv`).
+    pub fn next_state(&mut self, timeout_ms: i32) -> Result<State, ClientError> {
+        if let Some(k) = self
+            .backlog
+            .iter()
+            .position(|m| matches!(m, Message::State(_)))
+        {
+            if let Some(Message::State(s)) = self.backlog.remove(k) {
+                return Ok(s);
+            }
+        }
+        loop {
+            match self.read(timeout_ms)? {
+                Message::State(s) => return Ok(s),
+                other => self.backlog.push_back(other),
+            }
+        }
+    }
+
+    /// Send `request` (an object with `op`) and wait for its reply; the daemon's refusal is
+    /// `ClientError::Refused` with its reason. State samples and events that arrive
+    /// meanwhile are kept for `recv` (samples only while streaming was asked for).
+    pub fn request(&mut self, mut request: Value) -> Result<Value, ClientError> {
+        let id = self.next_id;
+        self.next_id += 1;
+        request["id"] = json!(id);
+        self.send(&request)?;
+        loop {
+            match self.read(10_000)? {
+                Message::Other(v) if v["id"] == json!(id) => {
+                    return if v["type"] == "error" {
+                        Err(ClientError::Refused(
+                            v["message"].as_str().unwrap_or("refused").to_string(),
+                        ))
+                    } else {
+                        Ok(v)
+                    };
+                }
+                // The daemon's answer to a message it could not read has no id.
+                Message::Other(v) if v["type"] == "error" && v.get("id").is_none() => {
+                    return Err(ClientError::Refused(
+                        v["message"].as_str().unwrap_or("refused").to_string(),
+                    ))
+                }
+                Message::Other(v) if v["type"] == "bye" => return Err(ClientError::Closed),
+                other => {
+                    if self.backlog.len() < 100_000 {
+                        self.backlog.push_back(other);
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,263 @@
+//! The client protocol of `omnid serve` (docs/PROTOCOL.md): one JSON object per
+//! SOCK_SEQPACKET message. Clients send requests tagged by `op`; the daemon sends messages
+//! tagged by `type`. serde does every encoding and decoding.
+
+use serde::{Deserialize, Serialize};
+
+/// The protocol version this daemon speaks; a client's hello must name it.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Largest message either side may send, bytes (a longer one is refused and its sender
+/// dropped).
+pub const MAX_MESSAGE: usize = 64 * 1024;
+
+/// A request from a client. `id` (any JSON value) is echoed in the reply.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Request {
+    /// Must be the first message: the protocol version the client speaks.
+    Hello {
+        protocol: u32,
+        #[serde(default)]
+        name: Option<String>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Start (rate_hz > 0, up to the device's rate) or stop (0) the state stream.
+    Stream {
+        rate_hz: f64,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// The run summary so far, the mode, the controller, the lease, the clients.
+    Status {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Take the command lease (also taken by any command while it is free).
+    Lease {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Give the command lease back (a stream mode then falls back as if the stream ended).
+    Release {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Change mode: idle, hold, track (with `trajectory`), free.
+    Mode {
+        mode: String,
+        #[serde(default)]
+        trajectory: Option<String>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// CRTK `hold`: the same as mode hold.
+    Hold {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// CRTK `free`: the same as mode free.
+    Free {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Joint position setpoint stream (rad). No reply unless refused.
+    ServoJp {
+        seq: u64,
+        q: [f64; 3],
+        #[serde(default)]
+        ttl_ms: Option<f64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Joint torque stream (N·m) on top of the compensation. No reply unless refused.
+    ServoJf {
+        seq: u64,
+        tau: [f64; 3],
+        #[serde(default)]
+        ttl_ms: Option<f64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Switch the control law (bumpless): pd, ct, nnidc, off.
+    Controller {
+        controller: String,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Resume (`on: true`) or freeze (`on: false`) the identifier's online adaptation.
+    Adapt {
+        on: bool,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Save the identifier's current weights to a file (JSON, as `omnid identify` writes).
+    WeightsSave {
+        path: String,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Load weights from a file into the running identifier.
+    WeightsLoad {
+        path: String,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Start writing every tick to a log file (today's CSV format).
+    RecordStart {
+        #[serde(default)]
+        path: Option<String>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    RecordStop {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Stop the daemon: zero torque, amplifiers off, socket removed.
+    Shutdown {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+}
+
+impl Request {
+    pub fn op(&self) -> &'static str {
+        match self {
+            Request::Hello { .. } => "hello",
+            Request::Stream { .. } => "stream",
+            Request::Status { .. } => "status",
+            Request::Lease { .. } => "lease",
+            Request::Release { .. } => "release",
+            Request::Mode { .. } => "mode",
+            Request::Hold { .. } => "hold",
+            Request::Free { .. } => "free",
+            Request::ServoJp { .. } => "servo_jp",
+            Request::ServoJf { .. } => "servo_jf",
+            Request::Controller { .. } => "controller",
+            Request::Adapt { .. } => "adapt",
+            Request::WeightsSave { .. } => "weights_save",
+            Request::WeightsLoad { .. } => "weights_load",
+            Request::RecordStart { .. } => "record_start",
+            Request::RecordStop { .. } => "record_stop",
+            Request::Shutdown { .. } => "shutdown",
+        }
+    }
+
+    pub fn id(&self) -> Option<&serde_json::Value> {
+        match self {
+            Request::Hello { id, .. }
+            | Request::Stream { id, .. }
+            | Request::Status { id }
+            | Request::Lease { id }
+            | Request::Release { id }
+            | Request::Mode { id, .. }
+            | Request::Hold { id }
+            | Request::Free { id }
+            | Request::ServoJp { id, .. }
+            | Request::ServoJf { id, .. }
+            | Request::Controller { id, .. }
+            | Request::Adapt { id, .. }
+            | Request::WeightsSave { id, .. }
+            | Request::WeightsLoad { id, .. }
+            | Request::RecordStart { id, .. }
+            | Request::RecordStop { id }
+            | Request::Shutdown { id } => id.as_ref(),
+        }
+    }
+
+    /// Requests that change the device or write files: they need control access and the
+    /// lease. Everyone admitted may read.
+    pub fn commands(&self) -> bool {
+        !matches!(
+            self,
+            Request::Hello { .. } | Request::Stream { .. } | Request::Status { .. }
+        )
+    }
+}
+
+/// One tick as clients see it (`type: "state"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct State {
+    /// Tick number since the daemon started: consecutive for a client that keeps up.
+    pub seq: u64,
+    /// Device time since the daemon started, s.
+    pub t: f64,
+    /// Joint angles from the encoders, rad (OpenHaptics convention).
+    pub q: [f64; 3],
+    /// Kalman estimate of the joint velocity, rad/s.
+    pub qd: [f64; 3],
+    /// Stylus tip, mm, OpenHaptics frame (+x right, +y up, +z toward the user).
+    pub tip_mm: [f64; 3],
+    pub buttons: [bool; 2],
+    pub inkwell: bool,
+    /// Torque sent to the motors, N·m.
+    pub tau: [f64; 3],
+    /// The identifier's prediction of the torque that acted, N·m.
+    pub tau_hat: [f64; 3],
+    pub controller: String,
+    /// idle, hold, blend, track, free, servo_jp, servo_jf, stop.
+    pub mode: String,
+    pub amps: bool,
+    /// Safety and status bits (README, Logs: `flags`).
+    pub flags: u32,
+    /// Sequence number of the last servo_jp/servo_jf command applied.
+    pub cmd_seq: u64,
+}
+
+/// The daemon's greeting (`type: "hello"`), the first message on every admitted connection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Hello {
+    pub protocol: u32,
+    pub server: String,
+    pub device: String,
+    pub rate_hz: f64,
+    /// What this client may do: "read" or "control".
+    pub access: String,
+    /// This connection's number (named in lease messages).
+    pub client: u64,
+    pub stream_ttl_ms: f64,
+    pub controllers: Vec<String>,
+    pub modes: Vec<String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_decode_from_plain_json() {
+        let r: Request = serde_json::from_str(
+            r#"{"op":"servo_jp","seq":7,"q":[0.1,0.2,0.3],"ttl_ms":15,"id":"a"}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            r,
+            Request::ServoJp {
+                seq: 7,
+                q: [0.1, 0.2, 0.3],
+                ttl_ms: Some(15.0),
+                id: Some(serde_json::json!("a"))
+            }
+        );
+        assert!(r.commands());
+        let r: Request = serde_json::from_str(r#"{"op":"status"}"#).unwrap();
+        assert!(!r.commands());
+        assert_eq!(r.op(), "status");
+    }
+
+    #[test]
+    fn unknown_ops_and_fields_are_refused_by_name() {
+        let e = serde_json::from_str::<Request>(r#"{"op":"fly"}"#).unwrap_err();
+        assert!(e.to_string().contains("fly"), "{e}");
+        let e = serde_json::from_str::<Request>(r#"{"op":"status","colour":1}"#).unwrap_err();
+        assert!(e.to_string().contains("colour"), "{e}");
+        let e =
+            serde_json::from_str::<Request>(r#"{"op":"servo_jp","seq":1,"q":[1,2]}"#).unwrap_err();
+        assert!(
+            e.to_string().contains("length 3") || e.to_string().contains("3 elements"),
+            "{e}"
+        );
+    }
+}

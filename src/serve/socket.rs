@@ -1,0 +1,438 @@
+//! Unix SOCK_SEQPACKET sockets for `omnid serve` (std has only stream and datagram Unix
+//! sockets): every send is one whole message or nothing, so a non-blocking fan-out never
+//! leaves half a message in a socket. Also the peer's credentials (SO_PEERCRED and
+//! SO_PEERGROUPS) and the locks that keep a second daemon off the same socket or device.
+
+use std::ffi::CString;
+use std::io;
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
+use std::os::unix::ffi::OsStrExt;
+use std::path::{Path, PathBuf};
+
+fn check(rc: libc::c_int) -> io::Result<libc::c_int> {
+    if rc < 0 {
+        Err(io::Error::last_os_error())
+    } else {
+        Ok(rc)
+    }
+}
+
+/// `sockaddr_un` for `path` (refused when longer than the kernel's 108 bytes).
+fn address(path: &[u8]) -> io::Result<(libc::sockaddr_un, libc::socklen_t)> {
+    // SAFETY: sockaddr_un is plain old data; all-zero is a valid value.
+    let mut addr: libc::sockaddr_un = unsafe { std::mem::zeroed() };
+    addr.sun_family = libc::AF_UNIX as libc::sa_family_t;
+    if path.len() >= addr.sun_path.len() {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!(
+                "socket path is {} bytes; Unix sockets allow at most {}",
+                path.len(),
+                addr.sun_path.len() - 1
+            ),
+        ));
+    }
+    for (dst, &src) in addr.sun_path.iter_mut().zip(path) {
+        *dst = src as libc::c_char;
+    }
+    let len = std::mem::size_of::<libc::sa_family_t>() + path.len();
+    Ok((addr, len as libc::socklen_t))
+}
+
+fn seqpacket() -> io::Result<OwnedFd> {
+    // SAFETY: no pointers; the descriptor is checked and owned at once.
+    let fd = check(unsafe {
+        libc::socket(libc::AF_UNIX, libc::SOCK_SEQPACKET | libc::SOCK_CLOEXEC, 0)
+    })?;
+    // SAFETY: `fd` is new and owned by nothing else.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
+}
+
+/// Make `fd` non-blocking.
+pub fn set_nonblocking(fd: RawFd) -> io::Result<()> {
+    // SAFETY: fcntl on a descriptor we own; no pointers.
+    unsafe {
+        let flags = check(libc::fcntl(fd, libc::F_GETFL))?;
+        check(libc::fcntl(fd, libc::F_SETFL, flags | libc::O_NONBLOCK))?;
+    }
+    Ok(())
+}
+
+/// One connection: a whole message per `send`, one per `recv`.
+#[derive(Debug)]
+pub struct Conn(OwnedFd);
+
+impl Conn {
+    /// Connect to the daemon's socket at `path` (blocking).
+    pub fn connect(path: &Path) -> io::Result<Conn> {
+        let fd = seqpacket()?;
+        let (addr, len) = address(path.as_os_str().as_bytes())?;
+        // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+        check(unsafe {
+            libc::connect(
+                fd.as_raw_fd(),
+                (&addr as *const libc::sockaddr_un).cast(),
+                len,
+            )
+        })?;
+        Ok(Conn(fd))
+    }
+
+    /// Send one message. Non-blocking connections return `WouldBlock` when the peer's
+    /// buffer is full (nothing was sent).
+    pub fn send(&self, msg: &[u8]) -> io::Result<()> {
+        // SAFETY: sends `msg.len()` bytes from a live slice; MSG_NOSIGNAL: a closed peer is
+        // an EPIPE error, never a SIGPIPE.
+        let n = unsafe {
+            libc::send(
+                self.0.as_raw_fd(),
+                msg.as_ptr().cast(),
+                msg.len(),
+                libc::MSG_NOSIGNAL,
+            )
+        };
+        if n < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        Ok(())
+    }
+
+    /// Receive one message into `buf`; returns its full length, which is larger than
+    /// `buf` when the message was cut (MSG_TRUNC). 0 means the peer closed.
+    pub fn recv(&self, buf: &mut [u8]) -> io::Result<usize> {
+        // SAFETY: receives at most `buf.len()` bytes into a live mutable slice.
+        let n = unsafe {
+            libc::recv(
+                self.0.as_raw_fd(),
+                buf.as_mut_ptr().cast(),
+                buf.len(),
+                libc::MSG_TRUNC,
+            )
+        };
+        if n < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        Ok(n as usize)
+    }
+
+    /// Wait until a message can be read, at most `timeout_ms` (negative: forever). False on
+    /// time-out.
+    pub fn wait_readable(&self, timeout_ms: i32) -> io::Result<bool> {
+        let mut p = libc::pollfd {
+            fd: self.0.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        loop {
+            // SAFETY: one valid pollfd.
+            let rc = unsafe { libc::poll(&mut p, 1, timeout_ms) };
+            if rc < 0 {
+                let e = io::Error::last_os_error();
+                if e.kind() == io::ErrorKind::Interrupted {
+                    continue;
+                }
+                return Err(e);
+            }
+            return Ok(rc > 0);
+        }
+    }
+
+    pub fn set_nonblocking(&self) -> io::Result<()> {
+        set_nonblocking(self.0.as_raw_fd())
+    }
+
+    pub fn raw(&self) -> RawFd {
+        self.0.as_raw_fd()
+    }
+
+    /// Who is on the other end (as the kernel saw it at connect time).
+    pub fn peer(&self) -> io::Result<Peer> {
+        let fd = self.0.as_raw_fd();
+        // SAFETY: ucred is plain old data; getsockopt writes at most `len` bytes into it.
+        let mut cred: libc::ucred = unsafe { std::mem::zeroed() };
+        let mut len = std::mem::size_of::<libc::ucred>() as libc::socklen_t;
+        check(unsafe {
+            libc::getsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                libc::SO_PEERCRED,
+                (&mut cred as *mut libc::ucred).cast(),
+                &mut len,
+            )
+        })?;
+        // Supplementary groups (Linux ≥ 4.13); without them only the primary group counts.
+        let mut groups = vec![0 as libc::gid_t; 256];
+        let mut glen = (groups.len() * std::mem::size_of::<libc::gid_t>()) as libc::socklen_t;
+        // SAFETY: writes at most `glen` bytes into the live vector.
+        let rc = unsafe {
+            libc::getsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                libc::SO_PEERGROUPS,
+                groups.as_mut_ptr().cast(),
+                &mut glen,
+            )
+        };
+        let n = if rc == 0 {
+            glen as usize / std::mem::size_of::<libc::gid_t>()
+        } else {
+            0
+        };
+        groups.truncate(n);
+        Ok(Peer {
+            pid: cred.pid,
+            uid: cred.uid,
+            gid: cred.gid,
+            groups,
+        })
+    }
+}
+
+/// A connected peer's credentials.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Peer {
+    pub pid: i32,
+    pub uid: u32,
+    pub gid: u32,
+    /// Supplementary groups.
+    pub groups: Vec<u32>,
+}
+
+impl Peer {
+    pub fn in_group(&self, gid: u32) -> bool {
+        self.gid == gid || self.groups.contains(&gid)
+    }
+}
+
+/// The daemon's listening socket. Removed from the file system when dropped.
+#[derive(Debug)]
+pub struct Listener {
+    fd: OwnedFd,
+    path: PathBuf,
+}
+
+impl Listener {
+    /// Bind `path` (mode 0660, group `group` when given) and listen, non-blocking. A file
+    /// left at `path` by a daemon that died is replaced; the caller holds the path's lock.
+    pub fn bind(path: &Path, group: Option<u32>) -> io::Result<Listener> {
+        let fd = seqpacket()?;
+        let bytes = path.as_os_str().as_bytes();
+        let (addr, len) = address(bytes)?;
+        match std::fs::symlink_metadata(path) {
+            Ok(m) if std::os::unix::fs::FileTypeExt::is_socket(&m.file_type()) => {
+                std::fs::remove_file(path)?
+            }
+            Ok(_) => {
+                return Err(io::Error::new(
+                    io::ErrorKind::AlreadyExists,
+                    "a file that is not a socket is in the way (not replaced)",
+                ))
+            }
+            Err(_) => {}
+        }
+        // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+        check(unsafe {
+            libc::bind(
+                fd.as_raw_fd(),
+                (&addr as *const libc::sockaddr_un).cast(),
+                len,
+            )
+        })?;
+        let listener = Listener {
+            fd,
+            path: path.to_path_buf(),
+        };
+        // Before listen(): nobody can connect yet, so nobody ever sees wider permissions.
+        let c = CString::new(bytes).map_err(|_| io::ErrorKind::InvalidInput)?;
+        // SAFETY: `c` is a valid NUL-terminated path.
+        check(unsafe { libc::chmod(c.as_ptr(), 0o660) })?;
+        if let Some(gid) = group {
+            // SAFETY: as above; uid -1 leaves the owner.
+            check(unsafe { libc::chown(c.as_ptr(), u32::MAX, gid) })?;
+        }
+        // SAFETY: no pointers.
+        check(unsafe { libc::listen(listener.fd.as_raw_fd(), 128) })?;
+        set_nonblocking(listener.fd.as_raw_fd())?;
+        Ok(listener)
+    }
+
+    /// The next waiting connection (non-blocking, close-on-exec), or `None`.
+    pub fn accept(&self) -> io::Result<Option<Conn>> {
+        // SAFETY: null address pointers are allowed (the peer's address is not wanted).
+        let fd = unsafe {
+            libc::accept4(
+                self.fd.as_raw_fd(),
+                std::ptr::null_mut(),
+                std::ptr::null_mut(),
+                libc::SOCK_NONBLOCK | libc::SOCK_CLOEXEC,
+            )
+        };
+        if fd < 0 {
+            let e = io::Error::last_os_error();
+            return match e.kind() {
+                io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted => Ok(None),
+                _ => Err(e),
+            };
+        }
+        // SAFETY: `fd` is new and owned by nothing else.
+        Ok(Some(Conn(unsafe { OwnedFd::from_raw_fd(fd) })))
+    }
+
+    pub fn raw(&self) -> RawFd {
+        self.fd.as_raw_fd()
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for Listener {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// An exclusive `flock` on `<socket>.lock`, holding the daemon's pid: released by the kernel
+/// when the process dies, so a crashed daemon never leaves a stale lock.
+#[derive(Debug)]
+pub struct PathLock {
+    _file: std::fs::File,
+}
+
+impl PathLock {
+    /// Lock `path`, or say which process holds it.
+    pub fn acquire(path: &Path) -> Result<PathLock, String> {
+        use std::io::{Read, Seek, Write};
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(path)
+            .map_err(|e| format!("cannot open the lock file {}: {e}", path.display()))?;
+        // SAFETY: flock on an owned descriptor; no pointers.
+        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+            let mut pid = String::new();
+            let _ = file.read_to_string(&mut pid);
+            return Err(format!(
+                "another omnid serve holds {} (pid {})",
+                path.display(),
+                pid.trim()
+            ));
+        }
+        let _ = file.set_len(0);
+        let _ = file.rewind();
+        let _ = write!(file, "{}", std::process::id());
+        Ok(PathLock { _file: file })
+    }
+}
+
+/// A name in the abstract Unix socket namespace (`@omnid-device-<kind>`): binding it is
+/// exclusive machine-wide and ends with the process, with no file to go stale. Keeps two
+/// daemons (or a `run` and a `serve`) off the same real device.
+#[derive(Debug)]
+pub struct DeviceLock {
+    _fd: OwnedFd,
+}
+
+impl DeviceLock {
+    pub fn acquire(kind: &str) -> Result<DeviceLock, String> {
+        let fd = seqpacket().map_err(|e| format!("device lock: {e}"))?;
+        let mut name = vec![0u8];
+        name.extend_from_slice(format!("omnid-device-{kind}").as_bytes());
+        let (addr, len) = address(&name).map_err(|e| format!("device lock: {e}"))?;
+        // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+        let rc = unsafe {
+            libc::bind(
+                fd.as_raw_fd(),
+                (&addr as *const libc::sockaddr_un).cast(),
+                len,
+            )
+        };
+        if rc != 0 {
+            let e = io::Error::last_os_error();
+            return Err(if e.kind() == io::ErrorKind::AddrInUse {
+                format!(
+                    "the {kind} device is in use by another omnid (run or serve); stop it first"
+                )
+            } else {
+                format!("device lock: {e}")
+            });
+        }
+        Ok(DeviceLock { _fd: fd })
+    }
+}
+
+/// A group's id by name.
+pub fn group_id(name: &str) -> Option<u32> {
+    let c = CString::new(name).ok()?;
+    let mut grp: libc::group = unsafe { std::mem::zeroed() };
+    let mut buf = vec![0 as libc::c_char; 16 * 1024];
+    let mut out: *mut libc::group = std::ptr::null_mut();
+    // SAFETY: every pointer refers to live storage of the stated size.
+    let rc =
+        unsafe { libc::getgrnam_r(c.as_ptr(), &mut grp, buf.as_mut_ptr(), buf.len(), &mut out) };
+    (rc == 0 && !out.is_null()).then_some(grp.gr_gid)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn messages_keep_their_boundaries_and_oversize_is_seen() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.sock");
+        let listener = Listener::bind(&path, None).unwrap();
+        let mode = std::fs::metadata(&path).unwrap();
+        assert_eq!(
+            std::os::unix::fs::PermissionsExt::mode(&mode.permissions()) & 0o777,
+            0o660
+        );
+        let client = Conn::connect(&path).unwrap();
+        let server = loop {
+            if let Some(c) = listener.accept().unwrap() {
+                break c;
+            }
+        };
+        client.send(b"one").unwrap();
+        client.send(b"two!").unwrap();
+        client.send(&[7u8; 100]).unwrap();
+        let mut buf = [0u8; 16];
+        assert_eq!(server.recv(&mut buf).unwrap(), 3);
+        assert_eq!(&buf[..3], b"one");
+        assert_eq!(server.recv(&mut buf).unwrap(), 4);
+        // A message longer than the buffer reports its real length.
+        assert_eq!(server.recv(&mut buf).unwrap(), 100);
+        let me = server.peer().unwrap();
+        assert_eq!(me.pid as u32, std::process::id());
+        // SAFETY: no arguments.
+        assert_eq!(me.uid, unsafe { libc::geteuid() });
+        drop(client);
+        assert_eq!(server.recv(&mut buf).unwrap(), 0);
+        drop(listener);
+        assert!(!path.exists(), "the socket is removed with the listener");
+    }
+
+    #[test]
+    fn a_second_lock_is_refused_naming_the_holder() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.lock");
+        let _held = PathLock::acquire(&path).unwrap();
+        let e = PathLock::acquire(&path).unwrap_err();
+        assert!(e.contains(&std::process::id().to_string()), "{e}");
+        let kind = format!("test-{}", std::process::id());
+        let _d = DeviceLock::acquire(&kind).unwrap();
+        assert!(DeviceLock::acquire(&kind).unwrap_err().contains("in use"));
+    }
+
+    #[test]
+    fn a_regular_file_in_the_way_is_not_replaced() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("f");
+        std::fs::write(&path, "keep").unwrap();
+        assert!(Listener::bind(&path, None).is_err());
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "keep");
+    }
+}

@@ -1,0 +1,179 @@
+//! What other threads may ask of the servo loop (`omnid serve`), and what it hands back. The
+//! commands are plain values moved through a bounded channel that the loop drains once per
+//! tick with `try_recv`; anything that needs memory (an identifier to swap in, a snapshot to
+//! fill) arrives pre-allocated in a `Box` and goes back the same way, so the loop never
+//! allocates or frees.
+
+use super::safety::SafetyTrip;
+use super::timing::TickTiming;
+use crate::control::{ControllerKind, Trajectory};
+use crate::ident::{Fault, Identifier};
+use crate::telemetry::record::Mode;
+use crate::telemetry::summary::RunStats;
+use std::os::fd::{AsRawFd, OwnedFd};
+
+/// What the loop does with the arm (the mode a client asks for; `Track` shows as `blend`
+/// then `track` in the log).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Activity {
+    /// Amplifiers off, zero torque, the state still streaming.
+    Idle,
+    /// Hold the pose where the mode began, with the active controller.
+    Hold,
+    /// Follow a built-in trajectory, blended in from the pose where the mode began.
+    Track,
+    /// Only the active controller's compensation (gravity, friction): the arm moves freely.
+    Free,
+    /// Follow a client's joint position setpoints (stream with a time to live).
+    ServoJp,
+    /// A client's joint torques on top of the compensation (stream with a time to live).
+    ServoJf,
+}
+
+impl Activity {
+    /// Modes that a client must keep feeding.
+    pub fn is_stream(self) -> bool {
+        matches!(self, Activity::ServoJp | Activity::ServoJf)
+    }
+
+    pub fn mode(self) -> Mode {
+        match self {
+            Activity::Idle => Mode::Idle,
+            Activity::Hold => Mode::Hold,
+            Activity::Track => Mode::Track,
+            Activity::Free => Mode::Free,
+            Activity::ServoJp => Mode::ServoJp,
+            Activity::ServoJf => Mode::ServoJf,
+        }
+    }
+}
+
+/// A request for the loop, applied at the first tick after it arrives.
+pub enum ServoCommand {
+    Idle,
+    Hold,
+    Track(Trajectory),
+    Free,
+    /// Joint position setpoint (rad), valid for `ttl_s` seconds of device time.
+    ServoJp {
+        seq: u64,
+        q: [f64; 3],
+        ttl_s: f64,
+    },
+    /// Joint torque (N·m) added to the compensation, valid for `ttl_s`.
+    ServoJf {
+        seq: u64,
+        tau: [f64; 3],
+        ttl_s: f64,
+    },
+    /// The stream's owner is gone: leave a stream mode now.
+    StreamEnded,
+    /// Switch the control law (bumpless).
+    Controller(ControllerKind),
+    /// Resume (`true`) or freeze (`false`) online adaptation.
+    Adapt(bool),
+    /// Swap this identifier in; the old one comes back as [`ServoReply::Identifier`].
+    LoadIdentifier(Box<Identifier>),
+    /// Fill this in and send it back as [`ServoReply::Snapshot`].
+    Snapshot(Box<Snapshot>),
+}
+
+/// What the loop hands back (never dropped on the servo thread).
+pub enum ServoReply {
+    /// The identifier that a `LoadIdentifier` replaced.
+    Identifier(Box<Identifier>),
+    Snapshot(Box<Snapshot>),
+}
+
+/// The loop's results so far, copied into memory the caller provided.
+pub struct Snapshot {
+    pub stats: RunStats,
+    pub timing: TickTiming,
+    /// Receives the identifier's current weights (same network sizes) when `Some`.
+    pub weights: Option<Identifier>,
+    /// The weights were copied (false: no identifier, or other sizes).
+    pub weights_copied: bool,
+    pub adapt: bool,
+    pub ident_fault: Option<Fault>,
+    pub telemetry_dropped: u64,
+    pub missed_packets: u64,
+    pub heat: [f64; 3],
+}
+
+impl Snapshot {
+    /// Storage shaped like the loop's own (`period_ns` as the servo's).
+    pub fn new(period_ns: u64, weights: Option<Identifier>) -> Self {
+        Snapshot {
+            stats: RunStats::default(),
+            timing: TickTiming::new(period_ns),
+            weights,
+            weights_copied: false,
+            adapt: false,
+            ident_fault: None,
+            telemetry_dropped: 0,
+            missed_packets: 0,
+            heat: [0.0; 3],
+        }
+    }
+}
+
+/// Something every client is told about, carried by the tick it happened at.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ServoEvent {
+    /// No stream command arrived within its time to live; the loop fell back to `fallback`.
+    StreamStale { fallback: Mode },
+    /// The stream's owner left; the loop fell back to `fallback`.
+    StreamEnded { fallback: Mode },
+    /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
+    SafetyTrip(SafetyTrip),
+}
+
+/// Wakes the thread that serves clients when a tick's record is ready: one non-blocking
+/// `write` to an eventfd (no lock, no allocation), so a client can answer within the tick.
+#[derive(Debug)]
+pub struct Wake(OwnedFd);
+
+impl Wake {
+    pub fn new() -> std::io::Result<Wake> {
+        // SAFETY: eventfd has no pointer arguments; the result is checked before use.
+        let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
+        if fd < 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        // SAFETY: `fd` is a fresh descriptor that nothing else owns.
+        Ok(Wake(unsafe {
+            <OwnedFd as std::os::fd::FromRawFd>::from_raw_fd(fd)
+        }))
+    }
+
+    /// Signal (never blocks: the counter saturates only after 2⁶⁴ − 2 signals).
+    pub fn notify(&self) {
+        let one = 1u64.to_ne_bytes();
+        // SAFETY: writes 8 bytes from a live local buffer to an owned descriptor.
+        let _ = unsafe { libc::write(self.0.as_raw_fd(), one.as_ptr().cast(), 8) };
+    }
+
+    /// Reset the counter (the reader's side, after waking).
+    pub fn clear(&self) {
+        let mut buf = [0u8; 8];
+        // SAFETY: reads at most 8 bytes into a live local buffer; EAGAIN when not signalled.
+        let _ = unsafe { libc::read(self.0.as_raw_fd(), buf.as_mut_ptr().cast(), 8) };
+    }
+
+    pub fn fd(&self) -> std::os::fd::BorrowedFd<'_> {
+        use std::os::fd::AsFd;
+        self.0.as_fd()
+    }
+}
+
+/// The loop's side of `omnid serve`'s connection.
+pub struct ServoLink {
+    pub commands: crossbeam_channel::Receiver<ServoCommand>,
+    pub replies: crossbeam_channel::Sender<ServoReply>,
+    pub wake: std::sync::Arc<Wake>,
+    /// Where a stale or abandoned stream falls back to: `Hold` or `Idle`.
+    pub stale_fallback: Activity,
+}
+
+/// Most commands taken in one tick (the rest wait for the next).
+pub const MAX_COMMANDS_PER_TICK: usize = 64;
