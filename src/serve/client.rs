@@ -69,9 +69,16 @@ impl Client {
             next_id: 1,
             backlog: Default::default(),
         };
-        c.send(&json!({ "op": "hello", "protocol": PROTOCOL_VERSION, "name": name }))?;
+        // A refused peer finds the daemon's reason waiting and the connection closed: the
+        // hello may fail, the reason is still there to read.
+        let sent = c.send(&json!({ "op": "hello", "protocol": PROTOCOL_VERSION, "name": name }));
         loop {
-            match c.read(5000)? {
+            let message = match c.read(5000) {
+                Ok(m) => m,
+                // Nothing to read either: the send's error says more.
+                Err(e) => return Err(sent.err().unwrap_or(e)),
+            };
+            match message {
                 Message::Other(v) if v["type"] == "hello" => {
                     c.hello = serde_json::from_value(v)
                         .map_err(|e| ClientError::Protocol(e.to_string()))?;
@@ -82,7 +89,7 @@ impl Client {
                         v["message"].as_str().unwrap_or("refused").to_string(),
                     ))
                 }
-                _ => {}
+                _ => sent.as_ref().map_err(|_| ClientError::Closed).map(|_| ())?,
             }
         }
     }

@@ -6,7 +6,7 @@
 pub mod access;
 pub mod client;
 pub mod config;
-mod hub;
+pub mod hub;
 pub mod protocol;
 pub mod socket;
 
@@ -153,12 +153,23 @@ fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, PathLock), 
     Ok((listener, lock))
 }
 
-/// Run the daemon until SIGINT/SIGTERM (`stop`), a client's shutdown, or a device fault.
-pub fn serve(
+/// A daemon ready to start: the servo pipeline (started in idle, taking commands) and the
+/// hub that will serve its clients, the socket bound and locked.
+pub struct Prepared {
+    pub pipeline: crate::run::Pipeline,
+    pub hub: hub::HubSetup,
+    pub socket: PathBuf,
+    _device_lock: Option<DeviceLock>,
+    _socket_lock: PathLock,
+}
+
+/// Check the options, lock the device and the socket, bind it, and assemble the pipeline
+/// (`run::assemble`, the same path as `omnid run`) attached to a new hub.
+pub fn prepare(
     opts: &ServeOptions,
     cfg: &Config,
     stop: Arc<AtomicBool>,
-) -> Result<ServeOutcome, RunError> {
+) -> Result<Prepared, RunError> {
     let run_opts = RunOptions {
         device: opts.device.clone(),
         controller: opts.controller,
@@ -184,13 +195,13 @@ pub fn serve(
         .or_else(|| (!cfg.serve.socket.is_empty()).then(|| PathBuf::from(&cfg.serve.socket)))
         .unwrap_or_else(|| default_socket(opts.device.name()));
     // Real hardware is one per daemon: a second `serve` (or a `run`) is refused, not raced.
-    let _device_lock = match opts.device {
+    let device_lock = match opts.device {
         DeviceSpec::Usb | DeviceSpec::Firewire => {
             Some(DeviceLock::acquire(opts.device.name()).map_err(RunError::BadInput)?)
         }
         _ => None,
     };
-    let (listener, _socket_lock) = prepare_socket(&socket_path, &policy)?;
+    let (listener, socket_lock) = prepare_socket(&socket_path, &policy)?;
 
     let wake = Arc::new(Wake::new().map_err(|e| RunError::Internal(format!("eventfd: {e}")))?);
     let (tx, records) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
@@ -232,6 +243,28 @@ pub fn serve(
         seed: cfg.sim.seed,
         state_dir,
     };
+    Ok(Prepared {
+        pipeline,
+        hub: setup,
+        socket: socket_path,
+        _device_lock: device_lock,
+        _socket_lock: socket_lock,
+    })
+}
+
+/// Run the daemon until SIGINT/SIGTERM (`stop`), a client's shutdown, or a device fault.
+pub fn serve(
+    opts: &ServeOptions,
+    cfg: &Config,
+    stop: Arc<AtomicBool>,
+) -> Result<ServeOutcome, RunError> {
+    let Prepared {
+        pipeline,
+        hub: setup,
+        socket: socket_path,
+        _device_lock,
+        _socket_lock,
+    } = prepare(opts, cfg, stop)?;
     eprintln!(
         "omnid serve: {} on {} (amplifiers off until a client asks for a mode; `omnid ctl \
          --socket {} mode hold`)",

@@ -1,0 +1,641 @@
+//! `omnid serve --device sim` driven through its socket, as a lab's programs would: every
+//! command, the lease, stale and abandoned streams, a bumpless controller switch mid-motion,
+//! bad messages, a refused peer, a second daemon, and SIGTERM.
+
+mod common;
+
+use common::omnid;
+use omnid::serve::client::{Client, ClientError, Message};
+use omnid::serve::protocol::State;
+use serde_json::{json, Value};
+use std::os::unix::process::CommandExt;
+use std::path::PathBuf;
+use std::process::{Child, Stdio};
+use std::time::{Duration, Instant};
+
+/// A daemon on the simulator in its own directory, killed if a test fails.
+struct Daemon {
+    child: Option<Child>,
+    dir: tempfile::TempDir,
+    socket: PathBuf,
+}
+
+impl Daemon {
+    fn start(extra: &[&str]) -> Daemon {
+        Daemon::start_with_config(extra, None)
+    }
+
+    fn start_with_config(extra: &[&str], config: Option<&str>) -> Daemon {
+        let dir = tempfile::tempdir().unwrap();
+        let socket = dir.path().join("sim.sock");
+        let mut cmd = omnid();
+        cmd.args(["serve", "--device", "sim", "--socket"])
+            .arg(&socket)
+            .args(extra)
+            .env("OMNID_STATE_DIR", dir.path().join("state"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        if let Some(text) = config {
+            let path = dir.path().join("omnid.toml");
+            std::fs::write(&path, text).unwrap();
+            cmd.arg("--config").arg(path);
+        }
+        let child = cmd.spawn().expect("omnid serve starts");
+        let d = Daemon {
+            child: Some(child),
+            dir,
+            socket,
+        };
+        d.wait_for_socket();
+        d
+    }
+
+    fn wait_for_socket(&self) {
+        let until = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < until {
+            if Client::connect(&self.socket, "probe").is_ok() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        panic!("omnid serve did not open {}", self.socket.display());
+    }
+
+    fn client(&self, name: &str) -> Client {
+        Client::connect(&self.socket, name).expect("connects")
+    }
+
+    fn pid(&self) -> i32 {
+        self.child.as_ref().unwrap().id() as i32
+    }
+
+    /// Wait for the daemon to exit: its exit code and stderr.
+    fn wait(&mut self) -> (Option<i32>, String) {
+        let child = self.child.take().unwrap();
+        let out = child.wait_with_output().unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+fn refused(r: Result<Value, ClientError>) -> String {
+    match r {
+        Err(ClientError::Refused(m)) => m,
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+}
+
+/// States until `pred` holds (at most `max`), all of them returned.
+fn states_until(c: &mut Client, max: usize, mut pred: impl FnMut(&State) -> bool) -> Vec<State> {
+    let mut seen = Vec::new();
+    for _ in 0..max {
+        let s = c.next_state(5000).expect("state");
+        let done = pred(&s);
+        seen.push(s);
+        if done {
+            return seen;
+        }
+    }
+    panic!(
+        "condition not reached in {max} states; last {:?}",
+        seen.last()
+    );
+}
+
+#[test]
+fn every_command_works_and_shutdown_ends_cleanly() {
+    let mut d = Daemon::start(&[]);
+    let mut c = d.client("test");
+    assert_eq!(c.hello().protocol, 1);
+    assert_eq!(c.hello().access, "control");
+    assert_eq!(c.hello().device, "sim");
+
+    // Starts safe: idle, amplifiers off.
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let s = c.next_state(5000).unwrap();
+    assert_eq!((s.mode.as_str(), s.amps), ("idle", false));
+    assert_eq!(s.tau, [0.0; 3]);
+
+    let status = c.request(json!({"op": "status"})).unwrap();
+    assert_eq!(status["status"]["mode"], "idle");
+    assert_eq!(status["status"]["end"], "running");
+    assert!(status["status"]["ticks"].as_u64().unwrap() > 0);
+
+    for (mode, shown) in [
+        ("hold", "hold"),
+        ("free", "free"),
+        ("track", "blend"),
+        ("idle", "idle"),
+    ] {
+        let r = c.request(json!({"op": "mode", "mode": mode})).unwrap();
+        assert_eq!(r["mode"], mode);
+        let seen = states_until(&mut c, 3000, |s| s.mode == shown);
+        let last = seen.last().unwrap();
+        assert_eq!(last.amps, mode != "idle", "{mode}");
+    }
+    // CRTK aliases.
+    c.request(json!({"op": "hold"})).unwrap();
+    states_until(&mut c, 3000, |s| s.mode == "hold");
+
+    let r = c
+        .request(json!({"op": "controller", "controller": "ct"}))
+        .unwrap();
+    assert_eq!(r["controller"], "ct");
+    states_until(&mut c, 3000, |s| s.controller == "ct");
+    assert!(
+        refused(c.request(json!({"op": "controller", "controller": "magic"}))).contains("magic")
+    );
+    assert!(refused(c.request(json!({"op": "mode", "mode": "fly"}))).contains("fly"));
+
+    // Freeze and resume the identifier.
+    c.request(json!({"op": "adapt", "on": false})).unwrap();
+    let st = c.request(json!({"op": "status"})).unwrap();
+    assert_eq!(st["status"]["identifier"]["adapt"], false);
+    c.request(json!({"op": "adapt", "on": true})).unwrap();
+    let st = c.request(json!({"op": "status"})).unwrap();
+    assert_eq!(st["status"]["identifier"]["adapt"], true);
+
+    // Weights out and back in; a file that does not fit is refused by name.
+    let w = d.path("w.json");
+    c.request(json!({"op": "weights_save", "path": w})).unwrap();
+    let saved: Value = serde_json::from_str(&std::fs::read_to_string(&w).unwrap()).unwrap();
+    assert!(saved.is_object());
+    c.request(json!({"op": "weights_load", "path": w})).unwrap();
+    std::fs::write(d.path("bad.json"), "{\"nets\": 3}").unwrap();
+    let e = refused(c.request(json!({"op": "weights_load", "path": d.path("bad.json")})));
+    assert!(e.contains("bad.json"), "{e}");
+
+    // A recording in today's log format.
+    let rec = d.path("rec.csv");
+    c.request(json!({"op": "record_start", "path": rec}))
+        .unwrap();
+    assert!(refused(c.request(json!({"op": "record_start"}))).contains("already recording"));
+    states_until(&mut c, 2000, |s| s.seq % 500 == 0 && s.seq > 0);
+    let r = c.request(json!({"op": "record_stop"})).unwrap();
+    let rows = r["rows"].as_u64().unwrap();
+    assert!(rows > 100, "{r}");
+    let log = common::Log::read(&rec);
+    assert_eq!(
+        &log.header[..7],
+        ["t", "q1", "q2", "q3", "tau1", "tau2", "tau3"]
+    );
+    assert_eq!(log.rows.len() as u64, rows);
+    assert!(refused(c.request(json!({"op": "record_stop"}))).contains("not recording"));
+
+    c.request(json!({"op": "shutdown"})).unwrap();
+    // The last tick streamed is the safe one, then goodbye.
+    let mut last = None;
+    loop {
+        match c.recv(5000) {
+            Ok(Message::State(s)) => last = Some(s),
+            Ok(Message::Other(v)) if v["type"] == "bye" => break,
+            Ok(_) => {}
+            Err(e) => panic!("no goodbye: {e}"),
+        }
+    }
+    let last = last.unwrap();
+    assert_eq!(
+        (last.mode.as_str(), last.amps, last.tau),
+        ("stop", false, [0.0; 3])
+    );
+    let (code, err) = d.wait();
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!d.socket.exists(), "socket removed");
+}
+
+#[test]
+fn one_commander_many_readers_and_lease_handover() {
+    let d = Daemon::start(&[]);
+    let mut a = d.client("a");
+    let mut b = d.client("b");
+    let mut reader = d.client("reader");
+    a.request(json!({"op": "mode", "mode": "hold"})).unwrap();
+    // b may read, not command, while a holds the lease.
+    b.request(json!({"op": "status"})).unwrap();
+    let e = refused(b.request(json!({"op": "mode", "mode": "idle"})));
+    assert!(e.contains("lease") && e.contains("`a`"), "{e}");
+    a.request(json!({"op": "release"})).unwrap();
+    b.request(json!({"op": "lease"})).unwrap();
+    assert!(refused(a.request(json!({"op": "mode", "mode": "idle"}))).contains("`b`"));
+    // A one-shot commander leaves; its mode persists and the lease is free again.
+    b.request(json!({"op": "mode", "mode": "free"})).unwrap();
+    drop(b);
+    reader
+        .request(json!({"op": "stream", "rate_hz": 100}))
+        .unwrap();
+    let seen = states_until(&mut reader, 500, |s| s.mode == "free");
+    assert!(seen.windows(2).all(|w| w[1].seq == w[0].seq + 10));
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        match a.request(json!({"op": "mode", "mode": "hold"})) {
+            Ok(_) => break,
+            Err(ClientError::Refused(m)) if Instant::now() < until => {
+                assert!(m.contains("lease"), "{m}");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            Err(e) => panic!("{e}"),
+        }
+    }
+}
+
+/// Stream setpoints for `ticks` states, answering each state with its own seq.
+fn feed_servo_jp(c: &mut Client, ticks: usize, q: [f64; 3]) -> State {
+    let mut last = None;
+    for _ in 0..ticks {
+        let s = c.next_state(5000).unwrap();
+        c.send(&json!({"op": "servo_jp", "seq": s.seq, "q": q}))
+            .unwrap();
+        last = Some(s);
+    }
+    last.unwrap()
+}
+
+/// The device time from the last applied stream command to the first tick out of the
+/// stream mode, with that tick.
+fn fallback_gap(seen: &[State], mode: &str) -> (f64, State) {
+    let k = seen.iter().position(|s| s.mode != mode).expect("fell back");
+    let applied = seen[..k]
+        .iter()
+        .rev()
+        .zip(seen[..k].iter().rev().skip(1))
+        .find(|(s, before)| s.cmd_seq != before.cmd_seq)
+        .map(|(s, _)| s.t)
+        .unwrap_or(seen[0].t);
+    (seen[k].t - applied, seen[k].clone())
+}
+
+#[test]
+fn a_stale_stream_holds_within_its_time_to_live() {
+    let d = Daemon::start(&[]);
+    let mut c = d.client("jp");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let s = c.next_state(5000).unwrap();
+    let target = [s.q[0] + 0.05, 0.6, 0.3];
+    let last = feed_servo_jp(&mut c, 1500, target);
+    assert_eq!(last.mode, "servo_jp");
+    // The arm followed the setpoints.
+    assert!((last.q[0] - target[0]).abs() < 0.02, "{:?}", last.q);
+    // Stop feeding: hold within 20 ms of device time (one tick of margin), and told why.
+    let seen = states_until(&mut c, 200, |s| s.mode != "servo_jp");
+    let (gap, first) = fallback_gap(&seen, "servo_jp");
+    assert_eq!(first.mode, "hold");
+    assert!(
+        gap <= 0.020 + 0.0015,
+        "fell back {gap} s after the last command"
+    );
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        match c.recv(5000).unwrap() {
+            Message::Other(v) if v["event"] == "stream-stale" => {
+                assert_eq!(v["mode"], "hold");
+                break;
+            }
+            _ => assert!(Instant::now() < until, "no stream-stale event"),
+        }
+    }
+}
+
+#[test]
+fn a_killed_commander_leaves_the_arm_holding() {
+    let d = Daemon::start(&[]);
+    let mut watcher = d.client("watcher");
+    watcher
+        .request(json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    // A separate process streams torques, then is killed mid-stream.
+    let script = r#"
+import json, socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+s.connect(sys.argv[1])
+s.send(json.dumps({"op": "hello", "protocol": 1, "name": "victim"}).encode())
+s.recv(65536)
+s.send(json.dumps({"op": "stream", "rate_hz": 1000}).encode())
+while True:
+    m = json.loads(s.recv(65536))
+    if m.get("type") == "state":
+        s.send(json.dumps({"op": "servo_jf", "seq": m["seq"], "tau": [0.0, 0.02, 0.0], "ttl_ms": 1000}).encode())
+"#;
+    let mut victim = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&d.socket)
+        .spawn()
+        .expect("python3 runs");
+    states_until(&mut watcher, 10_000, |s| {
+        s.mode == "servo_jf" && s.cmd_seq > 0
+    });
+    // A long time to live: only the disconnect can end this stream early.
+    for _ in 0..200 {
+        watcher.next_state(5000).unwrap();
+    }
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+    let seen = states_until(&mut watcher, 2000, |s| s.mode != "servo_jf");
+    let (gap, first) = fallback_gap(&seen, "servo_jf");
+    assert_eq!(first.mode, "hold");
+    assert!(
+        gap <= 0.020 + 0.0015,
+        "fell back {gap} s after the last command"
+    );
+    loop {
+        if let Message::Other(v) = watcher.recv(5000).unwrap() {
+            if v["event"] == "stream-ended" {
+                break;
+            }
+        }
+    }
+}
+
+#[test]
+fn controller_switches_mid_motion_are_bumpless() {
+    let d = Daemon::start(&["--controller", "pd"]);
+    let mut c = d.client("switcher");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    c.request(json!({"op": "mode", "mode": "track"})).unwrap();
+    // Past the blend and the ramp, moving.
+    states_until(&mut c, 5000, |s| s.mode == "track");
+    let kick = 50.0 * 1e-3; // safety.max_torque_rate_nm_s × one tick
+    for next in ["nnidc", "ct", "pd"] {
+        let r = c
+            .request(json!({"op": "controller", "controller": next}))
+            .unwrap();
+        assert_eq!(r["controller"], next);
+        let seen = states_until(&mut c, 2000, |s| s.controller == next);
+        let switched = seen.last().unwrap().seq;
+        let mut window = vec![seen.last().unwrap().clone()];
+        window.extend((0..400).map(|_| c.next_state(5000).unwrap()));
+        assert!(
+            window.windows(2).all(|w| w[1].seq == w[0].seq + 1),
+            "samples lost around the switch to {next}"
+        );
+        let mut max_step: f64 = 0.0;
+        for w in window.windows(2) {
+            for j in 0..3 {
+                max_step = max_step.max((w[1].tau[j] - w[0].tau[j]).abs());
+            }
+            assert_eq!(w[1].mode, "track", "no trip at the switch to {next}");
+            // The crossfade keeps the kick limit from even having to act.
+            assert_eq!(
+                w[1].flags & 8,
+                0,
+                "kick limit acted at {} after {switched}",
+                w[1].seq
+            );
+        }
+        assert!(
+            max_step <= kick,
+            "switch to {next}: |Δτ| {max_step} > {kick}"
+        );
+        assert!(max_step > 0.0, "the arm is moving under torque");
+    }
+}
+
+#[test]
+fn bad_messages_hurt_only_their_sender() {
+    let d = Daemon::start(&[]);
+    let mut reader = d.client("reader");
+    reader
+        .request(json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    let before = reader.next_state(5000).unwrap();
+
+    // Garbage: an error, the connection stays.
+    let mut g = d.client("garbage");
+    g.send_raw(b"\xff\xfe not json").unwrap();
+    match g.recv(5000).unwrap() {
+        Message::Other(v) => assert_eq!(v["type"], "error", "{v}"),
+        m => panic!("{m:?}"),
+    }
+    let e = refused(g.request(json!({"op": "status", "colour": "red"})));
+    assert!(e.contains("colour"), "{e}");
+    g.request(json!({"op": "status"})).unwrap();
+
+    // Oversized: an error, then dropped.
+    let mut big = d.client("big");
+    big.send_raw(&vec![b' '; 70_000]).unwrap();
+    match big.recv(5000).unwrap() {
+        Message::Other(v) => assert!(v["message"].as_str().unwrap().contains("70000"), "{v}"),
+        m => panic!("{m:?}"),
+    }
+    assert!(matches!(big.recv(5000), Err(ClientError::Closed)));
+
+    // An unknown protocol version: refused and dropped.
+    let conn = omnid::serve::socket::Conn::connect(&d.socket).unwrap();
+    conn.send(br#"{"op":"hello","protocol":99}"#).unwrap();
+    let mut buf = vec![0u8; 70_000];
+    let n = conn.recv(&mut buf).unwrap();
+    let v: Value = serde_json::from_slice(&buf[..n]).unwrap();
+    assert!(
+        v["message"].as_str().unwrap().contains("protocol 99"),
+        "{v}"
+    );
+    assert_eq!(conn.recv(&mut buf).unwrap(), 0, "closed");
+
+    // Not saying hello first: refused and dropped.
+    let conn = omnid::serve::socket::Conn::connect(&d.socket).unwrap();
+    conn.send(br#"{"op":"status"}"#).unwrap();
+    let n = conn.recv(&mut buf).unwrap();
+    assert!(String::from_utf8_lossy(&buf[..n]).contains("hello"));
+
+    // The reader never noticed: its stream goes on, sample after sample.
+    let mut last = before.seq;
+    for _ in 0..500 {
+        match reader.recv(5000).unwrap() {
+            Message::State(s) => {
+                assert_eq!(s.seq, last + 1, "reader lost samples");
+                last = s.seq;
+            }
+            Message::Other(v) => assert_ne!(v["type"], "lost", "{v}"),
+        }
+    }
+}
+
+#[test]
+fn a_slow_reader_loses_its_oldest_samples_and_is_told() {
+    let d = Daemon::start_with_config(&[], Some("[serve]\nclient_queue = 16\n"));
+    let mut slow = d.client("slow");
+    slow.request(json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    // Not reading for a while: the socket buffer and the queue fill.
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut lost = None;
+    for _ in 0..5000 {
+        if let Message::Other(v) = slow.recv(5000).unwrap() {
+            if v["type"] == "lost" {
+                lost = Some(v);
+                break;
+            }
+        }
+    }
+    let lost = lost.expect("told about the lost samples");
+    assert!(lost["count"].as_u64().unwrap() > 0);
+    // The servo itself dropped nothing and kept time.
+    let st = slow.request(json!({"op": "status"})).unwrap();
+    assert_eq!(st["status"]["telemetry_dropped"], 0);
+}
+
+#[test]
+fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
+    let mut d = Daemon::start(&[]);
+    let mut c = d.client("c");
+    c.request(json!({"op": "mode", "mode": "hold"})).unwrap();
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    states_until(&mut c, 3000, |s| s.amps);
+    // SAFETY: kill with a live child's pid.
+    assert_eq!(unsafe { libc::kill(d.pid(), libc::SIGTERM) }, 0);
+    let mut last = None;
+    loop {
+        match c.recv(5000) {
+            Ok(Message::State(s)) => last = Some(s),
+            Ok(Message::Other(v)) if v["type"] == "bye" => break,
+            Ok(_) => {}
+            Err(e) => panic!("{e}"),
+        }
+    }
+    let last = last.unwrap();
+    assert_eq!(
+        (last.mode.as_str(), last.amps, last.tau),
+        ("stop", false, [0.0; 3])
+    );
+    let (code, err) = d.wait();
+    assert_eq!(code, Some(130), "{err}");
+    assert!(err.contains("stopped by the operator"), "{err}");
+    assert!(!d.socket.exists());
+}
+
+#[test]
+fn a_second_daemon_on_the_same_socket_is_refused() {
+    let d = Daemon::start(&[]);
+    let out = omnid()
+        .args(["serve", "--device", "sim", "--socket"])
+        .arg(&d.socket)
+        .env("OMNID_STATE_DIR", d.path("state2"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&d.pid().to_string()), "{err}");
+    // The first one still serves.
+    d.client("after").request(json!({"op": "status"})).unwrap();
+}
+
+#[test]
+fn ctl_and_watch_drive_the_daemon() {
+    let d = Daemon::start(&[]);
+    let ctl = |args: &[&str]| {
+        omnid()
+            .arg("ctl")
+            .arg("--socket")
+            .arg(&d.socket)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let out = ctl(&["mode", "hold"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = ctl(&["mode", "servo_jp"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("servo_jp"));
+    let out = ctl(&["status"]);
+    let status: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(status["mode"], "hold");
+    let out = omnid()
+        .args([
+            "watch", "--json", "--count", "5", "--rate", "1000", "--socket",
+        ])
+        .arg(&d.socket)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let lines: Vec<Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .filter(|v: &Value| v["type"] == "state")
+        .collect();
+    assert_eq!(lines.len(), 5);
+    for key in [
+        "seq",
+        "t",
+        "q",
+        "qd",
+        "tip_mm",
+        "buttons",
+        "tau",
+        "tau_hat",
+        "controller",
+        "mode",
+    ] {
+        assert!(lines[0].get(key).is_some(), "no {key}");
+    }
+    assert!(lines
+        .windows(2)
+        .all(|w| w[1]["seq"].as_u64() == w[0]["seq"].as_u64().map(|s| s + 1)));
+    // No daemon there: exit 3 with what was looked for.
+    let out = omnid()
+        .args(["ctl", "--socket"])
+        .arg(d.path("none.sock"))
+        .arg("status")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(3));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("none.sock"));
+}
+
+#[test]
+fn a_peer_outside_the_groups_is_refused() {
+    // Only root can connect as another user; CI runs as root.
+    // SAFETY: no arguments.
+    if unsafe { libc::geteuid() } != 0 {
+        eprintln!("skipped: needs root to connect as another user");
+        return;
+    }
+    let d = Daemon::start(&[]);
+    // Let the kernel pass the connection so the daemon's own check decides.
+    std::fs::set_permissions(
+        d.dir.path(),
+        std::os::unix::fs::PermissionsExt::from_mode(0o755),
+    )
+    .unwrap();
+    std::fs::set_permissions(
+        &d.socket,
+        std::os::unix::fs::PermissionsExt::from_mode(0o666),
+    )
+    .unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_omnid"))
+        .args(["ctl", "--socket"])
+        .arg(&d.socket)
+        .arg("status")
+        .env("HOME", "/")
+        .current_dir("/")
+        .uid(65534)
+        .gid(65534)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("access refused") && err.contains("uid 65534"),
+        "{err}"
+    );
+    // The daemon's own user still gets in.
+    d.client("root").request(json!({"op": "status"})).unwrap();
+}
