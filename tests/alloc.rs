@@ -175,3 +175,112 @@ fn replay_allocates_nothing_per_tick() {
     assert!(report.last_command.is_safe());
     assert!(consumer.join().unwrap() > 0);
 }
+
+#[test]
+fn serve_servo_allocates_nothing_with_clients_connected() {
+    use omnid::serve::client::Client;
+    use serde_json::json;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = Config::default();
+    cfg.safety.persist_heat = false;
+    cfg.serve.dump_dir = dir.path().display().to_string();
+    let socket = dir.path().join("sim.sock");
+    let opts = omnid::serve::ServeOptions {
+        device: omnid::run::DeviceSpec::Sim,
+        controller: ControllerKind::Nnidc,
+        socket: Some(socket.clone()),
+        weights: None,
+        no_adapt: false,
+        lenient: false,
+        inject: Vec::new(),
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
+    let prepared = omnid::serve::prepare(&opts, &cfg, stop).unwrap();
+    let mut servo = prepared.pipeline.servo;
+    let hub = std::thread::spawn(move || omnid::serve::hub::Hub::new(prepared.hub).run());
+
+    let readers: Vec<_> = (0..3)
+        .map(|k| {
+            let path = socket.clone();
+            std::thread::spawn(move || {
+                let mut c = Client::connect(&path, &format!("reader {k}")).unwrap();
+                c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+                let mut n = 0u64;
+                while c.next_state(5000).is_ok() {
+                    n += 1;
+                }
+                n
+            })
+        })
+        .collect();
+    // The commander: a setpoint stream answering every state, and every other command kind
+    // in turn, once the counting has begun.
+    let counting = Arc::new(AtomicBool::new(false));
+    let cycles = Arc::new(AtomicU64::new(0));
+    let commander = {
+        let (path, counting, cycles) = (socket.clone(), counting.clone(), cycles.clone());
+        let weights = dir.path().join("w.json");
+        std::thread::spawn(move || {
+            let mut c = Client::connect(&path, "commander").unwrap();
+            c.request(json!({"op": "mode", "mode": "hold"})).unwrap();
+            c.request(json!({"op": "weights_save", "path": weights}))
+                .unwrap();
+            c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+            let controllers = ["pd", "ct", "nnidc"];
+            let mut k = 0usize;
+            loop {
+                let Ok(s) = c.next_state(5000) else { return };
+                let q = [s.q[0], 0.6, 0.3];
+                if c.send(&json!({"op": "servo_jp", "seq": s.seq, "q": q}))
+                    .is_err()
+                {
+                    return;
+                }
+                if counting.load(Ordering::SeqCst) && s.seq % 100 == 0 {
+                    let r = match k % 4 {
+                        0 => c.request(
+                            json!({"op": "controller", "controller": controllers[k / 4 % 3]}),
+                        ),
+                        1 => c.request(json!({"op": "status"})),
+                        2 => c.request(json!({"op": "weights_load", "path": weights})),
+                        _ => c.request(json!({"op": "adapt", "on": k % 8 != 3})),
+                    };
+                    if r.is_err() {
+                        return;
+                    }
+                    k += 1;
+                    cycles.store(k as u64, Ordering::SeqCst);
+                }
+            }
+        })
+    };
+    for _ in 0..1_500 {
+        assert!(servo.tick().is_none());
+    }
+    counting.store(true, Ordering::SeqCst);
+    let n = count_allocations(|| {
+        for _ in 0..3_000 {
+            assert!(servo.tick().is_none());
+        }
+    });
+    let done = cycles.load(Ordering::SeqCst);
+    assert_eq!(servo.activity(), omnid::servo::Activity::ServoJp);
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+    hub.join().unwrap();
+    commander.join().unwrap();
+    for r in readers {
+        assert!(r.join().unwrap() > 1_000, "readers were served");
+    }
+    assert!(
+        done >= 8,
+        "only {done} commands besides the stream in the window"
+    );
+    assert_eq!(
+        n, 0,
+        "serve: {n} allocations in 3000 ticks with clients connected"
+    );
+}
