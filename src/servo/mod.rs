@@ -80,8 +80,10 @@ pub struct ServoReport {
     pub thermal_warned: [bool; 3],
 }
 
-/// Where the reference comes from.
+/// Where the reference comes from. Held inline (a multisine's tables are ~2 kB): boxing it
+/// would allocate on the servo thread whenever a client asks for `track`.
 #[derive(Debug, Clone, Copy)]
+#[allow(clippy::large_enum_variant)]
 enum Target {
     /// A trajectory started at loop time `t0`.
     Trajectory { reference: Reference, t0: f64 },
