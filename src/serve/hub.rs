@@ -28,6 +28,13 @@ use std::thread::JoinHandle;
 /// How long `poll` waits when nothing happens: the stop flag is seen this soon.
 const POLL_MS: i32 = 50;
 
+/// Requests taken from one client per wake-up, so a flooding client cannot starve the rest.
+const READS_PER_WAKE: usize = 64;
+
+/// Replies and events a client may leave unread (states are bounded separately and dropped
+/// oldest first); past this the client is not reading and is disconnected.
+const MAX_UNREAD_REPLIES: usize = 4096;
+
 /// What the hub was built with.
 pub struct HubSetup {
     pub listener: Listener,
@@ -292,7 +299,7 @@ impl Hub {
     }
 
     fn read_client(&mut self, i: usize) {
-        loop {
+        for _ in 0..READS_PER_WAKE {
             if self.clients[i].dead || self.clients[i].closing {
                 return;
             }
@@ -335,6 +342,20 @@ impl Hub {
                 }
             };
             self.handle(i, request);
+            let c = &mut self.clients[i];
+            if c.queue.len() - c.states > MAX_UNREAD_REPLIES && !c.closing {
+                let message = format!(
+                    "more than {MAX_UNREAD_REPLIES} replies unread: disconnecting a client that \
+                     does not read"
+                );
+                eprintln!("omnid serve: client {}: {message}", c.id);
+                self.fail(i, None, "message", message);
+                self.clients[i].closing = true;
+                // Its socket is full: what cannot be sent now is not waited for.
+                self.clients[i].dead = true;
+                self.drop_client(i);
+                return;
+            }
         }
     }
 
