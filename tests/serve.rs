@@ -639,3 +639,64 @@ fn a_peer_outside_the_groups_is_refused() {
     // The daemon's own user still gets in.
     d.client("root").request(json!({"op": "status"})).unwrap();
 }
+
+/// Joint drift over `ticks` samples.
+fn drift(c: &mut Client, ticks: usize) -> [f64; 3] {
+    let first = c.next_state(5000).unwrap();
+    let mut last = first.clone();
+    for _ in 0..ticks {
+        last = c.next_state(5000).unwrap();
+    }
+    [0, 1, 2].map(|j| (last.q[j] - first.q[j]).abs())
+}
+
+#[test]
+fn free_mode_compensates_and_servo_jf_adds_torque() {
+    let d = Daemon::start(&[]);
+    let mut c = d.client("haptics");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let pose = [0.0, 0.6, 0.3];
+    for (controller, needs_model) in [("nnidc", true), ("ct", true), ("pd", false)] {
+        c.request(json!({"op": "controller", "controller": controller}))
+            .unwrap();
+        // Bring the arm to a pose in the middle of the workspace, at rest.
+        feed_servo_jp(&mut c, 1500, pose);
+        c.request(json!({"op": "free"})).unwrap();
+        states_until(&mut c, 100, |s| s.mode == "free");
+        let free = drift(&mut c, 500);
+        feed_servo_jp(&mut c, 1500, pose);
+        c.request(json!({"op": "mode", "mode": "idle"})).unwrap();
+        states_until(&mut c, 100, |s| s.mode == "idle");
+        let idle = drift(&mut c, 500);
+        // Without power the arm falls (joints 2 and 3 carry gravity); with its model's
+        // compensation it stays far closer to where it was let go.
+        let (f, i) = (free[1] + free[2], idle[1] + idle[2]);
+        eprintln!("{controller}: drift over 0.5 s free {f:.4} rad, idle {i:.4} rad");
+        if needs_model {
+            assert!(
+                f < 0.2 * i,
+                "{controller}: free drifted {f} rad, idle {i} rad"
+            );
+        } else {
+            // PD has no model: free mode sends nothing and the arm falls as in idle.
+            assert!(f > 0.5 * i, "{controller}: free {f} rad, idle {i} rad");
+        }
+    }
+    // A joint torque on the base (no gravity there) on top of the compensation turns it.
+    c.request(json!({"op": "controller", "controller": "nnidc"}))
+        .unwrap();
+    feed_servo_jp(&mut c, 1500, pose);
+    let start = c.next_state(5000).unwrap();
+    let mut last = start.clone();
+    for _ in 0..300 {
+        last = c.next_state(5000).unwrap();
+        c.send(&json!({"op": "servo_jf", "seq": last.seq, "tau": [0.03, 0.0, 0.0]}))
+            .unwrap();
+    }
+    assert_eq!(last.mode, "servo_jf");
+    assert!(
+        last.q[0] - start.q[0] > 0.02,
+        "base turned {} rad",
+        last.q[0] - start.q[0]
+    );
+}
