@@ -484,6 +484,25 @@ fn a_slow_reader_loses_its_oldest_samples_and_is_told() {
     }
     let lost = lost.expect("told about the lost samples");
     assert!(lost["count"].as_u64().unwrap() > 0);
+    // Reading again: each notice counts the samples lost since the one before, so the
+    // counts add up to the totals, and notices come singly, not one per blocked flush.
+    let (mut total, mut notices, mut states) = (lost["total"].as_u64().unwrap(), 1, 0);
+    assert_eq!(lost["count"].as_u64(), Some(total));
+    for _ in 0..3000 {
+        match slow.recv(5000).unwrap() {
+            Message::State(_) => states += 1,
+            Message::Other(v) if v["type"] == "lost" => {
+                notices += 1;
+                total += v["count"].as_u64().unwrap();
+                assert_eq!(v["total"].as_u64(), Some(total), "{v}");
+            }
+            Message::Other(_) => {}
+        }
+    }
+    assert!(
+        states > 2000 && notices < 20,
+        "{states} states, {notices} loss notices"
+    );
     // The servo itself dropped nothing and kept time.
     let st = slow.request(json!({"op": "status"})).unwrap();
     assert_eq!(st["status"]["telemetry_dropped"], 0);
@@ -516,6 +535,23 @@ fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
     assert_eq!(code, Some(130), "{err}");
     assert!(err.contains("stopped by the operator"), "{err}");
     assert!(!d.socket.exists());
+}
+
+#[test]
+fn a_full_daemon_refuses_with_its_reason() {
+    let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
+    let _only = d.client("only");
+    for _ in 0..10 {
+        let out = omnid()
+            .args(["ctl", "--socket"])
+            .arg(&d.socket)
+            .arg("status")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains("too many clients"), "{err}");
+    }
 }
 
 #[test]

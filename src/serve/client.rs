@@ -118,7 +118,15 @@ impl Client {
         if !self.conn.wait_readable(timeout_ms)? {
             return Err(ClientError::Timeout(timeout_ms));
         }
-        let n = self.conn.recv(&mut self.buf)?;
+        // A daemon that refuses a connection sends its reason and closes; if our hello was
+        // still unread the kernel reports a reset first, and the reason is still queued.
+        let n = match self.conn.recv(&mut self.buf) {
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => self
+                .conn
+                .recv(&mut self.buf)
+                .map_err(|_| ClientError::Closed)?,
+            r => r?,
+        };
         if n == 0 {
             return Err(ClientError::Closed);
         }

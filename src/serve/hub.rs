@@ -260,6 +260,10 @@ impl Hub {
                 let _ = conn.send(&encode(&json!({
                     "type": "error", "op": "connect", "message": message
                 })));
+                // Closing with the client's hello unread would reset the connection and could
+                // discard the reason before the client reads it: take what has arrived.
+                let mut sink = [0u8; 512];
+                while conn.recv(&mut sink).is_ok_and(|n| n > 0) {}
             };
             let access = match self.s.policy.decide(&peer) {
                 Ok(a) => a,
@@ -892,24 +896,25 @@ impl Hub {
                 }
             }
         }
-        let before = self.last.replace(r);
+        // Changes are against the state the servo started in (idle, the configured law), so
+        // one applied at the very first tick is announced too.
+        let (mode_before, controller_before) = match self.last.replace(r) {
+            Some(b) => (b.mode, b.live.controller),
+            None => (Mode::Idle, Some(self.s.controller)),
+        };
         if let Some(ev) = r.live.event {
             self.on_event(&r, ev);
         }
-        if let Some(b) = before {
-            let mode_changed =
-                b.mode != r.mode && !(b.mode == Mode::Blend && r.mode == Mode::Track);
-            if mode_changed {
-                self.broadcast(json!({
-                    "type": "event", "event": "mode", "mode": r.mode.as_str(), "seq": r.live.seq, "t": r.t,
-                }));
-            }
-            if b.live.controller != r.live.controller {
-                self.broadcast(json!({
-                    "type": "event", "event": "controller",
-                    "controller": r.live.controller.map(|k| k.as_str()), "seq": r.live.seq,
-                }));
-            }
+        if mode_before != r.mode && !(mode_before == Mode::Blend && r.mode == Mode::Track) {
+            self.broadcast(json!({
+                "type": "event", "event": "mode", "mode": r.mode.as_str(), "seq": r.live.seq, "t": r.t,
+            }));
+        }
+        if controller_before != r.live.controller {
+            self.broadcast(json!({
+                "type": "event", "event": "controller",
+                "controller": r.live.controller.map(|k| k.as_str()), "seq": r.live.seq,
+            }));
         }
         let seq = r.live.seq;
         if !self
@@ -1029,12 +1034,27 @@ impl Hub {
             if c.dead {
                 continue;
             }
+            // The loss notice goes before the next message, once: while the socket is full it
+            // stays pending and its count grows (it is not queued again and again).
             if c.lost_unreported > 0 {
                 let lost = json!({
                     "type": "lost", "count": c.lost_unreported, "total": c.lost_total,
                 });
-                c.queue.push_front(Out::Msg(encode(&lost)));
-                c.lost_unreported = 0;
+                match c.conn.send(&encode(&lost)) {
+                    Ok(()) => c.lost_unreported = 0,
+                    Err(e)
+                        if matches!(
+                            e.kind(),
+                            io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
+                        ) =>
+                    {
+                        continue
+                    }
+                    Err(_) => {
+                        c.dead = true;
+                        continue;
+                    }
+                }
             }
             while let Some(front) = c.queue.front() {
                 let bytes: &[u8] = match front {
