@@ -335,13 +335,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     let Some(cfg) = load_config(args.config.as_deref()) else {
         return Ok(EXIT_BAD_INPUT);
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        // With the `termination` feature this also catches SIGTERM (and SIGHUP).
-        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
-            .context("installing the Ctrl-C/SIGTERM handler")?;
-    }
+    let stop = stop_on_signal()?;
     let replay = matches!(args.device, DeviceSpec::Replay(_));
     let opts = RunOptions {
         device: args.device,
@@ -431,16 +425,20 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
 
 const EXIT_REFUSED: u8 = 1;
 
+/// A flag that Ctrl-C and SIGTERM set (the `termination` feature also catches SIGHUP).
+fn stop_on_signal() -> Result<Arc<AtomicBool>, anyhow::Error> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst))
+        .context("installing the Ctrl-C/SIGTERM handler")?;
+    Ok(stop)
+}
+
 fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     let Some(cfg) = load_config(args.config.as_deref()) else {
         return Ok(EXIT_BAD_INPUT);
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
-            .context("installing the Ctrl-C/SIGTERM handler")?;
-    }
+    let stop = stop_on_signal()?;
     let opts = omnid::serve::ServeOptions {
         device: args.device,
         controller: args.controller,

@@ -93,6 +93,24 @@ impl Drop for Daemon {
     }
 }
 
+/// Read to the daemon's goodbye: the last tick streamed before it is the safe one.
+fn ends_safely_with_goodbye(c: &mut Client) {
+    let mut last = None;
+    loop {
+        match c.recv(5000) {
+            Ok(Message::State(s)) => last = Some(s),
+            Ok(Message::Other(v)) if v["type"] == "bye" => break,
+            Ok(_) => {}
+            Err(e) => panic!("no goodbye: {e}"),
+        }
+    }
+    let last = last.expect("states streamed");
+    assert_eq!(
+        (last.mode.as_str(), last.amps, last.tau),
+        ("stop", false, [0.0; 3])
+    );
+}
+
 fn refused(r: Result<Value, ClientError>) -> String {
     match r {
         Err(ClientError::Refused(m)) => m,
@@ -199,20 +217,7 @@ fn every_command_works_and_shutdown_ends_cleanly() {
 
     c.request(json!({"op": "shutdown"})).unwrap();
     // The last tick streamed is the safe one, then goodbye.
-    let mut last = None;
-    loop {
-        match c.recv(5000) {
-            Ok(Message::State(s)) => last = Some(s),
-            Ok(Message::Other(v)) if v["type"] == "bye" => break,
-            Ok(_) => {}
-            Err(e) => panic!("no goodbye: {e}"),
-        }
-    }
-    let last = last.unwrap();
-    assert_eq!(
-        (last.mode.as_str(), last.amps, last.tau),
-        ("stop", false, [0.0; 3])
-    );
+    ends_safely_with_goodbye(&mut c);
     let (code, err) = d.wait();
     assert_eq!(code, Some(0), "{err}");
     assert!(!d.socket.exists(), "socket removed");
@@ -517,20 +522,7 @@ fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
     states_until(&mut c, 3000, |s| s.amps);
     // SAFETY: kill with a live child's pid.
     assert_eq!(unsafe { libc::kill(d.pid(), libc::SIGTERM) }, 0);
-    let mut last = None;
-    loop {
-        match c.recv(5000) {
-            Ok(Message::State(s)) => last = Some(s),
-            Ok(Message::Other(v)) if v["type"] == "bye" => break,
-            Ok(_) => {}
-            Err(e) => panic!("{e}"),
-        }
-    }
-    let last = last.unwrap();
-    assert_eq!(
-        (last.mode.as_str(), last.amps, last.tau),
-        ("stop", false, [0.0; 3])
-    );
+    ends_safely_with_goodbye(&mut c);
     let (code, err) = d.wait();
     assert_eq!(code, Some(130), "{err}");
     assert!(err.contains("stopped by the operator"), "{err}");
