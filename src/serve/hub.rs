@@ -196,6 +196,24 @@ impl Hub {
         self.finish()
     }
 
+    /// Tell the servo which ticks to wake us for: the gcd of the streaming clients' sample
+    /// intervals.
+    fn publish_every(&self) {
+        fn gcd(a: u64, b: u64) -> u64 {
+            if b == 0 {
+                a
+            } else {
+                gcd(b, a % b)
+            }
+        }
+        let every = self
+            .clients
+            .iter()
+            .filter(|c| c.greeted && !c.dead && c.every > 0)
+            .fold(0, |g, c| gcd(g, c.every));
+        self.s.wake.set_every(every);
+    }
+
     fn poll_once(&mut self) -> io::Result<()> {
         let mut fds = Vec::with_capacity(2 + self.clients.len());
         fds.push(libc::pollfd {
@@ -239,6 +257,7 @@ impl Hub {
         if fds[1].revents & libc::POLLIN != 0 {
             self.accept_all();
         }
+        self.publish_every();
         Ok(())
     }
 

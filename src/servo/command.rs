@@ -11,6 +11,7 @@ use crate::ident::{Fault, Identifier};
 use crate::telemetry::record::Mode;
 use crate::telemetry::summary::RunStats;
 use std::os::fd::{AsRawFd, OwnedFd};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What the loop does with the arm (the mode a client asks for; `Track` shows as `blend`
 /// then `track` in the log).
@@ -128,10 +129,16 @@ pub enum ServoEvent {
     SafetyTrip(SafetyTrip),
 }
 
-/// Wakes the thread that serves clients when a tick's record is ready: one non-blocking
-/// `write` to an eventfd (no lock, no allocation), so a client can answer within the tick.
+/// Wakes the thread that serves clients when a tick's record is wanted at once: one
+/// non-blocking `write` to an eventfd (no lock, no allocation), so a client can answer within
+/// the tick. Only ticks some client streams (every `every`-th), replies and events wake it;
+/// otherwise it drains the records on its own schedule and the loop makes no syscall.
 #[derive(Debug)]
-pub struct Wake(OwnedFd);
+pub struct Wake {
+    fd: OwnedFd,
+    /// The greatest common divisor of the streaming clients' sample intervals (0: none).
+    every: AtomicU64,
+}
 
 impl Wake {
     pub fn new() -> std::io::Result<Wake> {
@@ -141,28 +148,43 @@ impl Wake {
             return Err(std::io::Error::last_os_error());
         }
         // SAFETY: `fd` is a fresh descriptor that nothing else owns.
-        Ok(Wake(unsafe {
-            <OwnedFd as std::os::fd::FromRawFd>::from_raw_fd(fd)
-        }))
+        let fd = unsafe { <OwnedFd as std::os::fd::FromRawFd>::from_raw_fd(fd) };
+        Ok(Wake {
+            fd,
+            every: AtomicU64::new(0),
+        })
+    }
+
+    /// Ticks whose number is a multiple of `every` are wanted at once (0: none is).
+    pub fn set_every(&self, every: u64) {
+        self.every.store(every, Ordering::Relaxed);
+    }
+
+    /// Signal if tick `seq` is wanted at once.
+    pub fn tick(&self, seq: u64) {
+        let every = self.every.load(Ordering::Relaxed);
+        if every != 0 && seq % every == 0 {
+            self.notify();
+        }
     }
 
     /// Signal (never blocks: the counter saturates only after 2⁶⁴ − 2 signals).
     pub fn notify(&self) {
         let one = 1u64.to_ne_bytes();
         // SAFETY: writes 8 bytes from a live local buffer to an owned descriptor.
-        let _ = unsafe { libc::write(self.0.as_raw_fd(), one.as_ptr().cast(), 8) };
+        let _ = unsafe { libc::write(self.fd.as_raw_fd(), one.as_ptr().cast(), 8) };
     }
 
     /// Reset the counter (the reader's side, after waking).
     pub fn clear(&self) {
         let mut buf = [0u8; 8];
         // SAFETY: reads at most 8 bytes into a live local buffer; EAGAIN when not signalled.
-        let _ = unsafe { libc::read(self.0.as_raw_fd(), buf.as_mut_ptr().cast(), 8) };
+        let _ = unsafe { libc::read(self.fd.as_raw_fd(), buf.as_mut_ptr().cast(), 8) };
     }
 
     pub fn fd(&self) -> std::os::fd::BorrowedFd<'_> {
         use std::os::fd::AsFd;
-        self.0.as_fd()
+        self.fd.as_fd()
     }
 }
 

@@ -450,7 +450,11 @@ impl Servo {
             self.dropped += 1;
         }
         if let Some(link) = &self.link {
-            link.wake.notify();
+            if record.live.event.is_some() || record.mode == Mode::Stop {
+                link.wake.notify();
+            } else {
+                link.wake.tick(record.live.seq);
+            }
         }
     }
 
@@ -591,6 +595,7 @@ impl Servo {
             // The receiver keeps far more room than requests in flight; should it be gone,
             // the box is dropped here (the daemon is shutting down anyway).
             let _ = link.replies.try_send(reply);
+            link.wake.notify();
         }
     }
 
