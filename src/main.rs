@@ -460,6 +460,11 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
             return Ok(EXIT_BAD_INPUT);
         }
     };
+    // The session's summary; a closed stdout loses nothing else.
+    {
+        use std::io::Write;
+        let _ = write!(std::io::stdout(), "{}", outcome.summary.human());
+    }
     let stopped = if outcome.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {

@@ -249,6 +249,9 @@ pub struct Pipeline {
     pub warnings: Vec<String>,
     /// Realtime steps to take on the servo thread (paced runs only).
     pub realtime: Option<crate::servo::realtime::RealtimeConfig>,
+    /// Which realtime steps took effect, once the servo thread has taken them (before its
+    /// first tick): for a daemon's status while it runs.
+    pub realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
 }
 
 /// Build the pipeline for `opts` with `faults` (from [`check_options`]); telemetry leaves
@@ -322,6 +325,7 @@ pub fn assemble(
         warnings,
         // Realtime steps only make sense when the loop is paced.
         realtime: (!opts.fast).then(|| cfg.realtime.clone()),
+        realtime_taken: Arc::default(),
     })
 }
 
@@ -340,6 +344,7 @@ impl Pipeline {
             heat_path,
             warnings,
             realtime,
+            realtime_taken,
         } = self;
         let handle = std::thread::Builder::new()
             .name("omnid-servo".into())
@@ -349,6 +354,9 @@ impl Pipeline {
                 // Before the first tick: one line per step that was not permitted.
                 for w in realtime.iter().flat_map(|r| &r.warnings) {
                     eprintln!("omnid: warning: {w}");
+                }
+                if let Some(r) = &realtime {
+                    let _ = realtime_taken.set(r.clone());
                 }
                 let end = loop {
                     if let Some(end) = servo.tick() {

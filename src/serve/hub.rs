@@ -58,11 +58,15 @@ pub struct HubSetup {
     pub seed: u64,
     /// Where recordings without a path and fault dumps go.
     pub state_dir: PathBuf,
+    /// The realtime steps the servo thread took (set before its first tick).
+    pub realtime: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
 }
 
 /// What the hub saw, for the daemon's exit.
 pub struct HubReport {
     pub shutdown_requested: bool,
+    /// Safety trips the daemon survived (it went idle).
+    pub faults: Vec<FaultEntry>,
     /// Fault dumps written.
     pub dumps: Vec<PathBuf>,
     /// The last tick records, oldest first (for a dump at the end).
@@ -795,6 +799,7 @@ impl Hub {
             snap.missed_packets,
         );
         summary.faults = self.faults.clone();
+        summary.realtime = self.s.realtime.get().cloned();
         let mut v = serde_json::to_value(&summary).unwrap_or_default();
         let lease = self
             .lease
@@ -1125,6 +1130,7 @@ impl Hub {
         }
         HubReport {
             shutdown_requested: self.shutdown_requested,
+            faults: self.faults,
             dumps: self.dumps,
             ring: self.ring,
             recording_error,

@@ -36,6 +36,8 @@ pub struct ServeOptions {
 
 /// How the daemon ended.
 pub struct ServeOutcome {
+    /// The whole session's summary (as `omnid run`'s).
+    pub summary: crate::telemetry::summary::RunSummary,
     pub end: EndReason,
     /// A client asked for the shutdown (`omnid ctl shutdown`).
     pub shutdown_requested: bool,
@@ -242,6 +244,7 @@ pub fn prepare(
         weights_label: pipeline.weights_label.clone(),
         seed: cfg.sim.seed,
         state_dir,
+        realtime: pipeline.realtime_taken.clone(),
     };
     Ok(Prepared {
         pipeline,
@@ -277,8 +280,34 @@ pub fn serve(
     }
     let (handle, ending) = pipeline.spawn()?;
     let hub_report = hub::Hub::new(setup).run();
-    let (report, _realtime) = join_servo(handle)?;
+    let (report, realtime) = join_servo(handle)?;
     ending.save_heat(&report);
+    let mut summary = crate::telemetry::summary::RunSummary::from_results(
+        &crate::telemetry::summary::SummaryLabels {
+            device: opts.device.name(),
+            // The law the daemon started with (clients may have switched since).
+            controller: opts.controller.as_str(),
+            trajectory: "serve".into(),
+            weights: ending.weights_label.clone(),
+            seed: cfg.sim.seed,
+            fast: false,
+        },
+        &report.stats,
+        &report.timing,
+        crate::telemetry::summary::IdentifierState {
+            adapt: report
+                .identifier
+                .as_ref()
+                .is_some_and(|id| id.config().adapt),
+            fault: report.identifier.as_ref().and_then(|id| id.fault()),
+        },
+        report.telemetry_dropped,
+        report.missed_packets,
+    );
+    summary.end = report.end.as_str().to_string();
+    summary.faults = hub_report.faults.clone();
+    summary.faults.extend(report.faults.iter().cloned());
+    summary.realtime = realtime;
     let mut dumps = hub_report.dumps;
     if matches!(report.end, EndReason::DeviceFault(_)) {
         let dir = if cfg.serve.dump_dir.is_empty() {
@@ -303,6 +332,7 @@ pub fn serve(
     // The clients' connections close only now, after the final safe packet went out.
     drop(hub_report.clients);
     Ok(ServeOutcome {
+        summary,
         end: report.end,
         shutdown_requested: hub_report.shutdown_requested,
         shutdown_error: report.shutdown_error,

@@ -385,13 +385,20 @@ impl RunSummary {
 
     /// The printout at the end of a run.
     pub fn human(&self) -> String {
+        // A daemon's session follows whatever its clients asked for.
+        let what = match self.trajectory.as_str() {
+            "serve" => format!("omnid serve: {} ticks", self.ticks),
+            _ => format!("omnid run: {} ticks", self.ticks),
+        };
         let mut s = format!(
-            "omnid run: {} ticks ({:.3} s device time) on {} with {} following {}{}; ended: {}\n",
-            self.ticks,
+            "{what} ({:.3} s device time) on {} with {}{}{}; ended: {}\n",
             self.duration_s,
             self.device,
             self.controller,
-            self.trajectory,
+            match self.trajectory.as_str() {
+                "serve" => " at start, as clients asked".to_string(),
+                t => format!(" following {t}"),
+            },
             if self.fast { " (--fast)" } else { "" },
             self.end
         );
