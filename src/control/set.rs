@@ -124,10 +124,6 @@ mod tests {
     use super::*;
     use crate::control::RefPoint;
 
-    fn input(t: f64, x: &Estimate, r: &RefPoint) -> (f64, Estimate, RefPoint) {
-        (t, *x, *r)
-    }
-
     #[test]
     fn a_switch_crossfades_from_the_old_law_to_the_new() {
         let cfg = Config::default();
@@ -141,7 +137,6 @@ mod tests {
             q: Joint3::new(0.05, 0.35, 0.15),
             ..RefPoint::default()
         };
-        let (_, x, r) = input(0.0, &x, &r);
         let at = |set: &mut ControllerSet, t: f64| {
             set.torque(
                 &ControlInput {

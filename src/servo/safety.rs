@@ -259,10 +259,13 @@ impl SafetyLayer {
         }
     }
 
-    /// Amplifiers off: nothing is being sent, and authority will ramp up again from zero.
+    /// One tick with the amplifiers off: nothing is sent, the motors cool, and authority
+    /// will ramp up again from zero.
     pub fn rest(&mut self) {
         self.last_tau = Joint3::zeros();
         self.ramp_elapsed = 0.0;
+        let mut unused = 0;
+        self.heat_up(&Joint3::zeros(), &mut unused);
     }
 
     /// Start the ramp again (after a recovery): authority returns gradually.
@@ -464,6 +467,39 @@ mod tests {
         // Held at the continuous torque, the heat settles at ≤ 1 and the clamp releases and
         // re-engages around the limit rather than running away.
         assert!(s.heat()[0] < 1.05);
+    }
+
+    #[test]
+    fn motors_cool_while_resting_and_authority_ramps_up_again() {
+        let cfg = SafetyConfig {
+            ramp_s: 0.0,
+            thermal_time_constant_s: 1.0,
+            ..Default::default()
+        };
+        let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);
+        for _ in 0..2000 {
+            s.apply(&Joint3::new(0.3, 0.0, 0.0), &Q, &Joint3::zeros())
+                .unwrap();
+        }
+        let hot = s.heat()[0];
+        assert!(hot > 1.0);
+        for _ in 0..1000 {
+            s.rest();
+        }
+        // First-order cooling over one time constant: e⁻¹ of the heat is left.
+        let left = s.heat()[0] / hot;
+        assert!((left - (-1.0f64).exp()).abs() < 1e-3, "{left}");
+        let cfg_ramp = SafetyConfig::default();
+        let mut r = SafetyLayer::new(&cfg_ramp, 1e-3, [0.0; 3]);
+        for _ in 0..1000 {
+            r.apply(&Joint3::repeat(0.01), &Q, &Joint3::zeros())
+                .unwrap();
+        }
+        r.rest();
+        let first = r
+            .apply(&Joint3::repeat(0.01), &Q, &Joint3::zeros())
+            .unwrap();
+        assert!(first.flags & flags::RAMP != 0 && first.tau.amax() < 0.001);
     }
 
     proptest! {
