@@ -6,6 +6,35 @@
 //! geometry and physics shared by the simulator and model-based control. Off the loop: `plot`
 //! draws figures from a log, `experiment` reproduces the paper's experiments, `progress` the terminal progress bars of long commands.
 
+/// Terminal output that never panics. `print!` and `eprintln!` panic when the stream is a
+/// closed pipe or a hung-up terminal, which would lose the exit code, the summary JSON and the
+/// fault path after a run; these lose only the text (README, Exit codes).
+#[macro_export]
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout(), $($arg)*);
+    }};
+}
+
+/// `println!` that never panics (see [`out!`]).
+#[macro_export]
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
+/// `eprintln!` that never panics (see [`out!`]).
+#[macro_export]
+macro_rules! errln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
+
 pub mod config;
 pub mod control;
 pub mod device;

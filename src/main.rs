@@ -116,7 +116,7 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
             omnid::ident::Progress::Batch { .. } => {}
             omnid::ident::Progress::Epoch(r) => {
                 bar.inc(1);
-                bar.suspend(|| eprintln!(
+                bar.suspend(|| omnid::errln!(
                     "epoch {:>3}/{}: train NRMSE {:.3} / {:.3} / {:.3}   validation {:.3} / {:.3} / {:.3}",
                     r.epoch,
                     r.epochs,
@@ -134,7 +134,7 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
     match result {
         Ok(report) => {
             let best = &report.epochs[report.kept_epoch - 1];
-            println!(
+            omnid::outln!(
                 "identify: {} training and {} validation samples; kept epoch {}: training NRMSE {:.3} / {:.3} / {:.3}, validation NRMSE {:.3} / {:.3} / {:.3}; weights in {}",
                 report.train_samples,
                 report.val_samples,
@@ -150,7 +150,7 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
             Ok(0)
         }
         Err(e) => {
-            eprintln!("omnid identify: {e}");
+            omnid::errln!("omnid identify: {e}");
             Ok(EXIT_BAD_INPUT)
         }
     }
@@ -300,7 +300,7 @@ struct ConvertArgs {
 fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
     match convert(args.from, &args.input, &args.out, args.lenient) {
         Ok(report) => {
-            println!(
+            omnid::outln!(
                 "omnid convert: {} rows from {} to {} (columns: {})",
                 report.rows,
                 args.input.display(),
@@ -308,16 +308,16 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
                 report.columns.join(",")
             );
             if report.skipped.count > 0 {
-                eprintln!("omnid: warning: --lenient: {}", report.skipped);
+                omnid::errln!("omnid: warning: --lenient: {}", report.skipped);
             }
             Ok(0)
         }
         Err(e @ ConvertError::Write { .. }) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             Ok(EXIT_INTERNAL)
         }
         Err(e) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             Ok(EXIT_BAD_INPUT)
         }
     }
@@ -354,22 +354,22 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
         Err(e @ RunError::BadInput(_)) | Err(e @ RunError::Replay(_)) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             return Ok(EXIT_BAD_INPUT);
         }
         Err(e @ RunError::Device(_)) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             return Ok(EXIT_DEVICE_FAULT);
         }
         Err(e @ RunError::Log { .. }) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             return Ok(EXIT_BAD_INPUT);
         }
         Err(e) => return Err(e.into()),
     };
-    print!("{}", outcome.summary.human());
+    omnid::out!("{}", outcome.summary.human());
     for w in &outcome.warnings {
-        eprintln!("omnid: warning: {w}");
+        omnid::errln!("omnid: warning: {w}");
     }
     if let Some(path) = &args.summary_json {
         let json = serde_json::to_string_pretty(&outcome.summary)?;
@@ -384,38 +384,38 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     let mut code = match &outcome.end {
         EndReason::Completed | EndReason::EndOfData => 0,
         EndReason::OperatorStop => {
-            eprintln!("omnid: stopped by the operator; {stopped}");
+            omnid::errln!("omnid: stopped by the operator; {stopped}");
             EXIT_OPERATOR_STOP
         }
         EndReason::DeviceFault(m) => {
-            eprintln!("omnid: device fault: {m}; {stopped}");
+            omnid::errln!("omnid: device fault: {m}; {stopped}");
             EXIT_DEVICE_FAULT
         }
         EndReason::SafetyFault(m) => {
-            eprintln!("omnid: safety fault: {m}; {stopped}");
+            omnid::errln!("omnid: safety fault: {m}; {stopped}");
             EXIT_SAFETY_FAULT
         }
     };
     if let Some(dump) = &outcome.dump {
-        eprintln!(
+        omnid::errln!(
             "omnid: the last ticks before the fault are in {}",
             dump.display()
         );
     }
     if let Some(e) = &outcome.shutdown_error {
-        eprintln!("omnid: warning: {e}");
+        omnid::errln!("omnid: warning: {e}");
         if code == 0 {
             code = EXIT_DEVICE_FAULT;
         }
     }
     if let Some(e) = &outcome.log_error {
-        eprintln!("omnid: writing the log failed part-way: {e}");
+        omnid::errln!("omnid: writing the log failed part-way: {e}");
         if code == 0 {
             code = EXIT_INTERNAL;
         }
     }
     if outcome.summary.telemetry_dropped > 0 {
-        eprintln!(
+        omnid::errln!(
             "omnid: warning: {} log rows dropped (the writer fell behind)",
             outcome.summary.telemetry_dropped
         );
@@ -451,12 +451,12 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     let outcome = match omnid::serve::serve(&opts, &cfg, stop) {
         Ok(o) => o,
         Err(e @ RunError::Device(_)) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             return Ok(EXIT_DEVICE_FAULT);
         }
         Err(e @ RunError::Internal(_)) => return Err(e.into()),
         Err(e) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             return Ok(EXIT_BAD_INPUT);
         }
     };
@@ -471,39 +471,39 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         "the final zero-torque packet could not be delivered; the device's own watchdog turns its amplifiers off when packets stop"
     };
     for dump in &outcome.dumps {
-        eprintln!("omnid serve: fault dump: {}", dump.display());
+        omnid::errln!("omnid serve: fault dump: {}", dump.display());
     }
     if let Some(e) = &outcome.recording_error {
-        eprintln!("omnid serve: the recording is incomplete: {e}");
+        omnid::errln!("omnid serve: the recording is incomplete: {e}");
     }
     if let Some(e) = &outcome.shutdown_error {
-        eprintln!("omnid: warning: {e}");
+        omnid::errln!("omnid: warning: {e}");
     }
     let code = match &outcome.end {
         EndReason::OperatorStop if outcome.shutdown_requested => {
-            eprintln!(
+            omnid::errln!(
                 "omnid serve: shut down by a client; {stopped}; socket {} removed",
                 outcome.socket.display()
             );
             0
         }
         EndReason::OperatorStop => {
-            eprintln!(
+            omnid::errln!(
                 "omnid serve: stopped by the operator; {stopped}; socket {} removed",
                 outcome.socket.display()
             );
             EXIT_OPERATOR_STOP
         }
         EndReason::Completed | EndReason::EndOfData => {
-            eprintln!("omnid serve: the replayed log ended; {stopped}");
+            omnid::errln!("omnid serve: the replayed log ended; {stopped}");
             0
         }
         EndReason::DeviceFault(m) => {
-            eprintln!("omnid serve: device fault: {m}; {stopped}");
+            omnid::errln!("omnid serve: device fault: {m}; {stopped}");
             EXIT_DEVICE_FAULT
         }
         EndReason::SafetyFault(m) => {
-            eprintln!("omnid serve: safety fault: {m}; {stopped}");
+            omnid::errln!("omnid serve: safety fault: {m}; {stopped}");
             EXIT_SAFETY_FAULT
         }
     };
@@ -519,12 +519,12 @@ fn connect(socket: Option<PathBuf>, name: &str) -> Result<omnid::serve::client::
     let path = match socket.map(Ok).unwrap_or_else(omnid::serve::find_socket) {
         Ok(p) => p,
         Err(e) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             return Err(EXIT_DEVICE_FAULT);
         }
     };
     omnid::serve::client::Client::connect(&path, name).map_err(|e| {
-        eprintln!("omnid: {e}");
+        omnid::errln!("omnid: {e}");
         match e {
             omnid::serve::client::ClientError::Refused(_) => EXIT_REFUSED,
             _ => EXIT_DEVICE_FAULT,
@@ -536,7 +536,7 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
     use omnid::serve::client::Message;
     use std::io::Write;
     if !(args.rate.is_finite() && args.rate > 0.0) {
-        eprintln!("omnid watch: --rate {} must be a number > 0", args.rate);
+        omnid::errln!("omnid watch: --rate {} must be a number > 0", args.rate);
         return Ok(EXIT_BAD_INPUT);
     }
     let mut client = match connect(args.socket, "omnid watch") {
@@ -544,7 +544,7 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
         Err(code) => return Ok(code),
     };
     if let Err(e) = client.request(serde_json::json!({ "op": "stream", "rate_hz": args.rate })) {
-        eprintln!("omnid watch: {e}");
+        omnid::errln!("omnid watch: {e}");
         return Ok(EXIT_REFUSED);
     }
     let stdout = std::io::stdout();
@@ -570,23 +570,23 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
                 }
             }
             Ok(Message::Other(v)) if v["type"] == "bye" => {
-                eprintln!("omnid watch: the daemon is stopping");
+                omnid::errln!("omnid watch: the daemon is stopping");
                 return Ok(0);
             }
             Ok(Message::Other(v)) => {
                 if args.json {
                     v.to_string()
                 } else {
-                    eprintln!("omnid watch: {v}");
+                    omnid::errln!("omnid watch: {v}");
                     continue;
                 }
             }
             Err(omnid::serve::client::ClientError::Closed) => {
-                eprintln!("omnid watch: the daemon closed the connection");
+                omnid::errln!("omnid watch: the daemon closed the connection");
                 return Ok(0);
             }
             Err(e) => {
-                eprintln!("omnid watch: {e}");
+                omnid::errln!("omnid watch: {e}");
                 return Ok(EXIT_INTERNAL);
             }
         };
@@ -612,7 +612,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
             "start" => json!({ "op": "record_start", "path": path }),
             "stop" => json!({ "op": "record_stop" }),
             other => {
-                eprintln!("omnid ctl: record {other}: expected start or stop");
+                omnid::errln!("omnid ctl: record {other}: expected start or stop");
                 return Ok(EXIT_BAD_INPUT);
             }
         },
@@ -620,7 +620,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
             "save" => json!({ "op": "weights_save", "path": absolute(path) }),
             "load" => json!({ "op": "weights_load", "path": absolute(path) }),
             other => {
-                eprintln!("omnid ctl: weights {other}: expected save or load");
+                omnid::errln!("omnid ctl: weights {other}: expected save or load");
                 return Ok(EXIT_BAD_INPUT);
             }
         },
@@ -659,7 +659,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
             Ok(0)
         }
         Err(e) => {
-            eprintln!("omnid ctl: {e}");
+            omnid::errln!("omnid ctl: {e}");
             Ok(EXIT_REFUSED)
         }
     }
@@ -675,7 +675,7 @@ fn load_config(path: Option<&std::path::Path>) -> Option<Config> {
         None => Some(Config::default()),
         Some(Ok(c)) => Some(c),
         Some(Err(e)) => {
-            eprintln!("omnid: {e}");
+            omnid::errln!("omnid: {e}");
             None
         }
     }
@@ -692,18 +692,18 @@ fn main() -> ExitCode {
         Command::Identify(args) => identify_cmd(args),
         Command::Devices { config } => match load_config(config.as_deref()) {
             Some(cfg) => {
-                print!("{}", omnid::device::discovery::list_devices(&cfg.usb));
+                omnid::out!("{}", omnid::device::discovery::list_devices(&cfg.usb));
                 Ok(0)
             }
             None => Ok(EXIT_BAD_INPUT),
         },
         Command::Plot { log, out } => match omnid::plot::plot_log(&log, &out) {
             Ok(report) => {
-                print!("{report}");
+                omnid::out!("{report}");
                 Ok(0)
             }
             Err(e) => {
-                eprintln!("omnid plot: {e}");
+                omnid::errln!("omnid plot: {e}");
                 Ok(if e.is_bad_input() {
                     EXIT_BAD_INPUT
                 } else {
@@ -714,7 +714,7 @@ fn main() -> ExitCode {
         Command::Experiment { kind, out, quick } => {
             match omnid::experiment::run_experiment(kind, &out, quick) {
                 Ok(report) => {
-                    println!(
+                    omnid::outln!(
                         "omnid experiment {}: report in {} ({} figure files)",
                         kind.as_str(),
                         report.report.display(),
@@ -723,7 +723,7 @@ fn main() -> ExitCode {
                     Ok(0)
                 }
                 Err(e) => {
-                    eprintln!("omnid experiment {}: {e}", kind.as_str());
+                    omnid::errln!("omnid experiment {}: {e}", kind.as_str());
                     Ok(if e.is_bad_input() {
                         EXIT_BAD_INPUT
                     } else {
@@ -734,10 +734,10 @@ fn main() -> ExitCode {
         }
         Command::Config { print_default } => {
             if print_default {
-                print!("{}", Config::default_toml());
+                omnid::out!("{}", Config::default_toml());
                 Ok(0)
             } else {
-                eprintln!("omnid config: nothing to do; try --print-default");
+                omnid::errln!("omnid config: nothing to do; try --print-default");
                 Ok(EXIT_BAD_INPUT)
             }
         }
@@ -745,7 +745,7 @@ fn main() -> ExitCode {
     match result {
         Ok(code) => ExitCode::from(code),
         Err(e) => {
-            eprintln!("omnid: {e:#}");
+            omnid::errln!("omnid: {e:#}");
             ExitCode::from(EXIT_INTERNAL)
         }
     }

@@ -268,7 +268,7 @@ pub fn assemble(
     let (identifier, weights_label) =
         make_identifier(cfg, opts.controller, opts.weights.as_deref(), opts.no_adapt)?;
     if weights_label == "shipped" {
-        eprintln!(
+        crate::errln!(
             "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
              the simulator); pass --weights FILE for your own (`omnid identify`)"
         );
@@ -312,7 +312,7 @@ pub fn assemble(
         let (heat, note) =
             crate::servo::thermal_store::load(path, cfg.safety.thermal_time_constant_s);
         if let Some(note) = note {
-            eprintln!("omnid: warning: {note}; starting with cold motors");
+            crate::errln!("omnid: warning: {note}; starting with cold motors");
         }
         servo.set_initial_heat(heat);
     }
@@ -353,7 +353,7 @@ impl Pipeline {
                 let realtime = realtime.as_ref().map(crate::servo::realtime::apply);
                 // Before the first tick: one line per step that was not permitted.
                 for w in realtime.iter().flat_map(|r| &r.warnings) {
-                    eprintln!("omnid: warning: {w}");
+                    crate::errln!("omnid: warning: {w}");
                 }
                 if let Some(r) = &realtime {
                     let _ = realtime_taken.set(r.clone());
@@ -391,7 +391,7 @@ impl Ending {
     pub fn save_heat(&self, report: &ServoReport) {
         if let Some(path) = &self.heat_path {
             if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
-                eprintln!(
+                crate::errln!(
                     "omnid: warning: cannot save motor heat to {}: {e}",
                     path.display()
                 );
@@ -399,7 +399,7 @@ impl Ending {
         }
         for (j, warned) in report.thermal_warned.iter().enumerate() {
             if *warned {
-                eprintln!(
+                crate::errln!(
                     "omnid: warning: motor {} reached its thermal warning level (heat {:.2})",
                     j + 1,
                     report.heat[j]

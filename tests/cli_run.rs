@@ -173,3 +173,67 @@ fn bad_duration_is_bad_input() {
         assert!(err.contains("--duration"), "{err}");
     }
 }
+
+/// Start `omnid args`, close the reading ends of its stdout and stderr pipes at once (nobody
+/// reads the terminal), and wait: the exit code.
+fn run_unread(args: &[String], state: &std::path::Path) -> Option<i32> {
+    let mut child = omnid()
+        .args(args)
+        .env("OMNID_STATE_DIR", state)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    drop(child.stderr.take());
+    child.wait().unwrap().code()
+}
+
+#[test]
+fn closed_stdout_and_stderr_change_no_exit_code_or_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).display().to_string();
+    let run = |log: &str, json: &str, extra: &[&str]| {
+        let args: Vec<String> = ["run", "--fast", "--duration", "1", "--log", log]
+            .iter()
+            .chain(&["--summary-json", json])
+            .chain(extra)
+            .map(|s| s.to_string())
+            .collect();
+        run_unread(&args, dir.path())
+    };
+    let read_json = |path: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    };
+    assert_eq!(run(&p("ok.csv"), &p("ok.json"), &[]), Some(0));
+    assert_eq!(read_json(&p("ok.json"))["end"], "completed");
+    let l = Log::read(std::path::Path::new(&p("ok.csv")));
+    assert_eq!(l.rows.last().unwrap()[l.col("mode")], "stop");
+
+    // The fault path: the same exit code, dump and summary as with a terminal.
+    let fault = ["--inject", "disconnect@0.5"];
+    assert_eq!(run(&p("f.csv"), &p("f.json"), &fault), Some(3));
+    assert_eq!(read_json(&p("f.json"))["end"], "device-fault");
+    assert!(dir.path().join("f-fault.csv").exists());
+
+    // The daemon, stopped with SIGTERM while nobody reads its terminal.
+    let socket = p("s.sock");
+    let mut child = omnid()
+        .args(["serve", "--socket", &socket])
+        .env("OMNID_STATE_DIR", dir.path())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    drop(child.stderr.take());
+    let until = Instant::now() + Duration::from_secs(20);
+    while omnid::serve::client::Client::connect(std::path::Path::new(&socket), "t").is_err() {
+        assert!(Instant::now() < until, "serve did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // SAFETY: signals a live child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGTERM) }, 0);
+    assert_eq!(child.wait().unwrap().code(), Some(130));
+    assert!(!std::path::Path::new(&socket).exists());
+}

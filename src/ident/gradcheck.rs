@@ -152,7 +152,7 @@ fn wae_gradients_match_finite_differences_for_every_term_net_and_layer() {
             }
         }
     }
-    eprintln!("worst relative FD error over all terms, nets and layers: {worst:e}");
+    crate::errln!("worst relative FD error over all terms, nets and layers: {worst:e}");
 }
 
 #[test]

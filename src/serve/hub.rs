@@ -193,7 +193,7 @@ impl Hub {
                 break;
             }
             if let Err(e) = self.poll_once() {
-                eprintln!("omnid serve: poll: {e}");
+                crate::errln!("omnid serve: poll: {e}");
                 std::thread::sleep(std::time::Duration::from_millis(POLL_MS as u64));
             }
         }
@@ -271,7 +271,7 @@ impl Hub {
                 Ok(Some(c)) => c,
                 Ok(None) => return,
                 Err(e) => {
-                    eprintln!("omnid serve: accept: {e}");
+                    crate::errln!("omnid serve: accept: {e}");
                     return;
                 }
             };
@@ -375,7 +375,7 @@ impl Hub {
                     "more than {MAX_UNREAD_REPLIES} replies unread: disconnecting a client that \
                      does not read"
                 );
-                eprintln!("omnid serve: client {}: {message}", c.id);
+                crate::errln!("omnid serve: client {}: {message}", c.id);
                 self.fail(i, None, "message", message);
                 self.clients[i].closing = true;
                 // Its socket is full: what cannot be sent now is not waited for.
@@ -1021,7 +1021,7 @@ impl Hub {
                 ("safety-trip", message)
             }
         };
-        eprintln!("omnid serve: {message}");
+        crate::errln!("omnid serve: {message}");
         self.broadcast(json!({
             "type": "event", "event": name, "mode": r.mode.as_str(), "seq": r.live.seq,
             "t": r.t, "message": message,
@@ -1039,13 +1039,13 @@ impl Hub {
             .and_then(|()| write_dump(&path, &self.s.schema, &self.ring));
         match written {
             Ok(()) => {
-                eprintln!(
+                crate::errln!(
                     "omnid serve: the last ticks before the fault are in {}",
                     path.display()
                 );
                 self.dumps.push(path);
             }
-            Err(e) => eprintln!(
+            Err(e) => crate::errln!(
                 "omnid serve: cannot write the fault dump {}: {e}",
                 path.display()
             ),

@@ -268,7 +268,7 @@ pub fn serve(
         _device_lock,
         _socket_lock,
     } = prepare(opts, cfg, stop)?;
-    eprintln!(
+    crate::errln!(
         "omnid serve: {} on {} (amplifiers off until a client asks for a mode; `omnid ctl \
          --socket {} mode hold`)",
         opts.device.name(),
@@ -276,7 +276,7 @@ pub fn serve(
         socket_path.display()
     );
     for w in &pipeline.warnings {
-        eprintln!("omnid: warning: {w}");
+        crate::errln!("omnid: warning: {w}");
     }
     let (handle, ending) = pipeline.spawn()?;
     let hub_report = hub::Hub::new(setup).run();
@@ -323,7 +323,7 @@ pub fn serve(
             .and_then(|()| crate::telemetry::write_dump(&path, &ending.schema, &hub_report.ring));
         match written {
             Ok(()) => dumps.push(path),
-            Err(e) => eprintln!(
+            Err(e) => crate::errln!(
                 "omnid serve: cannot write the fault dump {}: {e}",
                 path.display()
             ),
