@@ -230,6 +230,11 @@ pub struct Config {
     pub serve: crate::serve::ServeConfig,
 }
 
+/// The Kalman filter must follow a sinusoidal motion of this frequency (a fast hand motion)...
+pub const KALMAN_CHECK_HZ: f64 = 5.0;
+/// ... with a position error of at most this fraction of the motion (the default: 1 %).
+pub const KALMAN_MAX_LAG: f64 = 0.2;
+
 /// One-line explanations of every key, used by `omnid config --print-default`.
 pub const FIELD_DOCS: &[(&str, &str)] = &[
     (
@@ -642,6 +647,30 @@ impl Config {
 
         positive("kalman.jerk_psd", self.kalman.jerk_psd)?;
         positive("kalman.measurement_var", self.kalman.measurement_var)?;
+        // The safety limits also watch the encoders, but control acts on the estimate: one
+        // that cannot follow a hand-speed motion is refused before any torque is sent.
+        let lag = crate::estimate::kalman::tracking_error(
+            self.kalman.jerk_psd,
+            self.kalman.measurement_var,
+            1.0 / self.device.rate_hz,
+            KALMAN_CHECK_HZ,
+        );
+        if !(lag <= KALMAN_MAX_LAG) {
+            return Err(ConfigError::Invalid {
+                field: "kalman.jerk_psd".into(),
+                value: format!(
+                    "{} with kalman.measurement_var = {:e}",
+                    self.kalman.jerk_psd, self.kalman.measurement_var
+                ),
+                allowed: format!(
+                    "an estimate that follows a {KALMAN_CHECK_HZ} Hz motion within {:.0} % (this \
+                     one is off by {:.0} %): raise kalman.jerk_psd or lower \
+                     kalman.measurement_var",
+                    KALMAN_MAX_LAG * 100.0,
+                    lag * 100.0
+                ),
+            });
+        }
 
         finite_in(
             "control.omega_n",

@@ -91,6 +91,47 @@ impl JointKalman {
     }
 }
 
+/// How far the filter's position estimate falls behind a sinusoidal motion of `freq_hz`
+/// sampled every `dt`, once the filter has settled: |1 − G(e^{jωT})| with G the steady-state
+/// transfer from measurement to estimate (0: tracks exactly; 1: as large as the motion
+/// itself). A config can then be refused before torque is sent when the estimate could not
+/// follow a hand-speed motion, instead of letting the safety limits act on a lagging estimate.
+pub fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
+    use nalgebra::Complex;
+    let mut kf = JointKalman::new(jerk_psd, measurement_var);
+    kf.reset(0.0);
+    // Iterate the covariance to its steady state (the measurements do not enter it).
+    let mut last = f64::INFINITY;
+    for _ in 0..1_000_000 {
+        kf.step(dt, 0.0);
+        let p00 = kf.p[(0, 0)];
+        if (p00 - last).abs() <= 1e-12 * p00.abs() {
+            break;
+        }
+        last = p00;
+    }
+    kf.model(dt);
+    let prior = kf.f * kf.p * kf.f.transpose() + kf.q;
+    let k: Vector3<f64> = prior.column(0) / (prior[(0, 0)] + kf.r);
+    // x̂ₖ = A x̂ₖ₋₁ + K zₖ with A = (I − K H) F, so q̂/z = H (I − A z⁻¹)⁻¹ K.
+    let mut a = kf.f;
+    for c in 0..3 {
+        let f0 = kf.f[(0, c)];
+        for r in 0..3 {
+            a[(r, c)] -= k[r] * f0;
+        }
+    }
+    let z_inv = Complex::from_polar(1.0, -std::f64::consts::TAU * freq_hz * dt);
+    let m = Matrix3::<Complex<f64>>::identity() - a.map(|v| Complex::new(v, 0.0)) * z_inv;
+    match m.try_inverse() {
+        Some(inv) => {
+            let g = (inv * k.map(|v| Complex::new(v, 0.0)))[0];
+            (Complex::new(1.0, 0.0) - g).norm()
+        }
+        None => 1.0,
+    }
+}
+
 /// One filter per joint, driven by the device time stamps.
 #[derive(Debug, Clone, Copy)]
 pub struct KalmanBank {
@@ -146,6 +187,36 @@ impl KalmanBank {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn tracking_error_matches_a_filter_run_on_a_sampled_sine() {
+        // Independent check of the transfer-function formula: run the filter itself on a
+        // sine, let it settle, and measure the amplitude of the error.
+        for (q, r, f) in [
+            (100.0, 1.46e-8, 5.0),
+            (1.0, 1.46e-8, 5.0),
+            (1e-2, 1.46e-8, 2.0),
+            (100.0, 1e-4, 5.0),
+        ] {
+            let dt = 1e-3;
+            let mut kf = super::JointKalman::new(q, r);
+            kf.reset(0.0);
+            let w = std::f64::consts::TAU * f;
+            let mut worst: f64 = 0.0;
+            for k in 1..40_000 {
+                let t = k as f64 * dt;
+                kf.step(dt, (w * t).sin());
+                if t > 20.0 {
+                    worst = worst.max((kf.state()[0] - (w * t).sin()).abs());
+                }
+            }
+            let e = super::tracking_error(q, r, dt, f);
+            assert!(
+                (worst - e).abs() < 0.01 * e + 1e-6,
+                "{q} {r} {f}: run {worst}, formula {e}"
+            );
+        }
+    }
+
     use super::*;
     use std::f64::consts::{PI, TAU};
 

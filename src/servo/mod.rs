@@ -181,7 +181,8 @@ impl Servo {
                 nm_per_count: cfg.device.nm_per_count,
             },
             rad_per_count: cfg.device.rad_per_count(),
-            safety: SafetyLayer::new(&cfg.safety, 1.0 / cfg.device.rate_hz, [0.0; 3]),
+            safety: SafetyLayer::new(&cfg.safety, 1.0 / cfg.device.rate_hz, [0.0; 3])
+                .with_encoder_step(cfg.device.rad_per_count()),
             blend_s: cfg.reference.blend_s,
             settle_s: cfg.reference.settle_s,
             max_missed: cfg.safety.max_missed_ticks,
@@ -283,8 +284,9 @@ impl Servo {
         let t_dev = raw.device_time_s;
         let t = t_dev - *self.t0.get_or_insert(t_dev);
 
-        // Estimate.
+        // Estimate (the safety layer keeps what the encoders said, too).
         let est = self.kalman.update(t_dev, &q);
+        self.safety.observe(t, &q);
 
         // Clients' commands that arrived while the loop waited for this sample.
         if self.link.is_some() {

@@ -203,8 +203,11 @@ impl SafetyConfig {
 pub enum SafetyTrip {
     /// The controller's output was NaN or infinite on this joint.
     NonFinite { joint: usize },
-    /// A joint moved faster than its limit.
+    /// A joint moved faster than its limit (by the estimate).
     Velocity { joint: usize, speed: f64 },
+    /// A joint moved faster than its limit by its encoders (over the last few ticks, beyond
+    /// the quantisation margin), whatever the estimate says.
+    MeasuredVelocity { joint: usize, speed: f64 },
 }
 
 impl std::fmt::Display for SafetyTrip {
@@ -220,6 +223,13 @@ impl std::fmt::Display for SafetyTrip {
                     joint + 1
                 )
             }
+            SafetyTrip::MeasuredVelocity { joint, speed } => {
+                write!(
+                    f,
+                    "joint {} moved at {speed:.2} rad/s by its encoders, beyond the limit",
+                    joint + 1
+                )
+            }
         }
     }
 }
@@ -230,6 +240,10 @@ pub struct Limited {
     pub tau: Joint3,
     pub flags: u32,
 }
+
+/// Measured samples the encoder speed is taken over (about 10 ms at 1 kHz: long enough that
+/// one count of quantisation is a small margin, short enough to catch a runaway).
+const MEASURED_WINDOW: usize = 11;
 
 /// State of the safety layer for one run.
 #[derive(Debug, Clone)]
@@ -243,6 +257,12 @@ pub struct SafetyLayer {
     heat: [f64; 3],
     hot: [bool; 3],
     warned: [bool; 3],
+    /// Recent (device time, measured angles), a ring; `seen` of them valid.
+    measured: [(f64, Joint3); MEASURED_WINDOW],
+    newest: usize,
+    seen: usize,
+    /// One encoder count, rad: the measured speed's quantisation margin.
+    count_rad: f64,
 }
 
 impl SafetyLayer {
@@ -256,7 +276,45 @@ impl SafetyLayer {
             heat,
             hot: [false; 3],
             warned: [false; 3],
+            measured: [(0.0, Joint3::zeros()); MEASURED_WINDOW],
+            newest: 0,
+            seen: 0,
+            count_rad: 0.0,
         }
+    }
+
+    /// The limits also watch the encoders, `count_rad` radians a count (0: ideal).
+    pub fn with_encoder_step(mut self, count_rad: f64) -> Self {
+        self.count_rad = count_rad;
+        self
+    }
+
+    /// What the encoders measured at device time `t` (every tick, amplifiers on or off): the
+    /// walls and the speed limit act on it as well as on the estimate, so the limits hold
+    /// whatever the estimator's tuning.
+    pub fn observe(&mut self, t: f64, q: &Joint3) {
+        self.newest = (self.newest + 1) % MEASURED_WINDOW;
+        self.measured[self.newest] = (t, *q);
+        self.seen = (self.seen + 1).min(MEASURED_WINDOW);
+    }
+
+    /// The fastest joint by the encoders over the window, beyond one count of quantisation at
+    /// each end: (joint, speed) if any exceeds its limit.
+    fn measured_overspeed(&self) -> Option<(usize, f64)> {
+        if self.seen < MEASURED_WINDOW {
+            return None;
+        }
+        let (t1, q1) = self.measured[self.newest];
+        let (t0, q0) = self.measured[(self.newest + 1) % MEASURED_WINDOW];
+        let span = t1 - t0;
+        if span <= 0.0 {
+            return None;
+        }
+        let margin = 2.0 * self.count_rad / span;
+        (0..3).find_map(|j| {
+            let speed = (q1[j] - q0[j]) / span;
+            (speed.abs() > self.cfg.max_velocity_rad_s[j] + margin).then_some((j, speed))
+        })
     }
 
     /// One tick with the amplifiers off: nothing is sent, the motors cool, and authority
@@ -300,18 +358,34 @@ impl SafetyLayer {
                 });
             }
         }
+        if let Some((joint, speed)) = self.measured_overspeed() {
+            return Err(SafetyTrip::MeasuredVelocity { joint, speed });
+        }
         let mut fl = 0;
         let mut tau = *tau_cmd;
 
-        // Soft walls: a spring-damper pushing back into the workspace.
+        // Soft walls: a spring-damper pushing back into the workspace, from whichever of the
+        // estimate and the encoders is further out.
+        let measured = (self.seen > 0).then(|| self.measured[self.newest].1);
         for j in 0..3 {
-            let over = if q[j] < c.wall_lower[j] {
-                q[j] - c.wall_lower[j]
-            } else if q[j] > c.wall_upper[j] {
-                q[j] - c.wall_upper[j]
-            } else {
-                continue;
+            let beyond = |q: f64| {
+                if q < c.wall_lower[j] {
+                    q - c.wall_lower[j]
+                } else if q > c.wall_upper[j] {
+                    q - c.wall_upper[j]
+                } else {
+                    0.0
+                }
             };
+            let (by_estimate, by_encoders) = (beyond(q[j]), measured.map_or(0.0, |m| beyond(m[j])));
+            let over = if by_encoders.abs() > by_estimate.abs() {
+                by_encoders
+            } else {
+                by_estimate
+            };
+            if over == 0.0 {
+                continue;
+            }
             // Damp only motion that goes further out.
             let outward = if qd[j] * over > 0.0 { qd[j] } else { 0.0 };
             tau[j] = -c.wall_stiffness * over - c.wall_damping * outward;
@@ -467,6 +541,44 @@ mod tests {
         // Held at the continuous torque, the heat settles at ≤ 1 and the clamp releases and
         // re-engages around the limit rather than running away.
         assert!(s.heat()[0] < 1.05);
+    }
+
+    #[test]
+    fn limits_hold_on_the_encoders_whatever_the_estimate() {
+        let count = std::f64::consts::TAU / 15000.0;
+        let cfg = SafetyConfig {
+            ramp_s: 0.0,
+            ..Default::default()
+        };
+        let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]).with_encoder_step(count);
+        // At rest, one count of jitter every tick never trips.
+        for k in 0..100 {
+            let jitter = if k % 2 == 0 { count } else { 0.0 };
+            s.observe(k as f64 * 1e-3, &(Q + Joint3::new(jitter, 0.0, 0.0)));
+            s.apply(&Joint3::zeros(), &Q, &Joint3::zeros()).unwrap();
+        }
+        // The encoders say joint 2 runs at 12 rad/s; the estimate says it is at rest.
+        let mut tripped = None;
+        for k in 100..130 {
+            let t = k as f64 * 1e-3;
+            s.observe(t, &(Q + Joint3::new(0.0, 12.0 * (t - 0.1), 0.0)));
+            if let Err(e) = s.apply(&Joint3::zeros(), &Q, &Joint3::zeros()) {
+                tripped = Some((k, e));
+                break;
+            }
+        }
+        let (k, e) = tripped.expect("the encoders' speed trips");
+        assert!(
+            matches!(e, SafetyTrip::MeasuredVelocity { joint: 1, .. }),
+            "{e}"
+        );
+        assert!(k <= 100 + 11, "tripped after {} ticks", k - 100);
+
+        // The encoders beyond the upper wall of joint 1; the estimate inside: the wall acts.
+        let mut w = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]).with_encoder_step(count);
+        w.observe(0.0, &Joint3::new(1.0, 0.6, 0.3));
+        let out = w.apply(&Joint3::zeros(), &Q, &Joint3::zeros()).unwrap();
+        assert!(out.tau[0] < 0.0 && out.flags & flags::WALL != 0);
     }
 
     #[test]
