@@ -655,7 +655,7 @@ impl Config {
             1.0 / self.device.rate_hz,
             KALMAN_CHECK_HZ,
         );
-        if !(lag <= KALMAN_MAX_LAG) {
+        if lag.is_nan() || lag > KALMAN_MAX_LAG {
             return Err(ConfigError::Invalid {
                 field: "kalman.jerk_psd".into(),
                 value: format!(
