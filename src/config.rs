@@ -20,7 +20,7 @@ pub enum ConfigError {
     },
     #[error("config {path}: {message}")]
     Parse { path: String, message: String },
-    #[error("config: `{field}` = {value} is out of range: allowed {allowed}")]
+    #[error("config: `{field}` = {} is out of range: allowed {allowed}", crate::text::cut(.value))]
     Invalid {
         field: String,
         value: String,

@@ -50,3 +50,4 @@ pub mod run;
 pub mod serve;
 pub mod servo;
 pub mod telemetry;
+pub mod text;

@@ -682,7 +682,16 @@ fn load_config(path: Option<&std::path::Path>) -> Option<Config> {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if !e.use_stderr() => e.exit(), // --help, --version
+        // clap quotes a bad argument whole: a megabyte argument must not become a megabyte
+        // message.
+        Err(e) => {
+            omnid::errln!("{}", omnid::text::cut_lines(&e.render().to_string(), 300));
+            return ExitCode::from(EXIT_BAD_INPUT);
+        }
+    };
     let result = match cli.command {
         Command::Run(args) => run(args),
         Command::Serve(args) => serve_cmd(args),

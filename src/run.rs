@@ -409,6 +409,32 @@ impl Ending {
     }
 }
 
+/// Injected faults scheduled after the run's end: reported, not silently dropped.
+fn unreached_faults(faults: &[Fault], reached_s: f64) -> Vec<String> {
+    faults
+        .iter()
+        .filter_map(|f| {
+            // As the user wrote it (`--inject` syntax).
+            let (at, spec) = match *f {
+                Fault::Disconnect { at_s } => (at_s, format!("disconnect@{at_s}")),
+                Fault::Nan { at_s } => (at_s, format!("nan@{at_s}")),
+                Fault::Stall { at_s, ms } => (at_s, format!("stall@{at_s}:{ms}")),
+                Fault::EncoderJump { at_s, counts } => {
+                    (at_s, format!("encoder-jump@{at_s}:{counts}"))
+                }
+                Fault::Slow { at_s, ms } => (at_s, format!("slow@{at_s}:{ms}")),
+                Fault::Corrupt { .. } => return None,
+            };
+            (at > reached_s).then(|| {
+                format!(
+                    "injected fault {spec} was scheduled at {at} s but the run ended at \
+                     {reached_s:.3} s: it never acted"
+                )
+            })
+        })
+        .collect()
+}
+
 /// Join the servo thread.
 pub fn join_servo(
     handle: std::thread::JoinHandle<ServoThreadResult>,
@@ -473,6 +499,11 @@ pub fn execute(
     );
     summary.faults = report.faults;
     summary.end = report.end.as_str().to_string();
+    summary.estimator_restarts = report.estimator_restarts;
+    summary.longest_gap_s = report.longest_gap_s;
+    let mut warnings = ending.warnings;
+    warnings.extend(unreached_faults(&faults, summary.duration_s));
+    summary.warnings = warnings.clone();
     summary.log_path = Some(written.path.display().to_string());
     summary.log_rows = written.rows;
     summary.realtime = realtime;
@@ -481,7 +512,7 @@ pub fn execute(
         end: report.end,
         log_error,
         shutdown_error: report.shutdown_error,
-        warnings: ending.warnings,
+        warnings,
         dump,
     })
 }

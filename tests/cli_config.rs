@@ -108,3 +108,42 @@ fn printed_default_config_is_accepted() {
     assert_eq!(code, 0, "{err}");
     assert!(logged);
 }
+
+#[test]
+fn quoted_bad_values_are_cut_to_a_readable_length() {
+    let dir = tempfile::tempdir().unwrap();
+    let huge = "9".repeat(100_000);
+    // A fault spec, a config value and a log field, each 100 kB long.
+    let spec = format!("stall@{huge}x:5");
+    let config = dir.path().join("c.toml");
+    std::fs::write(&config, format!("[serve]\nread_group = \"g{huge}\"\n")).unwrap();
+    let log = dir.path().join("l.csv");
+    std::fs::write(
+        &log,
+        format!("t,q1,q2,q3,tau1,tau2,tau3\n0,1,2,3,4,5,x{huge}\n"),
+    )
+    .unwrap();
+    let replay = format!("replay:{}", log.display());
+    for (case, args) in ["fault spec", "config value", "log field"]
+        .into_iter()
+        .zip([
+            vec!["run", "--fast", "--inject", &spec],
+            vec!["run", "--fast", "--config", config.to_str().unwrap()],
+            vec!["run", "--fast", "--device", &replay],
+        ])
+    {
+        let out = omnid()
+            .args(&args)
+            .env("OMNID_STATE_DIR", dir.path())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        let head: String = err.chars().take(300).collect();
+        assert_eq!(out.status.code(), Some(2), "{case}: {head}");
+        assert!(
+            err.len() < 1500 && err.contains("…"),
+            "{case}: {} bytes: {head}",
+            err.len()
+        );
+    }
+}

@@ -32,7 +32,7 @@ pub enum Fault {
 }
 
 #[derive(Debug, Clone, PartialEq, Error)]
-#[error("bad fault spec `{spec}`: {why} (expected disconnect@T, stall@T:MS, corrupt:P, encoder-jump@T:COUNTS, nan@T or slow@T:MS)")]
+#[error("bad fault spec `{}`: {why} (expected disconnect@T, stall@T:MS, corrupt:P, encoder-jump@T:COUNTS, nan@T or slow@T:MS)", crate::text::cut(.spec))]
 pub struct FaultSpecError {
     pub spec: String,
     pub why: String,

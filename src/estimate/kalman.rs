@@ -132,11 +132,21 @@ pub fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64
     }
 }
 
+/// Across a gap in the device time longer than this, the filter restarts from the next
+/// measurement at rest instead of extrapolating its motion through the gap (a hand changes
+/// direction within 50 ms; a prediction over longer gaps is a guess that can trip the speed
+/// limit on an arm at rest).
+pub const RESTART_GAP_S: f64 = 0.05;
+
 /// One filter per joint, driven by the device time stamps.
 #[derive(Debug, Clone, Copy)]
 pub struct KalmanBank {
     joints: [JointKalman; 3],
     last_time: Option<f64>,
+    restarts: u64,
+    /// The latest gap restarted across: (device time after it, its length), s.
+    last_gap: Option<(f64, f64)>,
+    longest_gap_s: f64,
 }
 
 /// Joint-space estimate.
@@ -152,6 +162,9 @@ impl KalmanBank {
         KalmanBank {
             joints: [JointKalman::new(cfg.jerk_psd, cfg.measurement_var); 3],
             last_time: None,
+            restarts: 0,
+            last_gap: None,
+            longest_gap_s: 0.0,
         }
     }
 
@@ -164,6 +177,14 @@ impl KalmanBank {
                     kf.reset(q[j]);
                 }
             }
+            Some(last) if t - last > RESTART_GAP_S => {
+                for (j, kf) in self.joints.iter_mut().enumerate() {
+                    kf.reset(q[j]);
+                }
+                self.restarts += 1;
+                self.last_gap = Some((t, t - last));
+                self.longest_gap_s = self.longest_gap_s.max(t - last);
+            }
             Some(last) => {
                 let dt = (t - last).max(0.0);
                 for (j, kf) in self.joints.iter_mut().enumerate() {
@@ -173,6 +194,21 @@ impl KalmanBank {
         }
         self.last_time = Some(t);
         self.estimate()
+    }
+
+    /// Restarts across gaps longer than [`RESTART_GAP_S`] so far.
+    pub fn restarts(&self) -> u64 {
+        self.restarts
+    }
+
+    /// The latest gap restarted across: (device time after it, its length), s.
+    pub fn last_gap(&self) -> Option<(f64, f64)> {
+        self.last_gap
+    }
+
+    /// The longest gap restarted across, s (0 if none).
+    pub fn longest_gap_s(&self) -> f64 {
+        self.longest_gap_s
     }
 
     pub fn estimate(&self) -> Estimate {

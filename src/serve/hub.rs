@@ -361,7 +361,8 @@ impl Hub {
                         .and_then(|v| v.get("op").and_then(|o| o.as_str()).map(String::from))
                         .unwrap_or_else(|| "?".into());
                     let hello = self.clients[i].greeted;
-                    self.fail(i, None, &op, format!("bad request: {e}"));
+                    let why = crate::text::cut(&e.to_string());
+                    self.fail(i, None, &op, format!("bad request: {why}"));
                     if !hello {
                         self.clients[i].closing = true;
                     }

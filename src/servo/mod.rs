@@ -68,6 +68,9 @@ pub struct ServoReport {
     pub faults: Vec<FaultEntry>,
     pub telemetry_dropped: u64,
     pub missed_packets: u64,
+    /// Times the estimator restarted across a gap in the device time, and the longest gap, s.
+    pub estimator_restarts: u64,
+    pub longest_gap_s: f64,
     /// The last command packet sent (always the safe one after a clean shutdown).
     pub last_command: MotorCommand,
     /// A device error while sending the final safe packet or closing, if any.
@@ -364,7 +367,7 @@ impl Servo {
             }
             Err(trip) => {
                 self.last_t = t;
-                return Some(EndReason::SafetyFault(trip.to_string()));
+                return Some(EndReason::SafetyFault(self.explain(trip, t_dev)));
             }
         };
         let tau = limited.tau;
@@ -637,6 +640,20 @@ impl Servo {
         None
     }
 
+    /// A trip's message, naming a gap in the device time just before it (the run is ending:
+    /// formatting is allowed here).
+    fn explain(&self, trip: safety::SafetyTrip, t_dev: f64) -> String {
+        match self.kalman.last_gap() {
+            Some((after, len)) if t_dev - after < 0.2 => format!(
+                "{trip} ({:.3} s after a {len:.3} s gap in the device time at t = {:.3} s; the \
+                 estimator restarted there)",
+                t_dev - after,
+                after - self.t0.unwrap_or(0.0)
+            ),
+            _ => trip.to_string(),
+        }
+    }
+
     fn fault_device(&mut self, e: DeviceError) -> EndReason {
         EndReason::DeviceFault(e.to_string())
     }
@@ -724,6 +741,8 @@ impl Servo {
             faults,
             telemetry_dropped: self.dropped,
             missed_packets: self.missed,
+            estimator_restarts: self.kalman.restarts(),
+            longest_gap_s: self.kalman.longest_gap_s(),
             last_command: self.command,
             shutdown_error,
             identifier: self.identifier.take(),

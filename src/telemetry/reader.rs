@@ -59,15 +59,16 @@ pub enum ReadError {
         suggestion: Option<String>,
         header: String,
     },
-    #[error("{path}: line 1: column `{column}` appears twice (fields {first} and {second})")]
+    #[error("{path}: line 1: column `{}` appears twice (fields {first} and {second})",
+            crate::text::cut(.column))]
     DuplicateColumn {
         path: String,
         column: String,
         first: usize,
         second: usize,
     },
-    #[error("{path}: line {line}: {got} fields, the header has {expected} (column `{column}` {})",
-            if got < expected { "is missing" } else { "is the last one" })]
+    #[error("{path}: line {line}: {got} fields, the header has {expected} (column `{}` {})",
+            crate::text::cut(.column), if got < expected { "is missing" } else { "is the last one" })]
     FieldCount {
         path: String,
         line: u64,
@@ -87,21 +88,21 @@ pub enum ReadError {
         got: usize,
         expected: usize,
     },
-    #[error("{path}: line {line}: column `{column}`: `{value}` is not a number")]
+    #[error("{path}: line {line}: column `{}`: `{}` is not a number", crate::text::cut(.column), crate::text::cut(.value))]
     NotANumber {
         path: String,
         line: u64,
         column: String,
         value: String,
     },
-    #[error("{path}: line {line}: column `{column}`: `{value}` is not an integer")]
+    #[error("{path}: line {line}: column `{}`: `{}` is not an integer", crate::text::cut(.column), crate::text::cut(.value))]
     NotAnInteger {
         path: String,
         line: u64,
         column: String,
         value: String,
     },
-    #[error("{path}: line {line}: column `{column}`: `{value}` is not finite")]
+    #[error("{path}: line {line}: column `{}`: `{}` is not finite", crate::text::cut(.column), crate::text::cut(.value))]
     NotFinite {
         path: String,
         line: u64,

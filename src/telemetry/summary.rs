@@ -294,6 +294,16 @@ pub struct RunSummary {
     pub wall_s: Option<f64>,
     #[serde(default)]
     pub realtime_factor: Option<f64>,
+    /// Times the Kalman filter restarted across a gap in the device time (longer than
+    /// `estimate::kalman::RESTART_GAP_S`), and the longest such gap, s.
+    #[serde(default)]
+    pub estimator_restarts: u64,
+    #[serde(default)]
+    pub longest_gap_s: f64,
+    /// Things that did not stop the run but must not go unseen (faults scheduled past its
+    /// end, rows skipped with `--lenient`, …).
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 fn triple(v: Option<[f64; 3]>, scale: f64, unit: &str) -> String {
@@ -380,6 +390,9 @@ impl RunSummary {
             realtime: None,
             wall_s,
             realtime_factor: wall_s.filter(|&w| w > 0.0).map(|w| duration_s / w),
+            estimator_restarts: 0,
+            longest_gap_s: 0.0,
+            warnings: Vec::new(),
         }
     }
 
@@ -426,6 +439,19 @@ impl RunSummary {
                 triple(self.identifier.nrmse_oracle, 1.0, "")
             );
         }
+        if let Some(fault) = &self.identifier.fault {
+            s += &format!(
+                "  identifier      STOPPED: {fault}; its last good weights kept, nnidc ran on PD \
+                 from then on (flag 256 in the log)\n"
+            );
+        }
+        if self.estimator_restarts > 0 {
+            s += &format!(
+                "  estimator       restarted {} time(s) across gaps in the device time (longest \
+                 {:.3} s)\n",
+                self.estimator_restarts, self.longest_gap_s
+            );
+        }
         s += &format!("  period          {}\n", pct(&self.timing_us.period));
         s += &format!("  lateness        {}\n", pct(&self.timing_us.lateness));
         s += &format!(
@@ -464,6 +490,40 @@ impl RunSummary {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn the_printed_summary_says_when_the_identifier_stopped_and_the_estimator_restarted() {
+        let mut s = RunSummary::from_results(
+            &SummaryLabels {
+                device: "sim",
+                controller: "nnidc",
+                trajectory: "sine".into(),
+                weights: "shipped".into(),
+                seed: 1,
+                fast: true,
+            },
+            &RunStats::default(),
+            &TickTiming::new(1_000_000),
+            IdentifierState {
+                adapt: true,
+                fault: Some(crate::ident::Fault::NonFiniteUpdate),
+            },
+            0,
+            0,
+        );
+        s.estimator_restarts = 2;
+        s.longest_gap_s = 0.25;
+        let text = s.human();
+        assert!(
+            text.contains("identifier      STOPPED: identifier: non-finite weight update"),
+            "{text}"
+        );
+        assert!(text.contains("nnidc ran on PD"), "{text}");
+        assert!(
+            text.contains("restarted 2 time(s)") && text.contains("0.250 s"),
+            "{text}"
+        );
+    }
+
     use super::*;
 
     #[test]

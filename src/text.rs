@@ -1,0 +1,40 @@
+//! Text for messages: a value quoted back to the user is cut to a readable length (a
+//! megabyte-long field must not become a megabyte-long error).
+
+/// Longest quoted value, in characters.
+pub const MAX_QUOTED: usize = 80;
+
+/// `s` as it is when short, else its first [`MAX_QUOTED`] characters, `…` and its length.
+pub fn cut(s: &str) -> String {
+    match s.char_indices().nth(MAX_QUOTED) {
+        None => s.to_string(),
+        Some((end, _)) => format!("{}… ({} bytes)", &s[..end], s.len()),
+    }
+}
+
+/// Every line of `text` longer than `max` characters cut as [`cut`] does (for messages from
+/// other libraries that quote a whole argument back).
+pub fn cut_lines(text: &str, max: usize) -> String {
+    text.lines()
+        .map(|line| match line.char_indices().nth(max) {
+            None => line.to_string(),
+            Some((end, _)) => format!("{}… ({} bytes)", &line[..end], line.len()),
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn short_values_stay_long_ones_are_cut_on_a_character_boundary() {
+        assert_eq!(cut("abc"), "abc");
+        let long = "é".repeat(1000);
+        let c = cut(&long);
+        assert!(c.starts_with(&"é".repeat(MAX_QUOTED)));
+        assert!(c.ends_with("… (2000 bytes)"), "{c}");
+        assert!(c.chars().count() < MAX_QUOTED + 20);
+    }
+}
