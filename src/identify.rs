@@ -5,8 +5,11 @@
 
 use crate::config::Config;
 use crate::estimate::KalmanBank;
-use crate::ident::{pretune, save, Identifier, PretuneConfig, PretuneReport, Progress, Sample};
+use crate::ident::{
+    pretune, save, Identifier, PretuneConfig, PretuneReport, Progress, Sample, WeightsError,
+};
 use crate::omni::Joint3;
+use crate::output::OutputError;
 use crate::telemetry::reader::{LogReader, ReadError};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -22,6 +25,20 @@ pub enum IdentifyError {
     Ident(String),
     #[error("no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows)")]
     NoSamples(Vec<PathBuf>),
+    /// The weights file cannot be written there (checked before the work), or its writing
+    /// failed.
+    #[error("--out: {0}")]
+    Output(#[from] OutputError),
+}
+
+impl IdentifyError {
+    /// The user's input is at fault (exit code 2), not a write that failed part-way.
+    pub fn is_bad_input(&self) -> bool {
+        match self {
+            IdentifyError::Output(e) => e.is_bad_input(),
+            _ => true,
+        }
+    }
 }
 
 /// The identifier's training samples from one log.
@@ -70,6 +87,8 @@ pub fn identify(
     pretune_cfg: &PretuneConfig,
     progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, IdentifyError> {
+    // Before the work: a bad --out is found now, not after the training.
+    crate::output::check_file(out)?;
     let mut samples = Vec::new();
     for log in logs {
         samples.extend(samples_from_log(log, cfg)?);
@@ -81,6 +100,9 @@ pub fn identify(
         Identifier::new(&cfg.identifier).map_err(|e| IdentifyError::Ident(e.to_string()))?;
     let report = pretune(&mut id, &samples, pretune_cfg, progress)
         .map_err(|e| IdentifyError::Ident(e.to_string()))?;
-    save(&id, out).map_err(|e| IdentifyError::Ident(e.to_string()))?;
+    save(&id, out).map_err(|e| match e {
+        WeightsError::Write(e) => IdentifyError::Output(e),
+        e => IdentifyError::Ident(e.to_string()),
+    })?;
     Ok(report)
 }

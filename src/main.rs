@@ -8,7 +8,7 @@ use omnid::control::{ControllerKind, Trajectory};
 use omnid::device::inject::Fault;
 use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
 use omnid::servo::EndReason;
-use omnid::telemetry::convert::{convert, ConvertError, SourceFormat};
+use omnid::telemetry::convert::{convert, SourceFormat};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -151,7 +151,11 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         }
         Err(e) => {
             omnid::errln!("omnid identify: {e}");
-            Ok(EXIT_BAD_INPUT)
+            Ok(if e.is_bad_input() {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_INTERNAL
+            })
         }
     }
 }
@@ -312,13 +316,13 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
             }
             Ok(0)
         }
-        Err(e @ ConvertError::Write { .. }) => {
-            omnid::errln!("omnid: {e}");
-            Ok(EXIT_INTERNAL)
-        }
         Err(e) => {
             omnid::errln!("omnid: {e}");
-            Ok(EXIT_BAD_INPUT)
+            Ok(if e.is_bad_input() {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_INTERNAL
+            })
         }
     }
 }
