@@ -1,11 +1,13 @@
-//! Outputs (issue 16): writing an output never destroys what is not ours (class 3).
+//! Outputs (issue 16): nothing a command writes is lost silently (class 2), and writing an
+//! output never destroys what is not ours (class 3).
 
 mod common;
-use common::omnid;
-use std::os::unix::fs::FileTypeExt;
+use common::{omnid, Log};
+use std::os::unix::fs::{FileTypeExt, MetadataExt};
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant, SystemTime};
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
@@ -59,6 +61,10 @@ fn names(dir: &Path) -> Vec<String> {
     v
 }
 
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
 fn mkfifo(path: &Path) {
     let c = std::ffi::CString::new(s(path)).unwrap();
     // SAFETY: a valid C string; mkfifo only creates the node.
@@ -88,6 +94,268 @@ fn training_log(dir: &Path) -> PathBuf {
             .collect::<Vec<_>>(),
     );
     log
+}
+
+// ---------------------------------------------------------------------------------------------
+// Class 2: no output is lost silently.
+
+#[test]
+fn default_log_names_never_replace_another_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let logs = dir.path().join("logs");
+    std::fs::create_dir(&logs).unwrap();
+    // Someone's logs under the names the next seconds' runs would take.
+    let now = SystemTime::now();
+    let taken: Vec<PathBuf> = (0..20)
+        .map(|k| {
+            let stamp = omnid::telemetry::utc_stamp(now + Duration::from_secs(k));
+            let p = logs.join(format!("omnid-{stamp}.csv"));
+            std::fs::write(&p, "someone's log\n").unwrap();
+            p
+        })
+        .collect();
+    // Two runs started together, in the same second.
+    let start = || {
+        omnid_in(dir.path())
+            .current_dir(dir.path())
+            .args(["run", "--fast", "--duration", "0.5", "--controller", "pd"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (a, b) = (start(), start());
+    for child in [a, b] {
+        let o = child.wait_with_output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    for p in &taken {
+        assert_eq!(std::fs::read_to_string(p).unwrap(), "someone's log\n");
+    }
+    let new: Vec<PathBuf> = names(&logs)
+        .iter()
+        .map(|n| logs.join(n))
+        .filter(|p| !taken.contains(p))
+        .collect();
+    assert_eq!(new.len(), 2, "{new:?}");
+    for p in new {
+        let l = Log::read(&p);
+        assert_eq!(l.rows.len(), 501, "{}", p.display());
+        assert_eq!(l.rows.last().unwrap()[l.col("mode")], "stop");
+    }
+}
+
+#[test]
+fn a_runs_inputs_and_outputs_must_be_distinct_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    std::fs::write(p("old.csv"), "precious\n").unwrap();
+    std::fs::hard_link(p("old.csv"), p("hard.json")).unwrap();
+    std::os::unix::fs::symlink("run.csv", p("link.json")).unwrap();
+    let replay = p("replay.csv");
+    ok(
+        dir.path(),
+        &["run", "--fast", "--duration", "0.3", "--log", s(&replay)],
+    );
+    let recorded = std::fs::read(&replay).unwrap();
+    std::os::unix::fs::symlink("replay.csv", p("replay-link.csv")).unwrap();
+    let cases: [(&[&str], &str, &str); 5] = [
+        (
+            &["--log", "run.csv", "--summary-json", "run.csv"],
+            "--log",
+            "--summary-json",
+        ),
+        (
+            &["--log", "run.csv", "--summary-json", "link.json"],
+            "--log",
+            "--summary-json",
+        ),
+        (
+            &["--log", "old.csv", "--summary-json", "hard.json"],
+            "--log",
+            "--summary-json",
+        ),
+        (
+            &["--log", "run.csv", "--summary-json", "run-fault.csv"],
+            "fault dump",
+            "--summary-json",
+        ),
+        (
+            &["--device", "replay:replay.csv", "--log", "replay-link.csv"],
+            "--device replay:",
+            "--log",
+        ),
+    ];
+    for (args, a, b) in cases {
+        let o = omnid_in(dir.path())
+            .current_dir(dir.path())
+            .args(["run", "--fast", "--duration", "0.3"])
+            .args(args)
+            .output()
+            .unwrap();
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains(a) && err.contains(b) && err.contains("same file"),
+            "{err}"
+        );
+        // Refused before the run: nothing written.
+        assert!(!p("run.csv").exists(), "{args:?}");
+    }
+    assert_eq!(std::fs::read_to_string(p("old.csv")).unwrap(), "precious\n");
+    assert_eq!(std::fs::read(&replay).unwrap(), recorded);
+}
+
+fn wait_for_rows(path: &Path, rows: usize) {
+    let t0 = Instant::now();
+    while std::fs::read_to_string(path).map_or(0, |t| t.lines().count()) <= rows {
+        assert!(t0.elapsed() < Duration::from_secs(30), "no rows in the log");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_log_another_omnid_writes_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("busy.csv");
+    let link = dir.path().join("link.csv");
+    std::os::unix::fs::symlink(&log, &link).unwrap();
+    let first = omnid_in(dir.path())
+        .args([
+            "run",
+            "--duration",
+            "60",
+            "--controller",
+            "pd",
+            "--log",
+            s(&log),
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_for_rows(&log, 200);
+    let inode = std::fs::metadata(&log).unwrap().ino();
+    for path in [&log, &link] {
+        let o = omnid_in(dir.path())
+            .args(["run", "--fast", "--duration", "0.3", "--log", s(path)])
+            .output()
+            .unwrap();
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.contains(s(path)) && err.contains("another omnid writes it"),
+            "{err}"
+        );
+    }
+    assert_eq!(std::fs::metadata(&log).unwrap().ino(), inode);
+    // SAFETY: signals our own child.
+    unsafe { libc::kill(first.id() as i32, libc::SIGINT) };
+    let o = first.wait_with_output().unwrap();
+    assert_eq!(o.status.code(), Some(130), "{}", stderr(&o));
+    let l = Log::read(&log);
+    assert_eq!(l.rows.last().unwrap()[l.col("mode")], "stop");
+    assert!(
+        l.f64s("t").windows(2).all(|w| w[1] > w[0]),
+        "one run's rows"
+    );
+
+    // Once it has ended the log is free again; /dev/null takes any number of runs at once.
+    ok(
+        dir.path(),
+        &["run", "--fast", "--duration", "0.3", "--log", s(&log)],
+    );
+    let null_run = |state: PathBuf| {
+        move || {
+            omnid_in(&state)
+                .args(["run", "--fast", "--duration", "1", "--log", "/dev/null"])
+                .output()
+                .unwrap()
+        }
+    };
+    let other = std::thread::spawn(null_run(dir.path().to_path_buf()));
+    let o = null_run(dir.path().to_path_buf())();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = other.join().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+}
+
+/// A run whose log stops fitting on the disk: exit 1, the log ends with its last whole row,
+/// and the summary (printed and JSON) gives the rows in the file and says the log is
+/// incomplete.
+fn assert_incomplete_log(o: &Output, log: &Path, summary: &Path) {
+    let err = stderr(o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let l = Log::read(log);
+    let s = json(summary);
+    assert_eq!(s["log_rows"], l.rows.len() as u64, "rows in the file");
+    assert!(l.rows.len() < 5000);
+    assert_eq!(s["log_complete"], false);
+    let why = s["log_error"].as_str().unwrap();
+    assert!(why.contains("did not reach the file"), "{why}");
+    let printed = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        printed.contains(&format!("({} rows; INCOMPLETE", l.rows.len())),
+        "{printed}"
+    );
+    assert!(err.contains("the log is incomplete"), "{err}");
+}
+
+#[test]
+fn a_full_disk_is_reported_with_the_rows_that_reached_the_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let (log, summary) = (dir.path().join("run.csv"), dir.path().join("s.json"));
+    let o = with_file_limit(omnid_in(dir.path()), 100_000)
+        .args(["run", "--fast", "--duration", "5", "--controller", "pd"])
+        .args(["--log", s(&log), "--summary-json", s(&summary)])
+        .output()
+        .unwrap();
+    assert_incomplete_log(&o, &log, &summary);
+    // A complete run says so.
+    let o = omnid_in(dir.path())
+        .args(["run", "--fast", "--duration", "0.5", "--log", s(&log)])
+        .args(["--summary-json", s(&summary)])
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    assert_eq!(json(&summary)["log_complete"], true);
+    assert_eq!(json(&summary)["log_rows"], 501);
+
+    // A disk already full: refused before the run.
+    let o = omnid_in(dir.path())
+        .args(["run", "--fast", "--duration", "1", "--log", "/dev/full"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(
+        stderr(&o).contains("cannot create log /dev/full"),
+        "{}",
+        stderr(&o)
+    );
+
+    // A real full file system, where we may mount one (root).
+    let mnt = dir.path().join("small");
+    std::fs::create_dir(&mnt).unwrap();
+    let mounted = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=64k", "tmpfs", s(&mnt)])
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|st| st.success());
+    if !mounted {
+        eprintln!("skipping the tmpfs case: cannot mount one here");
+        return;
+    }
+    let log = mnt.join("run.csv");
+    let o = omnid_in(dir.path())
+        .args(["run", "--fast", "--duration", "5", "--controller", "pd"])
+        .args(["--log", s(&log), "--summary-json", s(&summary)])
+        .output()
+        .unwrap();
+    let result = std::panic::catch_unwind(|| assert_incomplete_log(&o, &log, &summary));
+    let _ = Command::new("umount").arg(&mnt).status();
+    if let Err(e) = result {
+        std::panic::resume_unwind(e);
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
