@@ -1,5 +1,6 @@
-//! Outputs (issue 16): nothing a command writes is lost silently (class 2), and writing an
-//! output never destroys what is not ours (class 3).
+//! Outputs (issue 16): nothing a command writes is lost silently (class 2), writing an output
+//! never destroys what is not ours (class 3), and every output path is checked before the
+//! work starts (class 8).
 
 mod common;
 use common::{omnid, Log};
@@ -453,4 +454,95 @@ fn a_write_that_fails_part_way_leaves_the_old_file_and_no_temporary() {
         assert_eq!(std::fs::read_to_string(&out).unwrap(), "old");
         assert_eq!(names(&outs), ["out"], "{cmd:?}");
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Class 8: fail before the work, not after.
+
+#[test]
+fn bad_output_paths_are_found_before_the_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    std::fs::create_dir(p("adir")).unwrap();
+    std::fs::write(p("afile"), "").unwrap();
+    let log = p("run.csv");
+    for (json, what) in [
+        (p("adir"), "is a directory"),
+        (p("afile/s.json"), "Not a directory"),
+    ] {
+        let o = omnid_in(dir.path())
+            .args(["run", "--fast", "--duration", "3", "--log", s(&log)])
+            .args(["--summary-json", s(&json)])
+            .output()
+            .unwrap();
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.contains("--summary-json") && err.contains(what),
+            "{err}"
+        );
+        assert!(!log.exists(), "the run started");
+    }
+
+    let train = training_log(dir.path());
+    let o = omnid_in(dir.path())
+        .args(["identify", s(&train), "--epochs", "1"])
+        .args(["--out", s(&p("afile/w.json"))])
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--out") && !err.contains("epoch"), "{err}");
+
+    // A figure's file is a directory: refused before the log is read, exit 2 (bad input).
+    let figs = p("figs");
+    std::fs::create_dir_all(figs.join("angles.png")).unwrap();
+    let o = omnid_in(dir.path())
+        .args(["plot", s(&train), "--out", s(&figs)])
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--out") && err.contains("angles.png"), "{err}");
+    assert_eq!(names(&figs), ["angles.png"]);
+
+    // The experiment's report cannot be written: found before its first run.
+    let exp = p("exp");
+    std::fs::create_dir_all(exp.join("report.md")).unwrap();
+    let o = omnid_in(dir.path())
+        .args(["experiment", "alpha", "--quick", "--out", s(&exp)])
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--out") && err.contains("report.md"), "{err}");
+    assert_eq!(names(&exp), ["report.md"], "no run was made");
+}
+
+#[test]
+fn identify_refuses_a_joint_without_torque() {
+    let dir = tempfile::tempdir().unwrap();
+    let train = training_log(dir.path());
+    // The same recording with joint 2's torque zeroed (as a log without torque has it).
+    let text = std::fs::read_to_string(&train).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let c = header.iter().position(|h| *h == "tau2").unwrap();
+    let mut out = header.join(",") + "\n";
+    for line in lines {
+        let mut f: Vec<&str> = line.split(',').collect();
+        f[c] = "0.0";
+        out += &(f.join(",") + "\n");
+    }
+    let flat = dir.path().join("flat.csv");
+    std::fs::write(&flat, out).unwrap();
+    let weights = dir.path().join("w.json");
+    let o = omnid_in(dir.path())
+        .args(["identify", s(&flat), "--epochs", "1", "--out", s(&weights)])
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("joint 2") && err.contains(s(&flat)), "{err}");
+    assert!(!err.contains("NaN") && !weights.exists(), "{err}");
 }
