@@ -14,8 +14,9 @@ use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::ident::{Identifier, PretuneConfig, Progress, WeightsFile};
 use crate::identify::{identify, samples_from_log, IdentifyError};
-use crate::plot::figures::Role;
-use crate::plot::render::{self, Figure, Format, Line, Panel};
+use crate::output::OutputError;
+use crate::plot::figures::{Role, FIGURES};
+use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
 use crate::plot::{plot_log, PlotError};
 use crate::run::{
     execute, DeviceSpec, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
@@ -62,12 +63,12 @@ impl Experiment {
 
 #[derive(Debug, Error)]
 pub enum ExperimentError {
-    /// The output directory cannot be made (the user's input is at fault).
-    #[error("creating the output directory {}: {source}", dir.display())]
-    OutDir {
-        dir: PathBuf,
-        source: std::io::Error,
-    },
+    /// The output directory cannot be used (the user's input is at fault).
+    #[error("--out: output directory: {0}")]
+    OutDir(OutputError),
+    /// A file or directory the experiment writes cannot be written there (checked first).
+    #[error("--out: {0}")]
+    Output(#[from] OutputError),
     #[error("run `{name}`: {source}")]
     Run { name: String, source: Box<RunError> },
     #[error("run `{name}` did not complete cleanly: {why}")]
@@ -102,7 +103,10 @@ impl From<PlotError> for ExperimentError {
 impl ExperimentError {
     /// The user's input is at fault (exit code 2), not the program.
     pub fn is_bad_input(&self) -> bool {
-        matches!(self, ExperimentError::OutDir { .. })
+        matches!(
+            self,
+            ExperimentError::OutDir(_) | ExperimentError::Output(_)
+        )
     }
 }
 
@@ -123,10 +127,7 @@ pub fn run_experiment(
     out: &Path,
     quick: bool,
 ) -> Result<ExperimentReport, ExperimentError> {
-    std::fs::create_dir_all(out).map_err(|source| ExperimentError::OutDir {
-        dir: out.to_path_buf(),
-        source,
-    })?;
+    check_outputs(experiment, out, quick)?;
     let mut figures = Vec::new();
     let markdown = match experiment {
         Experiment::Validation => validation(out, quick, &mut figures)?,
@@ -134,15 +135,57 @@ pub fn run_experiment(
         Experiment::Payload => payload(out, quick, &mut figures)?,
     };
     let report = out.join("report.md");
-    std::fs::write(&report, &markdown).map_err(|source| ExperimentError::Write {
-        path: report.clone(),
-        source,
-    })?;
+    crate::output::write_bytes(&report, markdown.as_bytes())?;
     Ok(ExperimentReport {
         report,
         figures,
         markdown,
     })
+}
+
+/// Every directory and file `experiment` writes in `out`, checked before its first run: an
+/// unusable path is found at once, not after minutes of runs.
+fn check_outputs(experiment: Experiment, out: &Path, quick: bool) -> Result<(), ExperimentError> {
+    crate::output::check_dir(out).map_err(ExperimentError::OutDir)?;
+    let mut dirs = Vec::new();
+    let mut files = vec![out.join("report.md")];
+    // A run's directory: its log and the figures drawn from it.
+    let mut run_dir = |dir: PathBuf| {
+        files.push(dir.join("log.csv"));
+        for f in FIGURES {
+            for format in FORMATS {
+                files.push(dir.join(format!("{}.{}", f.name, format.extension())));
+            }
+        }
+        dirs.push(dir);
+    };
+    match experiment {
+        Experiment::Validation => {
+            for c in VALIDATION_CONTROLLERS {
+                run_dir(out.join(c));
+            }
+            let pre = out.join("pretune");
+            files.extend(pretune_seeds(quick).iter().map(|&s| pretune_log(&pre, s)));
+            files.push(pre.join("weights.json"));
+            dirs.push(pre);
+        }
+        Experiment::Alpha => {
+            files.push(out.join("pd-multisine.csv"));
+            files.extend(FORMATS.map(|f| out.join(format!("alpha-e1.{}", f.extension()))));
+        }
+        Experiment::Payload => {
+            for (name, _, _) in PAYLOAD_RUNS {
+                run_dir(out.join(name));
+            }
+        }
+    }
+    for dir in &dirs {
+        crate::output::check_dir(dir)?;
+    }
+    for file in &files {
+        crate::output::check_file(file)?;
+    }
+    Ok(())
 }
 
 /// One `--fast` simulator run; a run that faults or loses log rows is an error (its numbers
@@ -172,7 +215,8 @@ fn sim_run(
         controller,
         trajectory,
         duration_s: secs,
-        log: log.to_path_buf(),
+        log: Some(log.to_path_buf()),
+        summary_json: None,
         fast: true,
         lenient: false,
         inject: Vec::new(),
@@ -274,6 +318,19 @@ fn shipped_identifier(cfg: &Config) -> Result<Identifier, ExperimentError> {
 /// The controllers of the validation experiment, in report order.
 pub const VALIDATION_CONTROLLERS: [&str; 3] = ["pd", "ct", "nnidc"];
 
+/// The seeds of the pre-tuning logs.
+fn pretune_seeds(quick: bool) -> &'static [u64] {
+    if quick {
+        &[11]
+    } else {
+        &[11, 12, 13]
+    }
+}
+
+fn pretune_log(pre: &Path, seed: u64) -> PathBuf {
+    pre.join(format!("pd-multisine-seed{seed}.csv"))
+}
+
 fn validation(
     out: &Path,
     quick: bool,
@@ -281,11 +338,7 @@ fn validation(
 ) -> Result<String, ExperimentError> {
     // `--quick` keeps one full-length log: weights from 20 s and 3 epochs drive NNIDC into
     // the joint-speed limit within the first second (measured), which is no validation.
-    let (seeds, ms_secs, epochs): (&[u64], f64, usize) = if quick {
-        (&[11], 60.0, 8)
-    } else {
-        (&[11, 12, 13], 60.0, 20)
-    };
+    let (seeds, ms_secs, epochs) = (pretune_seeds(quick), 60.0, if quick { 8 } else { 20 });
     let sine_secs = 10.0;
     let steps = seeds.len() + 1 + VALIDATION_CONTROLLERS.len() * 2;
     let bar = crate::progress::bar(steps as u64, "validation");
@@ -296,7 +349,7 @@ fn validation(
     for &seed in seeds {
         let mut cfg = Config::default();
         cfg.sim.seed = seed;
-        let log = pre.join(format!("pd-multisine-seed{seed}.csv"));
+        let log = pretune_log(&pre, seed);
         sim_run(
             &format!("pre-tune log, seed {seed}"),
             &cfg,
@@ -548,7 +601,7 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
             lines,
         }],
     };
-    for format in [Format::Png, Format::Svg] {
+    for format in FORMATS {
         let file = out.join(format!("alpha-e1.{}", format.extension()));
         render::write(&figure, format, &file).map_err(|source| {
             ExperimentError::from(PlotError::Render {

@@ -5,8 +5,12 @@
 
 use crate::config::Config;
 use crate::estimate::KalmanBank;
-use crate::ident::{pretune, save, Identifier, PretuneConfig, PretuneReport, Progress, Sample};
+use crate::ident::{
+    pretune, save, Identifier, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
+    WeightsError,
+};
 use crate::omni::Joint3;
+use crate::output::OutputError;
 use crate::telemetry::reader::{LogReader, ReadError};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -22,6 +26,31 @@ pub enum IdentifyError {
     Ident(String),
     #[error("no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows)")]
     NoSamples(Vec<PathBuf>),
+    #[error(
+        "{}: {detail}: the data carry no information to identify it from (a recording without \
+         torque, e.g. one converted with `convert --from ros-touch`, cannot be identified)",
+        files(.logs)
+    )]
+    NoInformation { logs: Vec<PathBuf>, detail: String },
+    /// The weights file cannot be written there (checked before the work), or its writing
+    /// failed.
+    #[error("--out: {0}")]
+    Output(#[from] OutputError),
+}
+
+impl IdentifyError {
+    /// The user's input is at fault (exit code 2), not a write that failed part-way.
+    pub fn is_bad_input(&self) -> bool {
+        match self {
+            IdentifyError::Output(e) => e.is_bad_input(),
+            _ => true,
+        }
+    }
+}
+
+fn files(logs: &[PathBuf]) -> String {
+    let names: Vec<String> = logs.iter().map(|p| p.display().to_string()).collect();
+    names.join(", ")
 }
 
 /// The identifier's training samples from one log.
@@ -70,6 +99,8 @@ pub fn identify(
     pretune_cfg: &PretuneConfig,
     progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, IdentifyError> {
+    // Before the work: a bad --out is found now, not after the training.
+    crate::output::check_file(out)?;
     let mut samples = Vec::new();
     for log in logs {
         samples.extend(samples_from_log(log, cfg)?);
@@ -79,8 +110,16 @@ pub fn identify(
     }
     let mut id =
         Identifier::new(&cfg.identifier).map_err(|e| IdentifyError::Ident(e.to_string()))?;
-    let report = pretune(&mut id, &samples, pretune_cfg, progress)
-        .map_err(|e| IdentifyError::Ident(e.to_string()))?;
-    save(&id, out).map_err(|e| IdentifyError::Ident(e.to_string()))?;
+    let report = pretune(&mut id, &samples, pretune_cfg, progress).map_err(|e| match e {
+        PretuneError::NoTorque { .. } => IdentifyError::NoInformation {
+            logs: logs.to_vec(),
+            detail: e.to_string(),
+        },
+        e => IdentifyError::Ident(e.to_string()),
+    })?;
+    save(&id, out).map_err(|e| match e {
+        WeightsError::Write(e) => IdentifyError::Output(e),
+        e => IdentifyError::Ident(e.to_string()),
+    })?;
     Ok(report)
 }

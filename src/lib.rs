@@ -44,6 +44,7 @@ pub mod fastmath;
 pub mod ident;
 pub mod identify;
 pub mod omni;
+pub mod output;
 pub mod plot;
 pub mod progress;
 pub mod run;

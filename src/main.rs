@@ -8,7 +8,7 @@ use omnid::control::{ControllerKind, Trajectory};
 use omnid::device::inject::Fault;
 use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
 use omnid::servo::EndReason;
-use omnid::telemetry::convert::{convert, ConvertError, SourceFormat};
+use omnid::telemetry::convert::{convert, SourceFormat};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -151,7 +151,11 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         }
         Err(e) => {
             omnid::errln!("omnid identify: {e}");
-            Ok(EXIT_BAD_INPUT)
+            Ok(if e.is_bad_input() {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_INTERNAL
+            })
         }
     }
 }
@@ -312,23 +316,15 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
             }
             Ok(0)
         }
-        Err(e @ ConvertError::Write { .. }) => {
-            omnid::errln!("omnid: {e}");
-            Ok(EXIT_INTERNAL)
-        }
         Err(e) => {
             omnid::errln!("omnid: {e}");
-            Ok(EXIT_BAD_INPUT)
+            Ok(if e.is_bad_input() {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_INTERNAL
+            })
         }
     }
-}
-
-/// `logs/omnid-YYYYMMDD-HHMMSS.csv` in UTC.
-fn default_log_path() -> PathBuf {
-    PathBuf::from(format!(
-        "logs/omnid-{}.csv",
-        omnid::telemetry::utc_stamp(std::time::SystemTime::now())
-    ))
 }
 
 fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
@@ -344,7 +340,8 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         duration_s: args
             .duration
             .unwrap_or(if replay { f64::INFINITY } else { 10.0 }),
-        log: args.log.unwrap_or_else(default_log_path),
+        log: args.log,
+        summary_json: args.summary_json.clone(),
         fast: args.fast,
         lenient: args.lenient,
         inject: args.inject,
@@ -361,7 +358,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
             omnid::errln!("omnid: {e}");
             return Ok(EXIT_DEVICE_FAULT);
         }
-        Err(e @ RunError::Log { .. }) => {
+        Err(e @ RunError::Log(_)) => {
             omnid::errln!("omnid: {e}");
             return Ok(EXIT_BAD_INPUT);
         }
@@ -371,10 +368,11 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     for w in &outcome.warnings {
         omnid::errln!("omnid: warning: {w}");
     }
+    // Checked before the run; only a failing disk can stop it now.
+    let mut json_error = None;
     if let Some(path) = &args.summary_json {
         let json = serde_json::to_string_pretty(&outcome.summary)?;
-        std::fs::write(path, json + "\n")
-            .with_context(|| format!("writing the summary to {}", path.display()))?;
+        json_error = omnid::output::write_bytes(path, (json + "\n").as_bytes()).err();
     }
     let stopped = if outcome.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
@@ -402,6 +400,9 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
             dump.display()
         );
     }
+    if let Some(e) = &outcome.dump_error {
+        omnid::errln!("omnid: no fault dump: {e}");
+    }
     if let Some(e) = &outcome.shutdown_error {
         omnid::errln!("omnid: warning: {e}");
         if code == 0 {
@@ -409,7 +410,16 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         }
     }
     if let Some(e) = &outcome.log_error {
-        omnid::errln!("omnid: writing the log failed part-way: {e}");
+        omnid::errln!(
+            "omnid: writing the log failed part-way: {e}; the log is incomplete ({} rows in it)",
+            outcome.summary.log_rows
+        );
+        if code == 0 {
+            code = EXIT_INTERNAL;
+        }
+    }
+    if let Some(e) = &json_error {
+        omnid::errln!("omnid: --summary-json: {e}");
         if code == 0 {
             code = EXIT_INTERNAL;
         }

@@ -14,8 +14,8 @@ use crate::device::{Device, DeviceError};
 use crate::ident::{Identifier, WeightsFile};
 use crate::servo::{EndReason, Servo, ServoReport};
 use crate::telemetry::summary::{IdentifierState, RunSummary, SummaryLabels};
-use crate::telemetry::{dump_path, spawn_writer, write_dump, LogSchema};
-use std::path::PathBuf;
+use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, LogSchema};
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -65,7 +65,12 @@ pub struct RunOptions {
     pub trajectory: Trajectory,
     /// Seconds of device time; `f64::INFINITY` (replay only): the whole log.
     pub duration_s: f64,
-    pub log: PathBuf,
+    /// The log; `None`: a new file `logs/omnid-<UTC time>.csv` (`-2`, `-3`, … when that name
+    /// is taken).
+    pub log: Option<PathBuf>,
+    /// Where the caller will write the summary as JSON: checked with the run's other outputs
+    /// before the run starts.
+    pub summary_json: Option<PathBuf>,
     pub fast: bool,
     /// Replay: skip damaged rows (and report them) instead of refusing the log.
     pub lenient: bool,
@@ -124,11 +129,9 @@ pub fn make_identifier(
 pub enum RunError {
     #[error("{0}")]
     BadInput(String),
-    #[error("cannot create log {path}: {source}")]
-    Log {
-        path: String,
-        source: std::io::Error,
-    },
+    /// The log cannot be created, or another omnid writes it.
+    #[error(transparent)]
+    Log(#[from] LogError),
     #[error(transparent)]
     Device(#[from] DeviceError),
     /// The log given to `--device replay:PATH` cannot be replayed.
@@ -151,6 +154,8 @@ pub struct RunOutcome {
     pub warnings: Vec<String>,
     /// Where the last ticks before a fault were written.
     pub dump: Option<PathBuf>,
+    /// Why the fault dump could not be written.
+    pub dump_error: Option<String>,
 }
 
 /// Real hardware gets encoder zero at the inkwell from its stored calibration before the
@@ -231,6 +236,51 @@ pub fn check_device_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault
         )));
     }
     Ok(faults)
+}
+
+/// Check every file a run will write before it starts: the log (not in use by another
+/// omnid), the fault dump beside it, the summary JSON; and that no two of them, nor the
+/// replay input, name the same file (one would destroy the other).
+pub fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
+    // Each file as the user named it, and its path.
+    let mut named: Vec<(String, PathBuf)> = Vec::new();
+    if let DeviceSpec::Replay(input) = &opts.device {
+        named.push((
+            format!("--device replay:{}", input.display()),
+            input.clone(),
+        ));
+    }
+    if let Some(log) = &opts.log {
+        LogFile::check(log)?;
+        named.push((format!("--log {}", log.display()), log.clone()));
+        // A log that is a device (/dev/null) gets no dump beside it (see `execute`).
+        if std::fs::metadata(log).map_or(true, |m| m.is_file()) {
+            let dump = dump_path(log);
+            crate::output::check_file(&dump).map_err(|e| {
+                RunError::BadInput(format!("the fault dump of --log (written on a fault): {e}"))
+            })?;
+            named.push((
+                format!("the fault dump of --log ({})", dump.display()),
+                dump,
+            ));
+        }
+    }
+    if let Some(json) = &opts.summary_json {
+        crate::output::check_file(json)
+            .map_err(|e| RunError::BadInput(format!("--summary-json: {e}")))?;
+        named.push((format!("--summary-json {}", json.display()), json.clone()));
+    }
+    for (i, (a, pa)) in named.iter().enumerate() {
+        for (b, pb) in &named[i + 1..] {
+            if crate::output::same_file(pa, pb) {
+                return Err(RunError::BadInput(format!(
+                    "{a} and {b} are the same file: a run's inputs and outputs must be \
+                     distinct files"
+                )));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A servo loop ready to start: the device open, the controllers and the identifier built,
@@ -391,10 +441,7 @@ impl Ending {
     pub fn save_heat(&self, report: &ServoReport) {
         if let Some(path) = &self.heat_path {
             if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
-                crate::errln!(
-                    "omnid: warning: cannot save motor heat to {}: {e}",
-                    path.display()
-                );
+                crate::errln!("omnid: warning: motor heat not saved: {e}");
             }
         }
         for (j, warned) in report.thermal_warned.iter().enumerate() {
@@ -451,12 +498,22 @@ pub fn execute(
     stop: Arc<AtomicBool>,
 ) -> Result<RunOutcome, RunError> {
     let faults = check_options(opts, cfg)?;
+    check_outputs(opts)?;
     let (tx, rx) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
     let pipeline = assemble(opts, cfg, &faults, tx, stop)?;
-    let writer = spawn_writer(&opts.log, pipeline.schema, rx).map_err(|source| RunError::Log {
-        path: opts.log.display().to_string(),
-        source,
-    })?;
+    let log = match &opts.log {
+        Some(path) => LogFile::create(path)?,
+        None => LogFile::create_unique(
+            Path::new("logs"),
+            &format!(
+                "omnid-{}",
+                crate::telemetry::utc_stamp(std::time::SystemTime::now())
+            ),
+        )?,
+    };
+    let path = log.path.clone();
+    let writer = spawn_writer(log, pipeline.schema, rx)
+        .map_err(|source| RunError::Log(LogError::Io { path, source }))?;
     let (handle, ending) = pipeline.spawn()?;
     let (report, realtime) = join_servo(handle)?;
     let written = writer
@@ -469,14 +526,33 @@ pub fn execute(
         EndReason::DeviceFault(_) | EndReason::SafetyFault(_)
     );
     let mut dump = None;
-    let mut log_error = written.error.map(|e| e.to_string());
-    if is_fault {
+    // Rows lost on the way to the file: a failed write (disk full), or dropped by a paced
+    // loop whose writer fell behind.
+    let log_incomplete = match &written.error {
+        Some(e) => Some(format!(
+            "{} of {} rows did not reach the file: {e}",
+            written.received - written.rows,
+            written.received
+        )),
+        None if report.telemetry_dropped > 0 => Some(format!(
+            "{} rows dropped (the writer fell behind)",
+            report.telemetry_dropped
+        )),
+        None => None,
+    };
+    let log_error = written.error.as_ref().map(|e| e.to_string());
+    let mut dump_error = None;
+    if is_fault && !written.file.metadata().is_ok_and(|m| m.is_file()) {
+        // Not beside /dev/null or a FIFO: /dev is no place for our files.
+        dump_error = Some(format!(
+            "the log {} is not a file, so no dump is written beside it",
+            written.path.display()
+        ));
+    } else if is_fault {
         let path = dump_path(&written.path);
         match write_dump(&path, &written.schema, &written.tail) {
             Ok(()) => dump = Some(path),
-            Err(e) => {
-                log_error.get_or_insert(format!("writing the fault dump {}: {e}", path.display()));
-            }
+            Err(e) => dump_error = Some(e.to_string()),
         }
     }
     let mut summary = RunSummary::from_results(
@@ -506,6 +582,8 @@ pub fn execute(
     summary.warnings = warnings.clone();
     summary.log_path = Some(written.path.display().to_string());
     summary.log_rows = written.rows;
+    summary.log_complete = Some(log_incomplete.is_none());
+    summary.log_error = log_incomplete;
     summary.realtime = realtime;
     Ok(RunOutcome {
         summary,
@@ -514,5 +592,6 @@ pub fn execute(
         shutdown_error: report.shutdown_error,
         warnings,
         dump,
+        dump_error,
     })
 }

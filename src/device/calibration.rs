@@ -85,11 +85,8 @@ pub enum CalibrationError {
     },
     #[error("calibration {}: {message}", .path.display())]
     Invalid { path: PathBuf, message: String },
-    #[error("cannot write calibration {}: {source}", .path.display())]
-    Write {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("calibration: {0}")]
+    Write(#[from] crate::output::OutputError),
     #[error(
         "the stylus was not in the inkwell during the first {packets} packets: put the stylus \
          in the inkwell and start again (encoder zero is set there)"
@@ -167,18 +164,11 @@ pub fn load(dir: &Path, serial: &str) -> Result<Option<Calibration>, Calibration
 pub fn save(dir: &Path, cal: &Calibration) -> Result<PathBuf, CalibrationError> {
     let path = path_for(dir, &cal.serial)?;
     cal.validate(&path)?;
-    let write = |source| CalibrationError::Write {
-        path: path.clone(),
-        source,
-    };
-    std::fs::create_dir_all(dir).map_err(write)?;
     let text = toml::to_string(cal).map_err(|e| CalibrationError::Invalid {
         path: path.clone(),
         message: e.to_string(),
     })?;
-    let tmp = dir.join(format!(".{}.tmp", cal.serial));
-    std::fs::write(&tmp, text).map_err(write)?;
-    std::fs::rename(&tmp, &path).map_err(write)?;
+    crate::output::write_bytes(&path, text.as_bytes())?;
     Ok(path)
 }
 

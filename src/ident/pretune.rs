@@ -84,6 +84,10 @@ pub enum PretuneError {
     },
     #[error("pre-tuning diverged in epoch {epoch} (non-finite loss); weights restored")]
     Diverged { epoch: usize },
+    /// Nothing to learn a joint from, nor to measure its error against (its NRMSE would be
+    /// 0/0).
+    #[error("joint {joint} has zero torque in every {split} sample")]
+    NoTorque { joint: usize, split: &'static str },
 }
 
 /// Errors after one epoch. NRMSE = RMS(τ − τ̂)/RMS(τ) per joint (NaN where RMS(τ) = 0 or the
@@ -241,6 +245,16 @@ pub fn pretune(
         });
     }
     let (mut train, val) = split(samples.len(), cfg);
+    for (idx, name) in [(&train, "training"), (&val, "validation")] {
+        for joint in 0..3 {
+            if !idx.is_empty() && idx.iter().all(|&i| samples[i].tau[joint] == 0.0) {
+                return Err(PretuneError::NoTorque {
+                    joint: joint + 1,
+                    split: name,
+                });
+            }
+        }
+    }
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut moments: Vec<Option<Moments>> = Net::ALL
         .iter()
@@ -397,6 +411,16 @@ mod tests {
         };
         let e = pretune(&mut id, &random_samples(50, 1), &bad, |_| {}).unwrap_err();
         assert!(e.to_string().contains("validation_fraction"), "{e}");
+        // A joint without torque carries nothing to learn (its NRMSE would be 0/0).
+        let mut z = random_samples(50, 1);
+        z.iter_mut().for_each(|s| s.tau[1] = 0.0);
+        assert_eq!(
+            pretune(&mut id, &z, &cfg, |_| {}),
+            Err(PretuneError::NoTorque {
+                joint: 2,
+                split: "training"
+            })
+        );
     }
 
     #[test]

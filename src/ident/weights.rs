@@ -26,11 +26,8 @@ pub enum WeightsError {
         path: String,
         source: std::io::Error,
     },
-    #[error("cannot write weights file {path}: {source}")]
-    Write {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error("weights file: {0}")]
+    Write(#[from] crate::output::OutputError),
     #[error("weights file {path} is not valid weights JSON: {message}")]
     Parse { path: String, message: String },
     #[error("weights file {path} has format \"{format}\" version {version}; expected \"{FORMAT}\" version {VERSION}")]
@@ -188,8 +185,8 @@ impl WeightsFile {
     }
 }
 
-/// Write the identifier's weights to `path` (through a temporary file and a rename, so a
-/// crash never leaves a truncated file behind).
+/// Write the identifier's weights to `path`, whole (see [`crate::output`]: a failed write
+/// leaves the old file; only a regular file or a new path is written).
 pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
     let w = WeightsFile::from_identifier(id);
     for nw in &w.nets {
@@ -199,14 +196,10 @@ pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
             });
         }
     }
-    let write_err = |source| WeightsError::Write {
-        path: path.display().to_string(),
-        source,
-    };
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    std::fs::write(&tmp, w.to_json() + "\n").map_err(write_err)?;
-    std::fs::rename(&tmp, path).map_err(write_err)
+    Ok(crate::output::write_bytes(
+        path,
+        (w.to_json() + "\n").as_bytes(),
+    )?)
 }
 
 /// Read and check a weights file (without comparing it to a configuration).

@@ -14,6 +14,7 @@ pub use figures::Skipped;
 pub use read::ReadError;
 pub use render::RenderError;
 
+use crate::output::OutputError;
 use figures::{PlannedFigure, JOINTS};
 use read::LogReader;
 use std::fmt;
@@ -36,11 +37,11 @@ pub enum PlotError {
         path: PathBuf,
         skipped: Vec<Skipped>,
     },
-    #[error("creating the output directory {}: {source}", dir.display())]
-    OutDir {
-        dir: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("--out: output directory: {0}")]
+    OutDir(OutputError),
+    /// A figure's file cannot be written there (checked before the log is read).
+    #[error("--out: {0}")]
+    Output(#[from] OutputError),
     #[error("writing {}: {source}", file.display())]
     Render { file: PathBuf, source: RenderError },
 }
@@ -51,6 +52,11 @@ impl PlotError {
     pub fn is_bad_input(&self) -> bool {
         !matches!(self, PlotError::Render { .. })
     }
+}
+
+/// The file of one figure in one format.
+fn figure_file(out_dir: &Path, name: &str, format: render::Format) -> PathBuf {
+    out_dir.join(format!("{name}.{}", format.extension()))
 }
 
 fn reasons(skipped: &[Skipped]) -> String {
@@ -100,7 +106,7 @@ impl fmt::Display for PlotReport {
 }
 
 /// Draw every figure `log` can feed into `out_dir` (created if needed) as `<name>.png` and
-/// `<name>.svg`.
+/// `<name>.svg`. The output paths are checked before the rows are read.
 pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
     let reader = LogReader::open(log)?;
     let plan = figures::plan(reader.header());
@@ -111,6 +117,14 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
         });
     }
 
+    // Before the work: every file this plot will write.
+    crate::output::check_dir(out_dir).map_err(PlotError::OutDir)?;
+    for planned in &plan.figures {
+        for format in render::FORMATS {
+            crate::output::check_file(&figure_file(out_dir, planned.def.name, format))?;
+        }
+    }
+
     let bar = if reader.bytes() >= PROGRESS_MIN_BYTES {
         crate::progress::bytes(reader.bytes(), "reading log")
     } else {
@@ -119,15 +133,11 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
     let data = reader.decimate(&plan.formulas, BUCKETS, |pos| bar.set_position(pos))?;
     bar.finish_and_clear();
 
-    std::fs::create_dir_all(out_dir).map_err(|source| PlotError::OutDir {
-        dir: out_dir.to_path_buf(),
-        source,
-    })?;
     let mut files = Vec::new();
     for planned in &plan.figures {
         let figure = assemble(planned, &data.decimated, data.blend_end);
-        for format in [render::Format::Png, render::Format::Svg] {
-            let file = out_dir.join(format!("{}.{}", planned.def.name, format.extension()));
+        for format in render::FORMATS {
+            let file = figure_file(out_dir, planned.def.name, format);
             render::write(&figure, format, &file).map_err(|source| PlotError::Render {
                 file: file.clone(),
                 source,

@@ -35,6 +35,8 @@ pub enum RenderError {
     Png(#[from] png::EncodingError),
     #[error(transparent)]
     Io(#[from] std::io::Error),
+    #[error(transparent)]
+    Output(#[from] crate::output::OutputError),
 }
 
 /// One line as drawn: its points (already in plotted units) and its pen.
@@ -95,6 +97,9 @@ pub enum Format {
     Svg,
 }
 
+/// Every figure is written in each of these.
+pub const FORMATS: [Format; 2] = [Format::Png, Format::Svg];
+
 impl Format {
     pub fn extension(self) -> &'static str {
         match self {
@@ -122,15 +127,16 @@ fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     }
     // Encoded here rather than through plotters' `image` feature: one small crate instead of
     // a whole image library.
-    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
-    let mut encoder = png::Encoder::new(file, WIDTH, HEIGHT);
-    encoder.set_color(png::ColorType::Rgb);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder.set_compression(png::Compression::High);
-    let mut writer = encoder.write_header()?;
-    writer.write_image_data(&rgb)?;
-    writer.finish()?;
-    Ok(())
+    crate::output::write_with(path, |file| {
+        let mut encoder = png::Encoder::new(file, WIDTH, HEIGHT);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        encoder.set_compression(png::Compression::High);
+        let mut writer = encoder.write_header()?;
+        writer.write_image_data(&rgb)?;
+        writer.finish()?;
+        Ok(())
+    })
 }
 
 fn write_svg(figure: &Figure, path: &Path) -> Result<(), RenderError> {
@@ -142,8 +148,7 @@ fn write_svg(figure: &Figure, path: &Path) -> Result<(), RenderError> {
         root.present()
             .map_err(|e| RenderError::Draw(e.to_string()))?;
     }
-    std::fs::write(path, svg)?;
-    Ok(())
+    Ok(crate::output::write_bytes(path, svg.as_bytes())?)
 }
 
 /// What the figure is drawn on: it decides how wide lines are made.

@@ -14,13 +14,14 @@ use crate::omni::kinematics::{tip_position_mm, Geometry};
 use crate::servo::{ServoCommand, ServoEvent, ServoReply, Snapshot, Wake};
 use crate::telemetry::record::{LogSchema, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabels};
-use crate::telemetry::{spawn_writer, write_dump, WriterReport};
+use crate::telemetry::writer::dump_rows;
+use crate::telemetry::{spawn_writer, LogError, LogFile, WriterReport};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use serde_json::{json, Value};
 use std::collections::VecDeque;
 use std::io;
 use std::os::fd::AsRawFd;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -859,15 +860,24 @@ impl Hub {
             let msg = format!("already recording to {}", r.path.display());
             return self.fail(i, id, "record_start", msg);
         }
-        let path = path.map(PathBuf::from).unwrap_or_else(|| {
-            self.s
-                .state_dir
-                .join("recordings")
-                .join(format!("omnid-serve-{}.csv", utc_stamp()))
-        });
+        // A default name never replaces an earlier recording; a path another omnid writes
+        // is refused.
+        let log = match path {
+            Some(p) => LogFile::create(Path::new(&p)),
+            None => LogFile::create_unique(
+                &self.s.state_dir.join("recordings"),
+                &format!("omnid-serve-{}", utc_stamp()),
+            ),
+        };
         let (tx, rx) = crossbeam_channel::bounded(8192);
-        match spawn_writer(&path, self.s.schema, rx) {
-            Ok(writer) => {
+        let started = log.and_then(|log| {
+            let path = log.path.clone();
+            spawn_writer(log, self.s.schema, rx)
+                .map(|writer| (path.clone(), writer))
+                .map_err(|source| LogError::Io { path, source })
+        });
+        match started {
+            Ok((path, writer)) => {
                 self.recording = Some(Recording {
                     tx: Some(tx),
                     writer,
@@ -876,12 +886,7 @@ impl Hub {
                 });
                 self.reply(i, "record_start", id, json!({ "path": path }));
             }
-            Err(e) => self.fail(
-                i,
-                id,
-                "record_start",
-                format!("cannot create {}: {e}", path.display()),
-            ),
+            Err(e) => self.fail(i, id, "record_start", e.to_string()),
         }
     }
 
@@ -891,7 +896,15 @@ impl Hub {
         r.tx = None;
         let report = r.writer.join().ok();
         let rows = report.as_ref().map_or(0, |w| w.rows);
-        let mut error = report.and_then(|w| w.error.map(|e| e.to_string()));
+        let mut error = report.and_then(|w| {
+            w.error.map(|e| {
+                format!(
+                    "{} of {} rows did not reach the file: {e}",
+                    w.received - w.rows,
+                    w.received
+                )
+            })
+        });
         if r.dropped > 0 {
             error.get_or_insert(format!("{} rows dropped (the disk fell behind)", r.dropped));
         }
@@ -1031,25 +1044,22 @@ impl Hub {
 
     /// Write the ring of recent ticks beside the other dumps.
     fn dump(&mut self, why: &str) {
-        let path = self
-            .s
-            .state_dir
-            .join("faults")
-            .join(format!("omnid-serve-{}-{why}-fault.csv", utc_stamp()));
-        let written = std::fs::create_dir_all(path.parent().unwrap_or(&self.s.state_dir))
-            .and_then(|()| write_dump(&path, &self.s.schema, &self.ring));
+        // A new name for every dump: two faults in one second keep both.
+        let written = crate::output::write_unique(
+            &self.s.state_dir.join("faults"),
+            &format!("omnid-serve-{}-{why}-fault", utc_stamp()),
+            "csv",
+            |w| dump_rows(w, &self.s.schema, &self.ring),
+        );
         match written {
-            Ok(()) => {
+            Ok(path) => {
                 crate::errln!(
                     "omnid serve: the last ticks before the fault are in {}",
                     path.display()
                 );
                 self.dumps.push(path);
             }
-            Err(e) => crate::errln!(
-                "omnid serve: cannot write the fault dump {}: {e}",
-                path.display()
-            ),
+            Err(e) => crate::errln!("omnid serve: cannot write the fault dump: {e}"),
         }
     }
 

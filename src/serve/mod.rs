@@ -177,7 +177,8 @@ pub fn prepare(
         controller: opts.controller,
         trajectory: crate::control::Trajectory::Sine,
         duration_s: f64::INFINITY,
-        log: PathBuf::new(),
+        log: None,
+        summary_json: None,
         fast: false,
         lenient: opts.lenient,
         inject: opts.inject.clone(),
@@ -315,18 +316,18 @@ pub fn serve(
         } else {
             PathBuf::from(&cfg.serve.dump_dir)
         };
-        let path = dir.join("faults").join(format!(
-            "omnid-serve-{}-device-fault.csv",
-            crate::telemetry::utc_stamp(std::time::SystemTime::now())
-        ));
-        let written = std::fs::create_dir_all(path.parent().unwrap_or(&dir))
-            .and_then(|()| crate::telemetry::write_dump(&path, &ending.schema, &hub_report.ring));
-        match written {
-            Ok(()) => dumps.push(path),
-            Err(e) => crate::errln!(
-                "omnid serve: cannot write the fault dump {}: {e}",
-                path.display()
+        let written = crate::output::write_unique(
+            &dir.join("faults"),
+            &format!(
+                "omnid-serve-{}-device-fault",
+                crate::telemetry::utc_stamp(std::time::SystemTime::now())
             ),
+            "csv",
+            |w| crate::telemetry::writer::dump_rows(w, &ending.schema, &hub_report.ring),
+        );
+        match written {
+            Ok(path) => dumps.push(path),
+            Err(e) => crate::errln!("omnid serve: cannot write the fault dump: {e}"),
         }
     }
     // The clients' connections close only now, after the final safe packet went out.

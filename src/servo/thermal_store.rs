@@ -65,22 +65,17 @@ pub fn load(path: &Path, time_constant_s: f64) -> ([f64; 3], Option<String>) {
     }
 }
 
-/// Save the heat at the end of a run: written beside the file and renamed over it, so a run
-/// killed meanwhile leaves the old file whole (and ext4 need not wait, as it does when
-/// truncating a file, for the run's log to reach the disk first).
-pub fn save(path: &Path, heat: [f64; 3]) -> std::io::Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
+/// Save the heat at the end of a run, whole (see [`crate::output`]): a run killed meanwhile
+/// leaves the old file as it was (and ext4 need not wait, as it does when truncating a file,
+/// for the run's log to reach the disk first).
+pub fn save(path: &Path, heat: [f64; 3]) -> Result<(), crate::output::OutputError> {
     let saved = Saved {
         heat,
         unix_time_s: now_s(),
     };
-    // Per process, so two runs ending together cannot rename each other's file away.
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(format!(".{}.new", std::process::id()));
-    std::fs::write(&tmp, serde_json::to_string(&saved)? + "\n")?;
-    std::fs::rename(&tmp, path)
+    // Plain numbers: serialisation cannot fail.
+    let text = serde_json::to_string(&saved).unwrap_or_default() + "\n";
+    crate::output::write_bytes(path, text.as_bytes())
 }
 
 #[cfg(test)]

@@ -13,14 +13,15 @@
 //!   recorded sessions in `mock/`.
 //!
 //! The input is read with the log reader's checks (strict, or `lenient`: skip damaged rows).
-//! The output is written beside the target and renamed into place when complete, so a failed
-//! conversion never leaves a half-written log that would replay.
+//! The output is checked before the input is read and written whole ([`crate::output`]): a
+//! failed conversion never leaves a half-written log that would replay, nor a temporary file,
+//! and only a regular file or a new path is written.
 
 use super::reader::{ColumnReader, LogReader, ReadError, SkipReport, REQUIRED_COLUMNS};
 use crate::omni::kinematics::from_ros;
-use std::fs::File;
-use std::io::{self, BufWriter, Write};
-use std::path::{Path, PathBuf};
+use crate::output::OutputError;
+use std::io::{self, Write};
+use std::path::Path;
 use thiserror::Error;
 
 /// Formats `omnid convert --from` understands.
@@ -47,6 +48,19 @@ pub enum ConvertError {
     NoRows { path: String, skipped: SkipReport },
     #[error("the output {0} is the input")]
     SameFile(String),
+    #[error("--out: {0}")]
+    Output(#[from] OutputError),
+}
+
+impl ConvertError {
+    /// The user's input is at fault (exit code 2), not a write that failed part-way.
+    pub fn is_bad_input(&self) -> bool {
+        match self {
+            ConvertError::Write { .. } => false,
+            ConvertError::Output(e) => e.is_bad_input(),
+            _ => true,
+        }
+    }
 }
 
 /// What a conversion did.
@@ -64,46 +78,22 @@ pub fn convert(
     out: &Path,
     lenient: bool,
 ) -> Result<ConvertReport, ConvertError> {
-    if let (Ok(a), Ok(b)) = (input.canonicalize(), out.canonicalize()) {
-        if a == b {
-            return Err(ConvertError::SameFile(out.display().to_string()));
-        }
+    if crate::output::same_file(input, out) {
+        return Err(ConvertError::SameFile(out.display().to_string()));
     }
-    let partial = partial_path(out);
-    let werr = |source: io::Error| ConvertError::Write {
-        path: out.display().to_string(),
-        source,
-    };
-    let result = (|| {
-        if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(werr)?;
-        }
-        let file = File::create(&partial).map_err(werr)?;
-        let mut w = csv::WriterBuilder::new().from_writer(BufWriter::with_capacity(1 << 16, file));
+    crate::output::check_file(out)?;
+    crate::output::write_with(out, |file| {
+        let mut w = csv::WriterBuilder::new().from_writer(file);
         let report = match from {
             SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out)?,
             SourceFormat::Omnid => omnid(input, &mut w, lenient, out)?,
         };
-        w.flush().map_err(werr)?;
-        let file = w
-            .into_inner()
-            .map_err(|e| werr(io::Error::other(e.to_string())))?
-            .into_inner()
-            .map_err(|e| werr(e.into_error()))?;
-        file.sync_all().map_err(werr)?;
-        std::fs::rename(&partial, out).map_err(werr)?;
+        w.flush().map_err(|source| ConvertError::Write {
+            path: out.display().to_string(),
+            source,
+        })?;
         Ok(report)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&partial);
-    }
-    result
-}
-
-fn partial_path(out: &Path) -> PathBuf {
-    let mut name = out.file_name().unwrap_or_default().to_os_string();
-    name.push(".partial");
-    out.with_file_name(name)
+    })
 }
 
 fn write_err(out: &Path) -> impl Fn(csv::Error) -> ConvertError + '_ {
@@ -277,7 +267,10 @@ mod tests {
         let f: Vec<f64> = lines[1].split(',').map(|v| v.parse().unwrap()).collect();
         assert_eq!(f, [0.0, q[0], q[1], q[2], 0.0, 0.0, 0.0, 1.5]);
         assert!(lines[2].ends_with(",0.0,0.0,0.0,\"2,5\""), "{}", lines[2]);
-        assert!(!partial_path(&out).exists());
+        assert_eq!(
+            std::fs::read_dir(dir.path().join("out")).unwrap().count(),
+            1
+        );
     }
 
     #[test]
@@ -291,7 +284,12 @@ mod tests {
             e.to_string().contains("line 3") && e.to_string().contains("`shoulder`"),
             "{e}"
         );
-        assert!(!out.exists() && !partial_path(&out).exists());
+        assert!(!out.exists());
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            1,
+            "only the input"
+        );
         let rep = convert(SourceFormat::RosTouch, &input, &out, true).unwrap();
         assert_eq!((rep.rows, rep.skipped.count), (1, 1));
         assert!(convert(SourceFormat::RosTouch, &out, &out, false).is_err());

@@ -11,7 +11,7 @@ pub mod writer;
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
 pub use summary::RunSummary;
-pub use writer::{dump_path, spawn_writer, write_dump, WriterReport};
+pub use writer::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
 
 /// `YYYYMMDD-HHMMSS` in UTC, for file names.
 pub fn utc_stamp(time: std::time::SystemTime) -> String {

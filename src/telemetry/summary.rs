@@ -283,7 +283,14 @@ pub struct RunSummary {
     pub missed_packets: u64,
     pub clamped_ticks: u64,
     pub log_path: Option<String>,
+    /// Rows that reached the log file.
     pub log_rows: u64,
+    /// Whether every row reached the log (null without a log); if not, `log_error` says how
+    /// many were lost and why (a full disk, rows dropped by a writer that fell behind).
+    #[serde(default)]
+    pub log_complete: Option<bool>,
+    #[serde(default)]
+    pub log_error: Option<String>,
     pub seed: u64,
     pub fast: bool,
     /// The realtime steps that took effect (null for `--fast` runs, which skip them).
@@ -385,6 +392,8 @@ impl RunSummary {
             clamped_ticks: stats.clamped_ticks,
             log_path: None,
             log_rows: 0,
+            log_complete: None,
+            log_error: None,
             seed: labels.seed,
             fast: labels.fast,
             realtime: None,
@@ -482,7 +491,12 @@ impl RunSummary {
             );
         }
         if let Some(p) = &self.log_path {
-            s += &format!("  log: {} ({} rows)\n", p, self.log_rows);
+            match &self.log_error {
+                Some(why) => {
+                    s += &format!("  log: {p} ({} rows; INCOMPLETE: {why})\n", self.log_rows)
+                }
+                None => s += &format!("  log: {p} ({} rows)\n", self.log_rows),
+            }
         }
         s
     }

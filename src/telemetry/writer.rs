@@ -7,12 +7,16 @@
 //! syscall into every servo tick.
 
 use super::record::{LogSchema, TickRecord};
+use crate::output::{describe, OutputError};
 use crossbeam_channel::{Receiver, TryRecvError};
 use std::collections::VecDeque;
-use std::fs::File;
-use std::io::{self, BufWriter, Write};
+use std::fs::{File, OpenOptions};
+use std::io::{self, Write};
+use std::os::fd::AsRawFd;
+use std::os::unix::fs::{FileTypeExt, MetadataExt};
 use std::path::{Path, PathBuf};
 use std::thread::JoinHandle;
+use thiserror::Error;
 
 /// Ticks kept for the fault dump.
 pub const DUMP_TICKS: usize = 500;
@@ -37,11 +41,17 @@ pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
 pub struct WriterReport {
     pub path: PathBuf,
     pub schema: LogSchema,
+    /// Rows that reached the file (whole rows: a row cut by a failed write is taken back).
     pub rows: u64,
+    /// Rows the writer was given.
+    pub received: u64,
     /// The first write error, if any; rows after it are lost.
     pub error: Option<io::Error>,
     /// The last [`DUMP_TICKS`] records received, oldest first (for the fault dump).
     pub tail: VecDeque<TickRecord>,
+    /// The log, still open: its lock holds until the report is dropped, so no other omnid
+    /// takes the log (or its fault dump) while the run finishes.
+    pub file: File,
 }
 
 /// `run.csv` → `run-fault.csv`, beside the log.
@@ -57,14 +67,32 @@ pub fn dump_path(log: &Path) -> PathBuf {
     log.with_file_name(name)
 }
 
-/// Write the fault dump: the same columns as the log, the last ticks before the fault.
-pub fn write_dump(path: &Path, schema: &LogSchema, rows: &VecDeque<TickRecord>) -> io::Result<()> {
-    let mut out = BufWriter::new(File::create(path)?);
+/// The header and rows of a fault dump: the same columns as the log, the last ticks before
+/// the fault.
+pub fn dump_rows(
+    out: &mut impl Write,
+    schema: &LogSchema,
+    rows: &VecDeque<TickRecord>,
+) -> io::Result<()> {
     writeln!(out, "{}", schema.columns().join(","))?;
     for r in rows {
-        write_row(&mut out, r, schema)?;
+        write_row(out, r, schema)?;
     }
-    out.flush()
+    Ok(())
+}
+
+/// Write the fault dump at `path` (whole, through [`crate::output`]).
+pub fn write_dump(
+    path: &Path,
+    schema: &LogSchema,
+    rows: &VecDeque<TickRecord>,
+) -> Result<(), OutputError> {
+    crate::output::write_with(path, |w| {
+        dump_rows(w, schema, rows).map_err(|source| OutputError::Write {
+            path: path.to_path_buf(),
+            source,
+        })
+    })
 }
 
 /// Append one CSV row to `line` (shortest round-trip float formatting, so a parsed log gives
@@ -113,61 +141,270 @@ fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Resu
     w.write_all(&line)
 }
 
-/// Create `path` as a new, empty file. An old regular file there is unlinked rather than
-/// truncated: ext4 flushes a file that was truncated and rewritten when it is closed, and the
-/// next file created then waits for those tens of MB to reach the disk (~25 ms at the end of a
-/// 60 s `--fast` run). Anything else (a symlink, /dev/null) is opened as `File::create` does.
-fn create_replacing(path: &Path) -> io::Result<File> {
-    if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_file()) {
-        std::fs::remove_file(path)?;
-    }
-    File::create(path)
+#[derive(Debug, Error)]
+pub enum LogError {
+    #[error("cannot create log {}: {source}", path.display())]
+    Io { path: PathBuf, source: io::Error },
+    #[error("cannot create log {}: it is {what}; a log is a file, a character device such as /dev/null, or a FIFO", path.display())]
+    Unsuitable { path: PathBuf, what: &'static str },
+    #[error("log {} is in use: another omnid writes it", path.display())]
+    InUse { path: PathBuf },
 }
 
-/// Create the log file now (so an unwritable path fails before torque is enabled) and start
-/// the thread that fills it.
+/// Take an exclusive `flock` without waiting: false when another process holds one. A file
+/// system that cannot lock does not stop a run (true).
+fn try_lock(file: &File) -> bool {
+    // SAFETY: flock on a descriptor we own; no pointers.
+    let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+    rc == 0 || io::Error::last_os_error().kind() != io::ErrorKind::WouldBlock
+}
+
+/// Whether `path` (followed) still names the open `file`.
+fn names(path: &Path, file: &File) -> bool {
+    match (std::fs::metadata(path), file.metadata()) {
+        (Ok(a), Ok(b)) => (a.dev(), a.ino()) == (b.dev(), b.ino()),
+        _ => false,
+    }
+}
+
+/// What may be a log: a regular file or nothing (the log is made), a character device
+/// (/dev/null) or a FIFO, written as they are; `Ok(true)` for a regular file.
+fn suitable(path: &Path) -> Result<Option<bool>, LogError> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_file() => Ok(Some(true)),
+        Ok(m) if m.file_type().is_char_device() || m.file_type().is_fifo() => Ok(Some(false)),
+        Ok(m) => Err(LogError::Unsuitable {
+            path: path.to_path_buf(),
+            what: describe(m.file_type()),
+        }),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
+        Err(source) => Err(LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        }),
+    }
+}
+
+/// A run's log, open for writing and locked (`flock`) against every other omnid while open.
+#[derive(Debug)]
+pub struct LogFile {
+    pub path: PathBuf,
+    file: File,
+}
+
+impl LogFile {
+    /// Check `path` as a log before the work starts: a suitable kind, its directory made, a
+    /// file can be created there, and no other omnid writes it.
+    pub fn check(path: &Path) -> Result<(), LogError> {
+        let io_err = |source| LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        match suitable(path)? {
+            Some(false) => Ok(()),
+            Some(true) => {
+                let file = File::open(path).map_err(io_err)?;
+                if !try_lock(&file) {
+                    return Err(LogError::InUse {
+                        path: path.to_path_buf(),
+                    });
+                }
+                Ok(())
+            }
+            None => crate::output::check_file(path).map_err(|e| match e {
+                OutputError::Unwritable { source, .. } | OutputError::Write { source, .. } => {
+                    io_err(source)
+                }
+                OutputError::NotAFile { what, .. } => LogError::Unsuitable {
+                    path: path.to_path_buf(),
+                    what,
+                },
+            }),
+        }
+    }
+
+    /// Create the log at `path` (its directory too), or take it over if no other omnid holds
+    /// it. A regular file there (ours from an earlier run) is unlinked rather than truncated:
+    /// ext4 flushes a file that was truncated and rewritten when it is closed, and the next
+    /// file created then waits for those tens of MB to reach the disk (~25 ms at the end of a
+    /// 60 s `--fast` run). What a symlink names is truncated, a device written as it is.
+    pub fn create(path: &Path) -> Result<LogFile, LogError> {
+        let io_err = |source| LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let in_use = || LogError::InUse {
+            path: path.to_path_buf(),
+        };
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(io_err)?;
+        }
+        // Another process may replace the file between our open and our lock: then look again.
+        for _ in 0..100 {
+            if suitable(path)? == Some(false) {
+                let file = OpenOptions::new().write(true).open(path).map_err(io_err)?;
+                return Ok(LogFile {
+                    path: path.to_path_buf(),
+                    file,
+                });
+            }
+            let file = if std::fs::symlink_metadata(path).is_ok_and(|m| m.is_file()) {
+                // Opened to read: locking needs no write permission (a read-only old log is
+                // replaced, as before).
+                let old = File::open(path).map_err(io_err)?;
+                if !try_lock(&old) {
+                    return Err(in_use());
+                }
+                if !names(path, &old) {
+                    continue;
+                }
+                std::fs::remove_file(path).map_err(io_err)?;
+                match OpenOptions::new().write(true).create_new(true).open(path) {
+                    Ok(f) => f,
+                    Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
+                    Err(e) => return Err(io_err(e)),
+                }
+            } else {
+                // New, or what a symlink names: not truncated before it is ours.
+                OpenOptions::new()
+                    .write(true)
+                    .create(true)
+                    .truncate(false)
+                    .open(path)
+                    .map_err(io_err)?
+            };
+            if !file.metadata().is_ok_and(|m| m.is_file()) {
+                continue;
+            }
+            if !try_lock(&file) {
+                return Err(in_use());
+            }
+            if !names(path, &file) {
+                continue;
+            }
+            file.set_len(0).map_err(io_err)?;
+            return Ok(LogFile {
+                path: path.to_path_buf(),
+                file,
+            });
+        }
+        Err(in_use())
+    }
+
+    /// A new log under a default name in `dir`: `stem.csv`, else `stem-2.csv`, … (never
+    /// another run's file, even for runs started in the same second).
+    pub fn create_unique(dir: &Path, stem: &str) -> Result<LogFile, LogError> {
+        let (path, file) = crate::output::create_unique(dir, stem, "csv").map_err(|e| match e {
+            OutputError::Unwritable { path, source } | OutputError::Write { path, source } => {
+                LogError::Io { path, source }
+            }
+            OutputError::NotAFile { path, what } => LogError::Unsuitable { path, what },
+        })?;
+        // Just created: only an omnid given this very path could hold it.
+        if !try_lock(&file) {
+            return Err(LogError::InUse { path });
+        }
+        Ok(LogFile { path, file })
+    }
+}
+
+/// Rows on their way to the log file, written in 64 KiB blocks; counts the rows that reached
+/// the file and, after a failed write, takes back a row cut part-way.
+struct RowSink {
+    file: File,
+    buf: Vec<u8>,
+    /// Bytes in the file, and where its last whole row ends.
+    written: u64,
+    whole: u64,
+    rows: u64,
+    error: Option<io::Error>,
+}
+
+impl RowSink {
+    const BLOCK: usize = 1 << 16;
+
+    fn push(&mut self, line: &[u8]) {
+        if self.buf.len() + line.len() > Self::BLOCK {
+            self.flush();
+        }
+        self.buf.extend_from_slice(line);
+    }
+
+    fn flush(&mut self) {
+        let mut done = 0;
+        while done < self.buf.len() && self.error.is_none() {
+            match self.file.write(&self.buf[done..]) {
+                Ok(0) => self.error = Some(io::ErrorKind::WriteZero.into()),
+                Ok(n) => {
+                    let chunk = &self.buf[done..done + n];
+                    if let Some(last) = chunk.iter().rposition(|&b| b == b'\n') {
+                        self.rows += chunk.iter().filter(|&&b| b == b'\n').count() as u64;
+                        self.whole = self.written + last as u64 + 1;
+                    }
+                    self.written += n as u64;
+                    done += n;
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => self.error = Some(e),
+            }
+        }
+        self.buf.clear();
+        if self.error.is_some() && self.whole < self.written {
+            // Best effort (a device cannot be cut): the log then ends with its last whole row.
+            if self.file.set_len(self.whole).is_ok() {
+                self.written = self.whole;
+            }
+        }
+    }
+}
+
+/// Write the header now (so an unwritable log fails before torque is enabled) and start the
+/// thread that fills the log.
 pub fn spawn_writer(
-    path: &Path,
+    log: LogFile,
     schema: LogSchema,
     rx: Receiver<TickRecord>,
 ) -> io::Result<JoinHandle<WriterReport>> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
-    }
-    let mut out = BufWriter::with_capacity(1 << 16, create_replacing(path)?);
-    writeln!(out, "{}", schema.columns().join(","))?;
-    out.flush()?;
-    let path = path.to_path_buf();
+    let LogFile { path, mut file } = log;
+    let header = format!("{}\n", schema.columns().join(","));
+    file.write_all(header.as_bytes())?;
     std::thread::Builder::new()
         .name("omnid-log".into())
         .spawn(move || {
-            let mut report = WriterReport {
-                path,
-                schema,
+            let mut sink = RowSink {
+                file,
+                buf: Vec::with_capacity(RowSink::BLOCK),
+                written: header.len() as u64,
+                whole: header.len() as u64,
                 rows: 0,
                 error: None,
-                tail: VecDeque::with_capacity(DUMP_TICKS),
             };
+            let mut tail = VecDeque::with_capacity(DUMP_TICKS);
+            let mut received = 0;
             let mut line = Vec::with_capacity(512);
             for_each_polled(&rx, |record| {
-                if report.tail.len() == DUMP_TICKS {
-                    report.tail.pop_front();
+                if tail.len() == DUMP_TICKS {
+                    tail.pop_front();
                 }
-                report.tail.push_back(record);
-                if report.error.is_some() {
+                tail.push_back(record);
+                received += 1;
+                if sink.error.is_some() {
                     return; // keep draining: the loop must never block on us
                 }
                 line.clear();
                 format_row(&mut line, &record, &schema);
-                match out.write_all(&line) {
-                    Ok(()) => report.rows += 1,
-                    Err(e) => report.error = Some(e),
-                }
+                sink.push(&line);
             });
-            if let Err(e) = out.flush() {
-                report.error.get_or_insert(e);
+            sink.flush();
+            WriterReport {
+                path,
+                schema,
+                rows: sink.rows,
+                received,
+                error: sink.error,
+                tail,
+                file: sink.file,
             }
-            report
         })
 }
 
@@ -178,14 +415,13 @@ mod tests {
 
     #[test]
     fn an_old_log_is_replaced_by_a_new_file_and_a_symlink_is_followed() {
-        use std::os::unix::fs::MetadataExt;
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run.csv");
         std::fs::write(&path, "old contents\n").unwrap();
         let old_inode = std::fs::metadata(&path).unwrap().ino();
         // Hold the old file open so its inode cannot be reused for the new one.
         let _old = File::open(&path).unwrap();
-        drop(create_replacing(&path).unwrap());
+        drop(LogFile::create(&path).unwrap());
         let new = std::fs::metadata(&path).unwrap();
         assert_eq!(new.len(), 0);
         assert_ne!(
@@ -198,7 +434,7 @@ mod tests {
         std::fs::write(&target, "old contents\n").unwrap();
         let link = dir.path().join("link.csv");
         std::os::unix::fs::symlink(&target, &link).unwrap();
-        drop(create_replacing(&link).unwrap());
+        drop(LogFile::create(&link).unwrap());
         assert!(std::fs::symlink_metadata(&link)
             .unwrap()
             .file_type()
@@ -207,12 +443,74 @@ mod tests {
     }
 
     #[test]
+    fn a_log_held_by_another_writer_is_refused_untouched() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.csv");
+        let mut first = LogFile::create(&path).unwrap();
+        first.file.write_all(b"rows of the first run\n").unwrap();
+        let link = dir.path().join("link.csv");
+        std::os::unix::fs::symlink(&path, &link).unwrap();
+        for p in [&path, &link] {
+            for e in [
+                LogFile::check(p).unwrap_err(),
+                LogFile::create(p).unwrap_err(),
+            ] {
+                assert!(matches!(e, LogError::InUse { .. }), "{e}");
+                assert!(e.to_string().contains("another omnid"), "{e}");
+            }
+        }
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "rows of the first run\n"
+        );
+        assert!(names(&path, &first.file));
+        drop(first);
+        LogFile::create(&path).unwrap();
+        // Devices are written as they are, by any number of runs at once.
+        let a = LogFile::create(Path::new("/dev/null")).unwrap();
+        let b = LogFile::create(Path::new("/dev/null")).unwrap();
+        LogFile::check(Path::new("/dev/null")).unwrap();
+        drop((a, b));
+        let sub = dir.path().join("sub");
+        std::fs::create_dir(&sub).unwrap();
+        assert!(matches!(
+            LogFile::check(&sub).unwrap_err(),
+            LogError::Unsuitable { .. }
+        ));
+    }
+
+    #[test]
+    fn rows_that_did_not_reach_the_file_are_not_counted() {
+        let file = OpenOptions::new().write(true).open("/dev/full").unwrap();
+        let mut sink = RowSink {
+            file,
+            buf: Vec::new(),
+            written: 0,
+            whole: 0,
+            rows: 0,
+            error: None,
+        };
+        sink.push(b"1,2,3\n");
+        sink.push(b"4,5,6\n");
+        sink.flush();
+        assert_eq!(sink.rows, 0);
+        assert_eq!(
+            sink.error.map(|e| e.raw_os_error()),
+            Some(Some(libc::ENOSPC))
+        );
+        // The header already fails: a log on a full disk is refused before the run.
+        let (_tx, rx) = crossbeam_channel::bounded(1);
+        let log = LogFile::create(Path::new("/dev/full")).unwrap();
+        assert!(spawn_writer(log, LogSchema { model: false }, rx).is_err());
+    }
+
+    #[test]
     fn writes_header_and_rows_that_round_trip() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("sub/run.csv");
         let (tx, rx) = crossbeam_channel::bounded(4);
         let schema = LogSchema { model: true };
-        let handle = spawn_writer(&path, schema, rx).unwrap();
+        let handle = spawn_writer(LogFile::create(&path).unwrap(), schema, rx).unwrap();
         let rec = TickRecord {
             t: 0.001,
             q: [0.1, 0.2, 1.0 / 3.0],
@@ -233,7 +531,8 @@ mod tests {
         tx.send(rec).unwrap();
         drop(tx);
         let report = handle.join().unwrap();
-        assert_eq!(report.rows, 1);
+        assert_eq!((report.rows, report.received), (1, 1));
+        assert!(report.error.is_none());
         let text = std::fs::read_to_string(&path).unwrap();
         let mut lines = text.lines();
         let header: Vec<&str> = lines.next().unwrap().split(',').collect();
@@ -261,12 +560,8 @@ mod tests {
 
     #[test]
     fn unwritable_path_fails_before_anything_runs() {
-        let (_tx, rx) = crossbeam_channel::bounded(4);
-        let err = spawn_writer(
-            Path::new("/proc/omnid/run.csv"),
-            LogSchema { model: false },
-            rx,
-        );
-        assert!(err.is_err());
+        let path = Path::new("/proc/omnid/run.csv");
+        assert!(LogFile::check(path).is_err());
+        assert!(LogFile::create(path).is_err());
     }
 }
