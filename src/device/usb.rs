@@ -5,9 +5,10 @@
 //! Split in two:
 //! - [`UsbOmni`] holds the protocol: it frames the incoming byte stream by length (a transfer
 //!   may carry part of a packet or several), checks the per-packet counter (gaps, duplicates,
-//!   stale packets), keeps the amplifiers off until it has delivered a sample, advances the
-//!   watchdog byte on every packet it sends, maps timeouts to `Missed` and unplugging to
-//!   `Disconnected`, and ends with the safe packet on close (or drop).
+//!   stale packets), keeps the amplifiers off until it has delivered a sample, sends the open
+//!   drivers' byte 7 (0x53, docs/FIREWIRE.md §3: the bridge forwards the Omni's packets) on
+//!   every packet, maps timeouts to `Missed` and unplugging to `Disconnected`, and ends with
+//!   the safe packet on close (or drop).
 //! - [`UsbTransport`] moves bytes. [`RusbTransport`] is the real one (libusb through `rusb`);
 //!   tests drive `UsbOmni` over a scriptable fake.
 //!
@@ -1234,7 +1235,7 @@ mod tests {
         assert_eq!(sent.len(), 4);
         assert!(sent[..3].iter().all(|c| c.is_safe()), "{sent:?}");
         assert!(sent[3].amps_on && sent[3].dac == [0x0900, 0x0700, 0x07FF]);
-        // The caller's watchdog bytes do not matter: the wire's advance one by one.
+        // The caller's byte 7 does not matter: the wire carries the drivers' constant.
         assert_wire_discipline(&sent[..3], 3);
         assert_eq!(dev.stats().last_miss, MissReason::ReadTimeout);
     }
