@@ -247,8 +247,11 @@ pub struct FakeNode {
     pub busy: HashMap<u64, u32>,
     /// 0x1001 keeps only channel numbers (the scratch test then fails).
     pub scratch_broken: bool,
-    /// Whether the amplifiers are on, as the last command said (and the last command).
+    /// The last command, as the wire table reads it.
     pub last_command: Option<WireCommand>,
+    /// How the motors move the arm: per packet with the amplifiers on, encoder `j` moves by
+    /// (motor word − 0x7FF) × `motor_gain[j]` / 8 counts (the sign is the fake's "DAC sign").
+    pub motor_gain: [i32; 3],
 }
 
 impl Default for FakeNode {
@@ -287,6 +290,7 @@ impl Default for FakeNode {
             busy: HashMap::new(),
             scratch_broken: false,
             last_command: None,
+            motor_gain: [0; 3],
         }
     }
 }
@@ -536,6 +540,13 @@ impl FireWireBus for FakeBus {
         while n.arm_at.front().is_some_and(|(k, _)| *k <= d) {
             if let Some((_, arm)) = n.arm_at.pop_front() {
                 n.arm = arm;
+            }
+        }
+        if let Some(cmd) = n.last_command.filter(|c| c.motors_on) {
+            for j in 0..3 {
+                let step =
+                    (i32::from(cmd.force[j]) - i32::from(wire::FORCE_ZERO)) * n.motor_gain[j] / 8;
+                n.arm.encoder[j] = n.arm.encoder[j].wrapping_add(step as i16 as u16);
             }
         }
         let next = match n.script.pop_front() {
