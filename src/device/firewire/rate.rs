@@ -36,7 +36,7 @@ pub struct RateMeasurement {
     pub packets: usize,
     /// Consecutive pairs whose counter stepped by exactly one (the period is theirs).
     pub pairs: usize,
-    /// Mean period between packets, s (0 when no pair qualified).
+    /// Period between packets, s: the mean of the middle 80 % of the pairs (0 when none).
     pub period_s: f64,
     /// Median step of the per-packet counter (bytes 32..35) between consecutive packets.
     pub counter_step: i64,
@@ -59,20 +59,24 @@ impl RateMeasurement {
             .collect();
         steps.sort_unstable();
         let counter_step = steps.get(steps.len() / 2).copied().unwrap_or(0);
-        let (mut cycles, mut pairs) = (0u64, 0usize);
-        for w in packets.windows(2) {
-            if w[1].0.wrapping_sub(w[0].0) != 1 {
-                continue;
-            }
-            if let Some(c) = cycles_between(w[0].1, w[1].1) {
-                cycles += u64::from(c);
-                pairs += 1;
-            }
-        }
-        let period_s = if pairs > 0 {
-            cycles as f64 / pairs as f64 / f64::from(CYCLES_PER_S)
-        } else {
+        // Cycles between consecutive packets (counter +1); the mean of the middle 80 %, so
+        // that a burst at the start (packets queued before the first read) or a late packet
+        // does not move it, while a rate between whole cycles (6, 7, 7, ...) still averages.
+        let mut gaps: Vec<u32> = packets
+            .windows(2)
+            .filter(|w| w[1].0.wrapping_sub(w[0].0) == 1)
+            .filter_map(|w| cycles_between(w[0].1, w[1].1))
+            .collect();
+        gaps.sort_unstable();
+        let pairs = gaps.len();
+        let trim = pairs / 10;
+        let kept = &gaps[trim..pairs - trim];
+        let period_s = if kept.is_empty() {
             0.0
+        } else {
+            kept.iter().map(|&c| f64::from(c)).sum::<f64>()
+                / kept.len() as f64
+                / f64::from(CYCLES_PER_S)
         };
         RateMeasurement {
             packets: packets.len(),
@@ -161,6 +165,21 @@ mod tests {
             e.contains("2.000 ms") && e.contains("500.0 Hz") && e.contains("device.rate_hz = 1000"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_burst_at_the_start_does_not_bias_the_period_and_fractional_rates_average() {
+        let mut s = stream(1000.0, 100, 64, 0);
+        // The first five packets arrived one cycle apart (queued before the first read).
+        for k in 1..5 {
+            s[k].1 = s[0].1 + k as u16;
+        }
+        let m = RateMeasurement::from_packets(&s);
+        assert!((m.rate_hz() - 1000.0).abs() < 1.0, "{m:?}");
+        // 1200 Hz: gaps of 6 and 7 cycles.
+        let m = RateMeasurement::from_packets(&stream(1200.0, 0, 64, 0));
+        assert!((m.rate_hz() - 1200.0).abs() < 12.0, "{m:?}");
+        assert_eq!(m.mismatch(1200.0), None);
     }
 
     #[test]
