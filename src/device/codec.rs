@@ -52,22 +52,34 @@ pub struct StateLayout {
 
 /// docs/FIREWIRE.md §3: omnifirewire.h:60-90 (ROS) and PhantomSpec.h:93-123 (Twente).
 pub const COMMAND_LAYOUT: CommandLayout = CommandLayout {
+    // force_x/y/z: omnifirewire.h:62-64; PhantomSpec.h:95-97.
     motor: [0, 2, 4],
+    // The low byte of the u16 status word: omnifirewire.h:66-86; PhantomSpec.h:98-120.
     misc: 6,
+    // 0x53C0 with lamp and motors off: omnifirewire.cpp:213; omni.c:281; opensource.c:42.
     misc_fixed: 0xC0,
+    // force_enabled / motors_on: omnifirewire.h:72; PhantomSpec.h:106.
     amps_bit: 3,
+    // dock_led0/1 / dl_flash, dl_fflash: omnifirewire.h:69-70; PhantomSpec.h:103-104.
     lamp_mask: 0b11,
+    // The high byte of the same word, 0x53 (as misc_fixed).
     watchdog: 7,
 };
 
 /// docs/FIREWIRE.md §4: omnifirewire.h:92-136 (ROS) and PhantomSpec.h:53-88 (Twente); the
 /// switch byte is 19 in both (omnifirewire.h:105-119, PhantomSpec.h:62-77).
 pub const STATE_LAYOUT: StateLayout = StateLayout {
+    // encoder_x/y/z: omnifirewire.h:96-98; PhantomSpec.h:57-59.
     encoder: [4, 6, 8],
+    // gimbal_a_x/y/z: omnifirewire.h:100-102; PhantomSpec.h:60.
     gimbal: [10, 12, 14],
+    // status: omnifirewire.h:107-119 (after tx_packet_num at 18, :105); PhantomSpec.h:63-77.
     status: 19,
+    // button1, button2 (0 = pressed): omnifirewire.h:110-111; PhantomSpec.h:68-69.
     button_bits: [0, 1],
+    // undocked / docked (0 = in the inkwell): omnifirewire.h:112; PhantomSpec.h:70.
     inkwell_bit: 2,
+    // count0, "+1 every message": PhantomSpec.h:82 (ROS `time`, omnifirewire.h:130).
     counter: 32,
 };
 

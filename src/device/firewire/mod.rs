@@ -828,7 +828,10 @@ impl<B: FireWireBus> FireWireOmni<B> {
         self.to_device = Some(to_device);
         let from_device = self.allocate()?;
         self.from_device = Some(from_device);
-        // The vendor trace's order (minimal-test/opensource.c:194-224).
+        // The vendor trace's order (minimal-test/opensource.c:194-224): host → device channel
+        // (:194; PhantomSpec.h:25), device → host channel (:197; PhantomSpec.h:26), the
+        // 0x20010 quadlet (:200; omnifirewire.cpp:391-392), the scratch test (:203-212;
+        // PhantomIsoChannel.cpp:71-93), 0x1083 and 0x1082 (:217-221; omni.c:429-439).
         self.write_byte(reg::CHANNEL_TO_DEVICE, to_device)?;
         self.write_byte(reg::CHANNEL_FROM_DEVICE, from_device)?;
         if self.opts.vendor_init {
@@ -864,6 +867,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
             .send_packet(&safe)
             .map_err(|e| StartError::Bus(Step::SendSafePacket, e))?;
         self.tap_sent(&safe);
+        // Bit 3 of 0x1087 starts the stream (opensource.c:223; omni.c:443-453).
         let control = self.read_step(reg::CONTROL)?;
         self.write_byte(reg::CONTROL, control | reg::CONTROL_STREAM)?;
         self.streaming = true;
