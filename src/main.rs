@@ -47,6 +47,11 @@ enum Command {
     Convert(ConvertArgs),
     /// Pre-tune the identifier's networks on recorded logs and save the weights.
     Identify(IdentifyArgs),
+    /// First contact with a FireWire Omni (docs/BRINGUP.md): identify it, dump its registers,
+    /// and capture its packets with the amplifiers off while telling you what to do; with
+    /// --outputs, guided lamp, amplifier and motor-sign steps at a few DAC counts, each asked
+    /// first. Needs no calibration.
+    Probe(ProbeArgs),
     /// List candidate devices (USB bridges, FireWire Omnis) with permission problems and fixes.
     Devices {
         /// TOML configuration file (its [usb] ids are the ones searched for).
@@ -287,6 +292,92 @@ enum CtlCommand {
 }
 
 #[derive(clap::Args)]
+struct ProbeArgs {
+    /// firewire (a USB bridge has no registers or bus timestamps to probe)
+    #[arg(long, default_value = "firewire")]
+    device: String,
+    /// Capture file [default: omnid-capture-<UTC time>.txt]; replayable after
+    /// `omnid convert --from capture`.
+    #[arg(long)]
+    capture: Option<PathBuf>,
+    /// How long to capture with the amplifiers off, s (ends early once every step was seen).
+    #[arg(long, default_value_t = 60.0)]
+    seconds: f64,
+    /// Then the output steps: lamp, amplifiers at zero torque, each motor's sign.
+    #[arg(long)]
+    outputs: bool,
+    /// DAC counts of the sign pulses (1..=200; the default is about 9 mN·m).
+    #[arg(long, default_value_t = 40)]
+    counts: u16,
+    /// TOML configuration file ([firewire], device.rate_hz, device.nm_per_count).
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
+    use omnid::device::probe::{probe_firewire, ProbeError, ProbePlan, TerminalOperator};
+    let Some(cfg) = load_config(args.config.as_deref()) else {
+        return Ok(EXIT_BAD_INPUT);
+    };
+    if args.device != "firewire" {
+        omnid::errln!(
+            "omnid probe: --device {}: only firewire can be probed (a USB bridge has no device \
+             registers or bus timestamps; `omnid run --device usb` reports what it finds)",
+            args.device
+        );
+        return Ok(EXIT_BAD_INPUT);
+    }
+    let stop = stop_on_signal()?;
+    let plan = ProbePlan {
+        capture: args.capture.unwrap_or_else(|| {
+            PathBuf::from(format!(
+                "omnid-capture-{}.txt",
+                omnid::telemetry::utc_stamp(std::time::SystemTime::now())
+            ))
+        }),
+        seconds: args.seconds,
+        outputs: args.outputs,
+        counts: args.counts,
+    };
+    let mut op = TerminalOperator { stop: &stop };
+    match probe_firewire(&cfg, &plan, &mut op, &stop) {
+        Ok(report) => {
+            omnid::outln!(
+                "omnid probe: serial {}; {} packets captured in {}",
+                report.serial.as_deref().unwrap_or("?"),
+                report.captured,
+                plan.capture.display()
+            );
+            for (what, seen) in &report.checks {
+                omnid::outln!("  [{}] {what}", if *seen { "x" } else { " " });
+            }
+            if let Some(s) = report.dac_sign {
+                omnid::outln!("[firewire]\ndac_sign = [{}, {}, {}]", s[0], s[1], s[2]);
+            }
+            if let Some(why) = &report.aborted {
+                omnid::errln!(
+                    "omnid probe: output steps stopped: {why}; zero torque, amplifiers off"
+                );
+                return Ok(EXIT_OPERATOR_STOP);
+            }
+            Ok(0)
+        }
+        Err(e @ ProbeError::BadInput(_)) => {
+            omnid::errln!("omnid probe: {e}");
+            Ok(EXIT_BAD_INPUT)
+        }
+        Err(e @ ProbeError::Device(_)) => {
+            omnid::errln!("omnid: {e}");
+            Ok(EXIT_DEVICE_FAULT)
+        }
+        Err(e @ ProbeError::Capture { .. }) => {
+            omnid::errln!("omnid probe: {e}");
+            Ok(EXIT_INTERNAL)
+        }
+    }
+}
+
+#[derive(clap::Args)]
 struct ConvertArgs {
     /// Format of the input.
     #[arg(long, value_enum)]
@@ -377,7 +468,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     let stopped = if outcome.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {
-        "the final zero-torque packet could not be delivered; the device's own watchdog turns its amplifiers off when packets stop"
+        "the final zero-torque packet could not be delivered: switch the device off (whether it drops its amplifiers when packets stop is not known, docs/FIREWIRE.md §9)"
     };
     let mut code = match &outcome.end {
         EndReason::Completed | EndReason::EndOfData => 0,
@@ -478,7 +569,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     let stopped = if outcome.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {
-        "the final zero-torque packet could not be delivered; the device's own watchdog turns its amplifiers off when packets stop"
+        "the final zero-torque packet could not be delivered: switch the device off (whether it drops its amplifiers when packets stop is not known, docs/FIREWIRE.md §9)"
     };
     for dump in &outcome.dumps {
         omnid::errln!("omnid serve: fault dump: {}", dump.display());
@@ -708,6 +799,7 @@ fn main() -> ExitCode {
         Command::Watch(args) => watch_cmd(args),
         Command::Ctl(args) => ctl_cmd(args),
         Command::Convert(args) => convert_cmd(args),
+        Command::Probe(args) => probe_cmd(args),
         Command::Identify(args) => identify_cmd(args),
         Command::Devices { config } => match load_config(config.as_deref()) {
             Some(cfg) => {

@@ -5,7 +5,7 @@ use crate::config::Config;
 pub use crate::control::make_controller;
 use crate::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use crate::device::calibration::{self, CalibrationError};
-use crate::device::firewire::open_firewire_with_rate;
+use crate::device::firewire::{find_firewire, FirewireConfig};
 use crate::device::inject::{Fault, FaultyDevice, NanAfter};
 use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
@@ -172,6 +172,25 @@ fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Dev
     })
 }
 
+/// The refusal when a motor's DAC sign has not been measured: the first torque on a new Omni
+/// goes through `omnid probe --outputs`, never straight into a controller.
+pub fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
+    let missing = cfg.unmeasured_dac_signs();
+    if missing.is_empty() {
+        return None;
+    }
+    let motors: Vec<String> = missing.iter().map(|j| (j + 1).to_string()).collect();
+    Some(format!(
+        "the DAC sign of motor(s) {} of FireWire Omni {} is not measured (firewire.dac_sign = \
+         {:?}), so omnid applies no torque with it. Run `omnid probe --outputs`: it finds each \
+         motor's sign with a few DAC counts, asking before every step, and prints the \
+         `dac_sign` line to put under [firewire] (docs/BRINGUP.md).",
+        motors.join(", "),
+        serial.unwrap_or("?"),
+        cfg.dac_sign
+    ))
+}
+
 fn open_device(
     opts: &RunOptions,
     cfg: &Config,
@@ -192,10 +211,17 @@ fn open_device(
             Ok(Box::new(device))
         }
         DeviceSpec::Usb => ready_for_torque(open_usb_with_rate(&cfg.usb, cfg.device.rate_hz)?, cfg),
-        DeviceSpec::Firewire => ready_for_torque(
-            open_firewire_with_rate(&cfg.firewire, cfg.device.rate_hz)?,
-            cfg,
-        ),
+        DeviceSpec::Firewire => {
+            // Identify first (reads only), so that a machine without the Omni hears what was
+            // looked for; then no torque before the motors' signs are known.
+            let mut omni = find_firewire(&cfg.firewire, cfg.device.rate_hz)?;
+            if let Some(why) = unmeasured_dac_signs(&cfg.firewire, omni.serial()) {
+                return Err(RunError::BadInput(why));
+            }
+            omni.start()?;
+            omni.check_rate()?;
+            ready_for_torque(Box::new(omni), cfg)
+        }
     }
 }
 

@@ -62,3 +62,40 @@ fn fast_is_refused_for_real_hardware() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--fast works only"));
 }
+
+#[test]
+fn probe_without_hardware_says_what_it_looked_for_and_writes_nothing() {
+    if has_hardware() {
+        eprintln!("skipping: this machine has USB or FireWire");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("capture.txt");
+    let out = omnid()
+        .args(["probe", "--seconds", "1", "--capture"])
+        .arg(&capture)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(
+        err.contains("no device found") && err.contains("0x000B99"),
+        "{err}"
+    );
+    assert!(!capture.exists(), "a capture was written without a device");
+    assert!(!err.contains("panicked"));
+}
+
+#[test]
+fn probe_refuses_bad_options_before_touching_anything() {
+    for (args, says) in [
+        (&["probe", "--counts", "500"][..], "--counts 500"),
+        (&["probe", "--seconds", "0"][..], "--seconds 0"),
+        (&["probe", "--device", "usb"][..], "only firewire"),
+    ] {
+        let out = omnid().args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(says), "{args:?}: {err}");
+    }
+}

@@ -1,4 +1,4 @@
-//! Inkwell calibration (DESIGN §4.5). The Omni's encoders are incremental: their counts start
+//! Inkwell calibration (docs/FIREWIRE.md §4, §6). The Omni's encoders are incremental: their counts start
 //! wherever the arm was at power-on. The inkwell is a known pose: when the switch says the
 //! stylus is docked, encoder zero is set so that the counts read that pose's joint angles.
 //! The docked pose of each unit is stored per serial number in

@@ -1,16 +1,22 @@
-//! The Omni packet codec (DESIGN §4.5). Every byte position lives in the two layout tables
-//! below, so a correction to the (partly reverse-engineered) layout is one edit.
+//! The Omni packet codec. Every byte position lives in the two layout tables below, so a
+//! correction to the (reverse-engineered) layout is one edit. Each position is a fact of
+//! docs/FIREWIRE.md, which names the driver file and line it comes from; the tests in
+//! `firewire/tests.rs` check these tables against a byte table written independently from the
+//! same sources.
 
 use thiserror::Error;
 
-/// Host → device packet length, bytes.
+/// Host → device packet length, bytes (docs/FIREWIRE.md §3).
 pub const COMMAND_LEN: usize = 16;
-/// Device → host packet length, bytes.
+/// Device → host packet length, bytes (docs/FIREWIRE.md §4).
 pub const STATE_LEN: usize = 44;
 /// DAC word for zero torque (12-bit offset binary).
 pub const DAC_ZERO: u16 = 0x07FF;
 /// Largest DAC word (12 bits).
 pub const DAC_MAX: u16 = 0x0FFF;
+/// Byte 7 of every command both open drivers send: a constant, not a counter
+/// (docs/FIREWIRE.md §3).
+pub const DRIVERS_BYTE7: u8 = 0x53;
 
 /// Byte layout of the host → device command packet (little-endian).
 pub struct CommandLayout {
@@ -18,11 +24,13 @@ pub struct CommandLayout {
     pub motor: [usize; 3],
     /// Offset of the misc-out byte.
     pub misc: usize,
+    /// Bits of the misc-out byte both drivers always set (0xC0).
+    pub misc_fixed: u8,
     /// Misc-out bit that switches the amplifiers on.
     pub amps_bit: u8,
     /// Misc-out mask of the dock lamp bits.
     pub lamp_mask: u8,
-    /// Offset of the watchdog counter byte.
+    /// Offset of byte 7 (the drivers send [`DRIVERS_BYTE7`]; see [`MotorCommand::watchdog`]).
     pub watchdog: usize,
 }
 
@@ -32,7 +40,7 @@ pub struct StateLayout {
     pub encoder: [usize; 3],
     /// Offsets of the three u16 gimbal potentiometer words.
     pub gimbal: [usize; 3],
-    /// Offset of the status byte (switches, all active-low). Unsettled in public sources.
+    /// Offset of the switch byte (all active-low).
     pub status: usize,
     /// Status bits of stylus buttons 1 and 2.
     pub button_bits: [u8; 2],
@@ -42,22 +50,43 @@ pub struct StateLayout {
     pub counter: usize,
 }
 
+/// docs/FIREWIRE.md §3: omnifirewire.h:60-90 (ROS) and PhantomSpec.h:93-123 (Twente).
 pub const COMMAND_LAYOUT: CommandLayout = CommandLayout {
+    // force_x/y/z: omnifirewire.h:62-64; PhantomSpec.h:95-97.
     motor: [0, 2, 4],
+    // The low byte of the u16 status word: omnifirewire.h:66-86; PhantomSpec.h:98-120.
     misc: 6,
+    // 0x53C0 with lamp and motors off: omnifirewire.cpp:213; omni.c:281; opensource.c:42.
+    misc_fixed: 0xC0,
+    // force_enabled / motors_on: omnifirewire.h:72; PhantomSpec.h:106.
     amps_bit: 3,
+    // dock_led0/1 / dl_flash, dl_fflash: omnifirewire.h:69-70; PhantomSpec.h:103-104.
     lamp_mask: 0b11,
+    // The high byte of the same word, 0x53 (as misc_fixed).
     watchdog: 7,
 };
 
+/// docs/FIREWIRE.md §4: omnifirewire.h:92-136 (ROS) and PhantomSpec.h:53-88 (Twente); the
+/// switch byte is 19 in both (omnifirewire.h:105-119, PhantomSpec.h:62-77).
 pub const STATE_LAYOUT: StateLayout = StateLayout {
+    // encoder_x/y/z: omnifirewire.h:96-98; PhantomSpec.h:57-59.
     encoder: [4, 6, 8],
+    // gimbal_a_x/y/z: omnifirewire.h:100-102; PhantomSpec.h:60.
     gimbal: [10, 12, 14],
-    status: 16,
+    // status: omnifirewire.h:107-119 (after tx_packet_num at 18, :105); PhantomSpec.h:63-77.
+    status: 19,
+    // button1, button2 (0 = pressed): omnifirewire.h:110-111; PhantomSpec.h:68-69.
     button_bits: [0, 1],
+    // undocked / docked (0 = in the inkwell): omnifirewire.h:112; PhantomSpec.h:70.
     inkwell_bit: 2,
+    // count0, "+1 every message": PhantomSpec.h:82 (ROS `time`, omnifirewire.h:130).
     counter: 32,
 };
+
+/// Bits 3..7 of the switch byte as the Twente trace expects them on an idle device
+/// (libraw1394-2.0.5-trace.patch:1580-1588: bit 4 and bit 7 set), so that encoded packets
+/// look like the device's.
+pub const STATUS_IDLE_HIGH_BITS: u8 = 0x90;
 
 /// A malformed packet. Never a panic: every decoder returns one of these.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
@@ -82,7 +111,10 @@ pub struct MotorCommand {
     pub amps_on: bool,
     /// Dock lamp bits (0..=3).
     pub lamp: u8,
-    /// Watchdog counter: the device drops its amplifiers if it stops advancing.
+    /// Byte 7. The open drivers send the constant [`DRIVERS_BYTE7`] there, and the real
+    /// backends put that on the wire (docs/FIREWIRE.md §3). The simulator reads it as a
+    /// watchdog that drops its amplifiers when the byte stops changing: a modelling choice of
+    /// omnid's, not a documented behaviour of the device.
     pub watchdog: u8,
 }
 
@@ -133,7 +165,8 @@ pub fn encode_command(cmd: &MotorCommand) -> [u8; COMMAND_LEN] {
     for (j, &at) in l.motor.iter().enumerate() {
         put_u16(&mut b, at, cmd.dac[j].min(DAC_MAX));
     }
-    b[l.misc] = (cmd.lamp & l.lamp_mask) | if cmd.amps_on { 1 << l.amps_bit } else { 0 };
+    b[l.misc] =
+        l.misc_fixed | (cmd.lamp & l.lamp_mask) | if cmd.amps_on { 1 << l.amps_bit } else { 0 };
     b[l.watchdog] = cmd.watchdog;
     b
 }
@@ -179,7 +212,7 @@ pub fn encode_state(s: &StatePacket) -> [u8; STATE_LEN] {
         put_u16(&mut b, l.gimbal[j], s.gimbal[j]);
     }
     // Switches are active-low: a released button reads 1.
-    let mut status = 0xFFu8;
+    let mut status = STATUS_IDLE_HIGH_BITS | 0b111;
     for (k, &bit) in l.button_bits.iter().enumerate() {
         if s.buttons[k] {
             status &= !(1 << bit);
@@ -314,7 +347,7 @@ mod tests {
     fn safe_command_bytes() {
         let b = encode_command(&MotorCommand::safe(7));
         assert_eq!(&b[0..6], &[0xFF, 0x07, 0xFF, 0x07, 0xFF, 0x07]);
-        assert_eq!(b[6], 0);
+        assert_eq!(b[6], 0xC0);
         assert_eq!(b[7], 7);
         assert!(b[8..].iter().all(|&x| x == 0));
     }
@@ -323,7 +356,7 @@ mod tests {
     fn amps_bit_is_bit_three_of_byte_six() {
         let mut c = MotorCommand::safe(0);
         c.amps_on = true;
-        assert_eq!(encode_command(&c)[6], 0b1000);
+        assert_eq!(encode_command(&c)[6], 0xC8);
     }
 
     #[test]

@@ -2,10 +2,12 @@
 //! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
 
 pub mod calibration;
+pub mod capture;
 pub mod codec;
 pub mod discovery;
 pub mod firewire;
 pub mod inject;
+pub mod probe;
 pub mod replay;
 pub mod sim;
 pub mod stream;

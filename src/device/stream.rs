@@ -3,8 +3,9 @@
 //!
 //! - [`CommandGate`] turns the servo's command into the packet actually sent: the amplifiers
 //!   stay off until the backend has delivered a sample (after open and after every restart),
-//!   the watchdog byte advances by one on every packet put on the wire, and a malformed command
-//!   is never sent (the safe packet goes instead).
+//!   byte 7 and the DAC signs follow the [`WireFormat`] (by default the open drivers' constant
+//!   0x53, docs/FIREWIRE.md §3), and a malformed command is never sent (the safe packet goes
+//!   instead).
 //! - [`CounterTracker`] checks the device's per-packet counter: fresh packets, gaps (packets the
 //!   device sent that never arrived), duplicates and stale packets; device time comes from the
 //!   counter, so a gap shows up as a longer step in time.
@@ -14,8 +15,8 @@
 //! Nothing here allocates: every buffer is fixed.
 
 use super::codec::{
-    decode_command, encode_command, CodecError, MotorCommand, COMMAND_LEN, DAC_ZERO, STATE_LAYOUT,
-    STATE_LEN,
+    decode_command, encode_command, CodecError, MotorCommand, COMMAND_LEN, DAC_MAX, DAC_ZERO,
+    DRIVERS_BYTE7, STATE_LAYOUT, STATE_LEN,
 };
 
 /// A forward jump of the per-packet counter up to this many counts is taken as packets lost on
@@ -180,21 +181,86 @@ impl CounterTracker {
     }
 }
 
+/// What goes in byte 7 of every command on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Byte7 {
+    /// The same value on every packet (both open drivers: 0x53, docs/FIREWIRE.md §3).
+    Constant(u8),
+    /// A counter advancing by one per packet (omnid's guess before issue 19; no source sends
+    /// one).
+    Counter,
+}
+
+/// How the servo's command becomes the bytes on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct WireFormat {
+    pub byte7: Byte7,
+    /// Per motor: `1` the DAC word as the servo computed it, `-1` mirrored about zero torque,
+    /// `0` zero torque always (the sign of that axis has not been measured).
+    pub dac_sign: [i8; 3],
+}
+
+impl WireFormat {
+    /// The open drivers' byte 7, DAC words as computed.
+    pub const DRIVERS: WireFormat = WireFormat {
+        byte7: Byte7::Constant(DRIVERS_BYTE7),
+        dac_sign: [1; 3],
+    };
+
+    /// A DAC word with this axis's sign applied.
+    pub fn signed_dac(&self, axis: usize, word: u16) -> u16 {
+        match self.dac_sign[axis] {
+            1 => word,
+            -1 => (2 * i32::from(DAC_ZERO) - i32::from(word)).clamp(0, i32::from(DAC_MAX)) as u16,
+            _ => DAC_ZERO,
+        }
+    }
+}
+
+impl Default for WireFormat {
+    fn default() -> Self {
+        WireFormat::DRIVERS
+    }
+}
+
 /// Builds the packets that actually go on the wire.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy)]
 pub struct CommandGate {
-    watchdog: u8,
+    format: WireFormat,
+    counter: u8,
     sample_delivered: bool,
 }
 
+impl Default for CommandGate {
+    fn default() -> Self {
+        CommandGate::with_format(WireFormat::DRIVERS)
+    }
+}
+
 impl CommandGate {
+    /// The open drivers' wire format.
     pub fn new() -> Self {
         Self::default()
     }
 
+    pub fn with_format(format: WireFormat) -> Self {
+        CommandGate {
+            format,
+            counter: 0,
+            sample_delivered: false,
+        }
+    }
+
+    pub fn format(&self) -> WireFormat {
+        self.format
+    }
+
     fn stamp(&mut self, mut cmd: MotorCommand) -> [u8; COMMAND_LEN] {
-        self.watchdog = self.watchdog.wrapping_add(1);
-        cmd.watchdog = self.watchdog;
+        self.counter = self.counter.wrapping_add(1);
+        cmd.watchdog = match self.format.byte7 {
+            Byte7::Constant(v) => v,
+            Byte7::Counter => self.counter,
+        };
         encode_command(&cmd)
     }
 
@@ -204,17 +270,26 @@ impl CommandGate {
     pub fn wire(&mut self, command: &[u8; COMMAND_LEN]) -> ([u8; COMMAND_LEN], Option<CodecError>) {
         match decode_command(command) {
             Ok(mut cmd) => {
-                if !self.sample_delivered {
-                    cmd.amps_on = false;
-                    cmd.dac = [DAC_ZERO; 3];
+                for j in 0..3 {
+                    cmd.dac[j] = self.format.signed_dac(j, cmd.dac[j]);
                 }
-                (self.stamp(cmd), None)
+                (self.raw(cmd), None)
             }
             Err(e) => (self.safe(), Some(e)),
         }
     }
 
-    /// Zero torque, amplifiers off, watchdog advanced.
+    /// `cmd` as it is (no DAC signs: for the guided sign check of `omnid probe --outputs`),
+    /// still with the amplifiers off until a sample has been delivered.
+    pub fn raw(&mut self, mut cmd: MotorCommand) -> [u8; COMMAND_LEN] {
+        if !self.sample_delivered {
+            cmd.amps_on = false;
+            cmd.dac = [DAC_ZERO; 3];
+        }
+        self.stamp(cmd)
+    }
+
+    /// Zero torque, amplifiers off, lamp off.
     pub fn safe(&mut self) -> [u8; COMMAND_LEN] {
         self.stamp(MotorCommand::safe(0))
     }
@@ -477,7 +552,7 @@ mod tests {
     }
 
     #[test]
-    fn gate_keeps_amps_off_until_a_sample_and_advances_watchdog() {
+    fn gate_keeps_amps_off_until_a_sample_and_sends_the_drivers_byte7() {
         let mut g = CommandGate::new();
         let mut cmd = MotorCommand::safe(42);
         cmd.amps_on = true;
@@ -488,13 +563,45 @@ mod tests {
         let d1 = decode_command(&w1).unwrap();
         assert!(d1.is_safe(), "amps before a sample: {d1:?}");
         g.sample_delivered();
-        // The caller repeats the same watchdog byte: the wire still advances.
+        // Whatever the servo put in byte 7, the wire carries the drivers' constant.
         let (w2, _) = g.wire(&bytes);
         let d2 = decode_command(&w2).unwrap();
         assert!(d2.amps_on && d2.dac == [100, 200, 300]);
-        assert_eq!(d2.watchdog, d1.watchdog.wrapping_add(1));
+        assert_eq!((w1[7], w2[7]), (0x53, 0x53));
         g.require_new_sample();
         assert!(decode_command(&g.wire(&bytes).0).unwrap().is_safe());
+        // The counter format advances one per packet.
+        let mut c = CommandGate::with_format(WireFormat {
+            byte7: Byte7::Counter,
+            dac_sign: [1; 3],
+        });
+        let a = c.safe()[7];
+        assert_eq!(c.wire(&bytes).0[7], a.wrapping_add(1));
+    }
+
+    #[test]
+    fn gate_applies_dac_signs_and_zeroes_unmeasured_axes() {
+        let mut g = CommandGate::with_format(WireFormat {
+            byte7: Byte7::Constant(0x53),
+            dac_sign: [1, -1, 0],
+        });
+        g.sample_delivered();
+        let mut cmd = MotorCommand::safe(0);
+        cmd.amps_on = true;
+        cmd.dac = [DAC_ZERO + 100, DAC_ZERO + 100, DAC_ZERO + 100];
+        let d = decode_command(&g.wire(&encode_command(&cmd)).0).unwrap();
+        assert_eq!(d.dac, [DAC_ZERO + 100, DAC_ZERO - 100, DAC_ZERO]);
+        // Mirroring saturates inside 12 bits: 0x0FFF (+2048) mirrors to 0 (-2047).
+        cmd.dac = [0, DAC_MAX, 0];
+        let d = decode_command(&g.wire(&encode_command(&cmd)).0).unwrap();
+        assert_eq!(d.dac, [0, 0, DAC_ZERO]);
+        cmd.dac = [0, 0, 0];
+        let d = decode_command(&g.wire(&encode_command(&cmd)).0).unwrap();
+        assert_eq!(d.dac[1], 0x0FFE);
+        // The raw path (the probe's sign check) leaves the words alone.
+        cmd.dac = [DAC_ZERO, DAC_ZERO + 7, DAC_ZERO - 7];
+        let d = decode_command(&g.raw(cmd)).unwrap();
+        assert_eq!(d.dac, [DAC_ZERO, DAC_ZERO + 7, DAC_ZERO - 7]);
     }
 
     #[test]

@@ -43,7 +43,8 @@ pub fn decode_all(packets: &[[u8; 16]]) -> Vec<MotorCommand> {
 
 /// Checks every property of what a backend put on the wire during a run: amplifiers never on
 /// before `first_sample_at` (index of the first packet sent after a sample was delivered),
-/// the watchdog advancing on every packet, and the last packet safe.
+/// byte 7 the open drivers' constant on every packet (docs/FIREWIRE.md §3), and the last packet
+/// safe.
 pub fn assert_wire_discipline(sent: &[MotorCommand], first_sample_at: usize) {
     assert!(!sent.is_empty(), "nothing was sent");
     for (i, c) in sent.iter().enumerate().take(first_sample_at) {
@@ -52,11 +53,11 @@ pub fn assert_wire_discipline(sent: &[MotorCommand], first_sample_at: usize) {
             "packet {i} switched the amplifiers on before a sample was delivered"
         );
     }
-    for w in sent.windows(2) {
+    for (i, c) in sent.iter().enumerate() {
         assert_eq!(
-            w[1].watchdog,
-            w[0].watchdog.wrapping_add(1),
-            "the watchdog byte must advance on every packet"
+            c.watchdog,
+            crate::device::codec::DRIVERS_BYTE7,
+            "packet {i}: byte 7 must be the drivers' constant 0x53"
         );
     }
     let last = sent.last().unwrap();

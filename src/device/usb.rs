@@ -5,9 +5,10 @@
 //! Split in two:
 //! - [`UsbOmni`] holds the protocol: it frames the incoming byte stream by length (a transfer
 //!   may carry part of a packet or several), checks the per-packet counter (gaps, duplicates,
-//!   stale packets), keeps the amplifiers off until it has delivered a sample, advances the
-//!   watchdog byte on every packet it sends, maps timeouts to `Missed` and unplugging to
-//!   `Disconnected`, and ends with the safe packet on close (or drop).
+//!   stale packets), keeps the amplifiers off until it has delivered a sample, sends the open
+//!   drivers' byte 7 (0x53, docs/FIREWIRE.md §3: the bridge forwards the Omni's packets) on
+//!   every packet, maps timeouts to `Missed` and unplugging to `Disconnected`, and ends with
+//!   the safe packet on close (or drop).
 //! - [`UsbTransport`] moves bytes. [`RusbTransport`] is the real one (libusb through `rusb`);
 //!   tests drive `UsbOmni` over a scriptable fake.
 //!
@@ -89,6 +90,21 @@ impl Default for UsbConfig {
     }
 }
 
+/// USB vendor id of 3D Systems, maker of the USB Geomagic/3D Systems Touch.
+pub const TOUCH_VENDOR_ID: u16 = 0x2988;
+
+/// Whether these ids are a USB Touch: vendor 0x2988 (the Touch reports 2988:0302), or
+/// 0301:2988, the pair 3D Systems' own instructions give (both seen in
+/// bharatm11/Geomagic_Touch_ROS_Drivers issue #2). docs/FIREWIRE.md §8.
+pub fn is_usb_touch(vendor_id: u16, product_id: u16) -> bool {
+    vendor_id == TOUCH_VENDOR_ID || (vendor_id == 0x0301 && product_id == TOUCH_VENDOR_ID)
+}
+
+/// What a USB Touch is, for refusals.
+pub const TOUCH_IS_NOT_A_BRIDGE: &str = "a 3D Systems (Geomagic) Touch: a USB CDC-ACM serial \
+     device with an undocumented protocol, not a bridge forwarding a FireWire Omni's packets; \
+     omnid cannot drive it (docs/FIREWIRE.md §8)";
+
 /// One-line explanations of every `[usb]` key, for `omnid config --print-default`.
 pub const USB_FIELD_DOCS: &[(&str, &str)] = &[
     (
@@ -139,6 +155,19 @@ impl UsbConfig {
                 "usb.vendor_id",
                 "0x0000".into(),
                 "0x0001 ..= 0xFFFF",
+            ));
+        }
+        if is_usb_touch(self.vendor_id, self.product_id) {
+            return Err(invalid(
+                "usb.vendor_id",
+                format!(
+                    "{:#06x} (with usb.product_id {:#06x})",
+                    self.vendor_id, self.product_id
+                ),
+                &format!(
+                    "the ids of a USB bridge to an Omni; {} is {TOUCH_IS_NOT_A_BRIDGE}",
+                    self.ids()
+                ),
             ));
         }
         let ep_ok = |ep: u8, dir: u8| ep & 0xF0 == dir && (1..=15).contains(&(ep & 0x0F));
@@ -560,6 +589,40 @@ pub(crate) struct Matched {
     pub location: String,
 }
 
+/// USB Touches on the bus, as `2988:0302 at bus 001 device 004`.
+pub(crate) fn touches(context: &rusb::Context) -> Vec<String> {
+    use rusb::UsbContext;
+    let Ok(list) = context.devices() else {
+        return Vec::new();
+    };
+    list.iter()
+        .filter_map(|device| {
+            let d = device.device_descriptor().ok()?;
+            is_usb_touch(d.vendor_id(), d.product_id()).then(|| {
+                format!(
+                    "{:04x}:{:04x} at bus {:03} device {:03}",
+                    d.vendor_id(),
+                    d.product_id(),
+                    device.bus_number(),
+                    device.address()
+                )
+            })
+        })
+        .collect()
+}
+
+/// The hint when no bridge is there but a USB Touch is.
+pub(crate) fn touch_hint(touches: &[String]) -> String {
+    if touches.is_empty() {
+        String::new()
+    } else {
+        format!(
+            " The USB device {} is {TOUCH_IS_NOT_A_BRIDGE}.",
+            touches.join(", ")
+        )
+    }
+}
+
 /// All devices on the bus and those matching the configured ids.
 pub(crate) fn enumerate(
     context: &rusb::Context,
@@ -677,7 +740,11 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
     let (total, matched) =
         enumerate(&context, cfg).map_err(|e| not_found(format!("cannot list USB devices: {e}")))?;
     if matched.is_empty() {
-        return Err(not_found(no_match_hint(cfg, total)));
+        return Err(not_found(format!(
+            "{}{}",
+            no_match_hint(cfg, total),
+            touch_hint(&touches(&context))
+        )));
     }
 
     // Open every match (permission problems show here), keep those with the wanted serial.
@@ -971,6 +1038,28 @@ mod tests {
     }
 
     #[test]
+    fn usb_touch_ids_are_refused_saying_what_the_device_is() {
+        for (vid, pid) in [(0x2988, 0x0302), (0x2988, 0x0301), (0x0301, 0x2988)] {
+            let cfg = UsbConfig {
+                vendor_id: vid,
+                product_id: pid,
+                ..Default::default()
+            };
+            let e = cfg.validate().unwrap_err().to_string();
+            assert!(
+                e.contains("usb.vendor_id") && e.contains("Touch") && e.contains("CDC-ACM"),
+                "{vid:04x}:{pid:04x}: {e}"
+            );
+            assert!(e.contains(&format!("{vid:04x}:{pid:04x}")), "{e}");
+        }
+        assert!(!is_usb_touch(0x1209, 0x0001));
+        assert!(!is_usb_touch(0x0301, 0x0001));
+        assert_eq!(touch_hint(&[]), "");
+        let h = touch_hint(&["2988:0302 at bus 001 device 004".into()]);
+        assert!(h.contains("2988:0302") && h.contains("not a bridge"), "{h}");
+    }
+
+    #[test]
     fn config_errors_name_the_field() {
         let cases: Vec<(UsbConfig, &str)> = vec![
             (
@@ -1146,7 +1235,7 @@ mod tests {
         assert_eq!(sent.len(), 4);
         assert!(sent[..3].iter().all(|c| c.is_safe()), "{sent:?}");
         assert!(sent[3].amps_on && sent[3].dac == [0x0900, 0x0700, 0x07FF]);
-        // The caller's watchdog bytes do not matter: the wire's advance one by one.
+        // The caller's byte 7 does not matter: the wire carries the drivers' constant.
         assert_wire_discipline(&sent[..3], 3);
         assert_eq!(dev.stats().last_miss, MissReason::ReadTimeout);
     }

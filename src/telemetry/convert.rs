@@ -11,6 +11,11 @@
 //!   `mode` when present. Numbers are written as the log writer writes them (shortest
 //!   round-trip form), so the kept columns are bit-for-bit the original's. Used for the compact
 //!   recorded sessions in `mock/`.
+//! - `capture`: an `omnid probe` capture (docs/BRINGUP.md): every received state packet
+//!   becomes a row. `t` from the bus's receive timestamps (else the host's clock), `q` from the
+//!   encoder counts turned by the capture's `encoder_sign` and unwrapped as the servo does,
+//!   `tau = 0` (the motors' signs are unknown when a probe runs), `enc1..3`, then the packet's
+//!   `counter`, switch byte `switches`, and the last command's `dac1..3` and `amps`.
 //!
 //! The input is read with the log reader's checks (strict, or `lenient`: skip damaged rows).
 //! The output is checked before the input is read and written whole ([`crate::output`]): a
@@ -31,6 +36,8 @@ pub enum SourceFormat {
     RosTouch,
     /// An omnid log, reduced to the columns replay reads (t, q, tau, enc, mode).
     Omnid,
+    /// An `omnid probe` capture (raw packets): one row per received state packet.
+    Capture,
 }
 
 /// The ROS driver's columns (the first is the time).
@@ -50,6 +57,8 @@ pub enum ConvertError {
     SameFile(String),
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    #[error(transparent)]
+    Capture(#[from] crate::device::capture::CaptureError),
 }
 
 impl ConvertError {
@@ -87,6 +96,7 @@ pub fn convert(
         let report = match from {
             SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out)?,
             SourceFormat::Omnid => omnid(input, &mut w, lenient, out)?,
+            SourceFormat::Capture => capture(input, &mut w, out)?,
         };
         w.flush().map_err(|source| ConvertError::Write {
             path: out.display().to_string(),
@@ -225,6 +235,108 @@ fn omnid<W: Write>(
     finish(rows, columns, reader.skipped().clone(), reader.path())
 }
 
+fn capture<W: Write>(
+    input: &Path,
+    w: &mut csv::Writer<W>,
+    out: &Path,
+) -> Result<ConvertReport, ConvertError> {
+    use crate::device::capture::{CaptureError, CaptureReader};
+    use crate::device::codec::{decode_command, decode_state, STATE_LAYOUT, STATE_LEN};
+    use crate::device::firewire::rate::cycles_between;
+    use crate::device::EncoderUnwrap;
+    let path = input.display().to_string();
+    let file = std::fs::File::open(input).map_err(|source| CaptureError::Io {
+        path: path.clone(),
+        source,
+    })?;
+    let mut reader = CaptureReader::new(io::BufReader::new(file), &path)?;
+    let header = reader.header().clone();
+    let rad = std::f64::consts::TAU / header.counts_per_rev;
+    let columns: Vec<String> = REQUIRED_COLUMNS
+        .iter()
+        .map(|c| c.to_string())
+        .chain(
+            [
+                "enc1", "enc2", "enc3", "counter", "switches", "dac1", "dac2", "dac3", "amps",
+            ]
+            .map(String::from),
+        )
+        .collect();
+    let werr = write_err(out);
+    w.write_record(&columns).map_err(&werr)?;
+    let mut num = NumBuf::new();
+    let mut unwrap = EncoderUnwrap::new();
+    let mut last_cmd = None;
+    // Time: the receive timestamps' cycles, unwrapped; else the host's clock.
+    let mut first_ns: Option<u64> = None;
+    let mut last_ts: Option<u16> = None;
+    let mut cycles: u64 = 0;
+    let mut last_t: Option<f64> = None;
+    let mut rows = 0u64;
+    while let Some(p) = reader.next_packet()? {
+        let Some(info) = p.received else {
+            last_cmd = decode_command(&p.bytes).ok();
+            continue;
+        };
+        if p.bytes.len() < STATE_LEN {
+            continue;
+        }
+        let Ok(state) = decode_state(&p.bytes[..STATE_LEN]) else {
+            continue;
+        };
+        let t = match info {
+            Some(info) => {
+                if let Some(prev) = last_ts {
+                    cycles += u64::from(cycles_between(prev, info.timestamp).unwrap_or(0));
+                }
+                last_ts = Some(info.timestamp);
+                cycles as f64 / f64::from(crate::device::firewire::rate::CYCLES_PER_S)
+            }
+            None => {
+                let first = *first_ns.get_or_insert(p.host_ns);
+                p.host_ns.saturating_sub(first) as f64 * 1e-9
+            }
+        };
+        if last_t.is_some_and(|l| t <= l) {
+            // Two packets in one bus cycle cannot both be the device's: keep the first.
+            continue;
+        }
+        last_t = Some(t);
+        let mut raw = state.encoder;
+        for j in 0..3 {
+            if header.encoder_sign[j] < 0 {
+                raw[j] = raw[j].wrapping_neg();
+            }
+        }
+        let enc = unwrap.update(raw);
+        w.write_field(num.f64(t)).map_err(&werr)?;
+        for c in enc {
+            w.write_field(num.f64(c as f64 * rad)).map_err(&werr)?;
+        }
+        for _ in 0..3 {
+            w.write_field(num.f64(0.0)).map_err(&werr)?;
+        }
+        for c in enc {
+            w.write_field(num.i64(c)).map_err(&werr)?;
+        }
+        w.write_field(num.i64(i64::from(state.counter)))
+            .map_err(&werr)?;
+        w.write_field(num.i64(i64::from(p.bytes[STATE_LAYOUT.status])))
+            .map_err(&werr)?;
+        let (dac, amps) = last_cmd
+            .map_or(([0x07FFu16; 3], false), |c: crate::device::MotorCommand| {
+                (c.dac, c.amps_on)
+            });
+        for d in dac {
+            w.write_field(num.i64(i64::from(d))).map_err(&werr)?;
+        }
+        w.write_field(num.i64(i64::from(amps))).map_err(&werr)?;
+        w.write_record(None::<&[u8]>).map_err(&werr)?;
+        rows += 1;
+    }
+    finish(rows, columns, SkipReport::default(), &path)
+}
+
 fn finish(
     rows: u64,
     columns: Vec<String>,
@@ -315,5 +427,63 @@ mod tests {
              0.0,0.5,0.0,0.0,0.0022,0.0,-0.45,1,0,0,blend\n\
              0.001,0.5,0.0,0.0,0.0,0.0,0.0,1,0,0,stop\n"
         );
+    }
+
+    #[test]
+    fn captures_become_rows_with_bus_time_signed_encoders_and_the_last_command() {
+        use crate::device::codec::{encode_command, encode_state, MotorCommand, StatePacket};
+        let hex = |b: &[u8]| b.iter().map(|x| format!("{x:02x}")).collect::<String>();
+        let state = |enc: [u16; 3], counter: u32| {
+            hex(&encode_state(&StatePacket {
+                encoder: enc,
+                counter,
+                ..Default::default()
+            }))
+        };
+        let amps = hex(&encode_command(&MotorCommand {
+            dac: [0x0800, 0x07FF, 0x07FE],
+            amps_on: true,
+            lamp: 0,
+            watchdog: 0x53,
+        }));
+        // Timestamps 7 s 7996 → 0 s 4 (8 cycles, across the 8 s wrap), then a repeat.
+        let text = format!(
+            "# omnid capture 1\n# kind firewire\n# encoder_sign -1 1 1\n\
+             dir,host_ns,iso_header,timestamp,counter,bytes\n\
+             rx,10,0x002c00a0,{:#06x},5,{}\ntx,11,,,,{amps}\n# note hello\n\
+             rx,12,0x002c00a0,0x0004,6,{}\nrx,13,0x002c00a0,0x0004,6,{}\nrx,14,0x00040000,0x0005,,00\n",
+            (7 << 13) | 7996,
+            state([1, 2, 3], 5),
+            state([0xFFFF, 2, 3], 6),
+            state([0xFFFF, 2, 3], 6),
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("c.txt");
+        let out = dir.path().join("c.csv");
+        std::fs::write(&input, text).unwrap();
+        let rep = convert(SourceFormat::Capture, &input, &out, false).unwrap();
+        assert_eq!(rep.rows, 2);
+        let csv = std::fs::read_to_string(&out).unwrap();
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(
+            lines[0],
+            "t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3,counter,switches,dac1,dac2,dac3,amps"
+        );
+        let rad = std::f64::consts::TAU / 15000.0;
+        let row: Vec<f64> = lines[2].split(',').map(|v| v.parse().unwrap()).collect();
+        assert_eq!(row[0], 0.001);
+        // Joint 1's sign is -1: raw 1 reads -1, raw 0xFFFF (one count down) reads +1.
+        assert_eq!(&row[7..10], &[1.0, 2.0, 3.0]);
+        assert_eq!(row[1], rad);
+        assert_eq!(&row[10..], &[6.0, 151.0, 2048.0, 2047.0, 2046.0, 1.0]);
+        assert!(
+            lines[1].starts_with("0.0,") && lines[1].contains(",-1,2,3,5,151,2047,2047,2047,0")
+        );
+        // A broken line is named.
+        std::fs::write(&input, "# omnid capture 1\nrx,1,0x0,0x0,,zz\n").unwrap();
+        let e = convert(SourceFormat::Capture, &input, &out, false)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("line 2") && e.contains("hex digits"), "{e}");
     }
 }

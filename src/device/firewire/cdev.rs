@@ -13,7 +13,7 @@
 
 #![allow(non_camel_case_types)]
 
-use super::{BusError, BusEvent, FireWireBus, NodeAccess, NodeInfo, ISO_PAYLOAD_MAX};
+use super::{BusError, BusEvent, FireWireBus, NodeAccess, NodeInfo, PacketInfo, ISO_PAYLOAD_MAX};
 use crate::device::COMMAND_LEN;
 use std::ffi::CString;
 use std::mem::{offset_of, size_of};
@@ -56,6 +56,8 @@ pub const TCODE_WRITE_BLOCK_REQUEST: u32 = 0x1;
 pub const TCODE_READ_QUADLET_REQUEST: u32 = 0x4;
 pub const TCODE_READ_BLOCK_REQUEST: u32 = 0x5;
 pub const RCODE_COMPLETE: u32 = 0x0;
+pub const RCODE_CONFLICT_ERROR: u32 = 0x4;
+pub const RCODE_BUSY: u32 = 0x12;
 pub const RCODE_GENERATION: u32 = 0x13;
 pub const SCODE_100: u32 = 0x0;
 
@@ -250,9 +252,28 @@ pub const RX_SLOTS: usize = 32;
 /// Bytes per received packet returned beside the payload: iso header + timestamp.
 pub const RX_HEADER_SIZE: usize = 8;
 pub const TX_SLOTS: usize = 256;
-const MAP_LEN: usize = 4096;
-const _: () = assert!(RX_SLOT * RX_SLOTS <= MAP_LEN && COMMAND_LEN * TX_SLOTS <= MAP_LEN);
+/// Bytes of iso buffer the contexts use; the mapping is this rounded up to whole pages.
+const RX_BYTES: usize = RX_SLOT * RX_SLOTS;
+const TX_BYTES: usize = COMMAND_LEN * TX_SLOTS;
 const _: () = assert!(RX_SLOT <= ISO_PAYLOAD_MAX);
+
+/// The mmap length for `bytes` of iso buffer: the kernel maps whole pages, and a length that
+/// is not a multiple of the page size (16 KiB and 64 KiB on some arm64 kernels) is refused.
+pub fn map_len(bytes: usize, page: usize) -> usize {
+    let page = page.max(1);
+    bytes.max(1).div_ceil(page) * page
+}
+
+/// The kernel's page size (4096 if it cannot be asked).
+fn page_size() -> usize {
+    // SAFETY: sysconf has no preconditions.
+    let p = unsafe { libc::sysconf(libc::_SC_PAGESIZE) };
+    if p > 0 {
+        p as usize
+    } else {
+        4096
+    }
+}
 
 const EVENT_BUF_WORDS: usize = 1024;
 
@@ -338,10 +359,15 @@ pub fn rom_vendor(rom: &[u32]) -> Option<u32> {
 
 /// Read the config-ROM vendor of a node through the node itself.
 pub fn read_rom_vendor(path: &Path) -> Result<Option<u32>, BusError> {
+    Ok(rom_vendor(&read_rom(path)?))
+}
+
+/// The first quadlets (up to 16) of a node's config ROM, as the kernel keeps them.
+pub fn read_rom(path: &Path) -> Result<Vec<u32>, BusError> {
     let fd = open_node(path)?;
     let mut rom = [0u32; 16];
     let (_, len) = get_info(fd.as_raw_fd(), Some(&mut rom))?;
-    Ok(rom_vendor(&rom[..(len / 4).min(rom.len())]))
+    Ok(rom[..(len / 4).min(rom.len())].to_vec())
 }
 
 /// A page of mmap()ed iso buffer.
@@ -478,8 +504,8 @@ struct IsoRx {
     handle: u32,
     /// Slot of the next completed packet.
     next_slot: usize,
-    /// Payload lengths of completed packets not yet handed out (in slot order).
-    pending: [u16; RX_SLOTS],
+    /// Completed packets not yet handed out (in slot order): iso header and timestamp.
+    pending: [(u32, u16); RX_SLOTS],
     pending_head: usize,
     pending_count: usize,
 }
@@ -598,6 +624,7 @@ impl CdevBus {
                 Ok(())
             }
             RCODE_GENERATION => Err(BusError::BusReset),
+            RCODE_BUSY | RCODE_CONFLICT_ERROR => Err(BusError::Busy(rcode)),
             r => Err(BusError::Rcode(r)),
         }
     }
@@ -695,7 +722,7 @@ impl CdevBus {
             channel,
             RX_HEADER_SIZE as u32,
         )?;
-        let map = Mapping::new(fd.as_raw_fd(), MAP_LEN, false)?;
+        let map = Mapping::new(fd.as_raw_fd(), map_len(RX_BYTES, page_size()), false)?;
         let mut controls = [0u32; RX_SLOTS];
         for c in controls.iter_mut() {
             *c = rx_control();
@@ -707,7 +734,7 @@ impl CdevBus {
             map,
             handle,
             next_slot: 0,
-            pending: [0; RX_SLOTS],
+            pending: [(0, 0); RX_SLOTS],
             pending_head: 0,
             pending_count: 0,
         })
@@ -718,7 +745,7 @@ impl CdevBus {
         get_info(fd.as_raw_fd(), None)?;
         let handle =
             Self::create_context(fd.as_raw_fd(), FW_CDEV_ISO_CONTEXT_TRANSMIT, channel, 0)?;
-        let map = Mapping::new(fd.as_raw_fd(), MAP_LEN, true)?;
+        let map = Mapping::new(fd.as_raw_fd(), map_len(TX_BYTES, page_size()), true)?;
         Ok(IsoTx {
             fd,
             map,
@@ -869,7 +896,8 @@ impl FireWireBus for CdevBus {
                 return Err(BusError::NotStreaming);
             };
             if rx.pending_count > 0 {
-                let len = usize::from(rx.pending[rx.pending_head]).min(RX_SLOT);
+                let (iso_header, timestamp) = rx.pending[rx.pending_head];
+                let len = ((iso_header >> 16) as usize).min(RX_SLOT);
                 let at = rx.next_slot * RX_SLOT;
                 // SAFETY: the slot lies inside our mapping; the kernel has completed it.
                 let slot = unsafe { std::slice::from_raw_parts(rx.map.ptr.add(at), RX_SLOT) };
@@ -880,7 +908,11 @@ impl FireWireBus for CdevBus {
                 let mut control = [rx_control()];
                 Self::queue(rx.fd.as_raw_fd(), rx.handle, &mut control, rx.map.addr(at))?;
                 rx.next_slot = (rx.next_slot + 1) % RX_SLOTS;
-                return Ok(BusEvent::Packet(len));
+                return Ok(BusEvent::Packet(PacketInfo {
+                    len,
+                    iso_header,
+                    timestamp,
+                }));
             }
             let rx_fd = rx.fd.as_raw_fd();
             let left = deadline.saturating_duration_since(Instant::now());
@@ -918,10 +950,13 @@ impl FireWireBus for CdevBus {
                     let count = (hl / RX_HEADER_SIZE).min(RX_SLOTS - rx.pending_count);
                     for k in 0..count {
                         let h = &self.events.bytes()[base + k * RX_HEADER_SIZE..];
-                        // Iso packet header, big-endian: data_length in the upper 16 bits.
-                        let len = u16::from_be_bytes([h[0], h[1]]);
+                        // Iso packet header, big-endian (data_length in the upper 16 bits),
+                        // then the timestamp quadlet: 16 bits invalid, 3 bits cycleSeconds,
+                        // 13 bits cycleCount, big-endian (<linux/firewire-cdev.h>).
+                        let iso_header = u32::from_be_bytes([h[0], h[1], h[2], h[3]]);
+                        let timestamp = u16::from_be_bytes([h[6], h[7]]);
                         let at = (rx.pending_head + rx.pending_count) % RX_SLOTS;
-                        rx.pending[at] = len;
+                        rx.pending[at] = (iso_header, timestamp);
                         rx.pending_count += 1;
                     }
                 }
@@ -1130,6 +1165,8 @@ mod tests {
             ("TCODE_READ_QUADLET_REQUEST", TCODE_READ_QUADLET_REQUEST),
             ("TCODE_READ_BLOCK_REQUEST", TCODE_READ_BLOCK_REQUEST),
             ("RCODE_COMPLETE", RCODE_COMPLETE),
+            ("RCODE_CONFLICT_ERROR", RCODE_CONFLICT_ERROR),
+            ("RCODE_BUSY", RCODE_BUSY),
             ("RCODE_GENERATION", RCODE_GENERATION),
             ("SCODE_100", SCODE_100),
         ] {
@@ -1230,6 +1267,21 @@ mod tests {
         assert_eq!(rom_vendor(&[0x0100_0B99]), Some(0x000B99));
         assert_eq!(rom_vendor(&[0x0404_0000, 0xDEAD_BEEF, 0, 0]), None);
         assert_eq!(rom_vendor(&[]), None);
+    }
+
+    #[test]
+    fn iso_mappings_are_whole_pages() {
+        for page in [4096, 16384, 65536] {
+            for bytes in [RX_BYTES, TX_BYTES] {
+                let len = map_len(bytes, page);
+                assert_eq!(len % page, 0, "{bytes} bytes on {page}-byte pages: {len}");
+                assert!(len >= bytes && len < bytes + page);
+            }
+        }
+        assert_eq!(map_len(4096, 4096), 4096);
+        assert_eq!(map_len(4097, 4096), 8192);
+        assert_eq!(map_len(4096, 65536), 65536);
+        assert_eq!(map_len(RX_BYTES, page_size()) % page_size(), 0);
     }
 
     #[test]

@@ -1,26 +1,35 @@
-//! The FireWire Omni (IEEE-1394a, DESIGN §4.5) over Linux firewire-cdev (`/dev/fw*`).
+//! The FireWire Omni (IEEE-1394a) over Linux firewire-cdev (`/dev/fw*`). Every fact this
+//! backend relies on is in docs/FIREWIRE.md with the line of the open driver it comes from.
 //!
 //! Split in two:
-//! - [`FireWireOmni`] holds the protocol: identify the node (vendor register), the start
-//!   sequence (two isochronous channels at the IRM, channel registers 0x1000/0x1001, checks of
-//!   0x1083 = 0xC0 and 0x1082 = 0x00, iso contexts, bit 3 of 0x1087 to stream), the counter
-//!   check on every packet, a full restart after every bus reset, and the stop sequence on
-//!   close (safe packet, clear bit 3 of 0x1087, stop iso, free channels).
+//! - [`FireWireOmni`] holds the protocol: identify the node (vendor and serial registers),
+//!   the start sequence of the vendor library's trace (docs/FIREWIRE.md §2), the packet-rate
+//!   check at open (§5), the counter check on every packet, the encoder signs (§6), a full
+//!   restart after every bus reset, and the stop sequence on close (safe packet, clear bit 3
+//!   of 0x1087, stop iso, free channels).
 //! - [`FireWireBus`] does the bus work: asynchronous register reads and writes, channel
 //!   allocation, iso contexts, packets and bus-reset events. [`cdev::CdevBus`] is the real
 //!   one (ioctls on `/dev/fwN`); tests drive the protocol over a fake bus.
 //!
-//! The §4.5 registers at 0x1000..0x1087 are single bytes at byte addresses (0x1087 is not
-//! quadlet-aligned), so the bus has byte access (1-byte block transactions) beside quadlet
-//! access (the vendor and serial quadlets at 0x1006000C/0x10060010).
+//! The registers at 0x1000..0x1087 are single bytes at byte addresses (0x1087 is not
+//! quadlet-aligned), so the bus has byte access (1-byte block transactions, as libraw1394 makes
+//! of the drivers' 1-byte `raw1394_write`) beside quadlet access (0x1006000C, 0x10060010,
+//! 0x20010).
 
 pub mod cdev;
+#[cfg(test)]
+pub(crate) mod fake;
+pub mod rate;
+pub mod serial;
 
+use super::codec::{MotorCommand, STATE_LAYOUT};
 use super::stream::{
-    packet_counter, CommandGate, CounterTracker, MissReason, StreamStats, Verdict,
+    packet_counter, Byte7, CommandGate, CounterTracker, MissReason, StreamStats, Verdict,
+    WireFormat,
 };
 use super::{Device, DeviceError, RawSample, COMMAND_LEN, STATE_LEN};
 use crate::config::ConfigError;
+use rate::RateMeasurement;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -32,7 +41,7 @@ pub const SENSABLE_VENDOR_ID: u32 = 0x000B99;
 /// Packet rate assumed by [`open_firewire`] (the servo rate of the default config).
 pub const DEFAULT_RATE_HZ: f64 = 1000.0;
 
-/// Largest iso payload the bus hands over (the Omni's are about 44 bytes).
+/// Largest iso payload the bus hands over (the Omni's are 44 bytes).
 pub const ISO_PAYLOAD_MAX: usize = 256;
 
 /// Start attempts after a bus reset before giving up (each further reset during the start
@@ -42,16 +51,19 @@ pub const RESTART_ATTEMPTS: u32 = 3;
 /// Packets read per exchange at most (the newest is delivered).
 pub const MAX_PACKETS_PER_EXCHANGE: usize = 64;
 
-/// Device registers (offsets in the node's address space), DESIGN §4.5.
+/// Device registers (offsets in the node's address space), docs/FIREWIRE.md §2.
 pub mod reg {
-    /// Quadlet: vendor id << 8 (reads 0x000B99xx on an Omni).
+    /// Quadlet: vendor id << 8 (reads 0x000B9900 on an Omni).
     pub const VENDOR: u64 = 0x1006_000C;
-    /// Quadlet: serial number.
+    /// Quadlet: serial number, packed label digits (see `serial`).
     pub const SERIAL: u64 = 0x1006_0010;
     /// Byte: isochronous channel host → device.
     pub const CHANNEL_TO_DEVICE: u64 = 0x1000;
-    /// Byte: isochronous channel device → host.
+    /// Byte: isochronous channel device → host; also the scratch test's register.
     pub const CHANNEL_FROM_DEVICE: u64 = 0x1001;
+    /// Byte: the packet rate per the vendor library's symbol names. No open source reads or
+    /// writes it; `omnid probe` only reads it (docs/FIREWIRE.md §5).
+    pub const RATE: u64 = 0x1002;
     /// Byte read during the start; expected [`CHECK_A_VALUE`].
     pub const CHECK_A: u64 = 0x1083;
     pub const CHECK_A_VALUE: u8 = 0xC0;
@@ -61,20 +73,44 @@ pub mod reg {
     /// Byte: control; bit 3 starts and stops streaming.
     pub const CONTROL: u64 = 0x1087;
     pub const CONTROL_STREAM: u8 = 1 << 3;
+    /// Quadlet the vendor library writes before the start (purpose unknown).
+    pub const VENDOR_INIT: u64 = 0x2_0010;
+    /// The quadlet as it goes on the wire: bytes 00 00 0F F8. The drivers write the x86
+    /// integer 0xf80f0000 from memory, which the bus carries as these bytes
+    /// (docs/FIREWIRE.md §2).
+    pub const VENDOR_INIT_VALUE: u32 = 0x0000_0FF8;
+    /// The scratch test's value, written to and read back from 0x1001.
+    pub const SCRATCH_VALUE: u8 = 0x40;
 }
 
-/// `[firewire]`: which node and how long to wait.
+/// `[firewire]`: which node, how long to wait, and the start sequence's options.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct FirewireConfig {
     /// Device node to use (`/dev/fw1`); empty = search every `/dev/fw*` for vendor 0x000B99.
     pub device: String,
-    /// Serial number of the Omni to use when several are on the bus; empty = the only one.
+    /// Serial number of the Omni to use when several are on the bus (the 11 digits of its
+    /// label); empty = the only one.
     pub serial: String,
     /// How long one exchange may wait for the next state packet, ms.
     pub timeout_ms: u32,
     /// How long a register read or write, or a channel allocation, may take, ms.
     pub register_timeout_ms: u32,
+    /// Write the vendor library's quadlet to 0x20010 before starting.
+    pub vendor_init: bool,
+    /// The vendor library's scratch test of register 0x1001 (write 0x40, read it back).
+    pub scratch_test: bool,
+    /// Retries of a register transaction the node answers busy.
+    pub busy_retries: u32,
+    /// Pause before each such retry, ms.
+    pub busy_retry_ms: u32,
+    /// Sign per joint that turns encoder counts into the OpenHaptics joint directions.
+    pub encoder_sign: [i8; 3],
+    /// Sign per motor of the DAC word; 0 = not measured yet (`omnid probe --outputs`): no
+    /// torque on that motor, and `run`/`serve` refuse to start.
+    pub dac_sign: [i8; 3],
+    /// Byte 7 of every command: "0x53" (the open drivers) or another "0xNN", or "counter".
+    pub command_byte7: String,
 }
 
 impl Default for FirewireConfig {
@@ -84,15 +120,25 @@ impl Default for FirewireConfig {
             serial: String::new(),
             timeout_ms: 10,
             register_timeout_ms: 100,
+            vendor_init: true,
+            scratch_test: true,
+            busy_retries: 5,
+            busy_retry_ms: 100,
+            encoder_sign: OPENHAPTICS_ENCODER_SIGN,
+            dac_sign: [0; 3],
+            command_byte7: "0x53".into(),
         }
     }
 }
+
+/// Encoder count direction → OpenHaptics joint direction, per joint (docs/FIREWIRE.md §6).
+pub const OPENHAPTICS_ENCODER_SIGN: [i8; 3] = [-1, -1, 1];
 
 /// One-line explanations of every `[firewire]` key, for `omnid config --print-default`.
 pub const FIREWIRE_FIELD_DOCS: &[(&str, &str)] = &[
     (
         "firewire",
-        "FireWire Omni (DESIGN §4.5) on Linux firewire-cdev (/dev/fw*).",
+        "FireWire Omni on Linux firewire-cdev (/dev/fw*); facts and sources in docs/FIREWIRE.md.",
     ),
     (
         "firewire.device",
@@ -100,7 +146,7 @@ pub const FIREWIRE_FIELD_DOCS: &[(&str, &str)] = &[
     ),
     (
         "firewire.serial",
-        "serial number of the Omni to use when several are connected; empty = the only one",
+        "the 11-digit label serial of the Omni to use when several are connected; empty = the only one",
     ),
     (
         "firewire.timeout_ms",
@@ -109,6 +155,34 @@ pub const FIREWIRE_FIELD_DOCS: &[(&str, &str)] = &[
     (
         "firewire.register_timeout_ms",
         "wait for a register transaction or channel allocation, ms (1..=5000)",
+    ),
+    (
+        "firewire.vendor_init",
+        "write the vendor library's quadlet to 0x20010 before starting (docs/FIREWIRE.md §2)",
+    ),
+    (
+        "firewire.scratch_test",
+        "the vendor library's scratch test: write 0x40 to 0x1001 and read it back",
+    ),
+    (
+        "firewire.busy_retries",
+        "retries of a register transaction the node answers busy (0..=50)",
+    ),
+    (
+        "firewire.busy_retry_ms",
+        "pause before each busy retry, ms (1..=1000)",
+    ),
+    (
+        "firewire.encoder_sign",
+        "per joint, +1 or -1: encoder counts to OpenHaptics joint directions (docs/FIREWIRE.md §6)",
+    ),
+    (
+        "firewire.dac_sign",
+        "per motor, +1 or -1 as `omnid probe --outputs` measured it; 0 = not measured: no torque, run refuses",
+    ),
+    (
+        "firewire.command_byte7",
+        "byte 7 of every command: \"0x53\" (the open drivers), another \"0xNN\", or \"counter\"",
     ),
 ];
 
@@ -131,12 +205,14 @@ impl FirewireConfig {
                 "empty (search) or a node like \"/dev/fw1\"",
             ));
         }
-        if self.serial.len() > 64 || !self.serial.chars().all(|c| c.is_ascii_graphic()) {
-            return Err(invalid(
-                "firewire.serial",
-                format!("{:?}", self.serial),
-                "empty, or up to 64 printable ASCII characters without spaces",
-            ));
+        if !self.serial.is_empty() {
+            if let Err(e) = serial::parse(&self.serial) {
+                return Err(invalid(
+                    "firewire.serial",
+                    format!("{:?}", self.serial),
+                    &format!("empty, or {}", e.0),
+                ));
+            }
         }
         if !(1..=1000).contains(&self.timeout_ms) {
             return Err(invalid(
@@ -152,7 +228,80 @@ impl FirewireConfig {
                 "1 ..= 5000 ms",
             ));
         }
+        if self.busy_retries > 50 {
+            return Err(invalid(
+                "firewire.busy_retries",
+                self.busy_retries.to_string(),
+                "0 ..= 50",
+            ));
+        }
+        if !(1..=1000).contains(&self.busy_retry_ms) {
+            return Err(invalid(
+                "firewire.busy_retry_ms",
+                self.busy_retry_ms.to_string(),
+                "1 ..= 1000 ms",
+            ));
+        }
+        for (j, s) in self.encoder_sign.iter().enumerate() {
+            if !matches!(s, -1 | 1) {
+                return Err(invalid(
+                    &format!("firewire.encoder_sign[{j}]"),
+                    s.to_string(),
+                    "1 or -1",
+                ));
+            }
+        }
+        for (j, s) in self.dac_sign.iter().enumerate() {
+            if !matches!(s, -1..=1) {
+                return Err(invalid(
+                    &format!("firewire.dac_sign[{j}]"),
+                    s.to_string(),
+                    "1 or -1, or 0 (not measured yet)",
+                ));
+            }
+        }
+        if self.byte7().is_none() {
+            return Err(invalid(
+                "firewire.command_byte7",
+                format!("{:?}", self.command_byte7),
+                "\"0x53\" (the open drivers), another \"0xNN\", or \"counter\"",
+            ));
+        }
         Ok(())
+    }
+
+    /// `command_byte7` parsed (`None` when it is not valid).
+    pub fn byte7(&self) -> Option<Byte7> {
+        if self.command_byte7 == "counter" {
+            return Some(Byte7::Counter);
+        }
+        let hex = self.command_byte7.strip_prefix("0x")?;
+        (hex.len() == 2)
+            .then(|| u8::from_str_radix(hex, 16).ok())
+            .flatten()
+            .map(Byte7::Constant)
+    }
+
+    /// Motors whose DAC sign has not been measured (0-based).
+    pub fn unmeasured_dac_signs(&self) -> Vec<usize> {
+        (0..3).filter(|&j| self.dac_sign[j] == 0).collect()
+    }
+
+    /// The protocol options of this configuration at packet rate `rate_hz`.
+    pub fn options(&self, rate_hz: f64) -> FireWireOptions {
+        FireWireOptions {
+            timeout: Duration::from_millis(u64::from(self.timeout_ms)),
+            rate_hz,
+            vendor_init: self.vendor_init,
+            scratch_test: self.scratch_test,
+            busy_retries: self.busy_retries,
+            busy_retry: Duration::from_millis(u64::from(self.busy_retry_ms)),
+            encoder_sign: self.encoder_sign,
+            format: WireFormat {
+                byte7: self.byte7().unwrap_or(WireFormat::DRIVERS.byte7),
+                dac_sign: self.dac_sign,
+            },
+        }
     }
 
     /// What `open_firewire` looks for, in words.
@@ -168,9 +317,39 @@ impl FirewireConfig {
             format!("{what} with serial {}", self.serial)
         }
     }
+
+    /// Whether the unit with serial quadlet `quadlet` is the configured one.
+    pub fn wants_serial(&self, quadlet: u32) -> bool {
+        self.serial.is_empty() || serial::parse(&self.serial) == Ok(quadlet)
+    }
 }
 
-/// The udev rule of DESIGN §4.5.
+/// How [`FireWireOmni`] runs the protocol.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FireWireOptions {
+    /// How long one exchange waits for the next packet.
+    pub timeout: Duration,
+    /// The configured packet rate (device time is counter / rate; checked at open).
+    pub rate_hz: f64,
+    pub vendor_init: bool,
+    pub scratch_test: bool,
+    pub busy_retries: u32,
+    pub busy_retry: Duration,
+    pub encoder_sign: [i8; 3],
+    pub format: WireFormat,
+}
+
+impl FireWireOptions {
+    /// The defaults of `[firewire]` at `rate_hz`, with `timeout`.
+    pub fn new(timeout: Duration, rate_hz: f64) -> Self {
+        FireWireOptions {
+            timeout,
+            ..FirewireConfig::default().options(rate_hz)
+        }
+    }
+}
+
+/// The udev rule of docs/FIREWIRE.md §7.
 pub const FIREWIRE_UDEV_RULE: &str =
     "SUBSYSTEM==\"firewire\", ATTR{vendor}==\"0x000b99\", MODE=\"0660\", GROUP=\"plugdev\"";
 
@@ -203,6 +382,10 @@ pub enum BusError {
     NoChannel,
     #[error("the isochronous transmit queue is full (the controller stopped sending)")]
     TxStalled,
+    /// The node answered busy (RCODE_BUSY) or conflict (RCODE_CONFLICT_ERROR): try again, as
+    /// the Twente driver does on EAGAIN (rev-eng/easy-com.c:34-37).
+    #[error("the node answered busy (response code {0:#04x})")]
+    Busy(u32),
     #[error("the node answered with response code {0:#04x}")]
     Rcode(u32),
     #[error("isochronous streaming is not running")]
@@ -211,11 +394,22 @@ pub enum BusError {
     Os { op: &'static str, errno: i32 },
 }
 
+/// One received iso packet: its length and what the kernel reports beside it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PacketInfo {
+    /// Payload bytes in the buffer.
+    pub len: usize,
+    /// The 1394 iso packet header (data_length, tag, channel, tcode, sy), as a number.
+    pub iso_header: u32,
+    /// Receive timestamp: 3 bits cycleSeconds, 13 bits cycleCount.
+    pub timestamp: u16,
+}
+
 /// What waiting for the next packet brought.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BusEvent {
-    /// A packet of this many bytes is in the buffer.
-    Packet(usize),
+    /// A packet is in the buffer.
+    Packet(PacketInfo),
     /// The bus was reset: channels and device state are void, the start must be redone.
     BusReset,
     /// Nothing arrived in time.
@@ -226,7 +420,7 @@ pub enum BusEvent {
 pub trait FireWireBus: Send {
     /// Read a quadlet (big-endian on the wire, returned as a number).
     fn read_quadlet(&mut self, offset: u64) -> Result<u32, BusError>;
-    /// Write a quadlet.
+    /// Write a quadlet (the number goes on the wire big-endian).
     fn write_quadlet(&mut self, offset: u64, value: u32) -> Result<(), BusError>;
     /// Read one byte (a 1-byte block read).
     fn read_byte(&mut self, offset: u64) -> Result<u8, BusError>;
@@ -250,25 +444,90 @@ pub trait FireWireBus: Send {
     ) -> Result<BusEvent, BusError>;
 }
 
+/// Which step of the start sequence an error happened in (named in the message).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    ReadByte(u64),
+    WriteByte(u64, u8),
+    WriteQuadlet(u64, u32),
+    AllocateChannel,
+    StartIso,
+    SendSafePacket,
+}
+
+impl std::fmt::Display for Step {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Step::ReadByte(r) => write!(f, "reading register {r:#x}"),
+            Step::WriteByte(r, v) => write!(f, "writing {v:#04x} to register {r:#x}"),
+            Step::WriteQuadlet(r, v) => write!(f, "writing quadlet {v:#010x} to {r:#x}"),
+            Step::AllocateChannel => f.write_str("allocating an isochronous channel"),
+            Step::StartIso => f.write_str("starting the isochronous contexts"),
+            Step::SendSafePacket => f.write_str("sending the first zero-torque packet"),
+        }
+    }
+}
+
 /// Why the start sequence failed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum StartError {
-    Bus(BusError),
-    Register { reg: u64, got: u8, expected: u8 },
+    Bus(Step, BusError),
+    Register {
+        reg: u64,
+        got: u8,
+        expected: u8,
+        what: &'static str,
+    },
 }
 
-impl From<BusError> for StartError {
-    fn from(e: BusError) -> Self {
-        StartError::Bus(e)
+impl StartError {
+    fn bus(&self) -> Option<BusError> {
+        match self {
+            StartError::Bus(_, e) => Some(*e),
+            StartError::Register { .. } => None,
+        }
     }
 }
+
+/// One received or sent packet as `omnid probe` captures it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Tapped {
+    /// Host monotonic time, ns.
+    pub host_ns: u64,
+    /// `None` for a command the host sent.
+    pub received: Option<PacketInfo>,
+    pub bytes: Vec<u8>,
+}
+
+/// One register as `omnid probe` reads it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RegisterReading {
+    pub offset: u64,
+    /// 1 (byte register) or 4 (quadlet).
+    pub width: u8,
+    pub name: &'static str,
+    pub value: Result<u32, BusError>,
+}
+
+/// The registers `omnid probe` reads (reads only: nothing here is written).
+pub const PROBE_REGISTERS: &[(u64, u8, &str)] = &[
+    (reg::VENDOR, 4, "vendor quadlet (expect 0x000b9900)"),
+    (reg::SERIAL, 4, "serial quadlet (label digits packed)"),
+    (reg::CHANNEL_TO_DEVICE, 1, "iso channel host -> device"),
+    (reg::CHANNEL_FROM_DEVICE, 1, "iso channel device -> host"),
+    (reg::RATE, 1, "rate? (vendor symbol name only; unverified)"),
+    (reg::CHECK_B, 1, "start check (expect 0x00)"),
+    (reg::CHECK_A, 1, "start check (expect 0xc0)"),
+    (reg::CONTROL, 1, "control (bit 3 = streaming)"),
+];
 
 /// The FireWire Omni. Generic over the bus so tests can script the node.
 pub struct FireWireOmni<B: FireWireBus> {
     bus: B,
     name: String,
     serial: Option<String>,
-    timeout: Duration,
+    serial_quadlet: Option<u32>,
+    opts: FireWireOptions,
     gate: CommandGate,
     tracker: CounterTracker,
     stats: StreamStats,
@@ -281,18 +540,31 @@ pub struct FireWireOmni<B: FireWireBus> {
     touched: bool,
     gone: bool,
     closed: bool,
+    /// The stream bit was found set at a start (a run that crashed) and cleared.
+    stale_stream_cleared: bool,
+    /// The last delivered packet's receive information.
+    last_packet: Option<PacketInfo>,
+    /// `omnid probe`: every packet received and sent, when on.
+    tap: Option<Vec<Tapped>>,
 }
 
 impl<B: FireWireBus> FireWireOmni<B> {
-    /// No bus traffic yet: see [`identify`](Self::identify) and [`start`](Self::start).
+    /// No bus traffic yet; default `[firewire]` options with this timeout and rate. See
+    /// [`identify`](Self::identify) and [`start`](Self::start).
     pub fn new(bus: B, name: String, timeout: Duration, rate_hz: f64) -> Self {
+        Self::with_options(bus, name, FireWireOptions::new(timeout, rate_hz))
+    }
+
+    /// No bus traffic yet.
+    pub fn with_options(bus: B, name: String, opts: FireWireOptions) -> Self {
         FireWireOmni {
             bus,
             name,
             serial: None,
-            timeout,
-            gate: CommandGate::new(),
-            tracker: CounterTracker::new(1.0 / rate_hz),
+            serial_quadlet: None,
+            opts,
+            gate: CommandGate::with_format(opts.format),
+            tracker: CounterTracker::new(1.0 / opts.rate_hz),
             stats: StreamStats::default(),
             buf: Box::new([0; ISO_PAYLOAD_MAX]),
             to_device: None,
@@ -302,28 +574,57 @@ impl<B: FireWireBus> FireWireOmni<B> {
             touched: false,
             gone: false,
             closed: false,
+            stale_stream_cleared: false,
+            last_packet: None,
+            tap: None,
         }
     }
 
-    /// Identify, then start streaming.
+    /// Identify, then start streaming (no rate check: see [`check_rate`](Self::check_rate)).
     pub fn open(
         bus: B,
         name: String,
         timeout: Duration,
         rate_hz: f64,
     ) -> Result<Self, DeviceError> {
-        let mut omni = Self::new(bus, name, timeout, rate_hz);
+        Self::open_with(bus, name, FireWireOptions::new(timeout, rate_hz))
+    }
+
+    /// Identify, then start streaming with these options.
+    pub fn open_with(bus: B, name: String, opts: FireWireOptions) -> Result<Self, DeviceError> {
+        let mut omni = Self::with_options(bus, name, opts);
         omni.identify()?;
         omni.start()?;
         Ok(omni)
     }
 
+    /// The name messages use (`/dev/fw1`).
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The serial quadlet as read by [`identify`](Self::identify).
+    pub fn serial_quadlet(&self) -> Option<u32> {
+        self.serial_quadlet
+    }
+
+    /// Whether a start found the stream bit set (left by a run that did not stop) and cleared
+    /// it.
+    pub fn stale_stream_cleared(&self) -> bool {
+        self.stale_stream_cleared
+    }
+
+    /// The last delivered packet's receive information.
+    pub fn last_packet(&self) -> Option<PacketInfo> {
+        self.last_packet
+    }
+
     /// Check the vendor register says SensAble and read the serial number (no writes).
+    /// Returns the serial in the 11-digit form of the unit's label.
     pub fn identify(&mut self) -> Result<String, DeviceError> {
         let vendor = self
-            .bus
             .read_quadlet(reg::VENDOR)
-            .map_err(|e| self.bus_failure("reading the vendor register", e))?;
+            .map_err(|e| self.bus_failure("reading the vendor register 0x1006000c", e))?;
         if vendor >> 8 != SENSABLE_VENDOR_ID {
             return Err(DeviceError::NotFound {
                 looked_for: format!(
@@ -338,16 +639,33 @@ impl<B: FireWireBus> FireWireOmni<B> {
                 ),
             });
         }
-        let serial = self
-            .bus
+        let quadlet = self
             .read_quadlet(reg::SERIAL)
-            .map_err(|e| self.bus_failure("reading the serial register", e))?;
-        let serial = serial.to_string();
+            .map_err(|e| self.bus_failure("reading the serial register 0x10060010", e))?;
+        let serial = serial::name(quadlet);
         self.serial = Some(serial.clone());
+        self.serial_quadlet = Some(quadlet);
         Ok(serial)
     }
 
-    /// The start sequence of DESIGN §4.5, redone after every bus reset.
+    /// Read the registers of [`PROBE_REGISTERS`] (reads only).
+    pub fn read_registers(&mut self) -> Vec<RegisterReading> {
+        PROBE_REGISTERS
+            .iter()
+            .map(|&(offset, width, name)| RegisterReading {
+                offset,
+                width,
+                name,
+                value: if width == 4 {
+                    self.read_quadlet(offset)
+                } else {
+                    self.read_byte(offset).map(u32::from)
+                },
+            })
+            .collect()
+    }
+
+    /// The start sequence (docs/FIREWIRE.md §2), redone after every bus reset.
     pub fn start(&mut self) -> Result<(), DeviceError> {
         match self.start_sequence() {
             Ok(()) => Ok(()),
@@ -358,44 +676,209 @@ impl<B: FireWireBus> FireWireOmni<B> {
         }
     }
 
+    /// Measure the packet rate over [`rate::MEASURE_PACKETS`] packets (zero torque, amplifiers
+    /// off) and refuse a device that does not run at the configured rate. The amplifiers stay
+    /// off until the next sample after this.
+    pub fn check_rate(&mut self) -> Result<RateMeasurement, DeviceError> {
+        let m = self.measure_rate(rate::MEASURE_PACKETS)?;
+        match m.mismatch(self.opts.rate_hz) {
+            None => Ok(m),
+            Some(why) => Err(DeviceError::Unsupported(format!(
+                "FireWire Omni {}: {why}",
+                self.name
+            ))),
+        }
+    }
+
+    /// Exchange `packets` safe packets and measure the stream from what arrived.
+    pub fn measure_rate(&mut self, packets: usize) -> Result<RateMeasurement, DeviceError> {
+        let tapping = self.tap.is_some();
+        let mut seen: Vec<(u32, u16)> = Vec::with_capacity(packets);
+        let mut misses = 0usize;
+        while seen.len() < packets {
+            let safe = crate::device::codec::encode_command(&MotorCommand::safe(0));
+            match self.exchange_observed(&safe, &mut seen) {
+                Ok(()) => {}
+                Err(DeviceError::Missed(_)) => {
+                    misses += 1;
+                    if misses > packets {
+                        break;
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        if !tapping {
+            self.tap = None;
+        }
+        self.gate.require_new_sample();
+        Ok(RateMeasurement::from_packets(&seen))
+    }
+
+    /// One exchange that also notes every packet's `(counter, timestamp)` (all of them, not
+    /// only the delivered one).
+    fn exchange_observed(
+        &mut self,
+        command: &[u8; COMMAND_LEN],
+        seen: &mut Vec<(u32, u16)>,
+    ) -> Result<(), DeviceError> {
+        let mut tap = self.tap.take().unwrap_or_default();
+        let before = tap.len();
+        self.tap = Some(tap);
+        let r = self.exchange(command).map(|_| ());
+        tap = self.tap.take().unwrap_or_default();
+        for t in &tap[before..] {
+            if let Some(info) = t.received {
+                if t.bytes.len() >= STATE_LEN {
+                    seen.push((packet_counter(&t.bytes), info.timestamp));
+                }
+            }
+        }
+        self.tap = Some(tap);
+        r
+    }
+
+    /// Start or stop recording every packet received and sent ([`take_tapped`]). Off in the
+    /// servo: recording allocates.
+    ///
+    /// [`take_tapped`]: Self::take_tapped
+    pub fn set_tap(&mut self, on: bool) {
+        self.tap = on.then(|| self.tap.take().unwrap_or_default());
+    }
+
+    /// The packets recorded since the last call.
+    pub fn take_tapped(&mut self) -> Vec<Tapped> {
+        match self.tap.as_mut() {
+            Some(t) => std::mem::take(t),
+            None => Vec::new(),
+        }
+    }
+
+    /// One exchange with `cmd` as it is: no DAC signs applied (the probe's sign check). The
+    /// amplifiers still stay off until a sample has been delivered.
+    pub fn exchange_raw(&mut self, cmd: MotorCommand) -> Result<RawSample, DeviceError> {
+        let wire = self.gate.raw(cmd);
+        self.exchange_wire(wire, None)
+    }
+
     /// Everything unusual seen on the stream so far.
     pub fn stats(&self) -> StreamStats {
         self.stats
     }
 
-    fn start_sequence(&mut self) -> Result<(), StartError> {
-        self.touched = true;
-        let to_device = self.bus.allocate_channel()?;
-        self.to_device = Some(to_device);
-        let from_device = self.bus.allocate_channel()?;
-        self.from_device = Some(from_device);
-        self.bus.write_byte(reg::CHANNEL_TO_DEVICE, to_device)?;
-        self.bus.write_byte(reg::CHANNEL_FROM_DEVICE, from_device)?;
-        for (r, expected) in [
-            (reg::CHECK_A, reg::CHECK_A_VALUE),
-            (reg::CHECK_B, reg::CHECK_B_VALUE),
-        ] {
-            let got = self.bus.read_byte(r)?;
-            if got != expected {
-                return Err(StartError::Register {
-                    reg: r,
-                    got,
-                    expected,
-                });
+    /// A register transaction, retried while the node answers busy.
+    fn retry<T>(
+        &mut self,
+        mut op: impl FnMut(&mut B) -> Result<T, BusError>,
+    ) -> Result<T, BusError> {
+        let mut left = self.opts.busy_retries;
+        loop {
+            match op(&mut self.bus) {
+                Err(BusError::Busy(_)) if left > 0 => {
+                    left -= 1;
+                    std::thread::sleep(self.opts.busy_retry);
+                }
+                r => return r,
             }
         }
-        self.bus.start_iso(from_device, to_device)?;
+    }
+
+    fn read_byte(&mut self, r: u64) -> Result<u8, BusError> {
+        self.retry(|b| b.read_byte(r))
+    }
+
+    fn read_quadlet(&mut self, r: u64) -> Result<u32, BusError> {
+        self.retry(|b| b.read_quadlet(r))
+    }
+
+    fn write_byte(&mut self, r: u64, v: u8) -> Result<(), StartError> {
+        self.retry(|b| b.write_byte(r, v))
+            .map_err(|e| StartError::Bus(Step::WriteByte(r, v), e))
+    }
+
+    fn read_step(&mut self, r: u64) -> Result<u8, StartError> {
+        self.read_byte(r)
+            .map_err(|e| StartError::Bus(Step::ReadByte(r), e))
+    }
+
+    fn expect(&mut self, r: u64, expected: u8, what: &'static str) -> Result<(), StartError> {
+        let got = self.read_step(r)?;
+        if got != expected {
+            return Err(StartError::Register {
+                reg: r,
+                got,
+                expected,
+                what,
+            });
+        }
+        Ok(())
+    }
+
+    fn start_sequence(&mut self) -> Result<(), StartError> {
+        self.touched = true;
+        // A run that crashed leaves the device streaming on channels nobody owns: stop it
+        // first (the drivers only ever set this bit; PhantomIsoChannel.cpp:115-121 would
+        // leave it as it is).
+        let control = self.read_step(reg::CONTROL)?;
+        if control & reg::CONTROL_STREAM != 0 {
+            self.write_byte(reg::CONTROL, control & !reg::CONTROL_STREAM)?;
+            self.stale_stream_cleared = true;
+        }
+        let to_device = self.allocate()?;
+        self.to_device = Some(to_device);
+        let from_device = self.allocate()?;
+        self.from_device = Some(from_device);
+        // The vendor trace's order (minimal-test/opensource.c:194-224): host → device channel
+        // (:194; PhantomSpec.h:25), device → host channel (:197; PhantomSpec.h:26), the
+        // 0x20010 quadlet (:200; omnifirewire.cpp:391-392), the scratch test (:203-212;
+        // PhantomIsoChannel.cpp:71-93), 0x1083 and 0x1082 (:217-221; omni.c:429-439).
+        self.write_byte(reg::CHANNEL_TO_DEVICE, to_device)?;
+        self.write_byte(reg::CHANNEL_FROM_DEVICE, from_device)?;
+        if self.opts.vendor_init {
+            let v = reg::VENDOR_INIT_VALUE;
+            self.retry(|b| b.write_quadlet(reg::VENDOR_INIT, v))
+                .map_err(|e| StartError::Bus(Step::WriteQuadlet(reg::VENDOR_INIT, v), e))?;
+        }
+        if self.opts.scratch_test {
+            self.expect(
+                reg::CHANNEL_FROM_DEVICE,
+                from_device,
+                "the channel just written",
+            )?;
+            self.write_byte(reg::CHANNEL_FROM_DEVICE, reg::SCRATCH_VALUE)?;
+            self.expect(
+                reg::CHANNEL_FROM_DEVICE,
+                reg::SCRATCH_VALUE,
+                "the scratch value just written",
+            )?;
+            self.write_byte(reg::CHANNEL_FROM_DEVICE, from_device)?;
+        }
+        self.expect(reg::CHECK_A, reg::CHECK_A_VALUE, "the start check")?;
+        self.expect(reg::CHECK_B, reg::CHECK_B_VALUE, "the start check")?;
+        // omnid starts its own contexts before the device streams (the drivers do it after
+        // writing 0x1087), so that the first packet on the wire is the safe one.
+        self.bus
+            .start_iso(from_device, to_device)
+            .map_err(|e| StartError::Bus(Step::StartIso, e))?;
         self.iso_running = true;
-        // The first packet on the wire is the safe one.
         self.gate.require_new_sample();
         let safe = self.gate.safe();
-        self.bus.send_packet(&safe)?;
-        let control = self.bus.read_byte(reg::CONTROL)?;
         self.bus
-            .write_byte(reg::CONTROL, control | reg::CONTROL_STREAM)?;
+            .send_packet(&safe)
+            .map_err(|e| StartError::Bus(Step::SendSafePacket, e))?;
+        self.tap_sent(&safe);
+        // Bit 3 of 0x1087 starts the stream (opensource.c:223; omni.c:443-453).
+        let control = self.read_step(reg::CONTROL)?;
+        self.write_byte(reg::CONTROL, control | reg::CONTROL_STREAM)?;
         self.streaming = true;
         self.tracker.reanchor();
         Ok(())
+    }
+
+    fn allocate(&mut self) -> Result<u8, StartError> {
+        self.bus
+            .allocate_channel()
+            .map_err(|e| StartError::Bus(Step::AllocateChannel, e))
     }
 
     /// After a failed start: stop iso and give the channels back, unless a bus reset already
@@ -404,7 +887,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
         // The stream bit is the start's last write: a failed start leaves nothing to clear.
         self.streaming = false;
         self.touched = false;
-        if e == StartError::Bus(BusError::Gone) {
+        if e.bus() == Some(BusError::Gone) {
             self.gone = true;
             return;
         }
@@ -412,7 +895,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
             let _ = self.bus.stop_iso();
             self.iso_running = false;
         }
-        let reset = e == StartError::Bus(BusError::BusReset);
+        let reset = e.bus() == Some(BusError::BusReset);
         for ch in [self.to_device.take(), self.from_device.take()]
             .into_iter()
             .flatten()
@@ -439,15 +922,28 @@ impl<B: FireWireBus> FireWireOmni<B> {
 
     fn start_failure(&mut self, e: StartError) -> DeviceError {
         match e {
-            StartError::Bus(BusError::NoChannel) => DeviceError::Io(format!(
+            StartError::Bus(_, BusError::NoChannel) => DeviceError::Io(format!(
                 "FireWire Omni {}: no free isochronous channel at the bus's resource manager \
                  (another program streaming? unplug other FireWire devices)",
                 self.name
             )),
-            StartError::Bus(b) => self.bus_failure("starting the stream", b),
-            StartError::Register { reg, got, expected } => DeviceError::Io(format!(
-                "FireWire Omni {}: register {reg:#x} reads {got:#04x}, expected {expected:#04x}: \
-                 the device is not in the state the start sequence expects; power-cycle it",
+            StartError::Bus(step, BusError::Busy(rcode)) => DeviceError::Io(format!(
+                "FireWire Omni {}: {step}: the node still answered busy (response code \
+                 {rcode:#04x}) after {} retries {} ms apart",
+                self.name,
+                self.opts.busy_retries,
+                self.opts.busy_retry.as_millis()
+            )),
+            StartError::Bus(step, b) => self.bus_failure(&format!("start sequence: {step}"), b),
+            StartError::Register {
+                reg,
+                got,
+                expected,
+                what,
+            } => DeviceError::Io(format!(
+                "FireWire Omni {}: register {reg:#x} reads {got:#04x}, expected {expected:#04x} \
+                 ({what}): the device is not in the state the start sequence expects; \
+                 power-cycle it",
                 self.name
             )),
         }
@@ -464,17 +960,17 @@ impl<B: FireWireBus> FireWireOmni<B> {
     fn restart(&mut self) -> DeviceError {
         self.stats.restarts += 1;
         for _ in 0..RESTART_ATTEMPTS {
-            self.undo_failed_start(StartError::Bus(BusError::BusReset));
+            self.undo_failed_start(StartError::Bus(Step::StartIso, BusError::BusReset));
             match self.start_sequence() {
                 Ok(()) => return self.miss(MissReason::BusReset),
-                Err(StartError::Bus(BusError::BusReset)) => continue,
+                Err(e) if e.bus() == Some(BusError::BusReset) => continue,
                 Err(e) => {
                     self.undo_failed_start(e);
                     return self.start_failure(e);
                 }
             }
         }
-        self.undo_failed_start(StartError::Bus(BusError::BusReset));
+        self.undo_failed_start(StartError::Bus(Step::StartIso, BusError::BusReset));
         DeviceError::Io(format!(
             "FireWire Omni {}: the bus kept resetting; streaming could not be restarted",
             self.name
@@ -510,23 +1006,46 @@ impl<B: FireWireBus> FireWireOmni<B> {
         }
     }
 
-    fn deliver(&mut self, out: [u8; STATE_LEN], t: f64) -> RawSample {
+    /// The delivered packet: encoder words turned to the OpenHaptics directions.
+    fn deliver(&mut self, mut out: [u8; STATE_LEN], t: f64, info: PacketInfo) -> RawSample {
+        for (j, &at) in STATE_LAYOUT.encoder.iter().enumerate() {
+            if self.opts.encoder_sign[j] < 0 {
+                let raw = u16::from_le_bytes([out[at], out[at + 1]]);
+                out[at..at + 2].copy_from_slice(&raw.wrapping_neg().to_le_bytes());
+            }
+        }
         self.stats.delivered += 1;
         self.gate.sample_delivered();
+        self.last_packet = Some(info);
         RawSample::new(out, t)
     }
-}
 
-impl<B: FireWireBus> Device for FireWireOmni<B> {
-    fn kind(&self) -> &'static str {
-        "firewire"
+    fn tap_sent(&mut self, wire: &[u8; COMMAND_LEN]) {
+        if let Some(tap) = self.tap.as_mut() {
+            tap.push(Tapped {
+                host_ns: crate::servo::clock::now_ns(),
+                received: None,
+                bytes: wire.to_vec(),
+            });
+        }
     }
 
-    fn serial(&self) -> Option<&str> {
-        self.serial.as_deref()
+    fn tap_received(&mut self, info: PacketInfo) {
+        if let Some(tap) = self.tap.as_mut() {
+            let n = info.len.min(ISO_PAYLOAD_MAX);
+            tap.push(Tapped {
+                host_ns: crate::servo::clock::now_ns(),
+                received: Some(info),
+                bytes: self.buf[..n].to_vec(),
+            });
+        }
     }
 
-    fn exchange(&mut self, command: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError> {
+    fn exchange_wire(
+        &mut self,
+        wire: [u8; COMMAND_LEN],
+        malformed: Option<super::CodecError>,
+    ) -> Result<RawSample, DeviceError> {
         if self.gone {
             return Err(DeviceError::Disconnected(format!(
                 "FireWire Omni {}: {}",
@@ -543,9 +1062,8 @@ impl<B: FireWireBus> Device for FireWireOmni<B> {
         if !self.streaming {
             return Err(self.restart());
         }
-        let (wire, malformed) = self.gate.wire(command);
         match self.bus.send_packet(&wire) {
-            Ok(()) => {}
+            Ok(()) => self.tap_sent(&wire),
             Err(BusError::BusReset) => return Err(self.restart()),
             Err(BusError::TxStalled) | Err(BusError::Timeout) => {
                 return Err(self.miss(MissReason::WriteStalled))
@@ -559,19 +1077,20 @@ impl<B: FireWireBus> Device for FireWireOmni<B> {
         }
         let start = Instant::now();
         let mut out = [0u8; STATE_LEN];
-        let mut newest: Option<f64> = None;
+        let mut newest: Option<(f64, PacketInfo)> = None;
         for _ in 0..MAX_PACKETS_PER_EXCHANGE {
             // Once a fresh packet is in hand, only take what is already there.
             let wait = match newest {
                 Some(_) => Duration::ZERO,
-                None => match self.timeout.checked_sub(start.elapsed()) {
+                None => match self.opts.timeout.checked_sub(start.elapsed()) {
                     Some(w) if !w.is_zero() => w,
                     _ => return Err(self.miss(MissReason::ReadTimeout)),
                 },
             };
             match self.bus.next_packet(&mut self.buf, wait) {
-                Ok(BusEvent::Packet(len)) => {
-                    if len < STATE_LEN {
+                Ok(BusEvent::Packet(info)) => {
+                    self.tap_received(info);
+                    if info.len < STATE_LEN {
                         self.stats.malformed += 1;
                         continue;
                     }
@@ -592,22 +1111,37 @@ impl<B: FireWireBus> Device for FireWireOmni<B> {
                                 self.stats.superseded += 1;
                             }
                             out.copy_from_slice(packet);
-                            newest = Some(t);
+                            newest = Some((t, info));
                         }
                     }
                 }
                 Ok(BusEvent::BusReset) | Err(BusError::BusReset) => return Err(self.restart()),
                 Ok(BusEvent::Timeout) | Err(BusError::Timeout) => match newest {
-                    Some(t) => return Ok(self.deliver(out, t)),
+                    Some((t, info)) => return Ok(self.deliver(out, t, info)),
                     None => return Err(self.miss(MissReason::ReadTimeout)),
                 },
                 Err(e) => return Err(self.bus_failure("receiving", e)),
             }
         }
         match newest {
-            Some(t) => Ok(self.deliver(out, t)),
+            Some((t, info)) => Ok(self.deliver(out, t, info)),
             None => Err(self.miss(MissReason::NoFreshPacket)),
         }
+    }
+}
+
+impl<B: FireWireBus> Device for FireWireOmni<B> {
+    fn kind(&self) -> &'static str {
+        "firewire"
+    }
+
+    fn serial(&self) -> Option<&str> {
+        self.serial.as_deref()
+    }
+
+    fn exchange(&mut self, command: &[u8; COMMAND_LEN]) -> Result<RawSample, DeviceError> {
+        let (wire, malformed) = self.gate.wire(command);
+        self.exchange_wire(wire, malformed)
     }
 
     /// The stop sequence: one more safe packet, clear bit 3 of 0x1087, stop iso, free the
@@ -625,6 +1159,9 @@ impl<B: FireWireBus> Device for FireWireOmni<B> {
         if self.iso_running {
             let safe = self.gate.safe();
             let r = self.bus.send_packet(&safe);
+            if r.is_ok() {
+                self.tap_sent(&safe);
+            }
             if !self.stop_step(
                 "sending the final zero-torque packet",
                 r,
@@ -635,9 +1172,8 @@ impl<B: FireWireBus> Device for FireWireOmni<B> {
             }
         }
         let r = self
-            .bus
             .read_byte(reg::CONTROL)
-            .and_then(|c| self.bus.write_byte(reg::CONTROL, c & !reg::CONTROL_STREAM));
+            .and_then(|c| self.retry(|b| b.write_byte(reg::CONTROL, c & !reg::CONTROL_STREAM)));
         if !self.stop_step(
             "clearing the stream bit of register 0x1087",
             r,
@@ -798,13 +1334,25 @@ pub fn open_firewire(cfg: &FirewireConfig) -> Result<Box<dyn Device>, DeviceErro
     open_firewire_with_rate(cfg, DEFAULT_RATE_HZ)
 }
 
-/// Open the FireWire Omni; `rate_hz` is the packet rate the device is set to (device time
+/// Open the FireWire Omni, start it and check its packet rate against `rate_hz` (device time
 /// comes from the packet counter). Fails fast with `NotFound` when there is no FireWire or no
-/// Omni, and with `Permission` (and the udev fix) when the node cannot be opened.
+/// Omni, with `Permission` (and the udev fix) when the node cannot be opened, and with
+/// `Unsupported` naming both rates when the device runs at another.
 pub fn open_firewire_with_rate(
     cfg: &FirewireConfig,
     rate_hz: f64,
 ) -> Result<Box<dyn Device>, DeviceError> {
+    let mut omni = find_firewire(cfg, rate_hz)?;
+    omni.start()?;
+    omni.check_rate()?;
+    Ok(Box::new(omni))
+}
+
+/// Find and identify the configured Omni (reads only: nothing is written to it yet).
+pub fn find_firewire(
+    cfg: &FirewireConfig,
+    rate_hz: f64,
+) -> Result<FireWireOmni<cdev::CdevBus>, DeviceError> {
     cfg.validate()
         .map_err(|e| DeviceError::Unsupported(e.to_string()))?;
     if !(rate_hz.is_finite() && rate_hz > 0.0) {
@@ -814,7 +1362,6 @@ pub fn open_firewire_with_rate(
     }
     let nodes = cdev::scan_nodes(Path::new("/dev"), Path::new(cdev::SYSFS_FIREWIRE_DEVICES));
     let candidates = candidate_nodes(&nodes, cfg)?;
-    let timeout = Duration::from_millis(u64::from(cfg.timeout_ms));
     let register_timeout = Duration::from_millis(u64::from(cfg.register_timeout_ms));
     let mut serials = Vec::new();
     let mut chosen = Vec::new();
@@ -830,10 +1377,11 @@ pub fn open_firewire_with_rate(
             Err(BusError::Gone) => continue,
             Err(e) => return Err(DeviceError::Io(format!("opening {}: {e}", path.display()))),
         };
-        let mut omni = FireWireOmni::new(bus, path.display().to_string(), timeout, rate_hz);
+        let mut omni =
+            FireWireOmni::with_options(bus, path.display().to_string(), cfg.options(rate_hz));
         let serial = omni.identify()?;
         serials.push(format!("{serial} at {}", path.display()));
-        if cfg.serial.is_empty() || cfg.serial == serial {
+        if omni.serial_quadlet().is_some_and(|q| cfg.wants_serial(q)) {
             chosen.push(omni);
         }
     }
@@ -847,21 +1395,17 @@ pub fn open_firewire_with_rate(
             ),
         });
     }
-    let Some(mut omni) = chosen.pop() else {
-        return Err(DeviceError::NotFound {
-            looked_for: cfg.looked_for(),
-            hint: if serials.is_empty() {
-                no_omni_hint(&nodes)
-            } else {
-                format!(
-                    "Omnis found: {}; set firewire.serial to one of them.",
-                    serials.join(", ")
-                )
-            },
-        });
-    };
-    omni.start()?;
-    Ok(Box::new(omni))
+    chosen.pop().ok_or_else(|| DeviceError::NotFound {
+        looked_for: cfg.looked_for(),
+        hint: if serials.is_empty() {
+            no_omni_hint(&nodes)
+        } else {
+            format!(
+                "Omnis found: {}; set firewire.serial to one of them.",
+                serials.join(", ")
+            )
+        },
+    })
 }
 
 #[cfg(test)]

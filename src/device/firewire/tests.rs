@@ -1,326 +1,78 @@
-//! The FireWire protocol over a fake bus that models the Omni's registers and stream and
-//! records every operation.
+//! The FireWire protocol over the fake bus of `fake.rs`, whose packets come from a byte table
+//! written from the open drivers (not from `codec.rs`), and golden packets.
 
+use super::fake::{
+    device_packet, read_command, state, wire, ArmState, FakeBus, Next, Op, SERIAL_LABEL,
+    SERIAL_QUADLET,
+};
 use super::*;
 use crate::config::Config;
 use crate::device::codec::{
-    decode_command, encode_command, encode_state, MotorCommand, StatePacket,
+    decode_command, decode_state, encode_command, encode_state, MotorCommand, StatePacket, DAC_ZERO,
 };
 use crate::device::testkit::{assert_wire_discipline, run_servo};
 use crate::servo::EndReason;
-use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
-/// One bus operation, as the fake saw it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-enum Op {
-    ReadQuadlet(u64),
-    ReadByte(u64),
-    WriteByte(u64, u8),
-    Allocate(u8),
-    Free(u8),
-    StartIso { rx: u8, tx: u8 },
-    StopIso,
-    Send([u8; 16]),
-}
-
-/// What `next_packet` does when asked, in order; when empty, the device streams normally
-/// (or stays silent with `silent`).
-enum Next {
-    Packet(u32),
-    Raw(Vec<u8>),
-    Timeout,
-    BusReset,
-    Gone,
-}
-
-struct FakeNode {
-    regs: HashMap<u64, u8>,
-    vendor_quadlet: u32,
-    serial: u32,
-    ops: Vec<Op>,
-    script: VecDeque<Next>,
-    next_counter: u32,
-    free_channels: Vec<u8>,
-    iso: bool,
-    silent: bool,
-    gone: bool,
-    /// Packets handed out so far (for stop/unplug/silence triggers).
-    delivered: usize,
-    stop_after: Option<(usize, Arc<AtomicBool>)>,
-    silent_after: Option<usize>,
-    gone_after: Option<usize>,
-    reset_after: Option<usize>,
-    /// Register writes so far, and the write (1-based) at which a bus reset happens.
-    writes: usize,
-    reset_at_write: Option<usize>,
-}
-
-impl Default for FakeNode {
-    fn default() -> Self {
-        let regs = HashMap::from([
-            (reg::CHANNEL_TO_DEVICE, 0),
-            (reg::CHANNEL_FROM_DEVICE, 0),
-            (reg::CHECK_A, 0xC0),
-            (reg::CHECK_B, 0x00),
-            (reg::CONTROL, 0x00),
-        ]);
-        FakeNode {
-            regs,
-            vendor_quadlet: 0x000B_9900,
-            serial: 31337,
-            ops: Vec::new(),
-            script: VecDeque::new(),
-            next_counter: 1000,
-            free_channels: vec![5, 9, 12, 14, 20, 21],
-            iso: false,
-            silent: false,
-            gone: false,
-            delivered: 0,
-            stop_after: None,
-            silent_after: None,
-            gone_after: None,
-            reset_after: None,
-            writes: 0,
-            reset_at_write: None,
-        }
-    }
-}
-
-impl FakeNode {
-    fn streaming(&self) -> bool {
-        self.iso && self.regs[&reg::CONTROL] & reg::CONTROL_STREAM != 0
-    }
-
-    /// A bus reset: the device forgets its channels and stops streaming; the IRM forgets
-    /// the allocations (the fake hands out fresh ones).
-    fn reset(&mut self) {
-        self.regs.insert(reg::CONTROL, 0);
-        self.regs.insert(reg::CHANNEL_TO_DEVICE, 0);
-        self.regs.insert(reg::CHANNEL_FROM_DEVICE, 0);
-        self.iso = false;
-    }
-
-    fn sent(&self) -> Vec<MotorCommand> {
-        self.ops
-            .iter()
-            .filter_map(|op| match op {
-                Op::Send(b) => Some(decode_command(b).expect("malformed command on the wire")),
-                _ => None,
-            })
-            .collect()
-    }
-}
-
-#[derive(Clone, Default)]
-struct FakeBus(Arc<Mutex<FakeNode>>);
-
-impl FakeBus {
-    fn with(f: impl FnOnce(&mut FakeNode)) -> Self {
-        let bus = FakeBus::default();
-        f(&mut bus.0.lock().unwrap());
-        bus
-    }
-    fn node(&self) -> std::sync::MutexGuard<'_, FakeNode> {
-        self.0.lock().unwrap()
-    }
-}
-
-fn state(counter: u32) -> [u8; STATE_LEN] {
-    encode_state(&StatePacket {
-        encoder: [1, 2, 3],
-        gimbal: [0x8000; 3],
-        counter,
-        ..Default::default()
-    })
-}
-
-impl FireWireBus for FakeBus {
-    fn read_quadlet(&mut self, offset: u64) -> Result<u32, BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        n.ops.push(Op::ReadQuadlet(offset));
-        match offset {
-            reg::VENDOR => Ok(n.vendor_quadlet),
-            reg::SERIAL => Ok(n.serial),
-            _ => Err(BusError::Rcode(0x07)),
-        }
-    }
-
-    fn write_quadlet(&mut self, _: u64, _: u32) -> Result<(), BusError> {
-        Err(BusError::Rcode(0x07))
-    }
-
-    fn read_byte(&mut self, offset: u64) -> Result<u8, BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        n.ops.push(Op::ReadByte(offset));
-        n.regs.get(&offset).copied().ok_or(BusError::Rcode(0x07))
-    }
-
-    fn write_byte(&mut self, offset: u64, value: u8) -> Result<(), BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        n.writes += 1;
-        if n.reset_at_write == Some(n.writes) {
-            n.reset();
-            return Err(BusError::BusReset);
-        }
-        n.ops.push(Op::WriteByte(offset, value));
-        if !n.regs.contains_key(&offset) {
-            return Err(BusError::Rcode(0x07));
-        }
-        n.regs.insert(offset, value);
-        Ok(())
-    }
-
-    fn allocate_channel(&mut self) -> Result<u8, BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        if n.free_channels.is_empty() {
-            return Err(BusError::NoChannel);
-        }
-        let ch = n.free_channels.remove(0);
-        n.ops.push(Op::Allocate(ch));
-        Ok(ch)
-    }
-
-    fn free_channel(&mut self, channel: u8) -> Result<(), BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        n.ops.push(Op::Free(channel));
-        n.free_channels.push(channel);
-        Ok(())
-    }
-
-    fn start_iso(&mut self, rx: u8, tx: u8) -> Result<(), BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        n.ops.push(Op::StartIso { rx, tx });
-        n.iso = true;
-        Ok(())
-    }
-
-    fn stop_iso(&mut self) -> Result<(), BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        n.ops.push(Op::StopIso);
-        n.iso = false;
-        Ok(())
-    }
-
-    fn send_packet(&mut self, packet: &[u8; COMMAND_LEN]) -> Result<(), BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        if !n.iso {
-            return Err(BusError::NotStreaming);
-        }
-        n.ops.push(Op::Send(*packet));
-        Ok(())
-    }
-
-    fn next_packet(
-        &mut self,
-        buf: &mut [u8; ISO_PAYLOAD_MAX],
-        timeout: Duration,
-    ) -> Result<BusEvent, BusError> {
-        let mut n = self.node();
-        if n.gone {
-            return Err(BusError::Gone);
-        }
-        // Draining (zero wait) after a packet: one packet per exchange, like the device.
-        if timeout.is_zero() {
-            return Ok(BusEvent::Timeout);
-        }
-        let d = n.delivered;
-        if let Some((k, flag)) = &n.stop_after {
-            if d >= *k {
-                flag.store(true, Ordering::SeqCst);
-            }
-        }
-        if n.silent_after.is_some_and(|k| d >= k) {
-            n.silent = true;
-        }
-        if n.gone_after.is_some_and(|k| d >= k) {
-            n.gone = true;
-            return Err(BusError::Gone);
-        }
-        if n.reset_after.is_some_and(|k| d >= k) {
-            n.reset_after = None;
-            n.script.push_front(Next::BusReset);
-        }
-        let next = match n.script.pop_front() {
-            Some(x) => x,
-            None if n.silent || !n.streaming() => Next::Timeout,
-            None => {
-                let c = n.next_counter;
-                n.next_counter = c.wrapping_add(1);
-                Next::Packet(c)
-            }
-        };
-        match next {
-            Next::Packet(c) => {
-                buf[..STATE_LEN].copy_from_slice(&state(c));
-                n.delivered += 1;
-                Ok(BusEvent::Packet(STATE_LEN))
-            }
-            Next::Raw(b) => {
-                buf[..b.len()].copy_from_slice(&b);
-                Ok(BusEvent::Packet(b.len()))
-            }
-            Next::Timeout => Ok(BusEvent::Timeout),
-            Next::BusReset => {
-                n.reset();
-                Ok(BusEvent::BusReset)
-            }
-            Next::Gone => {
-                n.gone = true;
-                Err(BusError::Gone)
-            }
-        }
+/// Options with every motor's DAC sign measured (+1), so that commanded torque reaches the
+/// wire.
+fn measured() -> FireWireOptions {
+    FireWireOptions {
+        format: WireFormat {
+            dac_sign: [1; 3],
+            ..WireFormat::DRIVERS
+        },
+        busy_retry: Duration::from_millis(1),
+        ..FireWireOptions::new(Duration::from_millis(10), 1000.0)
     }
 }
 
 fn open(bus: &FakeBus) -> FireWireOmni<FakeBus> {
-    FireWireOmni::open(
-        bus.clone(),
-        "fake-fw1".into(),
-        Duration::from_millis(10),
-        1000.0,
-    )
-    .expect("open")
+    FireWireOmni::open_with(bus.clone(), "fake-fw1".into(), measured()).expect("open")
 }
 
-fn amps_on(watchdog: u8) -> [u8; 16] {
-    let mut c = MotorCommand::safe(watchdog);
+fn open_err(bus: &FakeBus, opts: FireWireOptions) -> DeviceError {
+    match FireWireOmni::open_with(bus.clone(), "fake-fw1".into(), opts) {
+        Ok(_) => panic!("opened"),
+        Err(e) => e,
+    }
+}
+
+fn amps_on(byte7: u8) -> [u8; 16] {
+    let mut c = MotorCommand::safe(byte7);
     c.amps_on = true;
     c.dac = [0x0A00, 0x0600, 0x07FF];
     encode_command(&c)
 }
 
-/// The start sequence as the fake sees it, with the channels it hands out.
+/// A device packet as the backend delivers it: encoder words in the OpenHaptics directions
+/// (joints 1 and 2 negated, docs/FIREWIRE.md §6).
+fn delivered(p: [u8; 44]) -> [u8; 44] {
+    let mut p = p;
+    for (j, &at) in wire::ENCODER.iter().enumerate() {
+        if OPENHAPTICS_ENCODER_SIGN[j] < 0 {
+            let v = u16::from_le_bytes([p[at], p[at + 1]]).wrapping_neg();
+            p[at..at + 2].copy_from_slice(&v.to_le_bytes());
+        }
+    }
+    p
+}
+
+/// The start sequence as the fake sees it, with the channels it hands out: the vendor
+/// trace's order (minimal-test/opensource.c:194-224), after the check for a stale stream bit,
+/// up to omnid's own iso start.
 fn start_ops(to_device: u8, from_device: u8) -> Vec<Op> {
     vec![
+        Op::ReadByte(0x1087),
         Op::Allocate(to_device),
         Op::Allocate(from_device),
         Op::WriteByte(0x1000, to_device),
+        Op::WriteByte(0x1001, from_device),
+        Op::WriteQuadlet(0x20010, 0x0000_0FF8),
+        Op::ReadByte(0x1001),
+        Op::WriteByte(0x1001, 0x40),
+        Op::ReadByte(0x1001),
         Op::WriteByte(0x1001, from_device),
         Op::ReadByte(0x1083),
         Op::ReadByte(0x1082),
@@ -338,11 +90,184 @@ fn strip_sends(ops: &[Op]) -> Vec<Op> {
         .collect()
 }
 
+// ---- Golden packets: literal bytes, written from the sources, against the codec and the fake.
+
+/// State packets of a unit at rest: encoders x = 0x0123, y = 0xFEDC, z = 0x0042, gimbal
+/// 0x4000/0x8000/0xC000, counter 0x01020304; only the switch byte differs.
+fn golden_state(switches: u8) -> [u8; 44] {
+    [
+        0x00, 0x00, 0x1E, 0x00, // PhantomSpec.h:55-56: 0x0000, 0x001e
+        0x23, 0x01, 0xDC, 0xFE, 0x42, 0x00, // encoders x, y, z (u16 LE)
+        0x00, 0x40, 0x00, 0x80, 0x00, 0xC0, // gimbal pots
+        0x00, 0x00,     // v0 / unknown8
+        0x04,     // tx packet number (omnifirewire.h:105)
+        switches, // byte 19: the switches (omnifirewire.h:107-119, PhantomSpec.h:63-77)
+        0x07, 0x10, // PhantomSpec.h:78: 0x1007
+        0xFF, 0xBF, 0xFF, 0x7F, 0xFF, 0x3F, // the gimbal's complement
+        0x46, 0x57, // PhantomSpec.h:80: 0x5746
+        0x00, 0x00, // unknown15
+        0x04, 0x03, 0x02, 0x01, // count0 = 0x01020304 (PhantomSpec.h:82)
+        0x00, 0x00, 0x00, 0x00, // unknown18/19
+        0x82, 0x01, 0x00, 0x00, // count1 (the fake's half of count0), unknown21
+    ]
+}
+
+const GOLDEN_ARM: ArmState = ArmState {
+    encoder: [0x0123, 0xFEDC, 0x0042],
+    gimbal: [0x4000, 0x8000, 0xC000],
+    buttons: [false, false],
+    docked: false,
+};
+
+#[test]
+fn golden_state_packets_decode_to_the_switches_the_drivers_read() {
+    // (switch byte, buttons, docked): idle bits 0x90, active-low switches in bits 0..2.
+    for (byte, buttons, docked) in [
+        (0x97, [false, false], false), // undocked, nothing pressed
+        (0x93, [false, false], true),  // stylus in the inkwell
+        (0x96, [true, false], false),  // button 1
+        (0x95, [false, true], false),  // button 2
+        (0x90, [true, true], true),    // all three
+    ] {
+        let golden = golden_state(byte);
+        let arm = ArmState {
+            buttons,
+            docked,
+            ..GOLDEN_ARM
+        };
+        // The fake's table builds exactly these bytes...
+        assert_eq!(device_packet(&arm, 0x0102_0304, 4), golden, "{byte:#04x}");
+        // ...and the codec reads them as the drivers do.
+        let s = decode_state(&golden).unwrap();
+        assert_eq!(s.buttons, buttons, "{byte:#04x}");
+        assert_eq!(s.inkwell, docked, "{byte:#04x}");
+        assert_eq!(s.encoder, [0x0123, 0xFEDC, 0x0042]);
+        assert_eq!(s.gimbal, [0x4000, 0x8000, 0xC000]);
+        assert_eq!(s.counter, 0x0102_0304);
+    }
+    // Byte 16, where omnid used to look for the switches, says nothing about them.
+    let mut p = golden_state(0x97);
+    p[16] = 0x00;
+    assert!(!decode_state(&p).unwrap().inkwell);
+    // The codec's own encoder writes the switches where the drivers read them.
+    let e = encode_state(&StatePacket {
+        inkwell: true,
+        buttons: [true, false],
+        ..Default::default()
+    });
+    assert_eq!(e[19], 0x92);
+    assert_eq!(e[16], 0x00);
+}
+
+#[test]
+fn golden_command_packets_are_the_drivers_bytes() {
+    // minimal-test/opensource.c:42: {0x07ff07ff, 0x53c007ff, 0, 0} as x86 memory.
+    let trace: Vec<u8> = [0x07ff_07ffu32, 0x53c0_07ff, 0, 0]
+        .iter()
+        .flat_map(|q| q.to_le_bytes())
+        .collect();
+    let safe = encode_command(&MotorCommand::safe(0x53));
+    assert_eq!(safe.to_vec(), trace);
+    assert_eq!(
+        safe,
+        [0xFF, 0x07, 0xFF, 0x07, 0xFF, 0x07, 0xC0, 0x53, 0, 0, 0, 0, 0, 0, 0, 0]
+    );
+    // opensource.c:238: 0x53c307ff, the dock lamp bits on.
+    let lamp = encode_command(&MotorCommand {
+        lamp: 0b11,
+        ..MotorCommand::safe(0x53)
+    });
+    assert_eq!(&lamp[4..8], &0x53c3_07ffu32.to_le_bytes());
+    // Amplifiers on (bit 3, omnifirewire.h:72) with torque on motors 1 and 3.
+    let amps = encode_command(&MotorCommand {
+        dac: [0x0500, DAC_ZERO, 0x0A00],
+        amps_on: true,
+        lamp: 0b11,
+        watchdog: 0x53,
+    });
+    assert_eq!(
+        amps,
+        [0x00, 0x05, 0xFF, 0x07, 0x00, 0x0A, 0xCB, 0x53, 0, 0, 0, 0, 0, 0, 0, 0]
+    );
+    let read = read_command(&amps).unwrap();
+    assert!(read.motors_on && read.lamp == 3 && read.force == [0x0500, 0x07FF, 0x0A00]);
+    assert_eq!(
+        decode_command(&amps).unwrap().dac,
+        [0x0500, DAC_ZERO, 0x0A00]
+    );
+    // What omnid sent before issue 19 (byte 6 without 0xC0, a counter in byte 7) is not what
+    // the drivers send, and the fake says which byte.
+    let mut old = safe;
+    old[6] = 0x00;
+    old[7] = 0x01;
+    assert!(read_command(&old).unwrap_err().contains("bytes 6-7"));
+}
+
+#[test]
+fn backend_wire_is_the_drivers_word_and_delivers_openhaptics_signs() {
+    let bus = FakeBus::with(|n| {
+        n.arm = ArmState {
+            encoder: [100, 200, 0xFFFF],
+            docked: true,
+            ..ArmState::default()
+        }
+    });
+    let mut omni = open(&bus);
+    let s = omni.exchange(&amps_on(9)).unwrap();
+    let p = decode_state(s.packet()).unwrap();
+    // OpenHaptics directions: joints 1 and 2 negated, joint 3 as counted.
+    assert_eq!(
+        p.encoder,
+        [100u16.wrapping_neg(), 200u16.wrapping_neg(), 0xFFFF]
+    );
+    assert!(p.inkwell);
+    omni.exchange(&amps_on(10)).unwrap();
+    omni.close().unwrap();
+    let n = bus.node();
+    let wire_cmds = n.sent_wire();
+    assert!(wire_cmds[0].is_safe());
+    assert!(wire_cmds
+        .iter()
+        .any(|c| c.motors_on && c.force == [0x0A00, 0x0600, 0x07FF]));
+    assert!(n
+        .ops
+        .iter()
+        .all(|o| !matches!(o, Op::Send(b) if b[7] != 0x53 || b[6] & 0xC0 != 0xC0)));
+}
+
+#[test]
+fn unmeasured_dac_signs_put_no_torque_on_the_wire() {
+    let bus = FakeBus::default();
+    let opts = FireWireOptions::new(Duration::from_millis(10), 1000.0);
+    assert_eq!(opts.format.dac_sign, [0; 3]);
+    let mut omni = FireWireOmni::open_with(bus.clone(), "fake".into(), opts).unwrap();
+    omni.exchange(&amps_on(1)).unwrap();
+    omni.exchange(&amps_on(2)).unwrap();
+    let sent = bus.node().sent_wire();
+    assert!(sent.iter().all(|c| c.force == [0x07FF; 3]), "{sent:?}");
+}
+
+#[test]
+fn serial_is_read_in_the_label_form() {
+    let bus = FakeBus::default();
+    let omni = open(&bus);
+    assert_eq!(omni.serial(), Some(SERIAL_LABEL));
+    assert_eq!(omni.serial_quadlet(), Some(SERIAL_QUADLET));
+    let cfg = FirewireConfig {
+        serial: SERIAL_LABEL.into(),
+        ..Default::default()
+    };
+    cfg.validate().unwrap();
+    assert!(cfg.wants_serial(SERIAL_QUADLET));
+    assert!(!cfg.wants_serial(SERIAL_QUADLET ^ 0x2));
+    assert!(FirewireConfig::default().wants_serial(1));
+}
+
 #[test]
 fn start_sequence_in_order() {
     let bus = FakeBus::default();
     let omni = open(&bus);
-    assert_eq!(omni.serial(), Some("31337"));
+    assert_eq!(omni.serial(), Some(SERIAL_LABEL));
     let n = bus.node();
     let mut want = vec![Op::ReadQuadlet(reg::VENDOR), Op::ReadQuadlet(reg::SERIAL)];
     want.extend(start_ops(5, 9));
@@ -354,6 +279,120 @@ fn start_sequence_in_order() {
     assert_eq!(n.ops, want);
     assert!(n.sent()[0].is_safe());
     assert!(n.streaming());
+    assert_eq!(n.quadlets[&0x20010].to_be_bytes(), [0x00, 0x00, 0x0F, 0xF8]);
+    assert!(!omni.stale_stream_cleared());
+}
+
+#[test]
+fn vendor_init_and_scratch_test_are_configuration() {
+    let bus = FakeBus::default();
+    let opts = FireWireOptions {
+        vendor_init: false,
+        scratch_test: false,
+        ..measured()
+    };
+    let _omni = FireWireOmni::open_with(bus.clone(), "fake".into(), opts).unwrap();
+    let ops = strip_sends(&bus.node().ops);
+    assert!(!ops.iter().any(|o| matches!(o, Op::WriteQuadlet(..))));
+    assert!(!ops.contains(&Op::WriteByte(0x1001, 0x40)));
+    assert!(ops.contains(&Op::WriteByte(0x1001, 9)));
+    // The defaults are the vendor trace's.
+    let d = FirewireConfig::default();
+    assert!(d.vendor_init && d.scratch_test);
+}
+
+#[test]
+fn a_failed_scratch_test_names_register_and_value() {
+    let bus = FakeBus::with(|n| n.scratch_broken = true);
+    let e = open_err(&bus, measured()).to_string();
+    assert!(
+        e.contains("0x1001") && e.contains("0x00") && e.contains("0x40") && e.contains("scratch"),
+        "{e}"
+    );
+    let n = bus.node();
+    assert!(!n.streaming());
+    assert_eq!(&n.ops[n.ops.len() - 2..], &[Op::Free(5), Op::Free(9)]);
+}
+
+#[test]
+fn busy_answers_are_retried_then_reported() {
+    // Two busy answers on 0x1083: retried, the start goes through.
+    let bus = FakeBus::with(|n| {
+        n.busy.insert(reg::CHECK_A, 2);
+    });
+    let _omni = open(&bus);
+    let reads = bus
+        .node()
+        .ops
+        .iter()
+        .filter(|o| **o == Op::ReadByte(0x1083))
+        .count();
+    assert_eq!(reads, 3);
+    // Busy beyond the retries: the error names the register and the retries.
+    let bus = FakeBus::with(|n| {
+        n.busy.insert(reg::CHANNEL_TO_DEVICE, 100);
+    });
+    let e = open_err(
+        &bus,
+        FireWireOptions {
+            busy_retries: 3,
+            ..measured()
+        },
+    )
+    .to_string();
+    assert!(
+        e.contains("writing 0x05 to register 0x1000")
+            && e.contains("busy")
+            && e.contains("3 retries"),
+        "{e}"
+    );
+    let writes = bus
+        .node()
+        .ops
+        .iter()
+        .filter(|o| **o == Op::WriteByte(0x1000, 5))
+        .count();
+    assert_eq!(writes, 4);
+}
+
+#[test]
+fn a_stream_bit_left_by_a_crashed_run_is_cleared_first() {
+    let bus = FakeBus::with(|n| {
+        n.regs.insert(reg::CONTROL, 0x08);
+    });
+    let omni = open(&bus);
+    assert!(omni.stale_stream_cleared());
+    let n = bus.node();
+    assert_eq!(
+        &n.ops[2..5],
+        &[
+            Op::ReadByte(0x1087),
+            Op::WriteByte(0x1087, 0x00),
+            Op::Allocate(5)
+        ]
+    );
+    assert!(n.streaming());
+}
+
+#[test]
+fn the_packet_rate_is_measured_and_a_mismatch_refused_with_numbers() {
+    let bus = FakeBus::default();
+    let mut omni = open(&bus);
+    let m = omni.check_rate().unwrap();
+    assert!((m.rate_hz() - 1000.0).abs() < 1.0, "{m:?}");
+    // The measurement leaves the amplifiers off until the next sample.
+    omni.exchange(&amps_on(1)).unwrap();
+    let sent = bus.node().sent();
+    assert!(sent.last().unwrap().is_safe());
+    assert!(sent.iter().all(|c| !c.amps_on));
+    drop(sent);
+    let bus = FakeBus::with(|n| n.rate_hz = 500.0);
+    let mut omni = open(&bus);
+    let e = omni.check_rate().unwrap_err().to_string();
+    assert!(
+        e.contains("500.0 Hz") && e.contains("2.000 ms") && e.contains("device.rate_hz = 1000"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -428,13 +467,13 @@ fn exchange_delivers_packets_and_counts_gaps() {
     });
     let mut omni = open(&bus);
     let a = omni.exchange(&amps_on(1)).unwrap();
-    assert_eq!(a.packet(), &state(50)[..]);
+    assert_eq!(a.packet(), &delivered(state(50))[..]);
     omni.exchange(&amps_on(2)).unwrap();
     let c = omni.exchange(&amps_on(3)).unwrap();
     assert!((c.device_time_s - a.device_time_s - 5e-3).abs() < 1e-12);
     // Duplicate and short packet: dropped, the exchange waits for the next good one.
     let d = omni.exchange(&amps_on(4)).unwrap();
-    assert_eq!(d.packet(), &state(56)[..]);
+    assert_eq!(d.packet(), &delivered(state(56))[..]);
     let st = omni.stats();
     assert_eq!(
         (st.gaps, st.lost, st.duplicates, st.malformed),
@@ -496,8 +535,9 @@ fn a_reset_during_the_restart_is_retried() {
     let mut omni = open(&bus);
     omni.exchange(&amps_on(0)).unwrap();
     omni.exchange(&amps_on(1)).unwrap();
-    // Open wrote three registers; the restart's first write (the 4th) meets another reset.
-    bus.node().reset_at_write = Some(4);
+    // Open wrote six registers (0x1000, 0x1001, 0x20010, 0x1001 twice for the scratch test,
+    // 0x1087); the restart's first write (the 7th) meets another reset.
+    bus.node().reset_at_write = Some(7);
     assert!(matches!(
         omni.exchange(&amps_on(2)),
         Err(DeviceError::Missed(_))
@@ -602,6 +642,41 @@ fn config_validation_names_fields() {
             },
             "firewire.register_timeout_ms",
         ),
+        (
+            FirewireConfig {
+                serial: "31337".into(),
+                ..Default::default()
+            },
+            "firewire.serial",
+        ),
+        (
+            FirewireConfig {
+                encoder_sign: [1, 0, 1],
+                ..Default::default()
+            },
+            "firewire.encoder_sign[1]",
+        ),
+        (
+            FirewireConfig {
+                dac_sign: [1, 1, 2],
+                ..Default::default()
+            },
+            "firewire.dac_sign[2]",
+        ),
+        (
+            FirewireConfig {
+                command_byte7: "83".into(),
+                ..Default::default()
+            },
+            "firewire.command_byte7",
+        ),
+        (
+            FirewireConfig {
+                busy_retries: 51,
+                ..Default::default()
+            },
+            "firewire.busy_retries",
+        ),
     ] {
         let e = cfg.validate().unwrap_err().to_string();
         assert!(e.contains(field), "{e}");
@@ -612,6 +687,17 @@ fn config_validation_names_fields() {
     }
     .validate()
     .unwrap();
+    for (text, want) in [
+        ("0x53", Byte7::Constant(0x53)),
+        ("0x00", Byte7::Constant(0)),
+        ("counter", Byte7::Counter),
+    ] {
+        let c = FirewireConfig {
+            command_byte7: text.into(),
+            ..Default::default()
+        };
+        assert_eq!(c.byte7(), Some(want));
+    }
     let text = toml::to_string(&FirewireConfig::default()).unwrap();
     for (key, _) in FIREWIRE_FIELD_DOCS.iter().skip(1) {
         let field = key.strip_prefix("firewire.").unwrap();
