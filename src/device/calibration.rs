@@ -29,6 +29,7 @@ pub struct Calibration {
     /// Serial number of the device this belongs to.
     pub serial: String,
     /// Joint angles (OpenHaptics convention) with the stylus in the inkwell, rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub docked_pose_rad: [f64; 3],
 }
 
@@ -384,6 +385,17 @@ mod tests {
         .unwrap();
         let e = load(dir.path(), "Z").unwrap_err().to_string();
         assert!(e.contains("docked_pose_rad[1]"), "{e}");
+        // A fourth angle is refused, not dropped.
+        std::fs::write(
+            dir.path().join("V.toml"),
+            "serial = \"V\"\ndocked_pose_rad = [0, 0.27, -0.37, 5]\n",
+        )
+        .unwrap();
+        let e = load(dir.path(), "V").unwrap_err().to_string();
+        assert!(
+            e.contains("V.toml") && e.contains("exactly 3 values"),
+            "{e}"
+        );
         std::fs::write(dir.path().join("W.toml"), "serial = \"W\"\npose = 1\n").unwrap();
         assert!(load(dir.path(), "W")
             .unwrap_err()
