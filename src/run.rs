@@ -309,8 +309,7 @@ pub fn assemble(
     );
     servo.set_identifier(identifier.clone());
     if let Some(path) = &heat_path {
-        let (heat, note) =
-            crate::servo::thermal_store::load(path, cfg.safety.thermal_time_constant_s);
+        let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
         if let Some(note) = note {
             crate::errln!("omnid: warning: {note}; starting with cold motors");
         }

@@ -4,6 +4,7 @@
 use omnid::config::Config;
 use omnid::device::replay::{ReplayDevice, ReplayError};
 use omnid::telemetry::reader::{LogReader, ReadError};
+use omnid::telemetry::record::Mode;
 use proptest::prelude::*;
 use std::path::PathBuf;
 
@@ -103,6 +104,15 @@ fn nan_and_infinite_values() {
     }
     let (_, msg) = error_of("nant.csv", &format!("{HEADER}nan,0,0,0,0,0,0\n"));
     assert_names(&msg, 2, "t");
+}
+
+#[test]
+fn unknown_mode() {
+    let text = "t,q1,q2,q3,tau1,tau2,tau3,mode\n0,0,0,0,0,0,0,blend\n0.001,0,0,0,0,0,0,pause\n";
+    let (e, msg) = error_of("mode.csv", text);
+    assert!(matches!(e, ReadError::UnknownMode { line: 3, .. }), "{msg}");
+    assert_names(&msg, 3, "mode");
+    assert!(msg.contains("`pause`") && msg.contains("servo_jp"), "{msg}");
 }
 
 #[test]
@@ -243,9 +253,13 @@ fn lenient_with_nothing_good_left_is_an_error() {
 
 fn drain(bytes: &[u8], lenient: bool) {
     if let Ok(reader) = LogReader::new(bytes, "fuzz.csv", lenient) {
+        let has_mode = reader.columns().mode.is_some();
         for row in reader {
             match row {
-                Ok(r) => assert!(r.t.is_finite() && r.q.iter().all(|v| v.is_finite())),
+                Ok(r) => {
+                    assert!(r.t.is_finite() && r.q.iter().all(|v| v.is_finite()));
+                    assert_eq!(r.mode.is_some(), has_mode, "a row without its mode");
+                }
                 Err(e) => {
                     // Row faults are skipped in lenient mode, so any error ends the file.
                     let _ = e.to_string();
@@ -275,6 +289,53 @@ proptest! {
         let text = format!("{header}{body}");
         drain(text.as_bytes(), false);
         drain(text.as_bytes(), true);
+    }
+}
+
+/// A mode as a log might hold it: one omnid writes (but `stop`, which must be last) or not.
+fn mode_text() -> impl Strategy<Value = String> {
+    let known: Vec<String> = Mode::ALL
+        .iter()
+        .filter(|m| **m != Mode::Stop)
+        .map(|m| m.as_str().to_string())
+        .collect();
+    prop_oneof![
+        3 => prop::sample::select(known),
+        1 => "[A-Za-z_ -]{0,9}".prop_filter("not stop", |s| s.trim() != "stop"),
+    ]
+}
+
+proptest! {
+    /// Every row read carries the mode written in it; the first row whose mode omnid does not
+    /// write is refused there (strict) or skipped and reported (lenient).
+    #[test]
+    fn modes_are_known_or_refused_where_they_are(modes in proptest::collection::vec(mode_text(), 1..40)) {
+        let mut text = String::from("t,q1,q2,q3,tau1,tau2,tau3,mode\n");
+        for (k, m) in modes.iter().enumerate() {
+            text += &format!("{},0,0,0,0,0,0,{m}\n", k as f64 * 1e-3);
+        }
+        let known: Vec<Option<Mode>> = modes.iter().map(|m| Mode::parse(m.trim())).collect();
+        let first_bad = known.iter().position(Option::is_none);
+        let mut strict = LogReader::new(text.as_bytes(), "modes.csv", false).unwrap();
+        for (k, expected) in known.iter().enumerate() {
+            match (strict.next_row(), expected) {
+                (Ok(Some(row)), Some(mode)) => prop_assert_eq!(row.mode, Some(*mode)),
+                (Err(ReadError::UnknownMode { line, value, .. }), None) => {
+                    prop_assert_eq!(line, k as u64 + 2);
+                    prop_assert_eq!(value.as_str(), modes[k].trim());
+                    break;
+                }
+                (other, _) => prop_assert!(false, "row {}: {:?}", k, other.map(|r| r.map(|r| r.mode))),
+            }
+        }
+        let lenient: Vec<_> = LogReader::new(text.as_bytes(), "modes.csv", true)
+            .unwrap()
+            .collect::<Result<_, _>>()
+            .unwrap();
+        let read: Vec<Option<Mode>> = lenient.iter().map(|r| r.mode).collect();
+        let good: Vec<Option<Mode>> = known.iter().copied().filter(Option::is_some).collect();
+        prop_assert_eq!(read, good);
+        prop_assert_eq!(first_bad.is_none(), lenient.len() == modes.len());
     }
 }
 

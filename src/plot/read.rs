@@ -2,6 +2,7 @@
 //! the rows that feeds the decimator, so a 600 k-row log never sits in memory whole.
 
 use super::decimate::{Decimated, Decimator};
+use crate::telemetry::record::Mode;
 use std::fs::File;
 use std::io;
 use std::path::{Path, PathBuf};
@@ -33,6 +34,18 @@ pub enum ReadError {
         /// 1-based, as a spreadsheet counts.
         column: usize,
         name: String,
+        value: String,
+    },
+    #[error(
+        "{}: line {line}, column {column} (`mode`): `{value}` is not a mode omnid writes \
+         (allowed: {})",
+        path.display(), Mode::ALL.map(Mode::as_str).join(", ")
+    )]
+    NotMode {
+        path: PathBuf,
+        line: u64,
+        /// 1-based, as a spreadsheet counts.
+        column: usize,
         value: String,
     },
     #[error("{}: line {line}, column 1 (`t`): time must be a finite number", path.display())]
@@ -224,8 +237,22 @@ impl LogReader {
                 };
             }
             decimator.push(t, &values);
-            if mode.is_some_and(|m| record[m].trim_ascii() == b"blend") {
-                blend_end = Some(blend_end.map_or(t, |b| b.max(t)));
+            if let Some(m) = mode {
+                // An empty field is a gap, as in every other column.
+                let value = record[m].trim_ascii();
+                match std::str::from_utf8(value).ok().and_then(Mode::parse) {
+                    Some(Mode::Blend) => blend_end = Some(blend_end.map_or(t, |b| b.max(t))),
+                    Some(_) => {}
+                    None if value.is_empty() => {}
+                    None => {
+                        return Err(ReadError::NotMode {
+                            path: self.path.clone(),
+                            line,
+                            column: m + 1,
+                            value: crate::telemetry::reader::quote(value),
+                        })
+                    }
+                }
             }
             if decimator.rows() % 8192 == 0 {
                 progress(record.position().map(|p| p.byte()).unwrap_or(0));
@@ -299,6 +326,31 @@ mod tests {
             .decimate(&[Formula::Column(1)], 10, |_| {})
             .unwrap();
         assert_eq!(data.blend_end, Some(0.001));
+    }
+
+    #[test]
+    fn unknown_mode_names_line_and_column() {
+        let f = file("t,q1,mode\n0,1,blend\n0.001,1,\n0.002,1,servo_jp\n0.003,1,tracking\n");
+        let e = LogReader::open(f.path())
+            .unwrap()
+            .decimate(&[Formula::Column(1)], 10, |_| {})
+            .unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            matches!(
+                e,
+                ReadError::NotMode {
+                    line: 5,
+                    column: 3,
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
+        assert!(
+            msg.contains("line 5, column 3 (`mode`): `tracking`") && msg.contains("servo_jf"),
+            "{msg}"
+        );
     }
 
     #[test]

@@ -17,8 +17,8 @@
 //! - a last line cut mid-row (wrong field count, no trailing newline) is reported as truncated.
 //!   A complete last line without a trailing newline is accepted (many editors write files so).
 //! - `mode = stop` (omnid's final, safe packet) must be the last row; its `t` may equal the
-//!   previous row's (the servo logs `max(device time, last t)` there). Other `mode` values are
-//!   carried but not interpreted.
+//!   previous row's (the servo logs `max(device time, last t)` there). A `mode` that omnid does
+//!   not write (see [`Mode::ALL`]; an empty field included) is an error naming the value.
 //!
 //! Lenient mode skips bad rows instead (header problems and I/O errors still fail) and keeps a
 //! [`SkipReport`]: how many and the first few line numbers. Time order is checked against the
@@ -131,6 +131,16 @@ pub enum ReadError {
         previous_line: u64,
     },
     #[error(
+        "{path}: line {line}: column `{column}`: `{value}` is not a mode omnid writes \
+             (allowed: {})", Mode::ALL.map(Mode::as_str).join(", ")
+    )]
+    UnknownMode {
+        path: String,
+        line: u64,
+        column: String,
+        value: String,
+    },
+    #[error(
         "{path}: line {line}: column `{column}`: a row after the final `stop` row (line \
              {stop_line}); a `mode = stop` row must be the last"
     )]
@@ -162,6 +172,7 @@ impl ReadError {
             | NotFinite { line, .. }
             | TimeBackwards { line, .. }
             | TimeRepeats { line, .. }
+            | UnknownMode { line, .. }
             | AfterStop { line, .. }
             | Csv { line, .. } => Some(*line),
         }
@@ -194,6 +205,9 @@ pub enum RowFault {
         col: usize,
         t: f64,
         previous_line: u64,
+    },
+    UnknownMode {
+        col: usize,
     },
     AfterStop {
         col: usize,
@@ -368,7 +382,7 @@ fn parse_f64(b: &[u8], col: usize) -> Result<f64, RowFault> {
 }
 
 /// Quote a field for a message: lossy UTF-8, cut to a sane length.
-fn quote(b: &[u8]) -> String {
+pub(crate) fn quote(b: &[u8]) -> String {
     let s = String::from_utf8_lossy(b);
     let mut out: String = s.chars().take(MAX_QUOTED).collect();
     if s.chars().count() > MAX_QUOTED {
@@ -765,6 +779,12 @@ impl<R: Read> ColumnReader<R> {
                 t,
                 previous_line,
             },
+            RowFault::UnknownMode { col } => ReadError::UnknownMode {
+                path,
+                line,
+                column: self.column_name(col),
+                value: value(col),
+            },
             RowFault::AfterStop { col, stop_line } => ReadError::AfterStop {
                 path,
                 line,
@@ -803,7 +823,7 @@ pub struct LogRow {
     pub tau: [f64; 3],
     /// Continuous encoder counts, when the file has `enc1..3`.
     pub enc: Option<[i64; 3]>,
-    /// The `mode` column, when the file has one and it holds a value omnid writes.
+    /// The `mode` column, when the file has one.
     pub mode: Option<Mode>,
 }
 
@@ -897,10 +917,15 @@ impl<R: Read> LogReader<R> {
                     stop_line,
                 });
             }
-            let mode = cols
-                .mode
-                .and_then(|m| std::str::from_utf8(r.field(m)).ok())
-                .and_then(Mode::parse);
+            let mode = match cols.mode {
+                Some(m) => Some(
+                    std::str::from_utf8(r.field(m))
+                        .ok()
+                        .and_then(Mode::parse)
+                        .ok_or(RowFault::UnknownMode { col: m })?,
+                ),
+                None => None,
+            };
             r.check_time(mode == Some(Mode::Stop))?;
             let mut q = [0.0; 3];
             let mut tau = [0.0; 3];
@@ -1065,6 +1090,34 @@ mod tests {
         );
         let (rows, skipped) = read_all(&after, true).unwrap();
         assert_eq!((rows.len(), skipped.count), (3, 1));
+    }
+
+    #[test]
+    fn every_mode_omnid_writes_is_read_and_no_other() {
+        let header = "t,q1,q2,q3,tau1,tau2,tau3,mode\n";
+        let mut text = header.to_string();
+        for (k, m) in Mode::ALL.iter().filter(|m| **m != Mode::Stop).enumerate() {
+            text += &format!("{},0,0,0,0,0,0,{}\n", k, m.as_str());
+        }
+        let (rows, _) = read_all(&text, false).unwrap();
+        let modes: Vec<Mode> = rows.iter().map(|r| r.mode.unwrap()).collect();
+        assert_eq!(modes.len(), Mode::ALL.len() - 1);
+        // Once silently read as "no mode": a value omnid never writes, in any case or form.
+        for bad in ["Track", "servo-jp", "", "stopp", " ", "blend;"] {
+            let text = format!("{header}0,0,0,0,0,0,0,track\n0.1,0,0,0,0,0,0,{bad}\n");
+            let e = read_all(&text, false).unwrap_err();
+            let msg = e.to_string();
+            assert!(
+                matches!(&e, ReadError::UnknownMode { line: 3, column, .. } if column == "mode"),
+                "{bad:?}: {msg}"
+            );
+            assert!(
+                msg.contains("line 3:") && msg.contains("servo_jf") && msg.contains("`mode`"),
+                "{msg}"
+            );
+            let (rows, skipped) = read_all(&text, true).unwrap();
+            assert_eq!((rows.len(), skipped.first_lines.clone()), (1, vec![3]));
+        }
     }
 
     #[test]
