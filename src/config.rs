@@ -9,7 +9,12 @@ pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
+
+/// The largest config file read (the full default config is about 12 kB).
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
@@ -26,6 +31,13 @@ pub enum ConfigError {
         value: String,
         allowed: String,
     },
+}
+
+impl ConfigError {
+    /// Reading the file was stopped by the operator.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, ConfigError::Read { source, .. } if crate::input::is_stopped(source))
+    }
 }
 
 /// Device-independent facts of the Omni's electronics.
@@ -444,11 +456,15 @@ impl Config {
         Ok(cfg)
     }
 
-    /// Read and validate a config file.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.display().to_string(),
-            source,
+    /// Read and validate a config file (at most [`MAX_CONFIG_BYTES`]; `stop`, the operator's,
+    /// ends a wait on a pipe, without it only a regular file is read: see
+    /// [`crate::input::open`]).
+    pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<Self, ConfigError> {
+        let text = crate::input::read_capped(path, MAX_CONFIG_BYTES, stop).map_err(|source| {
+            ConfigError::Read {
+                path: path.display().to_string(),
+                source,
+            }
         })?;
         Self::from_toml(&text, &path.display().to_string())
     }

@@ -5,10 +5,14 @@
 
 use crate::config::Config;
 use crate::estimate::KalmanBank;
-use crate::ident::{pretune, save, Identifier, PretuneConfig, PretuneReport, Progress, Sample};
+use crate::ident::{
+    pretune, save, Identifier, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
+};
 use crate::omni::Joint3;
 use crate::telemetry::reader::{LogReader, ReadError};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Samples dropped at the start of each log while the Kalman filter settles.
@@ -22,11 +26,28 @@ pub enum IdentifyError {
     Ident(String),
     #[error("no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows)")]
     NoSamples(Vec<PathBuf>),
+    #[error("stopped by the operator in epoch {epoch}; no weights written")]
+    Stopped { epoch: usize },
 }
 
-/// The identifier's training samples from one log.
-pub fn samples_from_log(path: &Path, cfg: &Config) -> Result<Vec<Sample>, IdentifyError> {
-    let mut reader = LogReader::open(path, false)?;
+impl IdentifyError {
+    /// The operator stopped it (reading a log, or training).
+    pub fn is_stopped(&self) -> bool {
+        matches!(
+            self,
+            IdentifyError::Stopped { .. } | IdentifyError::Read(ReadError::Stopped { .. })
+        )
+    }
+}
+
+/// The identifier's training samples from one log (`stop`: the operator's, see
+/// [`LogReader::open`]).
+pub fn samples_from_log(
+    path: &Path,
+    cfg: &Config,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<Vec<Sample>, IdentifyError> {
+    let mut reader = LogReader::open(path, false, stop)?;
     let mut kalman = KalmanBank::new(&cfg.kalman);
     let rad_per_count = cfg.device.rad_per_count();
     let mut acting: Option<[f64; 3]> = None;
@@ -62,25 +83,31 @@ pub fn samples_from_log(path: &Path, cfg: &Config) -> Result<Vec<Sample>, Identi
     Ok(out)
 }
 
-/// Pre-tune fresh networks on `logs` and save them to `out`.
+/// Pre-tune fresh networks on `logs` and save them to `out`. `stop` (the operator's) ends the
+/// reading and the training; nothing is written then.
 pub fn identify(
     logs: &[PathBuf],
     out: &Path,
     cfg: &Config,
     pretune_cfg: &PretuneConfig,
+    stop: Option<&Arc<AtomicBool>>,
     progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, IdentifyError> {
     let mut samples = Vec::new();
     for log in logs {
-        samples.extend(samples_from_log(log, cfg)?);
+        samples.extend(samples_from_log(log, cfg, stop)?);
     }
     if samples.is_empty() {
         return Err(IdentifyError::NoSamples(logs.to_vec()));
     }
     let mut id =
         Identifier::new(&cfg.identifier).map_err(|e| IdentifyError::Ident(e.to_string()))?;
-    let report = pretune(&mut id, &samples, pretune_cfg, progress)
-        .map_err(|e| IdentifyError::Ident(e.to_string()))?;
+    let report = pretune(&mut id, &samples, pretune_cfg, stop.map(|s| &**s), progress).map_err(
+        |e| match e {
+            PretuneError::Stopped { epoch } => IdentifyError::Stopped { epoch },
+            e => IdentifyError::Ident(e.to_string()),
+        },
+    )?;
     save(&id, out).map_err(|e| IdentifyError::Ident(e.to_string()))?;
     Ok(report)
 }

@@ -3,10 +3,13 @@
 
 use omnid::config::Config;
 use omnid::device::replay::{ReplayDevice, ReplayError};
-use omnid::telemetry::reader::{LogReader, ReadError};
+use omnid::telemetry::reader::{LogReader, ReadError, MAX_ROW_BYTES};
 use omnid::telemetry::record::Mode;
 use proptest::prelude::*;
+use std::io::Read;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 const HEADER: &str = "t,q1,q2,q3,tau1,tau2,tau3\n";
 
@@ -21,13 +24,13 @@ fn file(dir: &tempfile::TempDir, name: &str, text: &str) -> PathBuf {
 fn error_of(name: &str, text: &str) -> (ReadError, String) {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, name, text);
-    let result = LogReader::open(&path, false).and_then(|r| r.collect::<Result<Vec<_>, _>>());
+    let result = LogReader::open(&path, false, None).and_then(|r| r.collect::<Result<Vec<_>, _>>());
     let e = result.expect_err("must be refused");
     let msg = e.to_string();
     assert!(msg.contains(name), "message does not name the file: {msg}");
     assert!(!msg.contains('\n'), "one line: {msg}");
     // The replay device refuses it with the same message, before anything runs.
-    match ReplayDevice::open(&path, &Config::default(), false, false) {
+    match ReplayDevice::open(&path, &Config::default(), false, false, &Arc::default()) {
         Err(ReplayError::Read(r)) => assert_eq!(r.to_string(), msg),
         Err(other) => panic!("replay: another error: {other}"),
         Ok(_) => panic!("replay accepted it"),
@@ -195,7 +198,7 @@ fn empty_file() {
 fn header_only_file_has_nothing_to_replay() {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, "header.csv", HEADER);
-    let e = ReplayDevice::open(&path, &Config::default(), false, false)
+    let e = ReplayDevice::open(&path, &Config::default(), false, false, &Arc::default())
         .err()
         .unwrap();
     assert!(matches!(e, ReplayError::NoRows { .. }));
@@ -220,11 +223,11 @@ fn lenient_counts_skipped_rows_and_where() {
     text += "0.3,0,0"; // and a cut-off last line
     bad.push(202);
     let path = file(&dir, "damaged.csv", &text);
-    assert!(LogReader::open(&path, false)
+    assert!(LogReader::open(&path, false, None)
         .unwrap()
         .collect::<Result<Vec<_>, _>>()
         .is_err());
-    let dev = ReplayDevice::open(&path, &Config::default(), false, true).unwrap();
+    let dev = ReplayDevice::open(&path, &Config::default(), false, true, &Arc::default()).unwrap();
     let info = dev.info();
     assert_eq!(info.rows, 200 - 8);
     assert_eq!(info.skipped.count, 9);
@@ -241,7 +244,7 @@ fn lenient_counts_skipped_rows_and_where() {
 fn lenient_with_nothing_good_left_is_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, "junk.csv", &format!("{HEADER}a,b,c,d,e,f,g\nx\n"));
-    let e = ReplayDevice::open(&path, &Config::default(), false, true)
+    let e = ReplayDevice::open(&path, &Config::default(), false, true, &Arc::default())
         .err()
         .unwrap();
     let msg = e.to_string();
@@ -345,6 +348,116 @@ proptest! {
     fn replay_open_never_panics(body in "[0-9.,\\n-]{0,400}", lenient in any::<bool>()) {
         let dir = tempfile::tempdir().unwrap();
         let path = file(&dir, "fuzz.csv", &format!("{HEADER}{body}"));
-        let _ = ReplayDevice::open(&path, &Config::default(), false, lenient);
+        let _ = ReplayDevice::open(&path, &Config::default(), false, lenient, &Arc::default());
+    }
+}
+
+/// `prefix`, then `fill` repeated for `len` bytes: a row that never ends, streamed (never held
+/// in memory); counts the bytes the reader took.
+struct Endless {
+    prefix: Vec<u8>,
+    fill: Vec<u8>,
+    len: u64,
+    at: u64,
+    taken: Arc<AtomicU64>,
+}
+
+impl Endless {
+    fn new(prefix: &str, fill: &str, len: u64) -> (Self, Arc<AtomicU64>) {
+        let taken = Arc::new(AtomicU64::new(0));
+        let e = Endless {
+            prefix: prefix.as_bytes().to_vec(),
+            fill: fill.as_bytes().to_vec(),
+            len: prefix.len() as u64 + len,
+            at: 0,
+            taken: taken.clone(),
+        };
+        (e, taken)
+    }
+}
+
+impl Read for Endless {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let mut n = 0;
+        while n < buf.len() && self.at < self.len {
+            let p = self.prefix.len() as u64;
+            buf[n] = if self.at < p {
+                self.prefix[self.at as usize]
+            } else {
+                self.fill[((self.at - p) % self.fill.len() as u64) as usize]
+            };
+            n += 1;
+            self.at += 1;
+        }
+        self.taken.fetch_add(n as u64, Ordering::Relaxed);
+        Ok(n)
+    }
+}
+
+#[test]
+fn a_long_row_under_the_limit_is_read() {
+    let extra = "x".repeat(600_000);
+    let text =
+        format!("t,q1,q2,q3,tau1,tau2,tau3,note\n0,1,2,3,4,5,6,{extra}\n0.1,1,2,3,4,5,6,y\n");
+    let rows: Vec<_> = LogReader::new(text.as_bytes(), "long.csv", false)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(rows.len(), 2);
+}
+
+#[test]
+fn a_header_without_end_is_refused_on_line_1() {
+    let (input, taken) = Endless::new("", "t,q1,", 3 * MAX_ROW_BYTES);
+    let e = LogReader::new(input, "zeros.csv", false).err().unwrap();
+    let msg = e.to_string();
+    assert!(
+        matches!(e, ReadError::RowTooLong { line: 1, limit, .. } if limit == MAX_ROW_BYTES),
+        "{msg}"
+    );
+    assert!(
+        msg.starts_with("zeros.csv: line 1: ") && msg.contains("1048576 bytes"),
+        "{msg}"
+    );
+    assert!(taken.load(Ordering::Relaxed) <= MAX_ROW_BYTES + 65536);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+    /// A row with no end in sight — no line end at all, or a quote that is never closed over
+    /// many short lines — is refused at the line where it starts, naming the limit, strict or
+    /// lenient, after the reader took at most the limit and a chunk beyond the rows before it.
+    #[test]
+    fn an_endless_row_is_refused_where_it_starts(
+        rows in 0usize..5,
+        quoted in any::<bool>(),
+        fill in "[0-9a-z,. ]{1,16}",
+        beyond in 1u64..3_000_000,
+        lenient in any::<bool>(),
+    ) {
+        let mut prefix = String::from(HEADER);
+        for k in 0..rows {
+            prefix += &format!("{k},0,0,0,0,0,0\n");
+        }
+        let fill = if quoted {
+            prefix += "0,\"";
+            format!("{fill}\n")
+        } else {
+            fill
+        };
+        let before = prefix.len() as u64;
+        let (input, taken) = Endless::new(&prefix, &fill, MAX_ROW_BYTES + beyond);
+        let mut reader = LogReader::new(input, "endless.csv", lenient).unwrap();
+        for _ in 0..rows {
+            prop_assert!(reader.next_row().unwrap().is_some());
+        }
+        match reader.next_row() {
+            Err(ReadError::RowTooLong { line, limit, .. }) => {
+                prop_assert_eq!(line, rows as u64 + 2);
+                prop_assert_eq!(limit, MAX_ROW_BYTES);
+            }
+            other => prop_assert!(false, "{:?}", other.map(|r| r.map(|r| r.line))),
+        }
+        prop_assert!(taken.load(Ordering::Relaxed) <= before + MAX_ROW_BYTES + 65536);
     }
 }

@@ -145,7 +145,8 @@ pub fn path_for(dir: &Path, serial: &str) -> Result<PathBuf, CalibrationError> {
 /// The stored calibration of `serial`, or `None` when there is none.
 pub fn load(dir: &Path, serial: &str) -> Result<Option<Calibration>, CalibrationError> {
     let path = path_for(dir, serial)?;
-    let text = match std::fs::read_to_string(&path) {
+    // A regular file of at most 64 KiB (it is two lines): never a wait, never a big read.
+    let text = match crate::input::read_capped(&path, 64 << 10, None) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(source) => return Err(CalibrationError::Read { path, source }),

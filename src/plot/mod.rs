@@ -18,6 +18,8 @@ use figures::{PlannedFigure, JOINTS};
 use read::LogReader;
 use std::fmt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
 /// Buckets kept by the decimator: at least this many, at most twice as many, each giving
 /// a min and a max. The plot area is ~1100 px wide, so this is about one point per pixel.
@@ -50,6 +52,11 @@ impl PlotError {
     /// made), not the program.
     pub fn is_bad_input(&self) -> bool {
         !matches!(self, PlotError::Render { .. })
+    }
+
+    /// The operator stopped it while the log was read.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, PlotError::Read(ReadError::Stopped { .. }))
     }
 }
 
@@ -100,9 +107,13 @@ impl fmt::Display for PlotReport {
 }
 
 /// Draw every figure `log` can feed into `out_dir` (created if needed) as `<name>.png` and
-/// `<name>.svg`.
-pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
-    let reader = LogReader::open(log)?;
+/// `<name>.svg`. `stop` (the operator's) ends the reading (see [`LogReader::open`]).
+pub fn plot_log(
+    log: &Path,
+    out_dir: &Path,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<PlotReport, PlotError> {
+    let reader = LogReader::open(log, stop)?;
     let plan = figures::plan(reader.header());
     if plan.figures.is_empty() {
         return Err(PlotError::NothingToPlot {

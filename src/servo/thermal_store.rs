@@ -50,7 +50,8 @@ pub fn max_heat(safety: &SafetyConfig, joint: usize) -> f64 {
 /// mechanism of its own: the clamp still applies), reported through the returned note, which
 /// names the file and the value.
 pub fn load(path: &Path, safety: &SafetyConfig) -> ([f64; 3], Option<String>) {
-    let text = match std::fs::read_to_string(path) {
+    // A regular file of at most 64 KiB (it is under 100 bytes): never a wait, never a big read.
+    let text = match crate::input::read_capped(path, 64 << 10, None) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return ([0.0; 3], None),
         Err(e) => {

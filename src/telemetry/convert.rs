@@ -21,6 +21,8 @@ use crate::omni::kinematics::from_ros;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Formats `omnid convert --from` understands.
@@ -49,6 +51,13 @@ pub enum ConvertError {
     SameFile(String),
 }
 
+impl ConvertError {
+    /// The operator stopped it while the input was read.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, ConvertError::Read(ReadError::Stopped { .. }))
+    }
+}
+
 /// What a conversion did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConvertReport {
@@ -57,12 +66,14 @@ pub struct ConvertReport {
     pub skipped: SkipReport,
 }
 
-/// Convert `input` (in format `from`) into a replayable log at `out`.
+/// Convert `input` (in format `from`) into a replayable log at `out`. `stop` (the operator's)
+/// ends the reading (see [`ColumnReader::open`]); nothing is left at `out` then.
 pub fn convert(
     from: SourceFormat,
     input: &Path,
     out: &Path,
     lenient: bool,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
     if let (Ok(a), Ok(b)) = (input.canonicalize(), out.canonicalize()) {
         if a == b {
@@ -81,8 +92,8 @@ pub fn convert(
         let file = File::create(&partial).map_err(werr)?;
         let mut w = csv::WriterBuilder::new().from_writer(BufWriter::with_capacity(1 << 16, file));
         let report = match from {
-            SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out)?,
-            SourceFormat::Omnid => omnid(input, &mut w, lenient, out)?,
+            SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out, stop)?,
+            SourceFormat::Omnid => omnid(input, &mut w, lenient, out, stop)?,
         };
         w.flush().map_err(werr)?;
         let file = w
@@ -142,8 +153,9 @@ fn ros_touch<W: Write>(
     w: &mut csv::Writer<W>,
     lenient: bool,
     out: &Path,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
-    let mut reader = ColumnReader::open(input, &ROS_TOUCH_COLUMNS, lenient)?;
+    let mut reader = ColumnReader::open(input, &ROS_TOUCH_COLUMNS, lenient, stop)?;
     let idx: Vec<usize> = ROS_TOUCH_COLUMNS
         .iter()
         .map(|c| reader.require(c, &ROS_TOUCH_COLUMNS))
@@ -200,8 +212,9 @@ fn omnid<W: Write>(
     w: &mut csv::Writer<W>,
     lenient: bool,
     out: &Path,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
-    let mut reader = LogReader::open(input, lenient)?;
+    let mut reader = LogReader::open(input, lenient, stop)?;
     let has_enc = reader.columns().enc.is_some();
     let has_mode = reader.columns().mode.is_some();
     let mut columns: Vec<String> = REQUIRED_COLUMNS.iter().map(|c| c.to_string()).collect();
@@ -268,7 +281,7 @@ mod tests {
             "t,waist,shoulder,elbow,x_mm\n0.0,0.1,0.2,0.3,1.5\n0.01,-0.1,0.25,-0.5,\"2,5\"\n",
         )
         .unwrap();
-        let rep = convert(SourceFormat::RosTouch, &input, &out, false).unwrap();
+        let rep = convert(SourceFormat::RosTouch, &input, &out, false, None).unwrap();
         assert_eq!(rep.rows, 2);
         let text = std::fs::read_to_string(&out).unwrap();
         let lines: Vec<&str> = text.lines().collect();
@@ -286,15 +299,15 @@ mod tests {
         let input = dir.path().join("in.csv");
         let out = dir.path().join("out.csv");
         std::fs::write(&input, "t,waist,shoulder,elbow\n0,0,0,0\n0.01,0,zero,0\n").unwrap();
-        let e = convert(SourceFormat::RosTouch, &input, &out, false).unwrap_err();
+        let e = convert(SourceFormat::RosTouch, &input, &out, false, None).unwrap_err();
         assert!(
             e.to_string().contains("line 3") && e.to_string().contains("`shoulder`"),
             "{e}"
         );
         assert!(!out.exists() && !partial_path(&out).exists());
-        let rep = convert(SourceFormat::RosTouch, &input, &out, true).unwrap();
+        let rep = convert(SourceFormat::RosTouch, &input, &out, true, None).unwrap();
         assert_eq!((rep.rows, rep.skipped.count), (1, 1));
-        assert!(convert(SourceFormat::RosTouch, &out, &out, false).is_err());
+        assert!(convert(SourceFormat::RosTouch, &out, &out, false, None).is_err());
     }
 
     #[test]
@@ -309,7 +322,7 @@ mod tests {
              0.001,0.5,0,0,0,0,0,9,1,0,0,0,stop,0\n",
         )
         .unwrap();
-        convert(SourceFormat::Omnid, &input, &out, false).unwrap();
+        convert(SourceFormat::Omnid, &input, &out, false, None).unwrap();
         let text = std::fs::read_to_string(&out).unwrap();
         assert_eq!(
             text,

@@ -8,7 +8,11 @@
 //!   line and the column. Other importers (e.g. `convert`) build on it with their own columns.
 //! - [`LogReader`]: the replayable log on top of it, yielding one `Copy` [`LogRow`] per data row.
 //!
-//! Memory is constant: one record buffer, reused; a row allocates nothing (an error does).
+//! Memory is constant: one record buffer, reused; a row allocates nothing (an error does). A
+//! row may take at most [`MAX_ROW_BYTES`]: a file without line ends (`/dev/zero`, one 1 GB
+//! line, an unclosed quote) is an error naming the line where that row starts, not a buffer as
+//! big as the file. Files are opened through [`crate::input`]: a FIFO or pipe is read only with
+//! the operator's stop flag, and every read ends on it ([`ReadError::Stopped`]).
 //!
 //! Rules (strict, the default):
 //! - an empty file, a missing/misnamed/duplicated required column, a row with the wrong number
@@ -25,11 +29,14 @@
 //! last *accepted* row.
 
 use super::record::Mode;
+pub use crate::input::MAX_ROW_BYTES;
+use crate::input::{self, Input, RowBound};
 use std::collections::VecDeque;
 use std::fmt;
-use std::fs::File;
 use std::io::{self, Read};
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// The seven columns a replayable file must have.
@@ -47,6 +54,13 @@ const MAX_QUOTED: usize = 40;
 pub enum ReadError {
     #[error("{path}: {source}")]
     Io { path: String, source: io::Error },
+    #[error("{path}: reading stopped by the operator")]
+    Stopped { path: String },
+    #[error(
+        "{path}: line {line}: the row starting here runs past {limit} bytes, the most a row may \
+         take (a file without line ends, or a quote that is never closed?)"
+    )]
+    RowTooLong { path: String, line: u64, limit: u64 },
     #[error(
         "{path}: line 1: the file is empty: expected a header row with the columns {expected}"
     )]
@@ -163,7 +177,7 @@ impl ReadError {
     pub fn line(&self) -> Option<u64> {
         use ReadError::*;
         match self {
-            Io { .. } => None,
+            Io { .. } | Stopped { .. } => None,
             Empty { .. } | MissingColumn { .. } | DuplicateColumn { .. } => Some(1),
             FieldCount { line, .. }
             | Truncated { line, .. }
@@ -173,6 +187,7 @@ impl ReadError {
             | TimeBackwards { line, .. }
             | TimeRepeats { line, .. }
             | UnknownMode { line, .. }
+            | RowTooLong { line, .. }
             | AfterStop { line, .. }
             | Csv { line, .. } => Some(*line),
         }
@@ -256,7 +271,7 @@ impl fmt::Display for SkipReport {
 /// ends a row at a lone `\r` too but counts only `\n`s, and a row after a `\r\n` starts, for
 /// it, at the `\n`, before that line is counted.
 struct Tail<R> {
-    inner: R,
+    inner: RowBound<R>,
     total: u64,
     last: Option<u8>,
     eof: bool,
@@ -272,7 +287,7 @@ struct Tail<R> {
 impl<R> Tail<R> {
     fn new(inner: R) -> Self {
         Tail {
-            inner,
+            inner: RowBound::new(inner),
             total: 0,
             last: None,
             eof: false,
@@ -493,17 +508,23 @@ pub struct ColumnReader<R: Read> {
     last: Option<(f64, u64)>,
     /// Lone `\r` line ends before the current row (see [`Tail`]).
     cr_lines: u64,
+    /// The parser's line of the next row's start (its position moves on while a row is read).
+    next_line: u64,
     skipped: SkipReport,
 }
 
-impl ColumnReader<File> {
+impl ColumnReader<Input> {
     /// Open a file; `required` columns must all be present (the first is the time column).
-    pub fn open(path: &Path, required: &[&str], lenient: bool) -> Result<Self, ReadError> {
+    /// `stop`: the operator's stop flag, which ends any read (without one, only a regular file
+    /// is accepted: see [`crate::input::open`]).
+    pub fn open(
+        path: &Path,
+        required: &[&str],
+        lenient: bool,
+        stop: Option<&Arc<AtomicBool>>,
+    ) -> Result<Self, ReadError> {
         let name = path.display().to_string();
-        let file = File::open(path).map_err(|source| ReadError::Io {
-            path: name.clone(),
-            source,
-        })?;
+        let file = input::open(path, stop).map_err(|source| io_error(source, &name))?;
         Self::new(file, &name, required, lenient)
     }
 }
@@ -529,6 +550,8 @@ impl<R: Read> ColumnReader<R> {
                 expected,
             });
         }
+        let first_row = csv.position().clone();
+        csv.get_mut().inner.row_starts_at(first_row.byte());
         let mut header: Vec<String> = record
             .iter()
             .map(|f| String::from_utf8_lossy(f.trim_ascii()).into_owned())
@@ -553,6 +576,7 @@ impl<R: Read> ColumnReader<R> {
             lenient,
             last: None,
             cr_lines: 0,
+            next_line: first_row.line(),
             skipped: SkipReport {
                 first_lines: Vec::with_capacity(SKIP_LINES_KEPT),
                 ..SkipReport::default()
@@ -630,10 +654,13 @@ impl<R: Read> ColumnReader<R> {
             let more = self
                 .csv
                 .read_byte_record(&mut self.record)
-                .map_err(|e| csv_error(e, &self.path, self.csv.position().line()))?;
+                .map_err(|e| csv_error(e, &self.path, self.next_line + self.cr_lines))?;
             if !more {
                 return Ok(None);
             }
+            let next_row = self.csv.position().clone();
+            self.next_line = next_row.line();
+            self.csv.get_mut().inner.row_starts_at(next_row.byte());
             let line = self.line_of_record();
             let result = if self.record.len() != self.header.len() {
                 Err(RowFault::FieldCount {
@@ -795,12 +822,31 @@ impl<R: Read> ColumnReader<R> {
     }
 }
 
+/// An I/O error as a [`ReadError`]: a stop, or the error itself.
+fn io_error(source: io::Error, path: &str) -> ReadError {
+    if input::is_stopped(&source) {
+        ReadError::Stopped {
+            path: path.to_string(),
+        }
+    } else {
+        ReadError::Io {
+            path: path.to_string(),
+            source,
+        }
+    }
+}
+
+/// `line`: where the row being read starts.
 fn csv_error(e: csv::Error, path: &str, line: u64) -> ReadError {
     let line = e.position().map(|p| p.line()).unwrap_or(line);
     match e.into_kind() {
-        csv::ErrorKind::Io(source) => ReadError::Io {
-            path: path.to_string(),
-            source,
+        csv::ErrorKind::Io(source) => match input::row_too_long(&source) {
+            Some(limit) => ReadError::RowTooLong {
+                path: path.to_string(),
+                line,
+                limit,
+            },
+            None => io_error(source, path),
         },
         other => ReadError::Csv {
             path: path.to_string(),
@@ -845,15 +891,20 @@ pub struct LogColumns {
 }
 
 /// Streaming reader of a replayable log.
-pub struct LogReader<R: Read = File> {
+pub struct LogReader<R: Read = Input> {
     core: ColumnReader<R>,
     cols: LogColumns,
     stop_line: Option<u64>,
 }
 
-impl LogReader<File> {
-    pub fn open(path: &Path, lenient: bool) -> Result<Self, ReadError> {
-        Self::with_core(ColumnReader::open(path, &REQUIRED_COLUMNS, lenient)?)
+impl LogReader<Input> {
+    /// Open a log file (`stop`: see [`ColumnReader::open`]).
+    pub fn open(
+        path: &Path,
+        lenient: bool,
+        stop: Option<&Arc<AtomicBool>>,
+    ) -> Result<Self, ReadError> {
+        Self::with_core(ColumnReader::open(path, &REQUIRED_COLUMNS, lenient, stop)?)
     }
 }
 
