@@ -17,9 +17,10 @@
 //!   again (zero torque), so every replayed log still ends with a `stop` row.
 //!
 //! The log must be a regular file: it is read twice (checked, then played), which a FIFO or
-//! pipe cannot give, so one is refused at once rather than waited on. Both passes read through
-//! [`crate::input`] with the operator's stop flag, and the paced sleeps between rows end on it
-//! too, so Ctrl-C ends a replay within a fraction of a second whatever its timestamps.
+//! pipe cannot give, so one is refused at once rather than waited on. The validation pass reads
+//! through [`crate::input`] with the operator's stop flag, and the paced sleeps between rows end
+//! on it, so Ctrl-C ends a replay within a fraction of a second however big the file or far
+//! apart its timestamps.
 //!
 //! Opening validates the whole file in one streaming pass (constant memory) before anything
 //! runs, so a bad row is a clear error at start, not a fault an hour in. The encoder path is
@@ -224,7 +225,10 @@ impl ReplayDevice {
     ) -> Result<Self, ReplayError> {
         let info = Self::scan(path, cfg, lenient, stop)?;
         Ok(ReplayDevice {
-            reader: LogReader::open(path, lenient, Some(stop))?,
+            // No stop flag for playback: the servo loop looks at it itself each tick, and a
+            // read that failed on it would end the run as a device fault (or spoil the final
+            // safe packet). Without one, only a regular file opens, as the scan found it.
+            reader: LogReader::open(path, lenient, None)?,
             encoder: EncoderPath::new(cfg),
             first_t: info.first_t,
             info,
@@ -598,6 +602,28 @@ mod tests {
             matches!(e, ReplayError::NotRegular { .. }) && e.to_string().contains("FIFO"),
             "{e}"
         );
+    }
+
+    /// The loop ends a run on a stop itself; the device must not turn the stop into a read
+    /// error (a device fault mid-run, or a final safe packet that cannot be answered).
+    #[test]
+    fn playback_reads_on_after_a_stop() {
+        let cfg = Config::default();
+        let mut text = String::from("t,q1,q2,q3,tau1,tau2,tau3\n");
+        for k in 0..3000 {
+            text += &format!("{},0,0,0,0.001,0,0\n", k as f64 * 1e-3);
+        }
+        let f = write(&text);
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &stop).unwrap();
+        dev.exchange(&live(0)).unwrap();
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        // Far past the reader's buffer: it refills from the file several times.
+        for k in 1..3000 {
+            dev.exchange(&live(k as u8)).unwrap();
+        }
+        let safe = encode_command(&MotorCommand::safe(1));
+        assert_eq!(dev.exchange(&safe).unwrap().device_time_s, 2.999);
     }
 
     #[test]
