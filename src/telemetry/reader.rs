@@ -24,7 +24,8 @@
 //!   previous row's (the servo logs `max(device time, last t)` there). A `mode` that omnid does
 //!   not write (see [`Mode::ALL`]; an empty field included) is an error naming the value.
 //!
-//! Lenient mode skips bad rows instead (header problems and I/O errors still fail) and keeps a
+//! Lenient mode skips bad rows instead (header problems, a row past the size limit, a stop and
+//! I/O errors still fail) and keeps a
 //! [`SkipReport`]: how many and the first few line numbers. Time order is checked against the
 //! last *accepted* row.
 
