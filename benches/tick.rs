@@ -111,7 +111,7 @@ fn stages(c: &mut Criterion) {
 fn identifier(c: &mut Criterion) {
     let cfg = Config::default();
     let mut g = c.benchmark_group("identifier");
-    let (mut id, _) = make_identifier(&cfg, ControllerKind::Nnidc, None, false).unwrap();
+    let (mut id, _) = make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
     let q = Joint3::new(0.1, 0.6, 0.3);
     let qd = Joint3::new(0.4, -0.3, 0.2);
     let qdd = Joint3::new(1.0, 0.5, -2.0);
@@ -172,7 +172,7 @@ fn whole_tick(c: &mut Criterion) {
                 None,
                 true,
             );
-            let (id, _) = make_identifier(&cfg, kind, None, false).unwrap();
+            let (id, _) = make_identifier(&cfg, kind, None, false, None).unwrap();
             servo.set_identifier(id);
             b.iter(|| {
                 servo.tick();
@@ -220,7 +220,7 @@ fn fast_throughput(c: &mut Criterion) {
                     Some(ticks),
                     false,
                 );
-                let (id, _) = make_identifier(&cfg, kind, None, false).unwrap();
+                let (id, _) = make_identifier(&cfg, kind, None, false, None).unwrap();
                 servo.set_identifier(id);
                 let report = servo.run();
                 drain.join().unwrap();

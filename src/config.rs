@@ -9,7 +9,12 @@ pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
+
+/// The largest config file read (the full default config is about 12 kB).
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
@@ -28,6 +33,13 @@ pub enum ConfigError {
     },
 }
 
+impl ConfigError {
+    /// Reading the file was stopped by the operator.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, ConfigError::Read { source, .. } if crate::input::is_stopped(source))
+    }
+}
+
 /// Device-independent facts of the Omni's electronics.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -35,6 +47,7 @@ pub struct DeviceConfig {
     /// Encoder counts per joint revolution.
     pub counts_per_rev: f64,
     /// Motor torque per DAC count, N·m (12-bit offset binary, ±2047 counts).
+    #[serde(deserialize_with = "crate::config::exact")]
     pub nm_per_count: [f64; 3],
     /// Servo rate, Hz.
     pub rate_hz: f64,
@@ -73,6 +86,7 @@ pub struct SimConfig {
     /// Standard deviation of a random torque disturbance (motor ripple), N·m.
     pub torque_noise_nm: f64,
     /// Joint angles at power-on, rad (default: stylus in the inkwell).
+    #[serde(deserialize_with = "crate::config::exact")]
     pub start_pose: [f64; 3],
 }
 
@@ -137,8 +151,10 @@ impl Default for ControlConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct ReferenceConfig {
     /// Mid-workspace pose the trajectories move about, rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub center: [f64; 3],
     /// Sine amplitudes, rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub amplitude: [f64; 3],
     /// Sine frequency, Hz.
     pub frequency_hz: f64,
@@ -147,8 +163,10 @@ pub struct ReferenceConfig {
     /// Tracking statistics start here (after the blend and its transient), s.
     pub settle_s: f64,
     /// Multisine: amplitude per joint (sum over components), rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub multisine_amplitude: [f64; 3],
     /// Multisine: lowest and highest component frequency, Hz.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub multisine_band_hz: [f64; 2],
     /// Multisine: number of components per joint.
     pub multisine_components: u32,
@@ -372,6 +390,31 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
     ),
 ];
 
+/// `[T; N]` from exactly N values. serde's own impl for arrays stops after N elements without
+/// looking further, so with `toml` a longer array was silently cut to its first N; every
+/// fixed-length field of a config or stored-state file takes its values through this
+/// (`#[serde(deserialize_with = "crate::config::exact")]`).
+pub(crate) fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let values = Vec::<T>::deserialize(d)?;
+    let got = values.len();
+    values
+        .try_into()
+        .map_err(|_| serde::de::Error::invalid_length(got, &ArrayOf(N)))
+}
+
+/// What [`exact`] expects, for its message.
+struct ArrayOf(usize);
+
+impl serde::de::Expected for ArrayOf {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "an array of exactly {} values", self.0)
+    }
+}
+
 fn finite_in(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
     if v.is_finite() && v >= lo && v <= hi {
         Ok(())
@@ -418,11 +461,15 @@ impl Config {
         Ok(cfg)
     }
 
-    /// Read and validate a config file.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.display().to_string(),
-            source,
+    /// Read and validate a config file (at most [`MAX_CONFIG_BYTES`]; `stop`, the operator's,
+    /// ends a wait on a pipe, without it only a regular file is read: see
+    /// [`crate::input::open`]).
+    pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<Self, ConfigError> {
+        let text = crate::input::read_capped(path, MAX_CONFIG_BYTES, stop).map_err(|source| {
+            ConfigError::Read {
+                path: path.display().to_string(),
+                source,
+            }
         })?;
         Self::from_toml(&text, &path.display().to_string())
     }
@@ -915,6 +962,27 @@ mod tests {
         assert!(e.contains("kalman.jerk_psd") && e.contains("finite"), "{e}");
         let e = err("[control]\nzeta = inf\n");
         assert!(e.contains("control.zeta"), "{e}");
+    }
+
+    #[test]
+    fn arrays_of_the_wrong_length_are_refused() {
+        // serde alone read the first three of four and dropped the 99 without a word.
+        for (text, got) in [
+            ("[safety]\nmax_torque_nm = [0.4, 0.4, 0.4, 99]\n", "4"),
+            ("[safety]\nmax_torque_nm = [0.4, 0.4]\n", "2"),
+            ("[reference]\nmultisine_band_hz = [0.1, 1.5, 3.0]\n", "3"),
+        ] {
+            let e = err(text);
+            let key = text.lines().nth(1).unwrap().split(" = ").next().unwrap();
+            assert!(
+                e.contains("line 2") && e.contains(key) && e.contains(&format!("length {got}")),
+                "{e}"
+            );
+        }
+        let e = err("[safety]\nmax_torque_nm = [0.4, 0.4, 0.4, 99]\n");
+        assert!(e.contains("exactly 3 values"), "{e}");
+        let e = err("[reference]\nmultisine_band_hz = [0.1, 1.5, 3.0]\n");
+        assert!(e.contains("exactly 2 values"), "{e}");
     }
 
     #[test]

@@ -258,7 +258,7 @@ fn figures_of(
     rel: &str,
     files: &mut Vec<PathBuf>,
 ) -> Result<String, ExperimentError> {
-    let rep = plot_log(log, dir)?;
+    let rep = plot_log(log, dir, None)?;
     files.extend(rep.files.iter().cloned());
     let mut md = String::new();
     for name in &rep.figures {
@@ -369,7 +369,7 @@ fn validation(
         ..PretuneConfig::default()
     };
     let epoch_bar = crate::progress::bar(epochs as u64, "pre-tuning");
-    let pre_report = identify(&logs, &weights, &Config::default(), &pcfg, |p| {
+    let pre_report = identify(&logs, &weights, &Config::default(), &pcfg, None, |p| {
         if let Progress::Epoch(_) = p {
             epoch_bar.inc(1);
         }
@@ -481,7 +481,7 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
         None,
         false,
     )?;
-    let samples = samples_from_log(&log, &cfg)?;
+    let samples = samples_from_log(&log, &cfg, None)?;
     if samples.is_empty() {
         return Err(ExperimentError::Internal(
             "the α sweep log has no samples".into(),

@@ -13,6 +13,8 @@ use crate::omni::Joint3;
 use crate::output::OutputError;
 use crate::telemetry::reader::{LogReader, ReadError};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Samples dropped at the start of each log while the Kalman filter settles.
@@ -36,6 +38,8 @@ pub enum IdentifyError {
     /// failed.
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    #[error("stopped by the operator in epoch {epoch}; no weights written")]
+    Stopped { epoch: usize },
 }
 
 impl IdentifyError {
@@ -53,9 +57,24 @@ fn files(logs: &[PathBuf]) -> String {
     names.join(", ")
 }
 
-/// The identifier's training samples from one log.
-pub fn samples_from_log(path: &Path, cfg: &Config) -> Result<Vec<Sample>, IdentifyError> {
-    let mut reader = LogReader::open(path, false)?;
+impl IdentifyError {
+    /// The operator stopped it (reading a log, or training).
+    pub fn is_stopped(&self) -> bool {
+        matches!(
+            self,
+            IdentifyError::Stopped { .. } | IdentifyError::Read(ReadError::Stopped { .. })
+        )
+    }
+}
+
+/// The identifier's training samples from one log (`stop`: the operator's, see
+/// [`LogReader::open`]).
+pub fn samples_from_log(
+    path: &Path,
+    cfg: &Config,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<Vec<Sample>, IdentifyError> {
+    let mut reader = LogReader::open(path, false, stop)?;
     let mut kalman = KalmanBank::new(&cfg.kalman);
     let rad_per_count = cfg.device.rad_per_count();
     let mut acting: Option<[f64; 3]> = None;
@@ -91,32 +110,37 @@ pub fn samples_from_log(path: &Path, cfg: &Config) -> Result<Vec<Sample>, Identi
     Ok(out)
 }
 
-/// Pre-tune fresh networks on `logs` and save them to `out`.
+/// Pre-tune fresh networks on `logs` and save them to `out`. `stop` (the operator's) ends the
+/// reading and the training; nothing is written then.
 pub fn identify(
     logs: &[PathBuf],
     out: &Path,
     cfg: &Config,
     pretune_cfg: &PretuneConfig,
+    stop: Option<&Arc<AtomicBool>>,
     progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, IdentifyError> {
     // Before the work: a bad --out is found now, not after the training.
     crate::output::check_file(out)?;
     let mut samples = Vec::new();
     for log in logs {
-        samples.extend(samples_from_log(log, cfg)?);
+        samples.extend(samples_from_log(log, cfg, stop)?);
     }
     if samples.is_empty() {
         return Err(IdentifyError::NoSamples(logs.to_vec()));
     }
     let mut id =
         Identifier::new(&cfg.identifier).map_err(|e| IdentifyError::Ident(e.to_string()))?;
-    let report = pretune(&mut id, &samples, pretune_cfg, progress).map_err(|e| match e {
-        PretuneError::NoTorque { .. } => IdentifyError::NoInformation {
-            logs: logs.to_vec(),
-            detail: e.to_string(),
+    let report = pretune(&mut id, &samples, pretune_cfg, stop.map(|s| &**s), progress).map_err(
+        |e| match e {
+            PretuneError::Stopped { epoch } => IdentifyError::Stopped { epoch },
+            PretuneError::NoTorque { .. } => IdentifyError::NoInformation {
+                logs: logs.to_vec(),
+                detail: e.to_string(),
+            },
+            e => IdentifyError::Ident(e.to_string()),
         },
-        e => IdentifyError::Ident(e.to_string()),
-    })?;
+    )?;
     save(&id, out).map_err(|e| match e {
         WeightsError::Write(e) => IdentifyError::Output(e),
         e => IdentifyError::Ident(e.to_string()),

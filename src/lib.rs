@@ -4,7 +4,7 @@
 //! `device` (packets) → `estimate` (Kalman) → `control` (PD, …) → safety in `servo` →
 //! `device`, with `telemetry` carrying each tick to the log and the summary, and `omni` the
 //! geometry and physics shared by the simulator and model-based control. Off the loop: `plot`
-//! draws figures from a log, `experiment` reproduces the paper's experiments, `progress` the terminal progress bars of long commands.
+//! draws figures from a log, `experiment` reproduces the paper's experiments, `progress` the terminal progress bars of long commands, `input` the files read from outside (never an uninterruptible wait, never an unbounded row).
 
 /// Terminal output that never panics. `print!` and `eprintln!` panic when the stream is a
 /// closed pipe or a hung-up terminal, which would lose the exit code, the summary JSON and the
@@ -43,6 +43,7 @@ pub mod experiment;
 pub mod fastmath;
 pub mod ident;
 pub mod identify;
+pub mod input;
 pub mod omni;
 pub mod output;
 pub mod plot;

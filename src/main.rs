@@ -104,8 +104,10 @@ struct IdentifyArgs {
 }
 
 fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
-    let Some(cfg) = load_config(args.config.as_deref()) else {
-        return Ok(EXIT_BAD_INPUT);
+    let stop = stop_on_signal()?;
+    let cfg = match load_config(args.config.as_deref(), Some(&stop)) {
+        Ok(cfg) => cfg,
+        Err(code) => return Ok(code),
     };
     let pretune_cfg = omnid::ident::PretuneConfig {
         epochs: args.epochs,
@@ -117,6 +119,7 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         &args.out,
         &cfg,
         &pretune_cfg,
+        Some(&stop),
         |p| match p {
             omnid::ident::Progress::Batch { .. } => {}
             omnid::ident::Progress::Epoch(r) => {
@@ -156,7 +159,9 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         }
         Err(e) => {
             omnid::errln!("omnid identify: {e}");
-            Ok(if e.is_bad_input() {
+            Ok(if e.is_stopped() {
+                EXIT_OPERATOR_STOP
+            } else if e.is_bad_input() {
                 EXIT_BAD_INPUT
             } else {
                 EXIT_INTERNAL
@@ -316,8 +321,9 @@ struct ProbeArgs {
 
 fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
     use omnid::device::probe::{probe_firewire, ProbeError, ProbePlan, TerminalOperator};
-    let Some(cfg) = load_config(args.config.as_deref()) else {
-        return Ok(EXIT_BAD_INPUT);
+    let cfg = match load_config(args.config.as_deref(), None) {
+        Ok(cfg) => cfg,
+        Err(code) => return Ok(code),
     };
     if args.device != "firewire" {
         omnid::errln!(
@@ -392,8 +398,29 @@ struct ConvertArgs {
     lenient: bool,
 }
 
+fn plot_cmd(log: &std::path::Path, out: &std::path::Path) -> Result<u8, anyhow::Error> {
+    let stop = stop_on_signal()?;
+    match omnid::plot::plot_log(log, out, Some(&stop)) {
+        Ok(report) => {
+            omnid::out!("{report}");
+            Ok(0)
+        }
+        Err(e) => {
+            omnid::errln!("omnid plot: {e}");
+            Ok(if e.is_stopped() {
+                EXIT_OPERATOR_STOP
+            } else if e.is_bad_input() {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_INTERNAL
+            })
+        }
+    }
+}
+
 fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
-    match convert(args.from, &args.input, &args.out, args.lenient) {
+    let stop = stop_on_signal()?;
+    match convert(args.from, &args.input, &args.out, args.lenient, Some(&stop)) {
         Ok(report) => {
             omnid::outln!(
                 "omnid convert: {} rows from {} to {} (columns: {})",
@@ -407,6 +434,10 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
             }
             Ok(0)
         }
+        Err(e) if e.is_stopped() => {
+            omnid::errln!("omnid: {e}; nothing written");
+            Ok(EXIT_OPERATOR_STOP)
+        }
         Err(e) => {
             omnid::errln!("omnid: {e}");
             Ok(if e.is_bad_input() {
@@ -419,10 +450,11 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
 }
 
 fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
-    let Some(cfg) = load_config(args.config.as_deref()) else {
-        return Ok(EXIT_BAD_INPUT);
-    };
     let stop = stop_on_signal()?;
+    let cfg = match load_config(args.config.as_deref(), Some(&stop)) {
+        Ok(cfg) => cfg,
+        Err(code) => return Ok(code),
+    };
     let replay = matches!(args.device, DeviceSpec::Replay(_));
     let opts = RunOptions {
         device: args.device,
@@ -441,6 +473,10 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
+        Err(e) if e.is_stopped() => {
+            omnid::errln!("omnid: {e}; nothing ran");
+            return Ok(EXIT_OPERATOR_STOP);
+        }
         Err(e @ RunError::BadInput(_)) | Err(e @ RunError::Replay(_)) => {
             omnid::errln!("omnid: {e}");
             return Ok(EXIT_BAD_INPUT);
@@ -536,10 +572,11 @@ fn stop_on_signal() -> Result<Arc<AtomicBool>, anyhow::Error> {
 }
 
 fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
-    let Some(cfg) = load_config(args.config.as_deref()) else {
-        return Ok(EXIT_BAD_INPUT);
-    };
     let stop = stop_on_signal()?;
+    let cfg = match load_config(args.config.as_deref(), Some(&stop)) {
+        Ok(cfg) => cfg,
+        Err(code) => return Ok(code),
+    };
     let opts = omnid::serve::ServeOptions {
         device: args.device,
         controller: args.controller,
@@ -551,6 +588,10 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     };
     let outcome = match omnid::serve::serve(&opts, &cfg, stop) {
         Ok(o) => o,
+        Err(e) if e.is_stopped() => {
+            omnid::errln!("omnid serve: {e}; nothing served");
+            return Ok(EXIT_OPERATOR_STOP);
+        }
         Err(e @ RunError::Device(_)) => {
             omnid::errln!("omnid: {e}");
             return Ok(EXIT_DEVICE_FAULT);
@@ -770,14 +811,22 @@ fn absolute(p: &std::path::Path) -> PathBuf {
     std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf())
 }
 
-/// The config file, or the defaults; `None` after printing why a file was refused.
-fn load_config(path: Option<&std::path::Path>) -> Option<Config> {
-    match path.map(Config::load) {
-        None => Some(Config::default()),
-        Some(Ok(c)) => Some(c),
+/// The config file, or the defaults; the exit code after printing why a file was refused
+/// (`stop`: the operator's, which ends a wait on a config that is a pipe).
+fn load_config(
+    path: Option<&std::path::Path>,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<Config, u8> {
+    match path.map(|p| Config::load(p, stop)) {
+        None => Ok(Config::default()),
+        Some(Ok(c)) => Ok(c),
         Some(Err(e)) => {
             omnid::errln!("omnid: {e}");
-            None
+            Err(if e.is_stopped() {
+                EXIT_OPERATOR_STOP
+            } else {
+                EXIT_BAD_INPUT
+            })
         }
     }
 }
@@ -801,27 +850,14 @@ fn main() -> ExitCode {
         Command::Convert(args) => convert_cmd(args),
         Command::Probe(args) => probe_cmd(args),
         Command::Identify(args) => identify_cmd(args),
-        Command::Devices { config } => match load_config(config.as_deref()) {
-            Some(cfg) => {
+        Command::Devices { config } => match load_config(config.as_deref(), None) {
+            Ok(cfg) => {
                 omnid::out!("{}", omnid::device::discovery::list_devices(&cfg.usb));
                 Ok(0)
             }
-            None => Ok(EXIT_BAD_INPUT),
+            Err(code) => Ok(code),
         },
-        Command::Plot { log, out } => match omnid::plot::plot_log(&log, &out) {
-            Ok(report) => {
-                omnid::out!("{report}");
-                Ok(0)
-            }
-            Err(e) => {
-                omnid::errln!("omnid plot: {e}");
-                Ok(if e.is_bad_input() {
-                    EXIT_BAD_INPUT
-                } else {
-                    EXIT_INTERNAL
-                })
-            }
-        },
+        Command::Plot { log, out } => plot_cmd(&log, &out),
         Command::Experiment { kind, out, quick } => {
             match omnid::experiment::run_experiment(kind, &out, quick) {
                 Ok(report) => {

@@ -13,6 +13,7 @@ use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
 use crate::ident::{Identifier, WeightsFile};
 use crate::servo::{EndReason, Servo, ServoReport};
+use crate::telemetry::reader::ReadError;
 use crate::telemetry::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, LogSchema};
 use std::path::{Path, PathBuf};
@@ -89,11 +90,14 @@ pub const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
 pub const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
 
 /// The identifier a run starts with, and a label for the summary.
+/// `stop`: the operator's, which ends a wait on a weights file that is a pipe (without it such
+/// a file is refused).
 pub fn make_identifier(
     cfg: &Config,
     controller: ControllerKind,
     weights: Option<&std::path::Path>,
     no_adapt: bool,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<(Identifier, String), RunError> {
     let mut id_cfg = cfg.identifier.clone();
     if no_adapt {
@@ -101,10 +105,11 @@ pub fn make_identifier(
     }
     let bad = |e: &dyn std::fmt::Display| RunError::BadInput(e.to_string());
     match weights {
-        Some(path) => Ok((
-            Identifier::from_weights_file(&id_cfg, path).map_err(|e| bad(&e))?,
-            path.display().to_string(),
-        )),
+        Some(path) => match Identifier::from_weights_file(&id_cfg, path, stop) {
+            Ok(id) => Ok((id, path.display().to_string())),
+            Err(e) if e.is_stopped() => Err(RunError::Stopped(e.to_string())),
+            Err(e) => Err(bad(&e)),
+        },
         None if controller == ControllerKind::Nnidc => {
             let mut id = Identifier::new(&id_cfg).map_err(|e| bad(&e))?;
             let w = WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME)
@@ -139,6 +144,19 @@ pub enum RunError {
     Replay(#[from] ReplayError),
     #[error("internal error: {0}")]
     Internal(String),
+    /// Ctrl-C or SIGTERM before the loop started (while a log was checked or a file waited on).
+    #[error("{0}")]
+    Stopped(String),
+}
+
+impl RunError {
+    /// The operator stopped it (exit code 130, as a run stopped in the loop).
+    pub fn is_stopped(&self) -> bool {
+        matches!(
+            self,
+            RunError::Stopped(_) | RunError::Replay(ReplayError::Read(ReadError::Stopped { .. }))
+        )
+    }
 }
 
 /// The outcome of a run that started.
@@ -195,11 +213,12 @@ fn open_device(
     opts: &RunOptions,
     cfg: &Config,
     warnings: &mut Vec<String>,
+    stop: &Arc<AtomicBool>,
 ) -> Result<Box<dyn Device>, RunError> {
     match &opts.device {
         DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, !opts.fast))),
         DeviceSpec::Replay(path) => {
-            let device = ReplayDevice::open(path, cfg, !opts.fast, opts.lenient)?
+            let device = ReplayDevice::open(path, cfg, !opts.fast, opts.lenient, stop)?
                 .with_duration_limit(opts.duration_s.is_finite().then_some(opts.duration_s));
             if device.info().skipped.count > 0 {
                 warnings.push(format!(
@@ -341,8 +360,13 @@ pub fn assemble(
 ) -> Result<Pipeline, RunError> {
     let replay = matches!(opts.device, DeviceSpec::Replay(_));
     let mut controllers = ControllerSet::new(cfg, opts.controller, cfg.serve.switch_fade_s);
-    let (identifier, weights_label) =
-        make_identifier(cfg, opts.controller, opts.weights.as_deref(), opts.no_adapt)?;
+    let (identifier, weights_label) = make_identifier(
+        cfg,
+        opts.controller,
+        opts.weights.as_deref(),
+        opts.no_adapt,
+        Some(&stop),
+    )?;
     if weights_label == "shipped" {
         crate::errln!(
             "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
@@ -357,9 +381,14 @@ pub fn assemble(
         controllers.replace(opts.controller, Box::new(NanAfter { inner, at_s }));
     }
     let mut warnings = Vec::new();
-    let mut device = open_device(opts, cfg, &mut warnings)?;
+    let mut device = open_device(opts, cfg, &mut warnings, &stop)?;
     if !faults.is_empty() {
-        device = Box::new(FaultyDevice::new(device, faults, cfg.sim.seed));
+        device = Box::new(FaultyDevice::new(
+            device,
+            faults,
+            cfg.sim.seed,
+            stop.clone(),
+        ));
     }
     let schema = LogSchema {
         model: device.plant_model().is_some(),
@@ -385,8 +414,7 @@ pub fn assemble(
     );
     servo.set_identifier(identifier.clone());
     if let Some(path) = &heat_path {
-        let (heat, note) =
-            crate::servo::thermal_store::load(path, cfg.safety.thermal_time_constant_s);
+        let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
         if let Some(note) = note {
             crate::errln!("omnid: warning: {note}; starting with cold motors");
         }

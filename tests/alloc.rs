@@ -87,7 +87,7 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
     // is unpaced so the test runs fast).
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     // Adapting identifier on, from the weights a run of this controller would start with.
-    let (id, _) = omnid::run::make_identifier(&cfg, kind, None, false).unwrap();
+    let (id, _) = omnid::run::make_identifier(&cfg, kind, None, false, None).unwrap();
     assert!(cfg.identifier.adapt);
     servo.set_identifier(id);
     for _ in 0..2_500 {
@@ -153,15 +153,18 @@ fn replay_allocates_nothing_per_tick() {
     sim_cfg.safety.persist_heat = false;
     omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
 
-    let device =
-        Box::new(omnid::device::replay::ReplayDevice::open(&log, &cfg, false, false).unwrap());
+    let device = Box::new(
+        omnid::device::replay::ReplayDevice::open(&log, &cfg, false, false, &Arc::default())
+            .unwrap(),
+    );
     let reference = Reference::new(Trajectory::Multisine, &cfg.reference, cfg.sim.seed);
     let (tx, rx) = crossbeam_channel::bounded(64);
     let consumer = std::thread::spawn(move || rx.iter().count());
     let stop = Arc::new(AtomicBool::new(false));
     let controller = ControllerSet::new(&cfg, ControllerKind::Pd, 0.0);
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
-    let (id, _) = omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false).unwrap();
+    let (id, _) =
+        omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
     servo.set_identifier(id);
     for _ in 0..1_000 {
         assert!(servo.tick().is_none());

@@ -1,6 +1,7 @@
 //! Property-based smoke of the config parser, the CI-sized cousin of the `config` fuzz target in
 //! `tests/fuzz/`: random TOML-ish text and random values for every real key never panic, and
-//! every refusal names a line (syntax, types, unknown keys) or a field (values out of range).
+//! every refusal names a line (syntax, types, unknown keys) or a field (values out of range),
+//! and an accepted config holds every array exactly as written (nothing cut off).
 
 use omnid::config::{Config, ConfigError};
 use proptest::prelude::*;
@@ -22,6 +23,35 @@ fn check(text: &str) -> Result<Config, ConfigError> {
         }
     }
     result
+}
+
+/// Every array of `written` (the parsed input text) is in `kept` (the accepted config,
+/// serialised) with the same number of values: a value more or fewer is refused, never cut.
+fn arrays_kept(written: &toml::Value, kept: &toml::Value, at: &str) -> Result<(), String> {
+    match (written, kept) {
+        (toml::Value::Table(w), toml::Value::Table(k)) => {
+            for (key, value) in w {
+                if let Some(kv) = k.get(key) {
+                    arrays_kept(value, kv, &format!("{at}.{key}"))?;
+                }
+            }
+            Ok(())
+        }
+        (toml::Value::Array(w), toml::Value::Array(k)) if w.len() != k.len() => Err(format!(
+            "`{}` was written with {} values and accepted as {}",
+            at.trim_start_matches('.'),
+            w.len(),
+            k.len()
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// The accepted `cfg` keeps every array of `text`.
+fn check_arrays(text: &str, cfg: &Config) -> Result<(), String> {
+    let written: toml::Value = toml::from_str(text).map_err(|e| e.to_string())?;
+    let kept = toml::Value::try_from(cfg).map_err(|e| e.to_string())?;
+    arrays_kept(&written, &kept, "")
 }
 
 /// `(line index, section.key)` of every key of the default config, with the default's lines.
@@ -100,7 +130,9 @@ proptest! {
 
     #[test]
     fn random_toml_ish_text_never_panics(text in toml_ish()) {
-        let _ = check(&text);
+        if let Ok(cfg) = check(&text) {
+            prop_assert_eq!(check_arrays(&text, &cfg), Ok(()));
+        }
     }
 
     #[test]
@@ -112,7 +144,10 @@ proptest! {
         lines[*at] = format!("{name} = {v}");
         let text = lines.join("\n");
         match check(&text) {
-            Ok(cfg) => cfg.validate().unwrap(),
+            Ok(cfg) => {
+                cfg.validate().unwrap();
+                prop_assert_eq!(check_arrays(&text, &cfg), Ok(()), "`{} = {}`", key, v);
+            }
             Err(ConfigError::Parse { message, .. }) => {
                 // A type error points at the line that was changed.
                 let line = format!("line {} ", at + 1);
@@ -134,4 +169,41 @@ fn every_default_key_is_reached() {
     let (_, keys) = default_keys();
     assert!(keys.len() > 40, "only {} keys found", keys.len());
     assert!(keys.iter().any(|(_, k)| k == "control.omega_n"));
+}
+
+/// Every fixed-length array of the config, one value too many or too few: refused on its line,
+/// never cut or padded (a list such as `inject.faults` takes any length and keeps it).
+#[test]
+fn every_array_refuses_a_value_more_or_less() {
+    let (lines, keys) = default_keys();
+    let mut arrays = 0;
+    for (at, key) in &keys {
+        let (name, value) = lines[*at].split_once(" = ").unwrap();
+        let value = value.split(" #").next().unwrap().trim();
+        let Some(inner) = value.strip_prefix('[').and_then(|v| v.strip_suffix(']')) else {
+            continue;
+        };
+        let values: Vec<&str> = inner.split(',').map(str::trim).collect();
+        if inner.trim().is_empty() {
+            continue;
+        }
+        arrays += 1;
+        let longer = [&values[..], &values[values.len() - 1..]].concat();
+        let shorter = &values[..values.len() - 1];
+        for changed in [&longer[..], shorter] {
+            let mut edited = lines.clone();
+            edited[*at] = format!("{name} = [{}]", changed.join(", "));
+            let text = edited.join("\n");
+            match check(&text) {
+                Ok(cfg) => assert_eq!(check_arrays(&text, &cfg), Ok(()), "{key}"),
+                Err(ConfigError::Parse { message, .. }) => assert!(
+                    message.starts_with(&format!("line {} ", at + 1))
+                        && message.contains(&format!("length {}", changed.len())),
+                    "{key}: {message}"
+                ),
+                Err(e) => panic!("{key} with {} values: {e}", changed.len()),
+            }
+        }
+    }
+    assert!(arrays >= 25, "only {arrays} arrays found");
 }

@@ -172,7 +172,7 @@ fn plant_commands(fault: &str) -> (EndReason, u64, Vec<MotorCommand>) {
         seen: seen.clone(),
     };
     let f: Fault = fault.parse().unwrap();
-    let device = FaultyDevice::new(Box::new(plant), &[f], 1);
+    let device = FaultyDevice::new(Box::new(plant), &[f], 1, Arc::default());
     let (tx, rx) = crossbeam_channel::bounded(1 << 16);
     let servo = Servo::new(
         &cfg,

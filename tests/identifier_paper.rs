@@ -56,7 +56,7 @@ fn multisine_samples(dir: &Path, seed: u64, secs: f64) -> Vec<Sample> {
         &log,
         None,
     );
-    samples_from_log(&log, &cfg).unwrap()
+    samples_from_log(&log, &cfg, None).unwrap()
 }
 
 /// ‖Ĉ − C‖_F/‖C‖_F over the states of `samples` against the simulator's plant: the ratio of
@@ -103,7 +103,7 @@ fn skew_symmetry_terms_bring_c_hat_closer_to_the_plant() {
             ..IdentifierConfig::default()
         })
         .unwrap();
-        let rep = pretune(&mut id, &train, &pcfg, |_| {}).unwrap();
+        let rep = pretune(&mut id, &train, &pcfg, None, |_| {}).unwrap();
         let (rms, mean) = coriolis_error(&mut id, &val);
         let nrmse = omnid::ident::nrmse(&mut id, &val, None);
         eprintln!(
@@ -152,7 +152,7 @@ fn larger_alpha_converges_sooner_and_moves_the_weights_more() {
             sigma: 0.0,
             ..IdentifierConfig::default()
         };
-        let mut id = Identifier::from_weights_file(&cfg, &weights).unwrap();
+        let mut id = Identifier::from_weights_file(&cfg, &weights, None).unwrap();
         id.set_anchor();
         let mut ms = None::<f64>;
         let mut reached = None;
@@ -198,7 +198,7 @@ fn larger_alpha_converges_sooner_and_moves_the_weights_more() {
 fn three_net_nnidc_beats_pd_and_stays_near_computed_torque() {
     let dir = tempfile::tempdir().unwrap();
     let mock = Path::new(env!("CARGO_MANIFEST_DIR")).join("mock");
-    let three = Config::load(&mock.join("nnidc-3net.toml")).unwrap();
+    let three = Config::load(&mock.join("nnidc-3net.toml"), None).unwrap();
     assert!(!three.identifier.friction_net);
     let cases = [
         ("pd", ControllerKind::Pd, Config::default(), None),
@@ -233,13 +233,13 @@ fn three_net_nnidc_beats_pd_and_stays_near_computed_torque() {
     }
     // The feedback gain NNIDC multiplies by: M̂ of each weights file against the plant's M on
     // the states of the PD run (the torque's total variation scales with it).
-    let states = samples_from_log(&dir.path().join("pd.csv"), &Config::default()).unwrap();
+    let states = samples_from_log(&dir.path().join("pd.csv"), &Config::default(), None).unwrap();
     let plant = Dynamics::new(ModelParams::default(), Geometry::default());
     for (file, cfg) in [
         ("nnidc-pretuned.json", IdentifierConfig::default()),
         ("nnidc-pretuned-3net.json", three.identifier.clone()),
     ] {
-        let mut id = Identifier::from_weights_file(&cfg, &mock.join(file)).unwrap();
+        let mut id = Identifier::from_weights_file(&cfg, &mock.join(file), None).unwrap();
         let (mut num, mut den) = ([0.0; 3], [0.0; 3]);
         for s in &states {
             let (mh, m) = (id.mass(&s.q), plant.mass(&s.q));

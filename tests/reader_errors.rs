@@ -3,9 +3,13 @@
 
 use omnid::config::Config;
 use omnid::device::replay::{ReplayDevice, ReplayError};
-use omnid::telemetry::reader::{LogReader, ReadError};
+use omnid::telemetry::reader::{LogReader, ReadError, MAX_ROW_BYTES};
+use omnid::telemetry::record::Mode;
 use proptest::prelude::*;
+use std::io::Read;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 const HEADER: &str = "t,q1,q2,q3,tau1,tau2,tau3\n";
 
@@ -20,13 +24,13 @@ fn file(dir: &tempfile::TempDir, name: &str, text: &str) -> PathBuf {
 fn error_of(name: &str, text: &str) -> (ReadError, String) {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, name, text);
-    let result = LogReader::open(&path, false).and_then(|r| r.collect::<Result<Vec<_>, _>>());
+    let result = LogReader::open(&path, false, None).and_then(|r| r.collect::<Result<Vec<_>, _>>());
     let e = result.expect_err("must be refused");
     let msg = e.to_string();
     assert!(msg.contains(name), "message does not name the file: {msg}");
     assert!(!msg.contains('\n'), "one line: {msg}");
     // The replay device refuses it with the same message, before anything runs.
-    match ReplayDevice::open(&path, &Config::default(), false, false) {
+    match ReplayDevice::open(&path, &Config::default(), false, false, &Arc::default()) {
         Err(ReplayError::Read(r)) => assert_eq!(r.to_string(), msg),
         Err(other) => panic!("replay: another error: {other}"),
         Ok(_) => panic!("replay accepted it"),
@@ -103,6 +107,15 @@ fn nan_and_infinite_values() {
     }
     let (_, msg) = error_of("nant.csv", &format!("{HEADER}nan,0,0,0,0,0,0\n"));
     assert_names(&msg, 2, "t");
+}
+
+#[test]
+fn unknown_mode() {
+    let text = "t,q1,q2,q3,tau1,tau2,tau3,mode\n0,0,0,0,0,0,0,blend\n0.001,0,0,0,0,0,0,pause\n";
+    let (e, msg) = error_of("mode.csv", text);
+    assert!(matches!(e, ReadError::UnknownMode { line: 3, .. }), "{msg}");
+    assert_names(&msg, 3, "mode");
+    assert!(msg.contains("`pause`") && msg.contains("servo_jp"), "{msg}");
 }
 
 #[test]
@@ -185,7 +198,7 @@ fn empty_file() {
 fn header_only_file_has_nothing_to_replay() {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, "header.csv", HEADER);
-    let e = ReplayDevice::open(&path, &Config::default(), false, false)
+    let e = ReplayDevice::open(&path, &Config::default(), false, false, &Arc::default())
         .err()
         .unwrap();
     assert!(matches!(e, ReplayError::NoRows { .. }));
@@ -210,11 +223,11 @@ fn lenient_counts_skipped_rows_and_where() {
     text += "0.3,0,0"; // and a cut-off last line
     bad.push(202);
     let path = file(&dir, "damaged.csv", &text);
-    assert!(LogReader::open(&path, false)
+    assert!(LogReader::open(&path, false, None)
         .unwrap()
         .collect::<Result<Vec<_>, _>>()
         .is_err());
-    let dev = ReplayDevice::open(&path, &Config::default(), false, true).unwrap();
+    let dev = ReplayDevice::open(&path, &Config::default(), false, true, &Arc::default()).unwrap();
     let info = dev.info();
     assert_eq!(info.rows, 200 - 8);
     assert_eq!(info.skipped.count, 9);
@@ -231,7 +244,7 @@ fn lenient_counts_skipped_rows_and_where() {
 fn lenient_with_nothing_good_left_is_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, "junk.csv", &format!("{HEADER}a,b,c,d,e,f,g\nx\n"));
-    let e = ReplayDevice::open(&path, &Config::default(), false, true)
+    let e = ReplayDevice::open(&path, &Config::default(), false, true, &Arc::default())
         .err()
         .unwrap();
     let msg = e.to_string();
@@ -243,9 +256,13 @@ fn lenient_with_nothing_good_left_is_an_error() {
 
 fn drain(bytes: &[u8], lenient: bool) {
     if let Ok(reader) = LogReader::new(bytes, "fuzz.csv", lenient) {
+        let has_mode = reader.columns().mode.is_some();
         for row in reader {
             match row {
-                Ok(r) => assert!(r.t.is_finite() && r.q.iter().all(|v| v.is_finite())),
+                Ok(r) => {
+                    assert!(r.t.is_finite() && r.q.iter().all(|v| v.is_finite()));
+                    assert_eq!(r.mode.is_some(), has_mode, "a row without its mode");
+                }
                 Err(e) => {
                     // Row faults are skipped in lenient mode, so any error ends the file.
                     let _ = e.to_string();
@@ -278,12 +295,169 @@ proptest! {
     }
 }
 
+/// A mode as a log might hold it: one omnid writes (but `stop`, which must be last) or not.
+fn mode_text() -> impl Strategy<Value = String> {
+    let known: Vec<String> = Mode::ALL
+        .iter()
+        .filter(|m| **m != Mode::Stop)
+        .map(|m| m.as_str().to_string())
+        .collect();
+    prop_oneof![
+        3 => prop::sample::select(known),
+        1 => "[A-Za-z_ -]{0,9}".prop_filter("not stop", |s| s.trim() != "stop"),
+    ]
+}
+
+proptest! {
+    /// Every row read carries the mode written in it; the first row whose mode omnid does not
+    /// write is refused there (strict) or skipped and reported (lenient).
+    #[test]
+    fn modes_are_known_or_refused_where_they_are(modes in proptest::collection::vec(mode_text(), 1..40)) {
+        let mut text = String::from("t,q1,q2,q3,tau1,tau2,tau3,mode\n");
+        for (k, m) in modes.iter().enumerate() {
+            text += &format!("{},0,0,0,0,0,0,{m}\n", k as f64 * 1e-3);
+        }
+        let known: Vec<Option<Mode>> = modes.iter().map(|m| Mode::parse(m.trim())).collect();
+        let first_bad = known.iter().position(Option::is_none);
+        let mut strict = LogReader::new(text.as_bytes(), "modes.csv", false).unwrap();
+        for (k, expected) in known.iter().enumerate() {
+            match (strict.next_row(), expected) {
+                (Ok(Some(row)), Some(mode)) => prop_assert_eq!(row.mode, Some(*mode)),
+                (Err(ReadError::UnknownMode { line, value, .. }), None) => {
+                    prop_assert_eq!(line, k as u64 + 2);
+                    prop_assert_eq!(value.as_str(), modes[k].trim());
+                    break;
+                }
+                (other, _) => prop_assert!(false, "row {}: {:?}", k, other.map(|r| r.map(|r| r.mode))),
+            }
+        }
+        let lenient: Vec<_> = LogReader::new(text.as_bytes(), "modes.csv", true)
+            .unwrap()
+            .collect::<Result<_, _>>()
+            .unwrap();
+        let read: Vec<Option<Mode>> = lenient.iter().map(|r| r.mode).collect();
+        let good: Vec<Option<Mode>> = known.iter().copied().filter(Option::is_some).collect();
+        prop_assert_eq!(read, good);
+        prop_assert_eq!(first_bad.is_none(), lenient.len() == modes.len());
+    }
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(48))]
     #[test]
     fn replay_open_never_panics(body in "[0-9.,\\n-]{0,400}", lenient in any::<bool>()) {
         let dir = tempfile::tempdir().unwrap();
         let path = file(&dir, "fuzz.csv", &format!("{HEADER}{body}"));
-        let _ = ReplayDevice::open(&path, &Config::default(), false, lenient);
+        let _ = ReplayDevice::open(&path, &Config::default(), false, lenient, &Arc::default());
+    }
+}
+
+/// `prefix`, then `fill` repeated for `len` bytes: a row that never ends, streamed (never held
+/// in memory); counts the bytes the reader took.
+struct Endless {
+    prefix: Vec<u8>,
+    fill: Vec<u8>,
+    len: u64,
+    at: u64,
+    taken: Arc<AtomicU64>,
+}
+
+impl Endless {
+    fn new(prefix: &str, fill: &str, len: u64) -> (Self, Arc<AtomicU64>) {
+        let taken = Arc::new(AtomicU64::new(0));
+        let e = Endless {
+            prefix: prefix.as_bytes().to_vec(),
+            fill: fill.as_bytes().to_vec(),
+            len: prefix.len() as u64 + len,
+            at: 0,
+            taken: taken.clone(),
+        };
+        (e, taken)
+    }
+}
+
+impl Read for Endless {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let mut n = 0;
+        while n < buf.len() && self.at < self.len {
+            let p = self.prefix.len() as u64;
+            buf[n] = if self.at < p {
+                self.prefix[self.at as usize]
+            } else {
+                self.fill[((self.at - p) % self.fill.len() as u64) as usize]
+            };
+            n += 1;
+            self.at += 1;
+        }
+        self.taken.fetch_add(n as u64, Ordering::Relaxed);
+        Ok(n)
+    }
+}
+
+#[test]
+fn a_long_row_under_the_limit_is_read() {
+    let extra = "x".repeat(600_000);
+    let text =
+        format!("t,q1,q2,q3,tau1,tau2,tau3,note\n0,1,2,3,4,5,6,{extra}\n0.1,1,2,3,4,5,6,y\n");
+    let rows: Vec<_> = LogReader::new(text.as_bytes(), "long.csv", false)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(rows.len(), 2);
+}
+
+#[test]
+fn a_header_without_end_is_refused_on_line_1() {
+    let (input, taken) = Endless::new("", "t,q1,", 3 * MAX_ROW_BYTES);
+    let e = LogReader::new(input, "zeros.csv", false).err().unwrap();
+    let msg = e.to_string();
+    assert!(
+        matches!(e, ReadError::RowTooLong { line: 1, limit, .. } if limit == MAX_ROW_BYTES),
+        "{msg}"
+    );
+    assert!(
+        msg.starts_with("zeros.csv: line 1: ") && msg.contains("1048576 bytes"),
+        "{msg}"
+    );
+    assert!(taken.load(Ordering::Relaxed) <= MAX_ROW_BYTES + 65536);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+    /// A row with no end in sight — no line end at all, or a quote that is never closed over
+    /// many short lines — is refused at the line where it starts, naming the limit, strict or
+    /// lenient, after the reader took at most the limit and a chunk beyond the rows before it.
+    #[test]
+    fn an_endless_row_is_refused_where_it_starts(
+        rows in 0usize..5,
+        quoted in any::<bool>(),
+        fill in "[0-9a-z,. ]{1,16}",
+        beyond in 1u64..3_000_000,
+        lenient in any::<bool>(),
+    ) {
+        let mut prefix = String::from(HEADER);
+        for k in 0..rows {
+            prefix += &format!("{k},0,0,0,0,0,0\n");
+        }
+        let fill = if quoted {
+            prefix += "0,\"";
+            format!("{fill}\n")
+        } else {
+            fill
+        };
+        let before = prefix.len() as u64;
+        let (input, taken) = Endless::new(&prefix, &fill, MAX_ROW_BYTES + beyond);
+        let mut reader = LogReader::new(input, "endless.csv", lenient).unwrap();
+        for _ in 0..rows {
+            prop_assert!(reader.next_row().unwrap().is_some());
+        }
+        match reader.next_row() {
+            Err(ReadError::RowTooLong { line, limit, .. }) => {
+                prop_assert_eq!(line, rows as u64 + 2);
+                prop_assert_eq!(limit, MAX_ROW_BYTES);
+            }
+            other => prop_assert!(false, "{:?}", other.map(|r| r.map(|r| r.line))),
+        }
+        prop_assert!(taken.load(Ordering::Relaxed) <= before + MAX_ROW_BYTES + 65536);
     }
 }

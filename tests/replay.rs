@@ -275,7 +275,7 @@ fn mock_sessions_replay_end_to_end() {
         let size = std::fs::metadata(&file).unwrap().len();
         assert!(size < 1_600_000, "{name} is {size} bytes");
         let cfg = match config {
-            Some(c) => Config::load(&mock(c)).unwrap(),
+            Some(c) => Config::load(&mock(c), None).unwrap(),
             None => Config::default(),
         };
         let log = dir.path().join(name);

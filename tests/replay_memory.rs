@@ -1,10 +1,15 @@
 //! The log reader streams: a 1-hour, 1 kHz log (3.6 million rows, generated on the fly, never
-//! on disk) goes through it with flat memory. Alone in its test binary, so the process's peak
-//! RSS is this test's. The whole pipeline (`omnid run --device replay:… --fast` on such a file)
+//! on disk) goes through it with flat memory, and a 100 MB line without an end is refused after
+//! a megabyte. Alone in their test binary and one at a time, so the process's peak RSS is the
+//! running test's. The whole pipeline (`omnid run --device replay:… --fast` on such a file)
 //! is measured by the command in `mock/README.md`.
 
-use omnid::telemetry::reader::LogReader;
+use omnid::telemetry::reader::{LogReader, ReadError, MAX_ROW_BYTES};
 use std::io::Read;
+use std::sync::Mutex;
+
+/// The tests measure the process's peak memory: one at a time.
+static ALONE: Mutex<()> = Mutex::new(());
 
 /// Peak resident set size of this process, kB (`VmHWM`).
 fn peak_rss_kb() -> u64 {
@@ -73,6 +78,7 @@ impl Read for Generator {
 
 #[test]
 fn one_hour_at_1khz_streams_in_constant_memory() {
+    let _alone = ALONE.lock().unwrap_or_else(|e| e.into_inner());
     const ROWS: u64 = 3_600_000;
     let mut reader = LogReader::new(Generator::new(ROWS), "1h.csv", false).unwrap();
     // Warm up: the record buffer has reached its size.
@@ -97,6 +103,60 @@ fn one_hour_at_1khz_streams_in_constant_memory() {
     // by ~28 MB.
     assert!(
         after - before < 4 * 1024,
+        "peak RSS grew by {} kB",
+        after - before
+    );
+}
+
+/// A header, then `len` bytes of digits and commas without a line end (streamed).
+struct OneLine {
+    header: &'static [u8],
+    left: u64,
+    at: usize,
+}
+
+impl Read for OneLine {
+    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
+        if self.at < self.header.len() {
+            let n = out.len().min(self.header.len() - self.at);
+            out[..n].copy_from_slice(&self.header[self.at..self.at + n]);
+            self.at += n;
+            return Ok(n);
+        }
+        let n = out.len().min(self.left as usize);
+        for (i, b) in out[..n].iter_mut().enumerate() {
+            *b = if i % 8 == 7 { b',' } else { b'1' };
+        }
+        self.left -= n as u64;
+        Ok(n)
+    }
+}
+
+#[test]
+fn a_100_mb_line_without_end_is_refused_in_constant_memory() {
+    let _alone = ALONE.lock().unwrap_or_else(|e| e.into_inner());
+    let input = OneLine {
+        header: b"t,q1,q2,q3,tau1,tau2,tau3\n",
+        left: 100 << 20,
+        at: 0,
+    };
+    let before = peak_rss_kb();
+    let mut reader = LogReader::new(input, "one-line.csv", false).unwrap();
+    let e = reader.next_row().unwrap_err();
+    let after = peak_rss_kb();
+    eprintln!(
+        "peak RSS {before} kB before, {after} kB after (+{} kB)",
+        after - before
+    );
+    assert!(
+        matches!(e, ReadError::RowTooLong { line: 2, limit, .. } if limit == MAX_ROW_BYTES),
+        "{e}"
+    );
+    assert!(e.to_string().contains("line 2"), "{e}");
+    // Reading the whole line would take 100 MB and more (the buffer doubles as it grows); the
+    // limit is 1 MiB.
+    assert!(
+        after - before < 8 * 1024,
         "peak RSS grew by {} kB",
         after - before
     );

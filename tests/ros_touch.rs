@@ -52,7 +52,7 @@ fn converted_angles_reproduce_the_recorded_tip() {
         assert!(r <= 0.05, "{axis}: {r} mm RMS");
     }
     // The file is a valid replayable log for the strict reader as well.
-    let rows = LogReader::open(&out, false)
+    let rows = LogReader::open(&out, false, None)
         .unwrap()
         .collect::<Result<Vec<_>, _>>()
         .unwrap();

@@ -29,6 +29,7 @@ pub struct Calibration {
     /// Serial number of the device this belongs to.
     pub serial: String,
     /// Joint angles (OpenHaptics convention) with the stylus in the inkwell, rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub docked_pose_rad: [f64; 3],
 }
 
@@ -141,7 +142,8 @@ pub fn path_for(dir: &Path, serial: &str) -> Result<PathBuf, CalibrationError> {
 /// The stored calibration of `serial`, or `None` when there is none.
 pub fn load(dir: &Path, serial: &str) -> Result<Option<Calibration>, CalibrationError> {
     let path = path_for(dir, serial)?;
-    let text = match std::fs::read_to_string(&path) {
+    // A regular file of at most 64 KiB (it is two lines): never a wait, never a big read.
+    let text = match crate::input::read_capped(&path, 64 << 10, None) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(source) => return Err(CalibrationError::Read { path, source }),
@@ -374,6 +376,17 @@ mod tests {
         .unwrap();
         let e = load(dir.path(), "Z").unwrap_err().to_string();
         assert!(e.contains("docked_pose_rad[1]"), "{e}");
+        // A fourth angle is refused, not dropped.
+        std::fs::write(
+            dir.path().join("V.toml"),
+            "serial = \"V\"\ndocked_pose_rad = [0, 0.27, -0.37, 5]\n",
+        )
+        .unwrap();
+        let e = load(dir.path(), "V").unwrap_err().to_string();
+        assert!(
+            e.contains("V.toml") && e.contains("exactly 3 values"),
+            "{e}"
+        );
         std::fs::write(dir.path().join("W.toml"), "serial = \"W\"\npose = 1\n").unwrap();
         assert!(load(dir.path(), "W")
             .unwrap_err()

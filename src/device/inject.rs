@@ -13,6 +13,8 @@ use crate::omni::{Dynamics, Joint3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::str::FromStr;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -107,10 +109,12 @@ pub struct FaultyDevice {
     last_time: f64,
     stalled_until: Option<f64>,
     slow_done: [bool; MAX_FAULTS],
+    /// The operator's stop: ends a `slow` wait of any length.
+    stop: Arc<AtomicBool>,
 }
 
 impl FaultyDevice {
-    pub fn new(inner: Box<dyn Device>, faults: &[Fault], seed: u64) -> Self {
+    pub fn new(inner: Box<dyn Device>, faults: &[Fault], seed: u64, stop: Arc<AtomicBool>) -> Self {
         let mut list = [None; MAX_FAULTS];
         for (slot, f) in list.iter_mut().zip(faults) {
             *slot = Some(*f);
@@ -122,6 +126,7 @@ impl FaultyDevice {
             last_time: 0.0,
             stalled_until: None,
             slow_done: [false; MAX_FAULTS],
+            stop,
         }
     }
 }
@@ -160,8 +165,8 @@ impl Device for FaultyDevice {
                 }
                 Some(Fault::Slow { at_s, ms }) if t >= at_s && !self.slow_done[i] => {
                     self.slow_done[i] = true;
-                    let until = crate::servo::clock::now_ns() + (ms * 1e6) as u64;
-                    crate::servo::clock::sleep_until_ns(until);
+                    let until = crate::servo::clock::now_ns().saturating_add((ms * 1e6) as u64);
+                    crate::servo::clock::sleep_until_ns_or_stop(until, &self.stop);
                 }
                 _ => {}
             }

@@ -1100,6 +1100,7 @@ mod tests {
             &cap,
             &log,
             false,
+            None,
         )
         .unwrap();
         assert_eq!(conv.rows, rx as u64);

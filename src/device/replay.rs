@@ -16,6 +16,12 @@
 //!   sample). A log without a `stop` row answers the final safe packet with its last sample
 //!   again (zero torque), so every replayed log still ends with a `stop` row.
 //!
+//! The log must be a regular file: it is read twice (checked, then played), which a FIFO or
+//! pipe cannot give, so one is refused at once rather than waited on. The validation pass reads
+//! through [`crate::input`] with the operator's stop flag, and the paced sleeps between rows end
+//! on it, so Ctrl-C ends a replay within a fraction of a second however big the file or far
+//! apart its timestamps.
+//!
 //! Opening validates the whole file in one streaming pass (constant memory) before anything
 //! runs, so a bad row is a clear error at start, not a fault an hour in. The encoder path is
 //! checked there too: the servo takes the first packet's 16-bit count as a signed value and
@@ -32,6 +38,8 @@ use crate::servo::clock;
 use crate::telemetry::reader::{LogReader, LogRow, ReadError, SkipReport};
 use crate::telemetry::record::Mode;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Tolerance of the duration limit, s.
@@ -42,6 +50,11 @@ const DURATION_SLACK_S: f64 = 1e-9;
 pub enum ReplayError {
     #[error(transparent)]
     Read(#[from] ReadError),
+    #[error(
+        "{path} is {kind}: a replay is checked whole before it plays, so its file is read \
+         twice; save the recording to a regular file and replay that"
+    )]
+    NotRegular { path: String, kind: &'static str },
     #[error("{path}: no data rows to replay{}", if skipped.count > 0 { format!(" ({skipped})") } else { String::new() })]
     NoRows { path: String, skipped: SkipReport },
     #[error("{path}: line {line}: column `{column}`: the first count {count} is outside \
@@ -194,21 +207,28 @@ pub struct ReplayDevice {
     last_row: Option<LogRow>,
     finished: bool,
     torque: Option<[f64; 3]>,
+    /// The operator's stop: ends the paced wait for the next row.
+    stop: Arc<AtomicBool>,
 }
 
 impl ReplayDevice {
     /// Validate the log at `path` for this configuration (one streaming pass) and open it for
     /// playback: `paced` plays it at its own timestamps, else as fast as possible; `lenient`
-    /// skips damaged rows instead of refusing the file.
+    /// skips damaged rows instead of refusing the file. `stop` (the operator's) ends the
+    /// validation pass ([`ReadError::Stopped`]) and any paced wait.
     pub fn open(
         path: &Path,
         cfg: &Config,
         paced: bool,
         lenient: bool,
+        stop: &Arc<AtomicBool>,
     ) -> Result<Self, ReplayError> {
-        let info = Self::scan(path, cfg, lenient)?;
+        let info = Self::scan(path, cfg, lenient, stop)?;
         Ok(ReplayDevice {
-            reader: LogReader::open(path, lenient)?,
+            // No stop flag for playback: the servo loop looks at it itself each tick, and a
+            // read that failed on it would end the run as a device fault (or spoil the final
+            // safe packet). Without one, only a regular file opens, as the scan found it.
+            reader: LogReader::open(path, lenient, None)?,
             encoder: EncoderPath::new(cfg),
             first_t: info.first_t,
             info,
@@ -220,6 +240,7 @@ impl ReplayDevice {
             last_row: None,
             finished: false,
             torque: None,
+            stop: stop.clone(),
         })
     }
 
@@ -230,8 +251,23 @@ impl ReplayDevice {
     }
 
     /// Read the whole file once: every row checked as playback will see it.
-    pub fn scan(path: &Path, cfg: &Config, lenient: bool) -> Result<ReplayInfo, ReplayError> {
-        let mut reader = LogReader::open(path, lenient)?;
+    pub fn scan(
+        path: &Path,
+        cfg: &Config,
+        lenient: bool,
+        stop: &Arc<AtomicBool>,
+    ) -> Result<ReplayInfo, ReplayError> {
+        // Looked at before opening: a FIFO is refused, not waited on.
+        if let Some(kind) = std::fs::metadata(path)
+            .ok()
+            .and_then(|m| crate::input::special_kind(m.file_type()))
+        {
+            return Err(ReplayError::NotRegular {
+                path: path.display().to_string(),
+                kind,
+            });
+        }
+        let mut reader = LogReader::open(path, lenient, Some(stop))?;
         let name = reader.path().to_string();
         let mut encoder = EncoderPath::new(cfg);
         let (mut rows, mut first_t, mut last_t, mut has_stop) = (0u64, 0.0, 0.0, false);
@@ -323,7 +359,9 @@ impl Device for ReplayDevice {
             self.first_t = row.t;
         } else if self.paced {
             let offset_ns = ((row.t - self.first_t) * 1e9).round() as u64;
-            clock::sleep_until_ns(self.start_ns.saturating_add(offset_ns));
+            // Cut short by a stop: the row is returned at once and the loop ends at its next
+            // tick (and the final safe packet's reply is not waited for either).
+            clock::sleep_until_ns_or_stop(self.start_ns.saturating_add(offset_ns), &self.stop);
         }
         let state = StatePacket {
             // Counts wrap at 16 bits on the wire; the servo unwraps them.
@@ -385,7 +423,7 @@ mod tests {
             );
         }
         let f = write(&text);
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false).unwrap();
+        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default()).unwrap();
         assert_eq!(dev.info().rows, 2000);
         let mut unwrap = EncoderUnwrap::new();
         for (k, enc) in truth.iter().enumerate() {
@@ -418,7 +456,7 @@ mod tests {
         let rpc = cfg.device.rad_per_count();
         let f =
             write("t,q1,q2,q3,tau1,tau2,tau3\n0,0.5,-0.25,1e-5,0,0,0\n0.0137,0.6,-0.3,0,0,0,0\n");
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false).unwrap();
+        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default()).unwrap();
         let mut unwrap = EncoderUnwrap::new();
         for (t, q) in [(0.0, [0.5, -0.25, 1e-5]), (0.0137, [0.6, -0.3, 0.0])] {
             let raw = dev.exchange(&live(1)).unwrap();
@@ -439,7 +477,7 @@ mod tests {
         cfg.device.counts_per_rev = 1e6;
         // 0.5 rad at 1e6 counts/rev is ~79577 counts: not representable as the first packet.
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0.5,0,0,0,0\n");
-        let e = ReplayDevice::open(f.path(), &cfg, false, false)
+        let e = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default())
             .err()
             .unwrap()
             .to_string();
@@ -453,7 +491,7 @@ mod tests {
     fn enc_inconsistent_with_q_is_refused() {
         let cfg = Config::default();
         let f = write("t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3\n0,0,0,0.5,0,0,0,0,0,100\n");
-        let e = ReplayDevice::open(f.path(), &cfg, false, true)
+        let e = ReplayDevice::open(f.path(), &cfg, false, true, &Arc::default())
             .err()
             .unwrap()
             .to_string();
@@ -467,7 +505,7 @@ mod tests {
     fn huge_step_is_refused() {
         let cfg = Config::default();
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n0.001,0,0,20,0,0,0\n");
-        let e = ReplayDevice::open(f.path(), &cfg, false, false)
+        let e = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default())
             .err()
             .unwrap()
             .to_string();
@@ -481,7 +519,7 @@ mod tests {
             "t,q1,q2,q3,tau1,tau2,tau3,mode\n0,0,0,0,0.1,0,0,track\n0.001,0,0,0,0.2,0,0,track\n\
              0.002,0,0,0,0,0,0,stop\n",
         );
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false).unwrap();
+        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default()).unwrap();
         assert!(dev.info().has_stop);
         dev.exchange(&live(1)).unwrap();
         dev.exchange(&live(2)).unwrap();
@@ -509,7 +547,7 @@ mod tests {
             text += &format!("{},0,0,0,0,0,0\n", 10.0 + k as f64 * 0.01);
         }
         let f = write(&text);
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false)
+        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default())
             .unwrap()
             .with_duration_limit(Some(0.1));
         let mut n = 0;
@@ -525,9 +563,73 @@ mod tests {
     }
 
     #[test]
+    fn a_long_gap_between_rows_ends_on_stop_and_a_fifo_is_refused() {
+        let cfg = Config::default();
+        // The second row is an hour after the first.
+        let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n3600,0,0,0,0,0,0\n");
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut dev = ReplayDevice::open(f.path(), &cfg, true, false, &stop).unwrap();
+        dev.exchange(&live(1)).unwrap();
+        let flag = stop.clone();
+        let setter = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            flag.store(true, std::sync::atomic::Ordering::Relaxed);
+        });
+        let t0 = std::time::Instant::now();
+        let raw = dev.exchange(&live(2)).unwrap();
+        setter.join().unwrap();
+        assert_eq!(raw.device_time_s, 3600.0);
+        assert!(t0.elapsed().as_secs_f64() < 2.0, "{:?}", t0.elapsed());
+
+        // A set flag stops the validation pass.
+        let e = ReplayDevice::open(f.path(), &cfg, false, false, &stop)
+            .err()
+            .unwrap();
+        assert!(
+            matches!(e, ReplayError::Read(ReadError::Stopped { .. })),
+            "{e}"
+        );
+
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("fifo");
+        let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let e = ReplayDevice::open(&fifo, &cfg, true, false, &Arc::default())
+            .err()
+            .unwrap();
+        assert!(
+            matches!(e, ReplayError::NotRegular { .. }) && e.to_string().contains("FIFO"),
+            "{e}"
+        );
+    }
+
+    /// The loop ends a run on a stop itself; the device must not turn the stop into a read
+    /// error (a device fault mid-run, or a final safe packet that cannot be answered).
+    #[test]
+    fn playback_reads_on_after_a_stop() {
+        let cfg = Config::default();
+        let mut text = String::from("t,q1,q2,q3,tau1,tau2,tau3\n");
+        for k in 0..3000 {
+            text += &format!("{},0,0,0,0.001,0,0\n", k as f64 * 1e-3);
+        }
+        let f = write(&text);
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &stop).unwrap();
+        dev.exchange(&live(0)).unwrap();
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        // Far past the reader's buffer: it refills from the file several times.
+        for k in 1..3000 {
+            dev.exchange(&live(k as u8)).unwrap();
+        }
+        let safe = encode_command(&MotorCommand::safe(1));
+        assert_eq!(dev.exchange(&safe).unwrap().device_time_s, 2.999);
+    }
+
+    #[test]
     fn header_only_file_has_no_rows() {
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n");
-        let e = ReplayDevice::open(f.path(), &Config::default(), false, false)
+        let e = ReplayDevice::open(f.path(), &Config::default(), false, false, &Arc::default())
             .err()
             .unwrap();
         assert!(matches!(e, ReplayError::NoRows { .. }), "{e}");

@@ -25,9 +25,13 @@ pub struct IdentifierConfig {
     pub lambda2: f64,
     pub lambda3: f64,
     /// Learning rates Γ per network, [hidden layer, output layer].
+    #[serde(deserialize_with = "crate::config::exact")]
     pub rate_m: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub rate_c: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub rate_g: [f64; 2],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub rate_f: [f64; 2],
     /// Dead zone: no update while the modified error at the scale of ε (α·‖e‖, or ‖e‖ with
     /// `unit_gain_filter`), in N·m, is at or below this; 0 switches it off.
@@ -43,12 +47,16 @@ pub struct IdentifierConfig {
     pub eig_min: f64,
     pub eig_max: f64,
     /// Joint-angle inputs enter as (q − q_center)/q_scale, rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub q_center: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub q_scale: [f64; 3],
     /// Joint-velocity inputs of the C-net enter as q̇/qd_scale, rad/s.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub qd_scale: [f64; 3],
     /// Joint-velocity inputs of the F-net enter as q̇/friction_qd_scale, rad/s (smaller than
     /// qd_scale: Coulomb friction changes sign within a few 0.01 rad/s).
+    #[serde(deserialize_with = "crate::config::exact")]
     pub friction_qd_scale: [f64; 3],
     /// Output units of the networks: M̂ in kg·m², Ĉ in kg·m² (·rad/s → N·m), Ĝ and F̂ in N·m.
     pub inertia_scale: f64,
@@ -59,6 +67,7 @@ pub struct IdentifierConfig {
     /// inertia_scale), so the rates are O(1)–O(100) instead of O(1e6).
     pub torque_scale: f64,
     /// Initial diagonal of M̂ (output biases of the M-net), kg·m²; zeros start from M̂ = 0.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub init_mass_diag: [f64; 3],
     /// Standard deviation of the initial weights: hidden layer (divided by √inputs) and output
     /// layer.

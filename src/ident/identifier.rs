@@ -1155,7 +1155,7 @@ mod tests {
             block_len: 200,
             ..PretuneConfig::default()
         };
-        pretune(&mut id, &random_samples(6000, 8), &pcfg, |_| {}).unwrap();
+        pretune(&mut id, &random_samples(6000, 8), &pcfg, None, |_| {}).unwrap();
         // The plant changes: a 50 g tip payload the networks never saw.
         let mut heavy = plant();
         heavy.payload_kg = 0.05;

@@ -10,6 +10,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, Ordering};
 use thiserror::Error;
 
 /// One training sample: estimated state and the torque that acted on it.
@@ -88,6 +89,8 @@ pub enum PretuneError {
     /// 0/0).
     #[error("joint {joint} has zero torque in every {split} sample")]
     NoTorque { joint: usize, split: &'static str },
+    #[error("pre-tuning stopped by the operator in epoch {epoch}")]
+    Stopped { epoch: usize },
 }
 
 /// Errors after one epoch. NRMSE = RMS(τ − τ̂)/RMS(τ) per joint (NaN where RMS(τ) = 0 or the
@@ -223,11 +226,13 @@ fn restore(id: &mut Identifier, saved: &[Vec<f64>]) {
 }
 
 /// Pre-tune `id` on `samples` (in recording order). On success the kept weights become the
-/// σ-modification's anchor θ0.
+/// σ-modification's anchor θ0. `stop` (the operator's) is looked at before every batch; once
+/// set, pre-tuning ends with [`PretuneError::Stopped`] and `id` holds unfinished weights.
 pub fn pretune(
     id: &mut Identifier,
     samples: &[Sample],
     cfg: &PretuneConfig,
+    stop: Option<&AtomicBool>,
     mut progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, PretuneError> {
     cfg.validate()?;
@@ -279,6 +284,9 @@ pub fn pretune(
         train.shuffle(&mut rng);
         let mut loss_sum = 0.0;
         for (b, chunk) in train.chunks(cfg.batch_size).enumerate() {
+            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+                return Err(PretuneError::Stopped { epoch });
+            }
             id.zero_grads();
             for &i in chunk {
                 let s = &samples[i];
@@ -396,26 +404,26 @@ mod tests {
         let mut id = Identifier::new(&IdentifierConfig::default()).unwrap();
         let cfg = PretuneConfig::default();
         assert_eq!(
-            pretune(&mut id, &[], &cfg, |_| {}),
+            pretune(&mut id, &[], &cfg, None, |_| {}),
             Err(PretuneError::NoSamples)
         );
         let mut s = random_samples(50, 1);
         s[17].qdd[2] = f64::NAN;
         assert_eq!(
-            pretune(&mut id, &s, &cfg, |_| {}),
+            pretune(&mut id, &s, &cfg, None, |_| {}),
             Err(PretuneError::NonFinite { index: 17 })
         );
         let bad = PretuneConfig {
             validation_fraction: 0.9,
             ..cfg
         };
-        let e = pretune(&mut id, &random_samples(50, 1), &bad, |_| {}).unwrap_err();
+        let e = pretune(&mut id, &random_samples(50, 1), &bad, None, |_| {}).unwrap_err();
         assert!(e.to_string().contains("validation_fraction"), "{e}");
         // A joint without torque carries nothing to learn (its NRMSE would be 0/0).
         let mut z = random_samples(50, 1);
         z.iter_mut().for_each(|s| s.tau[1] = 0.0);
         assert_eq!(
-            pretune(&mut id, &z, &cfg, |_| {}),
+            pretune(&mut id, &z, &cfg, None, |_| {}),
             Err(PretuneError::NoTorque {
                 joint: 2,
                 split: "training"
@@ -435,7 +443,7 @@ mod tests {
         };
         let mut epochs_seen = 0;
         let mut batches_seen = 0;
-        let report = pretune(&mut id, &samples, &pcfg, |p| match p {
+        let report = pretune(&mut id, &samples, &pcfg, None, |p| match p {
             Progress::Batch { .. } => batches_seen += 1,
             Progress::Epoch(r) => {
                 epochs_seen += 1;
@@ -494,7 +502,7 @@ mod tests {
                 ..IdentifierConfig::default()
             })
             .unwrap();
-            pretune(&mut id, &samples, &pcfg, |_| {}).unwrap();
+            pretune(&mut id, &samples, &pcfg, None, |_| {}).unwrap();
             result.push(coriolis_errors(&mut id));
         }
         let ((c_on, skew_on), (c_off, skew_off)) = (result[0], result[1]);

@@ -12,7 +12,13 @@ use super::identifier::{Identifier, Net};
 use super::mlp::{Mlp, NetScaling};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
+
+/// The largest weights file read: 16 MiB, far above the biggest networks the configuration
+/// allows (4 × 256 hidden units, under 1 MiB of JSON).
+pub const MAX_WEIGHTS_BYTES: u64 = 16 << 20;
 
 /// Value of the `format` field.
 pub const FORMAT: &str = "omnid-identifier-weights";
@@ -42,6 +48,13 @@ pub enum WeightsError {
     Invalid { path: String, message: String },
     #[error("refusing to save weights: {message}")]
     NotFinite { message: String },
+}
+
+impl WeightsError {
+    /// Reading the file was stopped by the operator.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, WeightsError::Read { source, .. } if crate::input::is_stopped(source))
+    }
 }
 
 /// One network's sizes, scaling and parameters (layout of `Mlp::params`).
@@ -202,12 +215,16 @@ pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
     )?)
 }
 
-/// Read and check a weights file (without comparing it to a configuration).
-pub fn load(path: &Path) -> Result<WeightsFile, WeightsError> {
+/// Read and check a weights file (without comparing it to a configuration): at most
+/// [`MAX_WEIGHTS_BYTES`]; `stop` (the operator's) ends a wait on a pipe, without it only a
+/// regular file is read (see [`crate::input::open`]).
+pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<WeightsFile, WeightsError> {
     let origin = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|source| WeightsError::Read {
-        path: origin.clone(),
-        source,
+    let text = crate::input::read_capped(path, MAX_WEIGHTS_BYTES, stop).map_err(|source| {
+        WeightsError::Read {
+            path: origin.clone(),
+            source,
+        }
     })?;
     WeightsFile::from_json(&text, &origin)
 }
@@ -242,13 +259,14 @@ impl Identifier {
         Ok(())
     }
 
-    /// An identifier for `cfg` with the weights of the file at `path`.
+    /// An identifier for `cfg` with the weights of the file at `path` (`stop`: see [`load`]).
     pub fn from_weights_file(
         cfg: &IdentifierConfig,
         path: &Path,
+        stop: Option<&Arc<AtomicBool>>,
     ) -> Result<Identifier, WeightsError> {
         let origin = path.display().to_string();
-        let w = load(path)?;
+        let w = load(path, stop)?;
         w.check_fits(cfg, &origin)?;
         let mut id = Identifier::new(cfg).map_err(|e| WeightsError::Mismatch {
             path: origin.clone(),
@@ -287,10 +305,11 @@ mod tests {
         let qd = Vector3::new(0.3, -0.4, 0.5);
         let qdd = Vector3::new(2.0, 1.0, -3.0);
         assert_ne!(a.predict(&q, &qd, &qdd), b.predict(&q, &qd, &qdd));
-        b.apply_weights(&load(&path).unwrap(), "w.json").unwrap();
+        b.apply_weights(&load(&path, None).unwrap(), "w.json")
+            .unwrap();
         assert_eq!(a.predict(&q, &qd, &qdd), b.predict(&q, &qd, &qdd));
         assert_eq!(b.weight_change_norm(), 0.0);
-        let c = Identifier::from_weights_file(&cfg, &path).unwrap();
+        let c = Identifier::from_weights_file(&cfg, &path, None).unwrap();
         assert_eq!(c.weights_norm(), a.weights_norm());
     }
 
@@ -368,7 +387,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("C-net scaling"), "{e}");
-        let e = load(Path::new("/nonexistent/w.json")).unwrap_err();
+        let e = load(Path::new("/nonexistent/w.json"), None).unwrap_err();
         assert!(matches!(e, WeightsError::Read { .. }));
     }
 

@@ -22,15 +22,20 @@ pub struct ModelParams {
     pub k8: f64,
     pub k9: f64,
     /// Reflected rotor inertia added to the diagonal, kg·m².
+    #[serde(deserialize_with = "crate::config::exact")]
     pub rotor_inertia: [f64; 3],
     /// Viscous friction, N·m·s/rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub viscous: [f64; 3],
     /// Coulomb friction level, N·m.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub coulomb: [f64; 3],
     /// Velocity scale of the tanh that smooths Coulomb friction, rad/s.
     pub coulomb_velocity: f64,
     /// Joint limits (lower, upper), rad: beyond them a stiff spring pushes back.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub limit_lower: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub limit_upper: [f64; 3],
     /// Joint-limit spring stiffness (N·m/rad) and damping (N·m·s/rad).
     pub limit_stiffness: f64,

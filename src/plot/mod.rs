@@ -19,6 +19,8 @@ use figures::{PlannedFigure, JOINTS};
 use read::LogReader;
 use std::fmt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
 /// Buckets kept by the decimator: at least this many, at most twice as many, each giving
 /// a min and a max. The plot area is ~1100 px wide, so this is about one point per pixel.
@@ -51,6 +53,11 @@ impl PlotError {
     /// made), not the program.
     pub fn is_bad_input(&self) -> bool {
         !matches!(self, PlotError::Render { .. })
+    }
+
+    /// The operator stopped it while the log was read.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, PlotError::Read(ReadError::Stopped { .. }))
     }
 }
 
@@ -106,9 +113,14 @@ impl fmt::Display for PlotReport {
 }
 
 /// Draw every figure `log` can feed into `out_dir` (created if needed) as `<name>.png` and
-/// `<name>.svg`. The output paths are checked before the rows are read.
-pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
-    let reader = LogReader::open(log)?;
+/// `<name>.svg`. The output paths are checked before the rows are read. `stop` (the
+/// operator's) ends the reading (see [`LogReader::open`]).
+pub fn plot_log(
+    log: &Path,
+    out_dir: &Path,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<PlotReport, PlotError> {
+    let reader = LogReader::open(log, stop)?;
     let plan = figures::plan(reader.header());
     if plan.figures.is_empty() {
         return Err(PlotError::NothingToPlot {
@@ -117,8 +129,19 @@ pub fn plot_log(log: &Path, out_dir: &Path) -> Result<PlotReport, PlotError> {
         });
     }
 
-    // Before the work: every file this plot will write.
+    // Before the work: every file this plot will write. A directory made for this check is
+    // removed again if the plot then fails (an empty one; nothing else is touched).
+    let made_dir = !out_dir.exists();
     crate::output::check_dir(out_dir).map_err(PlotError::OutDir)?;
+    let result = draw(out_dir, reader, plan);
+    if result.is_err() && made_dir {
+        let _ = std::fs::remove_dir(out_dir);
+    }
+    result
+}
+
+/// Check the figure files, read the rows once and draw every planned figure.
+fn draw(out_dir: &Path, reader: LogReader, plan: figures::Plan) -> Result<PlotReport, PlotError> {
     for planned in &plan.figures {
         for format in render::FORMATS {
             crate::output::check_file(&figure_file(out_dir, planned.def.name, format))?;

@@ -1,10 +1,15 @@
 //! Reading a log for plotting: the header (which columns exist), then one streaming pass over
-//! the rows that feeds the decimator, so a 600 k-row log never sits in memory whole.
+//! the rows that feeds the decimator, so a 600 k-row log never sits in memory whole. The file
+//! is read through [`crate::input`]: a row may take at most [`crate::input::MAX_ROW_BYTES`], a pipe is
+//! waited on only with the operator's stop flag, and every read ends on it.
 
 use super::decimate::{Decimated, Decimator};
-use std::fs::File;
+use crate::input::{self, Input, RowBound};
+use crate::telemetry::record::Mode;
 use std::io;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
 /// Why a log could not be read. Every variant names the file; row errors also the line (as a
 /// text editor counts them, the header being line 1) and the column.
@@ -12,6 +17,18 @@ use std::path::{Path, PathBuf};
 pub enum ReadError {
     #[error("{}: {source}", path.display())]
     Open { path: PathBuf, source: io::Error },
+    #[error("{}: reading stopped by the operator", path.display())]
+    Stopped { path: PathBuf },
+    #[error(
+        "{}: line {line}: the row starting here runs past {limit} bytes, the most a row may \
+         take (a file without line ends, or a quote that is never closed?)",
+        path.display()
+    )]
+    RowTooLong {
+        path: PathBuf,
+        line: u64,
+        limit: u64,
+    },
     #[error("{}: empty file (no header row)", path.display())]
     Empty { path: PathBuf },
     #[error("{}: line 1: no `t` column (the header has: {header})", path.display())]
@@ -33,6 +50,18 @@ pub enum ReadError {
         /// 1-based, as a spreadsheet counts.
         column: usize,
         name: String,
+        value: String,
+    },
+    #[error(
+        "{}: line {line}, column {column} (`mode`): `{value}` is not a mode omnid writes \
+         (allowed: {})",
+        path.display(), Mode::ALL.map(Mode::as_str).join(", ")
+    )]
+    NotMode {
+        path: PathBuf,
+        line: u64,
+        /// 1-based, as a spreadsheet counts.
+        column: usize,
         value: String,
     },
     #[error("{}: line {line}, column 1 (`t`): time must be a finite number", path.display())]
@@ -93,34 +122,67 @@ pub struct LogData {
     pub blend_end: Option<f64>,
 }
 
+/// A csv error as ours: a stop, a row over the limit, or the parser's own.
+fn csv_error(path: &Path, source: csv::Error, line: u64) -> ReadError {
+    let line = source.position().map(|p| p.line()).unwrap_or(line);
+    if let csv::ErrorKind::Io(e) = source.kind() {
+        if input::is_stopped(e) {
+            return ReadError::Stopped {
+                path: path.to_path_buf(),
+            };
+        }
+        if let Some(limit) = input::row_too_long(e) {
+            return ReadError::RowTooLong {
+                path: path.to_path_buf(),
+                line,
+                limit,
+            };
+        }
+    }
+    ReadError::Csv {
+        path: path.to_path_buf(),
+        line,
+        source,
+    }
+}
+
 /// An open log whose header has been read.
 pub struct LogReader {
     path: PathBuf,
-    reader: csv::Reader<File>,
+    reader: csv::Reader<RowBound<Input>>,
     header: Header,
     t: usize,
     bytes: u64,
+    /// The parser's line of the next row's start (its position moves on while a row is read).
+    next_line: u64,
 }
 
 impl LogReader {
-    pub fn open(path: &Path) -> Result<LogReader, ReadError> {
-        let file = File::open(path).map_err(|source| ReadError::Open {
-            path: path.to_path_buf(),
-            source,
+    /// Open `path` and read its header. `stop`: the operator's stop flag, which ends any read
+    /// (without one, only a regular file is accepted: see [`crate::input::open`]).
+    pub fn open(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<LogReader, ReadError> {
+        let file = input::open(path, stop).map_err(|source| {
+            if input::is_stopped(&source) {
+                ReadError::Stopped {
+                    path: path.to_path_buf(),
+                }
+            } else {
+                ReadError::Open {
+                    path: path.to_path_buf(),
+                    source,
+                }
+            }
         })?;
-        let bytes = file.metadata().map(|m| m.len()).unwrap_or(0);
+        // For the progress bar: 0 for a pipe, which then gets none.
+        let bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
         // Flexible: a short or long row gets our own message with its line, not csv's.
         let mut reader = csv::ReaderBuilder::new()
             .has_headers(true)
             .flexible(true)
-            .from_reader(file);
+            .from_reader(RowBound::new(file));
         let names: Vec<String> = reader
             .byte_headers()
-            .map_err(|source| ReadError::Csv {
-                path: path.to_path_buf(),
-                line: 1,
-                source,
-            })?
+            .map_err(|source| csv_error(path, source, 1))?
             .iter()
             .map(|f| String::from_utf8_lossy(f).trim().to_string())
             .collect();
@@ -129,6 +191,8 @@ impl LogReader {
                 path: path.to_path_buf(),
             });
         }
+        let first_row = reader.position().clone();
+        reader.get_mut().row_starts_at(first_row.byte());
         let header = Header::new(names);
         let t = header.find("t").ok_or_else(|| ReadError::NoTime {
             path: path.to_path_buf(),
@@ -140,6 +204,7 @@ impl LogReader {
             header,
             t,
             bytes,
+            next_line: first_row.line(),
         })
     }
 
@@ -182,17 +247,13 @@ impl LogReader {
             let more = self
                 .reader
                 .read_byte_record(&mut record)
-                .map_err(|source| ReadError::Csv {
-                    path: self.path.clone(),
-                    line: source
-                        .position()
-                        .map(|p| p.line())
-                        .unwrap_or(decimator.rows() + 2),
-                    source,
-                })?;
+                .map_err(|source| csv_error(&self.path, source, self.next_line))?;
             if !more {
                 break;
             }
+            let next_row = self.reader.position().clone();
+            self.next_line = next_row.line();
+            self.reader.get_mut().row_starts_at(next_row.byte());
             let line = record
                 .position()
                 .map(|p| p.line())
@@ -224,8 +285,22 @@ impl LogReader {
                 };
             }
             decimator.push(t, &values);
-            if mode.is_some_and(|m| record[m].trim_ascii() == b"blend") {
-                blend_end = Some(blend_end.map_or(t, |b| b.max(t)));
+            if let Some(m) = mode {
+                // An empty field is a gap, as in every other column.
+                let value = record[m].trim_ascii();
+                match std::str::from_utf8(value).ok().and_then(Mode::parse) {
+                    Some(Mode::Blend) => blend_end = Some(blend_end.map_or(t, |b| b.max(t))),
+                    Some(_) => {}
+                    None if value.is_empty() => {}
+                    None => {
+                        return Err(ReadError::NotMode {
+                            path: self.path.clone(),
+                            line,
+                            column: m + 1,
+                            value: crate::telemetry::reader::quote(value),
+                        })
+                    }
+                }
             }
             if decimator.rows() % 8192 == 0 {
                 progress(record.position().map(|p| p.byte()).unwrap_or(0));
@@ -273,7 +348,7 @@ mod tests {
     #[test]
     fn reads_columns_and_differences() {
         let f = file("t,a,b\n0,1,0.5\n0.001,2,0.5\n0.002,3,\n");
-        let r = LogReader::open(f.path()).unwrap();
+        let r = LogReader::open(f.path(), None).unwrap();
         let (a, b) = (r.header().find("a").unwrap(), r.header().find("b").unwrap());
         let data = r
             .decimate(
@@ -294,7 +369,7 @@ mod tests {
     #[test]
     fn finds_the_end_of_the_start_up_blend() {
         let f = file("t,q1,mode\n0,1,blend\n0.001,1,blend\n0.002,1,track\n0.003,0,stop\n");
-        let data = LogReader::open(f.path())
+        let data = LogReader::open(f.path(), None)
             .unwrap()
             .decimate(&[Formula::Column(1)], 10, |_| {})
             .unwrap();
@@ -302,9 +377,34 @@ mod tests {
     }
 
     #[test]
+    fn unknown_mode_names_line_and_column() {
+        let f = file("t,q1,mode\n0,1,blend\n0.001,1,\n0.002,1,servo_jp\n0.003,1,tracking\n");
+        let e = LogReader::open(f.path(), None)
+            .unwrap()
+            .decimate(&[Formula::Column(1)], 10, |_| {})
+            .unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            matches!(
+                e,
+                ReadError::NotMode {
+                    line: 5,
+                    column: 3,
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
+        assert!(
+            msg.contains("line 5, column 3 (`mode`): `tracking`") && msg.contains("servo_jf"),
+            "{msg}"
+        );
+    }
+
+    #[test]
     fn non_numeric_value_names_line_and_column() {
         let f = file("t,q1\n0,1\n0.001,oops\n");
-        let r = LogReader::open(f.path()).unwrap();
+        let r = LogReader::open(f.path(), None).unwrap();
         let e = r.decimate(&[Formula::Column(1)], 10, |_| {}).unwrap_err();
         let msg = e.to_string();
         assert!(
@@ -325,7 +425,7 @@ mod tests {
     #[test]
     fn missing_time_column_is_refused_at_open() {
         let f = file("time,q1\n0,1\n");
-        let e = LogReader::open(f.path()).err().unwrap();
+        let e = LogReader::open(f.path(), None).err().unwrap();
         assert!(matches!(e, ReadError::NoTime { .. }), "{e:?}");
         assert!(e.to_string().contains("no `t` column"), "{e}");
     }
@@ -333,14 +433,14 @@ mod tests {
     #[test]
     fn ragged_rows_and_bad_time_are_typed() {
         let f = file("t,q1\n0,1\n0.001\n");
-        let e = LogReader::open(f.path())
+        let e = LogReader::open(f.path(), None)
             .unwrap()
             .decimate(&[Formula::Column(1)], 10, |_| {})
             .unwrap_err();
         assert!(matches!(e, ReadError::Ragged { line: 3, .. }), "{e:?}");
 
         let f = file("t,q1\n0,1\nNaN,2\n");
-        let e = LogReader::open(f.path())
+        let e = LogReader::open(f.path(), None)
             .unwrap()
             .decimate(&[Formula::Column(1)], 10, |_| {})
             .unwrap_err();
@@ -351,11 +451,11 @@ mod tests {
     fn empty_and_header_only_files() {
         let f = file("");
         assert!(matches!(
-            LogReader::open(f.path()),
+            LogReader::open(f.path(), None),
             Err(ReadError::Empty { .. })
         ));
         let f = file("t,q1\n");
-        let e = LogReader::open(f.path())
+        let e = LogReader::open(f.path(), None)
             .unwrap()
             .decimate(&[Formula::Column(1)], 10, |_| {})
             .unwrap_err();
@@ -364,7 +464,7 @@ mod tests {
 
     #[test]
     fn missing_file_names_the_path() {
-        let e = LogReader::open(Path::new("/nonexistent/x.csv"))
+        let e = LogReader::open(Path::new("/nonexistent/x.csv"), None)
             .err()
             .unwrap();
         assert!(e.to_string().starts_with("/nonexistent/x.csv: "), "{e}");

@@ -589,9 +589,11 @@ impl Hub {
                 });
             }
             Request::WeightsLoad { path, .. } => {
+                // No stop flag: the hub never waits on a client's pipe (it is refused).
                 let mut loaded = match Identifier::from_weights_file(
                     &self.s.identifier_cfg,
                     std::path::Path::new(&path),
+                    None,
                 ) {
                     Ok(id) => id,
                     Err(e) => return self.fail(i, id, op, e.to_string()),

@@ -1,5 +1,11 @@
 //! Monotonic clock and absolute-deadline sleep (clock_nanosleep with TIMER_ABSTIME), so pacing
-//! errors never accumulate from tick to tick.
+//! errors never accumulate from tick to tick; [`sleep_until_ns_or_stop`] is the one way to wait
+//! longer than a tick, ending early when the operator stops.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Longest single sleep of [`sleep_until_ns_or_stop`] between two looks at the stop flag.
+pub const STOP_SLICE_NS: u64 = 20_000_000;
 
 /// Monotonic time in nanoseconds.
 pub fn now_ns() -> u64 {
@@ -35,9 +41,47 @@ pub fn sleep_until_ns(deadline_ns: u64) {
     }
 }
 
+/// Sleep until `deadline_ns` or until `stop` is set, whichever comes first: in slices of at
+/// most [`STOP_SLICE_NS`], so a wait of any length (a gap in a replay, an injected slowdown)
+/// ends within one slice of Ctrl-C. A wait shorter than a slice is one `clock_nanosleep`, as
+/// [`sleep_until_ns`]; nothing allocates or locks. Returns false when the flag cut it short.
+pub fn sleep_until_ns_or_stop(deadline_ns: u64, stop: &AtomicBool) -> bool {
+    loop {
+        if stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        let now = now_ns();
+        if now >= deadline_ns {
+            return true;
+        }
+        sleep_until_ns(deadline_ns.min(now + STOP_SLICE_NS));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_long_sleep_ends_soon_after_the_stop_flag() {
+        let stop = std::sync::Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let setter = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            flag.store(true, Ordering::Relaxed);
+        });
+        let t0 = now_ns();
+        // An hour, cut short.
+        assert!(!sleep_until_ns_or_stop(t0 + 3_600_000_000_000, &stop));
+        setter.join().unwrap();
+        let waited_s = (now_ns() - t0) as f64 * 1e-9;
+        assert!((0.05..2.0).contains(&waited_s), "{waited_s} s");
+        // Unset, it sleeps the whole way.
+        stop.store(false, Ordering::Relaxed);
+        let deadline = now_ns() + 30_000_000;
+        assert!(sleep_until_ns_or_stop(deadline, &stop));
+        assert!(now_ns() >= deadline);
+    }
 
     #[test]
     fn sleep_until_does_not_return_early() {

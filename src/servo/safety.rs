@@ -12,22 +12,28 @@ use serde::{Deserialize, Serialize};
 #[serde(deny_unknown_fields, default)]
 pub struct SafetyConfig {
     /// Per-joint torque clamp, N·m.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub max_torque_nm: [f64; 3],
     /// Consecutive missed or bad packets that make a device fault.
     pub max_missed_ticks: u32,
     /// Largest torque change per second (kick limit), N·m/s.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub max_torque_rate_nm_s: [f64; 3],
     /// Start-up ramp from zero to full authority, s.
     pub ramp_s: f64,
     /// Joint speed beyond which the run stops with a safety fault, rad/s.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub max_velocity_rad_s: [f64; 3],
     /// Soft walls: beyond these angles a spring-damper pushes back, rad.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub wall_lower: [f64; 3],
+    #[serde(deserialize_with = "crate::config::exact")]
     pub wall_upper: [f64; 3],
     /// Wall stiffness (N·m/rad) and damping (N·m·s/rad).
     pub wall_stiffness: f64,
     pub wall_damping: f64,
     /// Continuous torque rating per motor, N·m: the thermal model's unit of heating.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub continuous_torque_nm: [f64; 3],
     /// Thermal time constant of the motor windings, s.
     pub thermal_time_constant_s: f64,

@@ -27,6 +27,8 @@ use crate::omni::kinematics::from_ros;
 use crate::output::OutputError;
 use std::io::{self, Write};
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Formats `omnid convert --from` understands.
@@ -72,6 +74,13 @@ impl ConvertError {
     }
 }
 
+impl ConvertError {
+    /// The operator stopped it while the input was read.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, ConvertError::Read(ReadError::Stopped { .. }))
+    }
+}
+
 /// What a conversion did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConvertReport {
@@ -80,12 +89,14 @@ pub struct ConvertReport {
     pub skipped: SkipReport,
 }
 
-/// Convert `input` (in format `from`) into a replayable log at `out`.
+/// Convert `input` (in format `from`) into a replayable log at `out`. `stop` (the operator's)
+/// ends the reading (see [`ColumnReader::open`]); nothing is left at `out` then.
 pub fn convert(
     from: SourceFormat,
     input: &Path,
     out: &Path,
     lenient: bool,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
     if crate::output::same_file(input, out) {
         return Err(ConvertError::SameFile(out.display().to_string()));
@@ -94,8 +105,8 @@ pub fn convert(
     crate::output::write_with(out, |file| {
         let mut w = csv::WriterBuilder::new().from_writer(file);
         let report = match from {
-            SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out)?,
-            SourceFormat::Omnid => omnid(input, &mut w, lenient, out)?,
+            SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out, stop)?,
+            SourceFormat::Omnid => omnid(input, &mut w, lenient, out, stop)?,
             SourceFormat::Capture => capture(input, &mut w, out)?,
         };
         w.flush().map_err(|source| ConvertError::Write {
@@ -142,8 +153,9 @@ fn ros_touch<W: Write>(
     w: &mut csv::Writer<W>,
     lenient: bool,
     out: &Path,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
-    let mut reader = ColumnReader::open(input, &ROS_TOUCH_COLUMNS, lenient)?;
+    let mut reader = ColumnReader::open(input, &ROS_TOUCH_COLUMNS, lenient, stop)?;
     let idx: Vec<usize> = ROS_TOUCH_COLUMNS
         .iter()
         .map(|c| reader.require(c, &ROS_TOUCH_COLUMNS))
@@ -200,8 +212,9 @@ fn omnid<W: Write>(
     w: &mut csv::Writer<W>,
     lenient: bool,
     out: &Path,
+    stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
-    let mut reader = LogReader::open(input, lenient)?;
+    let mut reader = LogReader::open(input, lenient, stop)?;
     let has_enc = reader.columns().enc.is_some();
     let has_mode = reader.columns().mode.is_some();
     let mut columns: Vec<String> = REQUIRED_COLUMNS.iter().map(|c| c.to_string()).collect();
@@ -370,7 +383,7 @@ mod tests {
             "t,waist,shoulder,elbow,x_mm\n0.0,0.1,0.2,0.3,1.5\n0.01,-0.1,0.25,-0.5,\"2,5\"\n",
         )
         .unwrap();
-        let rep = convert(SourceFormat::RosTouch, &input, &out, false).unwrap();
+        let rep = convert(SourceFormat::RosTouch, &input, &out, false, None).unwrap();
         assert_eq!(rep.rows, 2);
         let text = std::fs::read_to_string(&out).unwrap();
         let lines: Vec<&str> = text.lines().collect();
@@ -391,7 +404,7 @@ mod tests {
         let input = dir.path().join("in.csv");
         let out = dir.path().join("out.csv");
         std::fs::write(&input, "t,waist,shoulder,elbow\n0,0,0,0\n0.01,0,zero,0\n").unwrap();
-        let e = convert(SourceFormat::RosTouch, &input, &out, false).unwrap_err();
+        let e = convert(SourceFormat::RosTouch, &input, &out, false, None).unwrap_err();
         assert!(
             e.to_string().contains("line 3") && e.to_string().contains("`shoulder`"),
             "{e}"
@@ -402,9 +415,9 @@ mod tests {
             1,
             "only the input"
         );
-        let rep = convert(SourceFormat::RosTouch, &input, &out, true).unwrap();
+        let rep = convert(SourceFormat::RosTouch, &input, &out, true, None).unwrap();
         assert_eq!((rep.rows, rep.skipped.count), (1, 1));
-        assert!(convert(SourceFormat::RosTouch, &out, &out, false).is_err());
+        assert!(convert(SourceFormat::RosTouch, &out, &out, false, None).is_err());
     }
 
     #[test]
@@ -419,7 +432,7 @@ mod tests {
              0.001,0.5,0,0,0,0,0,9,1,0,0,0,stop,0\n",
         )
         .unwrap();
-        convert(SourceFormat::Omnid, &input, &out, false).unwrap();
+        convert(SourceFormat::Omnid, &input, &out, false, None).unwrap();
         let text = std::fs::read_to_string(&out).unwrap();
         assert_eq!(
             text,
@@ -461,7 +474,7 @@ mod tests {
         let input = dir.path().join("c.txt");
         let out = dir.path().join("c.csv");
         std::fs::write(&input, text).unwrap();
-        let rep = convert(SourceFormat::Capture, &input, &out, false).unwrap();
+        let rep = convert(SourceFormat::Capture, &input, &out, false, None).unwrap();
         assert_eq!(rep.rows, 2);
         let csv = std::fs::read_to_string(&out).unwrap();
         let lines: Vec<&str> = csv.lines().collect();
@@ -481,7 +494,7 @@ mod tests {
         );
         // A broken line is named.
         std::fs::write(&input, "# omnid capture 1\nrx,1,0x0,0x0,,zz\n").unwrap();
-        let e = convert(SourceFormat::Capture, &input, &out, false)
+        let e = convert(SourceFormat::Capture, &input, &out, false, None)
             .unwrap_err()
             .to_string();
         assert!(e.contains("line 2") && e.contains("hex digits"), "{e}");

@@ -8,7 +8,11 @@
 //!   line and the column. Other importers (e.g. `convert`) build on it with their own columns.
 //! - [`LogReader`]: the replayable log on top of it, yielding one `Copy` [`LogRow`] per data row.
 //!
-//! Memory is constant: one record buffer, reused; a row allocates nothing (an error does).
+//! Memory is constant: one record buffer, reused; a row allocates nothing (an error does). A
+//! row may take at most [`MAX_ROW_BYTES`]: a file without line ends (`/dev/zero`, one 1 GB
+//! line, an unclosed quote) is an error naming the line where that row starts, not a buffer as
+//! big as the file. Files are opened through [`crate::input`]: a FIFO or pipe is read only with
+//! the operator's stop flag, and every read ends on it ([`ReadError::Stopped`]).
 //!
 //! Rules (strict, the default):
 //! - an empty file, a missing/misnamed/duplicated required column, a row with the wrong number
@@ -17,19 +21,23 @@
 //! - a last line cut mid-row (wrong field count, no trailing newline) is reported as truncated.
 //!   A complete last line without a trailing newline is accepted (many editors write files so).
 //! - `mode = stop` (omnid's final, safe packet) must be the last row; its `t` may equal the
-//!   previous row's (the servo logs `max(device time, last t)` there). Other `mode` values are
-//!   carried but not interpreted.
+//!   previous row's (the servo logs `max(device time, last t)` there). A `mode` that omnid does
+//!   not write (see [`Mode::ALL`]; an empty field included) is an error naming the value.
 //!
-//! Lenient mode skips bad rows instead (header problems and I/O errors still fail) and keeps a
+//! Lenient mode skips bad rows instead (header problems, a row past the size limit, a stop and
+//! I/O errors still fail) and keeps a
 //! [`SkipReport`]: how many and the first few line numbers. Time order is checked against the
 //! last *accepted* row.
 
 use super::record::Mode;
+pub use crate::input::MAX_ROW_BYTES;
+use crate::input::{self, Input, RowBound};
 use std::collections::VecDeque;
 use std::fmt;
-use std::fs::File;
 use std::io::{self, Read};
 use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// The seven columns a replayable file must have.
@@ -47,6 +55,13 @@ const MAX_QUOTED: usize = 40;
 pub enum ReadError {
     #[error("{path}: {source}")]
     Io { path: String, source: io::Error },
+    #[error("{path}: reading stopped by the operator")]
+    Stopped { path: String },
+    #[error(
+        "{path}: line {line}: the row starting here runs past {limit} bytes, the most a row may \
+         take (a file without line ends, or a quote that is never closed?)"
+    )]
+    RowTooLong { path: String, line: u64, limit: u64 },
     #[error(
         "{path}: line 1: the file is empty: expected a header row with the columns {expected}"
     )]
@@ -132,6 +147,16 @@ pub enum ReadError {
         previous_line: u64,
     },
     #[error(
+        "{path}: line {line}: column `{column}`: `{value}` is not a mode omnid writes \
+             (allowed: {})", Mode::ALL.map(Mode::as_str).join(", ")
+    )]
+    UnknownMode {
+        path: String,
+        line: u64,
+        column: String,
+        value: String,
+    },
+    #[error(
         "{path}: line {line}: column `{column}`: a row after the final `stop` row (line \
              {stop_line}); a `mode = stop` row must be the last"
     )]
@@ -154,7 +179,7 @@ impl ReadError {
     pub fn line(&self) -> Option<u64> {
         use ReadError::*;
         match self {
-            Io { .. } => None,
+            Io { .. } | Stopped { .. } => None,
             Empty { .. } | MissingColumn { .. } | DuplicateColumn { .. } => Some(1),
             FieldCount { line, .. }
             | Truncated { line, .. }
@@ -163,6 +188,8 @@ impl ReadError {
             | NotFinite { line, .. }
             | TimeBackwards { line, .. }
             | TimeRepeats { line, .. }
+            | UnknownMode { line, .. }
+            | RowTooLong { line, .. }
             | AfterStop { line, .. }
             | Csv { line, .. } => Some(*line),
         }
@@ -195,6 +222,9 @@ pub enum RowFault {
         col: usize,
         t: f64,
         previous_line: u64,
+    },
+    UnknownMode {
+        col: usize,
     },
     AfterStop {
         col: usize,
@@ -243,7 +273,7 @@ impl fmt::Display for SkipReport {
 /// ends a row at a lone `\r` too but counts only `\n`s, and a row after a `\r\n` starts, for
 /// it, at the `\n`, before that line is counted.
 struct Tail<R> {
-    inner: R,
+    inner: RowBound<R>,
     total: u64,
     last: Option<u8>,
     eof: bool,
@@ -259,7 +289,7 @@ struct Tail<R> {
 impl<R> Tail<R> {
     fn new(inner: R) -> Self {
         Tail {
-            inner,
+            inner: RowBound::new(inner),
             total: 0,
             last: None,
             eof: false,
@@ -369,7 +399,7 @@ fn parse_f64(b: &[u8], col: usize) -> Result<f64, RowFault> {
 }
 
 /// Quote a field for a message: lossy UTF-8, cut to a sane length.
-fn quote(b: &[u8]) -> String {
+pub(crate) fn quote(b: &[u8]) -> String {
     let s = String::from_utf8_lossy(b);
     let mut out: String = s.chars().take(MAX_QUOTED).collect();
     if s.chars().count() > MAX_QUOTED {
@@ -480,17 +510,23 @@ pub struct ColumnReader<R: Read> {
     last: Option<(f64, u64)>,
     /// Lone `\r` line ends before the current row (see [`Tail`]).
     cr_lines: u64,
+    /// The parser's line of the next row's start (its position moves on while a row is read).
+    next_line: u64,
     skipped: SkipReport,
 }
 
-impl ColumnReader<File> {
+impl ColumnReader<Input> {
     /// Open a file; `required` columns must all be present (the first is the time column).
-    pub fn open(path: &Path, required: &[&str], lenient: bool) -> Result<Self, ReadError> {
+    /// `stop`: the operator's stop flag, which ends any read (without one, only a regular file
+    /// is accepted: see [`crate::input::open`]).
+    pub fn open(
+        path: &Path,
+        required: &[&str],
+        lenient: bool,
+        stop: Option<&Arc<AtomicBool>>,
+    ) -> Result<Self, ReadError> {
         let name = path.display().to_string();
-        let file = File::open(path).map_err(|source| ReadError::Io {
-            path: name.clone(),
-            source,
-        })?;
+        let file = input::open(path, stop).map_err(|source| io_error(source, &name))?;
         Self::new(file, &name, required, lenient)
     }
 }
@@ -516,6 +552,8 @@ impl<R: Read> ColumnReader<R> {
                 expected,
             });
         }
+        let first_row = csv.position().clone();
+        csv.get_mut().inner.row_starts_at(first_row.byte());
         let mut header: Vec<String> = record
             .iter()
             .map(|f| String::from_utf8_lossy(f.trim_ascii()).into_owned())
@@ -540,6 +578,7 @@ impl<R: Read> ColumnReader<R> {
             lenient,
             last: None,
             cr_lines: 0,
+            next_line: first_row.line(),
             skipped: SkipReport {
                 first_lines: Vec::with_capacity(SKIP_LINES_KEPT),
                 ..SkipReport::default()
@@ -617,10 +656,13 @@ impl<R: Read> ColumnReader<R> {
             let more = self
                 .csv
                 .read_byte_record(&mut self.record)
-                .map_err(|e| csv_error(e, &self.path, self.csv.position().line()))?;
+                .map_err(|e| csv_error(e, &self.path, self.next_line + self.cr_lines))?;
             if !more {
                 return Ok(None);
             }
+            let next_row = self.csv.position().clone();
+            self.next_line = next_row.line();
+            self.csv.get_mut().inner.row_starts_at(next_row.byte());
             let line = self.line_of_record();
             let result = if self.record.len() != self.header.len() {
                 Err(RowFault::FieldCount {
@@ -766,6 +808,12 @@ impl<R: Read> ColumnReader<R> {
                 t,
                 previous_line,
             },
+            RowFault::UnknownMode { col } => ReadError::UnknownMode {
+                path,
+                line,
+                column: self.column_name(col),
+                value: value(col),
+            },
             RowFault::AfterStop { col, stop_line } => ReadError::AfterStop {
                 path,
                 line,
@@ -776,12 +824,31 @@ impl<R: Read> ColumnReader<R> {
     }
 }
 
+/// An I/O error as a [`ReadError`]: a stop, or the error itself.
+fn io_error(source: io::Error, path: &str) -> ReadError {
+    if input::is_stopped(&source) {
+        ReadError::Stopped {
+            path: path.to_string(),
+        }
+    } else {
+        ReadError::Io {
+            path: path.to_string(),
+            source,
+        }
+    }
+}
+
+/// `line`: where the row being read starts.
 fn csv_error(e: csv::Error, path: &str, line: u64) -> ReadError {
     let line = e.position().map(|p| p.line()).unwrap_or(line);
     match e.into_kind() {
-        csv::ErrorKind::Io(source) => ReadError::Io {
-            path: path.to_string(),
-            source,
+        csv::ErrorKind::Io(source) => match input::row_too_long(&source) {
+            Some(limit) => ReadError::RowTooLong {
+                path: path.to_string(),
+                line,
+                limit,
+            },
+            None => io_error(source, path),
         },
         other => ReadError::Csv {
             path: path.to_string(),
@@ -804,7 +871,7 @@ pub struct LogRow {
     pub tau: [f64; 3],
     /// Continuous encoder counts, when the file has `enc1..3`.
     pub enc: Option<[i64; 3]>,
-    /// The `mode` column, when the file has one and it holds a value omnid writes.
+    /// The `mode` column, when the file has one.
     pub mode: Option<Mode>,
 }
 
@@ -826,15 +893,20 @@ pub struct LogColumns {
 }
 
 /// Streaming reader of a replayable log.
-pub struct LogReader<R: Read = File> {
+pub struct LogReader<R: Read = Input> {
     core: ColumnReader<R>,
     cols: LogColumns,
     stop_line: Option<u64>,
 }
 
-impl LogReader<File> {
-    pub fn open(path: &Path, lenient: bool) -> Result<Self, ReadError> {
-        Self::with_core(ColumnReader::open(path, &REQUIRED_COLUMNS, lenient)?)
+impl LogReader<Input> {
+    /// Open a log file (`stop`: see [`ColumnReader::open`]).
+    pub fn open(
+        path: &Path,
+        lenient: bool,
+        stop: Option<&Arc<AtomicBool>>,
+    ) -> Result<Self, ReadError> {
+        Self::with_core(ColumnReader::open(path, &REQUIRED_COLUMNS, lenient, stop)?)
     }
 }
 
@@ -898,10 +970,15 @@ impl<R: Read> LogReader<R> {
                     stop_line,
                 });
             }
-            let mode = cols
-                .mode
-                .and_then(|m| std::str::from_utf8(r.field(m)).ok())
-                .and_then(Mode::parse);
+            let mode = match cols.mode {
+                Some(m) => Some(
+                    std::str::from_utf8(r.field(m))
+                        .ok()
+                        .and_then(Mode::parse)
+                        .ok_or(RowFault::UnknownMode { col: m })?,
+                ),
+                None => None,
+            };
             r.check_time(mode == Some(Mode::Stop))?;
             let mut q = [0.0; 3];
             let mut tau = [0.0; 3];
@@ -1066,6 +1143,34 @@ mod tests {
         );
         let (rows, skipped) = read_all(&after, true).unwrap();
         assert_eq!((rows.len(), skipped.count), (3, 1));
+    }
+
+    #[test]
+    fn every_mode_omnid_writes_is_read_and_no_other() {
+        let header = "t,q1,q2,q3,tau1,tau2,tau3,mode\n";
+        let mut text = header.to_string();
+        for (k, m) in Mode::ALL.iter().filter(|m| **m != Mode::Stop).enumerate() {
+            text += &format!("{},0,0,0,0,0,0,{}\n", k, m.as_str());
+        }
+        let (rows, _) = read_all(&text, false).unwrap();
+        let modes: Vec<Mode> = rows.iter().map(|r| r.mode.unwrap()).collect();
+        assert_eq!(modes.len(), Mode::ALL.len() - 1);
+        // Once silently read as "no mode": a value omnid never writes, in any case or form.
+        for bad in ["Track", "servo-jp", "", "stopp", " ", "blend;"] {
+            let text = format!("{header}0,0,0,0,0,0,0,track\n0.1,0,0,0,0,0,0,{bad}\n");
+            let e = read_all(&text, false).unwrap_err();
+            let msg = e.to_string();
+            assert!(
+                matches!(&e, ReadError::UnknownMode { line: 3, column, .. } if column == "mode"),
+                "{bad:?}: {msg}"
+            );
+            assert!(
+                msg.contains("line 3:") && msg.contains("servo_jf") && msg.contains("`mode`"),
+                "{msg}"
+            );
+            let (rows, skipped) = read_all(&text, true).unwrap();
+            assert_eq!((rows.len(), skipped.first_lines.clone()), (1, vec![3]));
+        }
     }
 
     #[test]

@@ -105,9 +105,11 @@ pub struct FirewireConfig {
     /// Pause before each such retry, ms.
     pub busy_retry_ms: u32,
     /// Sign per joint that turns encoder counts into the OpenHaptics joint directions.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub encoder_sign: [i8; 3],
     /// Sign per motor of the DAC word; 0 = not measured yet (`omnid probe --outputs`): no
     /// torque on that motor, and `run`/`serve` refuse to start.
+    #[serde(deserialize_with = "crate::config::exact")]
     pub dac_sign: [i8; 3],
     /// Byte 7 of every command: "0x53" (the open drivers) or another "0xNN", or "counter".
     pub command_byte7: String,

@@ -1,11 +1,31 @@
 //! The config parser on arbitrary UTF-8: never a panic, every error names a field or a line, and
-//! a config it accepts serialises and parses back to itself. Each line also goes through the
+//! a config it accepts holds every array with as many values as written (none cut off) and
+//! serialises and parses back to itself. Each line also goes through the
 //! fault-spec parser (`--inject`), which the config reaches only at the end of validation.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
 use omnid::config::{Config, ConfigError};
 use omnid::device::inject::Fault;
+
+/// Every array of `written` is in `kept` with the same number of values.
+fn arrays_kept(written: &toml::Value, kept: &toml::Value, at: &str) {
+    match (written, kept) {
+        (toml::Value::Table(w), toml::Value::Table(k)) => {
+            for (key, value) in w {
+                if let Some(kv) = k.get(key) {
+                    arrays_kept(value, kv, &format!("{at}.{key}"));
+                }
+            }
+        }
+        (toml::Value::Array(w), toml::Value::Array(k)) => assert_eq!(
+            w.len(),
+            k.len(),
+            "`{at}` accepted with another number of values"
+        ),
+        _ => {}
+    }
+}
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else {
@@ -14,6 +34,9 @@ fuzz_target!(|data: &[u8]| {
     match Config::from_toml(text, "fuzz.toml") {
         Ok(cfg) => {
             cfg.validate().expect("an accepted config validates");
+            let written: toml::Value = toml::from_str(text).expect("accepted TOML parses");
+            let kept = toml::Value::try_from(&cfg).expect("an accepted config serialises");
+            arrays_kept(&written, &kept, "");
             let again = toml::to_string(&cfg).expect("an accepted config serialises");
             let back = Config::from_toml(&again, "again.toml").expect("and parses back");
             assert_eq!(back, cfg, "round trip changed the config:\n{again}");

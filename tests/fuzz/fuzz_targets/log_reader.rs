@@ -1,6 +1,7 @@
 //! The CSV log reader on arbitrary bytes, strict and lenient, reading every row: never a panic,
-//! every error names a line, every row it hands out is finite with strictly increasing time, and
-//! the strict reader's rows are a prefix of the lenient reader's.
+//! every error names a line, every row it hands out is finite with strictly increasing time and
+//! (when the file has a `mode` column) a mode omnid writes, and the strict reader's rows are a
+//! prefix of the lenient reader's.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -16,9 +17,13 @@ fn read_all(data: &[u8], lenient: bool) -> (Vec<LogRow>, Option<ReadError>) {
         Ok(r) => r,
         Err(e) => return (rows, Some(e)),
     };
+    let has_mode = r.columns().mode.is_some();
     for _ in 0..MAX_CALLS {
         match r.next_row() {
-            Ok(Some(row)) => rows.push(row),
+            Ok(Some(row)) => {
+                assert_eq!(row.mode.is_some(), has_mode, "line {}: no mode", row.line);
+                rows.push(row)
+            }
             Ok(None) => return (rows, None),
             Err(e) => return (rows, Some(e)),
         }
