@@ -192,6 +192,33 @@ pub struct LogFile {
     file: File,
 }
 
+/// Open a device or FIFO for writing without waiting: opening a FIFO that nobody reads would
+/// block until someone does (and no signal would end the wait), so it fails at once instead;
+/// once open, writes block as usual.
+fn open_special(path: &Path) -> io::Result<File> {
+    use std::os::fd::AsRawFd;
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = OpenOptions::new()
+        .write(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| match e.raw_os_error() {
+            Some(libc::ENXIO) => io::Error::new(
+                e.kind(),
+                "it is a FIFO that no process reads (start its reader first)",
+            ),
+            _ => e,
+        })?;
+    // SAFETY: fcntl on a descriptor we own; no pointers.
+    unsafe {
+        let flags = libc::fcntl(file.as_raw_fd(), libc::F_GETFL);
+        if flags >= 0 {
+            libc::fcntl(file.as_raw_fd(), libc::F_SETFL, flags & !libc::O_NONBLOCK);
+        }
+    }
+    Ok(file)
+}
+
 impl LogFile {
     /// Check `path` as a log before the work starts: a suitable kind, its directory made, a
     /// file can be created there, and no other omnid writes it.
@@ -242,7 +269,7 @@ impl LogFile {
         // Another process may replace the file between our open and our lock: then look again.
         for _ in 0..100 {
             if suitable(path)? == Some(false) {
-                let file = OpenOptions::new().write(true).open(path).map_err(io_err)?;
+                let file = open_special(path).map_err(io_err)?;
                 return Ok(LogFile {
                     path: path.to_path_buf(),
                     file,
