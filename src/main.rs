@@ -159,13 +159,7 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         }
         Err(e) => {
             omnid::errln!("omnid identify: {e}");
-            Ok(if e.is_stopped() {
-                EXIT_OPERATOR_STOP
-            } else if e.is_bad_input() {
-                EXIT_BAD_INPUT
-            } else {
-                EXIT_INTERNAL
-            })
+            Ok(error_exit(e.is_stopped(), e.is_bad_input()))
         }
     }
 }
@@ -407,13 +401,7 @@ fn plot_cmd(log: &std::path::Path, out: &std::path::Path) -> Result<u8, anyhow::
         }
         Err(e) => {
             omnid::errln!("omnid plot: {e}");
-            Ok(if e.is_stopped() {
-                EXIT_OPERATOR_STOP
-            } else if e.is_bad_input() {
-                EXIT_BAD_INPUT
-            } else {
-                EXIT_INTERNAL
-            })
+            Ok(error_exit(e.is_stopped(), e.is_bad_input()))
         }
     }
 }
@@ -440,11 +428,7 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
         }
         Err(e) => {
             omnid::errln!("omnid: {e}");
-            Ok(if e.is_bad_input() {
-                EXIT_BAD_INPUT
-            } else {
-                EXIT_INTERNAL
-            })
+            Ok(error_exit(false, e.is_bad_input()))
         }
     }
 }
@@ -561,6 +545,18 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
 }
 
 const EXIT_REFUSED: u8 = 1;
+
+/// The exit code of a command that failed: stopped by the operator, refused its input, or
+/// failed on its own (a write part-way, an internal error).
+fn error_exit(stopped: bool, bad_input: bool) -> u8 {
+    if stopped {
+        EXIT_OPERATOR_STOP
+    } else if bad_input {
+        EXIT_BAD_INPUT
+    } else {
+        EXIT_INTERNAL
+    }
+}
 
 /// A flag that Ctrl-C and SIGTERM set (the `termination` feature also catches SIGHUP).
 fn stop_on_signal() -> Result<Arc<AtomicBool>, anyhow::Error> {
@@ -871,11 +867,7 @@ fn main() -> ExitCode {
                 }
                 Err(e) => {
                     omnid::errln!("omnid experiment {}: {e}", kind.as_str());
-                    Ok(if e.is_bad_input() {
-                        EXIT_BAD_INPUT
-                    } else {
-                        EXIT_INTERNAL
-                    })
+                    Ok(error_exit(false, e.is_bad_input()))
                 }
             }
         }
