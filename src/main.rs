@@ -608,9 +608,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     } else {
         "the final zero-torque packet could not be delivered: switch the device off (whether it drops its amplifiers when packets stop is not known, docs/FIREWIRE.md §9)"
     };
-    for dump in &outcome.dumps {
-        omnid::errln!("omnid serve: fault dump: {}", dump.display());
-    }
+    // Each fault dump was announced where it was written.
     if let Some(e) = &outcome.recording_error {
         omnid::errln!("omnid serve: the recording is incomplete: {e}");
     }

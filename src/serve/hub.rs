@@ -36,6 +36,36 @@ const READS_PER_WAKE: usize = 64;
 /// oldest first); past this the client is not reading and is disconnected.
 const MAX_UNREAD_REPLIES: usize = 4096;
 
+/// Write `ring` (the last ticks) to a new file `<dir>/faults/omnid-serve-<UTC>-<why>-fault.csv`
+/// (a new name for every dump: two faults in one second keep both) and say where; `None`
+/// when it cannot be written (said too).
+pub fn write_fault_dump(
+    dir: &std::path::Path,
+    schema: &LogSchema,
+    ring: &VecDeque<TickRecord>,
+    why: &str,
+) -> Option<PathBuf> {
+    let written = crate::output::write_unique(
+        &dir.join("faults"),
+        &format!("omnid-serve-{}-{why}-fault", utc_stamp()),
+        "csv",
+        |w| dump_rows(w, schema, ring),
+    );
+    match written {
+        Ok(path) => {
+            crate::errln!(
+                "omnid serve: the last ticks before the fault are in {}",
+                path.display()
+            );
+            Some(path)
+        }
+        Err(e) => {
+            crate::errln!("omnid serve: cannot write the fault dump: {e}");
+            None
+        }
+    }
+}
+
 /// What the hub was built with.
 pub struct HubSetup {
     pub listener: Listener,
@@ -1046,23 +1076,8 @@ impl Hub {
 
     /// Write the ring of recent ticks beside the other dumps.
     fn dump(&mut self, why: &str) {
-        // A new name for every dump: two faults in one second keep both.
-        let written = crate::output::write_unique(
-            &self.s.state_dir.join("faults"),
-            &format!("omnid-serve-{}-{why}-fault", utc_stamp()),
-            "csv",
-            |w| dump_rows(w, &self.s.schema, &self.ring),
-        );
-        match written {
-            Ok(path) => {
-                crate::errln!(
-                    "omnid serve: the last ticks before the fault are in {}",
-                    path.display()
-                );
-                self.dumps.push(path);
-            }
-            Err(e) => crate::errln!("omnid serve: cannot write the fault dump: {e}"),
-        }
+        let dump = write_fault_dump(&self.s.state_dir, &self.s.schema, &self.ring, why);
+        self.dumps.extend(dump);
     }
 
     /// Send what each client has queued until its socket is full; never blocks.

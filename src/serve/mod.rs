@@ -280,6 +280,7 @@ pub fn serve(
         crate::errln!("omnid: warning: {w}");
     }
     let (handle, ending) = pipeline.spawn()?;
+    let dump_dir = setup.state_dir.clone();
     let hub_report = hub::Hub::new(setup).run();
     let (report, realtime) = join_servo(handle)?;
     ending.save_heat(&report);
@@ -311,24 +312,12 @@ pub fn serve(
     summary.realtime = realtime;
     let mut dumps = hub_report.dumps;
     if matches!(report.end, EndReason::DeviceFault(_)) {
-        let dir = if cfg.serve.dump_dir.is_empty() {
-            crate::servo::thermal_store::state_dir().unwrap_or_else(std::env::temp_dir)
-        } else {
-            PathBuf::from(&cfg.serve.dump_dir)
-        };
-        let written = crate::output::write_unique(
-            &dir.join("faults"),
-            &format!(
-                "omnid-serve-{}-device-fault",
-                crate::telemetry::utc_stamp(std::time::SystemTime::now())
-            ),
-            "csv",
-            |w| crate::telemetry::writer::dump_rows(w, &ending.schema, &hub_report.ring),
-        );
-        match written {
-            Ok(path) => dumps.push(path),
-            Err(e) => crate::errln!("omnid serve: cannot write the fault dump: {e}"),
-        }
+        dumps.extend(hub::write_fault_dump(
+            &dump_dir,
+            &ending.schema,
+            &hub_report.ring,
+            "device",
+        ));
     }
     // The clients' connections close only now, after the final safe packet went out.
     drop(hub_report.clients);
