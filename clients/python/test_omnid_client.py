@@ -346,13 +346,24 @@ class CommandTests(DaemonTestCase):
 
     def settle(self, c):
         """A known start whatever earlier tests did to the arm: blend onto the reference
-        centre (track `hold`) and wait until the arm is still."""
+        centre (track `hold`) with PD, which is stable from any pose (the pre-tuned nnidc is
+        not, from poses far outside those it was tuned on: it can trip the speed limit there),
+        wait until the arm is still, then hand over to nnidc."""
+        c.controller("pd")
         c.track("hold")
-        self.wait_for(c, lambda s: s.mode == "track", "mode track (blended)", timeout=5.0)
+        try:
+            self.wait_for(c, lambda s: s.mode == "track", "mode track (blended)", timeout=5.0)
+        except AssertionError:
+            trips = [e.get("message") for e in c.events() if e.get("event") == "safety-trip"]
+            raise AssertionError("settling failed; safety trips: %r" % trips)
+        c.controller("nnidc")
         return self.wait_for(
             c,
-            lambda s: s.mode == "track" and max(map(abs, s.qd)) < 0.05 and not s.flags & 16,
-            "the arm still at the centre pose",
+            lambda s: s.mode == "track"
+            and s.controller == "nnidc"
+            and max(map(abs, s.qd)) < 0.05
+            and not s.flags & 16,
+            "the arm still at the centre pose under nnidc",
             timeout=5.0,
         )
 
