@@ -1,5 +1,5 @@
-//! Run configuration: TOML, every field optional with the defaults of DESIGN §2.4, unknown keys
-//! refused, every value validated with an error that names the field and the allowed range.
+//! Run configuration (docs/DESIGN.md §2.4): TOML, every field optional with its default, unknown
+//! keys refused, every value validated with an error that names the field and the allowed range.
 
 pub use crate::device::firewire::FirewireConfig;
 pub use crate::device::usb::UsbConfig;
@@ -290,7 +290,7 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
     ),
     (
         "model",
-        "Rigid-body model (DESIGN §4.2): the simulator's plant and CT's model.",
+        "Rigid-body model (docs/DESIGN.md §4.2): the simulator's plant and CT's model.",
     ),
     ("model.k1", "inertia parameter, kg·m²"),
     ("model.k2", "inertia parameter, kg·m²"),
@@ -320,7 +320,7 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
         "model.limit_damping",
         "joint-limit spring damping, N·m·s/rad",
     ),
-    ("geometry", "Arm geometry (DESIGN §4.1), mm."),
+    ("geometry", "Arm geometry (docs/DESIGN.md §4.1), mm."),
     ("geometry.l1_mm", "upper arm length, mm"),
     ("geometry.l2_mm", "lower arm length, mm"),
     (
@@ -331,7 +331,7 @@ pub const FIELD_DOCS: &[(&str, &str)] = &[
         "geometry.z_offset_mm",
         "tip z offset of the OpenHaptics origin, mm",
     ),
-    ("kalman", "Per-joint Kalman filter (DESIGN §4.3)."),
+    ("kalman", "Per-joint Kalman filter (docs/DESIGN.md §4.3)."),
     (
         "kalman.jerk_psd",
         "white-jerk spectral density q_j, rad²/s⁵ (10 suits 0.5 Hz, 1000 suits 2 Hz)",

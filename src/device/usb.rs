@@ -1,5 +1,5 @@
-//! The USB bridge backend (DESIGN §4.6): a device that forwards the Omni's packets over USB,
-//! one 16-byte command out and one 44-byte state packet in per millisecond, on configured
+//! The USB bridge backend (docs/DESIGN.md §4.6): a device that forwards the Omni's packets over
+//! USB, one 16-byte command out and one 44-byte state packet in per millisecond, on configured
 //! endpoints (bulk or interrupt).
 //!
 //! Split in two:
@@ -109,7 +109,7 @@ pub const TOUCH_IS_NOT_A_BRIDGE: &str = "a 3D Systems (Geomagic) Touch: a USB CD
 pub const USB_FIELD_DOCS: &[(&str, &str)] = &[
     (
         "usb",
-        "USB bridge (DESIGN §4.6): ids and endpoints of the bridge at hand (TOML takes hex: 0x1209).",
+        "USB bridge (docs/DESIGN.md §4.6): ids and endpoints of the bridge at hand (TOML takes hex: 0x1209).",
     ),
     (
         "usb.vendor_id",

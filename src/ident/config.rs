@@ -1,4 +1,4 @@
-//! `[identifier]` configuration: every tunable of the adaptive identifier (DESIGN §3), its
+//! `[identifier]` configuration: every tunable of the adaptive identifier (docs/DESIGN.md §3), its
 //! defaults, validation naming the field and the allowed range, and one line of documentation
 //! per key for `omnid config --print-default`.
 
@@ -118,7 +118,7 @@ impl Default for IdentifierConfig {
 pub const IDENTIFIER_FIELD_DOCS: &[(&str, &str)] = &[
     (
         "identifier",
-        "Adaptive NN identifier (DESIGN §3): M-, C-, G- (and F-) networks learning online.",
+        "Adaptive NN identifier (docs/DESIGN.md §3): M-, C-, G- (and F-) networks learning online.",
     ),
     (
         "identifier.alpha",
