@@ -8,6 +8,7 @@ pub use crate::control::reference::ReferenceConfig;
 pub use crate::control::{ControlConfig, ControlSetup};
 pub use crate::device::firewire::FirewireConfig;
 pub use crate::device::inject::InjectConfig;
+pub use crate::device::probe::ProbeSetup;
 pub use crate::device::sim::{SimConfig, SimSetup};
 pub use crate::device::usb::UsbConfig;
 pub use crate::device::DeviceConfig;
@@ -243,6 +244,15 @@ impl<'a> From<&'a Config> for ServoSetup<'a> {
             safety: &cfg.safety,
             kalman: &cfg.kalman,
             seed: cfg.sim.seed,
+        }
+    }
+}
+
+impl<'a> From<&'a Config> for ProbeSetup<'a> {
+    fn from(cfg: &'a Config) -> Self {
+        ProbeSetup {
+            device: &cfg.device,
+            firewire: &cfg.firewire,
         }
     }
 }

@@ -21,7 +21,7 @@ use crate::plot::{plot_log, PlotError};
 use crate::run::{
     execute, DeviceSpec, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
 };
-use crate::telemetry::summary::RunSummary;
+use crate::servo::summary::RunSummary;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;

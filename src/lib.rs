@@ -35,9 +35,12 @@ macro_rules! errln {
     }};
 }
 
+pub mod clock;
 pub mod config;
 pub mod config_check;
 pub mod control;
+pub mod convert;
+pub mod daemon;
 pub mod device;
 pub mod estimate;
 pub mod experiment;

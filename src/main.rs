@@ -5,10 +5,10 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
+use omnid::convert::{convert, SourceFormat};
 use omnid::device::inject::Fault;
 use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
 use omnid::servo::EndReason;
-use omnid::telemetry::convert::{convert, SourceFormat};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -573,7 +573,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
-    let opts = omnid::serve::ServeOptions {
+    let opts = omnid::daemon::ServeOptions {
         device: args.device,
         controller: args.controller,
         socket: args.socket,
@@ -582,7 +582,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         lenient: args.lenient,
         inject: args.inject,
     };
-    let outcome = match omnid::serve::serve(&opts, &cfg, stop) {
+    let outcome = match omnid::daemon::serve(&opts, &cfg, stop) {
         Ok(o) => o,
         Err(e) if e.is_stopped() => {
             omnid::errln!("omnid serve: {e}; nothing served");

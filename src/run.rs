@@ -3,18 +3,19 @@
 
 use crate::config::Config;
 pub use crate::control::make_controller;
+use crate::control::NanAfter;
 use crate::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use crate::device::calibration::{self, CalibrationError};
 use crate::device::firewire::{find_firewire, FirewireConfig};
-use crate::device::inject::{Fault, FaultyDevice, NanAfter};
+use crate::device::inject::{Fault, FaultyDevice};
 use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
 use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
 use crate::ident::{Identifier, WeightsFile};
+use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, Servo, ServoReport};
 use crate::telemetry::reader::ReadError;
-use crate::telemetry::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, LogSchema};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;

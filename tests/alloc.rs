@@ -191,7 +191,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     cfg.safety.persist_heat = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let socket = dir.path().join("sim.sock");
-    let opts = omnid::serve::ServeOptions {
+    let opts = omnid::daemon::ServeOptions {
         device: omnid::run::DeviceSpec::Sim,
         controller: ControllerKind::Nnidc,
         socket: Some(socket.clone()),
@@ -202,7 +202,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     };
     let stop = Arc::new(AtomicBool::new(false));
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
-    let prepared = omnid::serve::prepare(&opts, &cfg, stop).unwrap();
+    let prepared = omnid::daemon::prepare(&opts, &cfg, stop).unwrap();
     let mut servo = prepared.pipeline.servo;
     let hub = std::thread::spawn(move || omnid::serve::hub::Hub::new(prepared.hub).run());
 

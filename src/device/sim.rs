@@ -5,9 +5,9 @@
 use super::codec::{decode_command, encode_state, DacScale, StatePacket};
 use super::DeviceConfig;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use crate::clock;
 use crate::config_check::{self as check, ConfigError};
 use crate::omni::{Dynamics, Geometry, Joint3, ModelParams};
-use crate::servo::clock;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;

@@ -4,12 +4,11 @@
 //! fill) arrives pre-allocated in a `Box` and goes back the same way, so the loop never
 //! allocates or frees.
 
-use super::safety::SafetyTrip;
 use super::timing::TickTiming;
 use crate::control::{ControllerKind, Trajectory};
 use crate::ident::{Fault, Identifier};
+use crate::servo::summary::RunStats;
 use crate::telemetry::record::Mode;
-use crate::telemetry::summary::RunStats;
 use std::os::fd::{AsRawFd, OwnedFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -118,16 +117,7 @@ impl Snapshot {
     }
 }
 
-/// Something every client is told about, carried by the tick it happened at.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ServoEvent {
-    /// No stream command arrived within its time to live; the loop fell back to `fallback`.
-    StreamStale { fallback: Mode },
-    /// The stream's owner left; the loop fell back to `fallback`.
-    StreamEnded { fallback: Mode },
-    /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
-    SafetyTrip(SafetyTrip),
-}
+pub use crate::telemetry::record::ServoEvent;
 
 /// Wakes the thread that serves clients when a tick's record is wanted at once: one
 /// non-blocking `write` to an eventfd (no lock, no allocation), so a client can answer within

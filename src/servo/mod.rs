@@ -2,13 +2,14 @@
 //! per packet. Everything it touches is allocated before the first tick; telemetry leaves
 //! through a bounded channel with `try_send`.
 
-pub mod clock;
 pub mod command;
 pub mod realtime;
 pub mod safety;
+pub mod summary;
 pub mod thermal_store;
 pub mod timing;
 
+use crate::clock;
 use crate::control::ReferenceConfig;
 use crate::control::{ControlInput, ControllerSet, RefPoint, Reference};
 use crate::device::DeviceConfig;
@@ -21,8 +22,8 @@ use crate::estimate::KalmanBank;
 use crate::ident::Identifier;
 use crate::ident::IdentifierConfig;
 use crate::omni::Joint3;
+use crate::servo::summary::{FaultEntry, RunStats};
 use crate::telemetry::record::{flags, Live, Mode, TickRecord};
-use crate::telemetry::summary::{FaultEntry, RunStats};
 pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
 use crossbeam_channel::{Sender, TrySendError};
 use safety::SafetyConfig;

@@ -117,7 +117,7 @@ pub struct Live {
     /// Sequence number of the last stream command (`servo_jp`/`servo_jf`) applied.
     pub cmd_seq: u64,
     /// Something happened this tick that every client is told about.
-    pub event: Option<crate::servo::ServoEvent>,
+    pub event: Option<ServoEvent>,
 }
 
 /// Which optional column groups a log carries.
@@ -142,5 +142,54 @@ impl LogSchema {
         c.extend((1..=3).map(|j| format!("enc{j}")));
         c.extend(["amps", "mode", "flags"].map(String::from));
         c
+    }
+}
+// What a tick can carry besides its numbers: the events the servo loop reports (in the log's
+// `fault` column and to `omnid serve`'s clients).
+
+/// Something every client is told about, carried by the tick it happened at.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ServoEvent {
+    /// No stream command arrived within its time to live; the loop fell back to `fallback`.
+    StreamStale { fallback: Mode },
+    /// The stream's owner left; the loop fell back to `fallback`.
+    StreamEnded { fallback: Mode },
+    /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
+    SafetyTrip(SafetyTrip),
+}
+
+/// Why the safety layer stops a run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SafetyTrip {
+    /// The controller's output was NaN or infinite on this joint.
+    NonFinite { joint: usize },
+    /// A joint moved faster than its limit (by the estimate).
+    Velocity { joint: usize, speed: f64 },
+    /// A joint moved faster than its limit by its encoders (over the last few ticks, beyond
+    /// the quantisation margin), whatever the estimate says.
+    MeasuredVelocity { joint: usize, speed: f64 },
+}
+
+impl std::fmt::Display for SafetyTrip {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SafetyTrip::NonFinite { joint } => {
+                write!(f, "controller output on joint {} is not finite", joint + 1)
+            }
+            SafetyTrip::Velocity { joint, speed } => {
+                write!(
+                    f,
+                    "joint {} speed {speed:.2} rad/s exceeds the limit",
+                    joint + 1
+                )
+            }
+            SafetyTrip::MeasuredVelocity { joint, speed } => {
+                write!(
+                    f,
+                    "joint {} moved at {speed:.2} rad/s by its encoders, beyond the limit",
+                    joint + 1
+                )
+            }
+        }
     }
 }

@@ -968,7 +968,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     fn tap_sent(&mut self, wire: &[u8; COMMAND_LEN]) {
         if let Some(tap) = self.tap.as_mut() {
             tap.push(Tapped {
-                host_ns: crate::servo::clock::now_ns(),
+                host_ns: crate::clock::now_ns(),
                 received: None,
                 bytes: wire.to_vec(),
             });
@@ -979,7 +979,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
         if let Some(tap) = self.tap.as_mut() {
             let n = info.len.min(ISO_PAYLOAD_MAX);
             tap.push(Tapped {
-                host_ns: crate::servo::clock::now_ns(),
+                host_ns: crate::clock::now_ns(),
                 received: Some(info),
                 bytes: self.buf[..n].to_vec(),
             });

@@ -1,7 +1,7 @@
 //! The run summary (docs/DESIGN.md §2.3): accumulated in the loop without allocation (`RunStats`),
 //! turned into JSON and a human printout at the end.
 
-use crate::servo::timing::{Percentiles, TickTiming};
+use super::timing::{Percentiles, TickTiming};
 use serde::{Deserialize, Serialize};
 
 /// Running sums for the summary, updated every tick.
