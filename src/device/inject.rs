@@ -6,7 +6,7 @@
 //! with T in seconds of device time, MS in milliseconds, P a probability per packet.
 
 use super::codec::STATE_LAYOUT;
-use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use super::{Device, DeviceError, MissReason, RawSample, COMMAND_LEN};
 use crate::config_check::{self as check, ConfigError};
 use crate::omni::Dynamics;
 use rand::{Rng, SeedableRng};
@@ -210,7 +210,7 @@ impl Device for FaultyDevice {
         }
         if let Some(until) = self.stalled_until {
             if t < until {
-                return Err(DeviceError::Missed("injected stall".into()));
+                return Err(DeviceError::Missed(MissReason::InjectedStall));
             }
         }
         Ok(sample)
