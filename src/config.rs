@@ -246,6 +246,7 @@ pub struct Config {
     pub firewire: FirewireConfig,
     pub inject: InjectConfig,
     pub serve: crate::serve::ServeConfig,
+    pub haptics: crate::haptics::HapticsConfig,
 }
 
 /// The Kalman filter must follow a sinusoidal motion of this frequency (a fast hand motion)...
@@ -790,6 +791,7 @@ impl Config {
         self.serve.validate()?;
         self.usb.validate()?;
         self.firewire.validate()?;
+        self.haptics.validate()?;
 
         let faults = self.inject.parsed()?;
         if faults.len() > crate::device::inject::MAX_FAULTS {
@@ -850,6 +852,7 @@ fn doc_for(key: &str) -> Option<&'static str> {
         crate::ident::IDENTIFIER_FIELD_DOCS,
         crate::device::usb::USB_FIELD_DOCS,
         crate::device::firewire::FIREWIRE_FIELD_DOCS,
+        crate::haptics::config::HAPTICS_FIELD_DOCS,
     ]
     .into_iter()
     .flatten()

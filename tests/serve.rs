@@ -728,3 +728,57 @@ fn free_mode_compensates_and_servo_jf_adds_torque() {
         last.q[0] - start.q[0]
     );
 }
+
+#[test]
+fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
+    let d = Daemon::start(&["--controller", "ct"]);
+    let mut c = d.client("forces");
+    assert!(c.hello().modes.iter().any(|m| m == "servo_cf"));
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let pose = [0.0, 0.6, 0.3];
+    feed_servo_jp(&mut c, 1500, pose);
+    // A force towards +x (the user's right) on top of the compensation: the tip moves that
+    // way, far more than across it.
+    let start = c.next_state(5000).unwrap();
+    let mut last = start.clone();
+    for _ in 0..200 {
+        last = c.next_state(5000).unwrap();
+        c.send(&json!({"op": "servo_cf", "seq": last.seq, "force": [0.2, 0.0, 0.0], "ttl_ms": 20}))
+            .unwrap();
+    }
+    assert_eq!(last.mode, "servo_cf");
+    assert!(last.cmd_seq > start.seq, "{} {}", last.cmd_seq, start.seq);
+    let moved = [0, 1, 2].map(|k| last.tip_mm[k] - start.tip_mm[k]);
+    eprintln!("servo_cf +x: tip moved {moved:?} mm");
+    assert!(moved[0] > 5.0, "tip moved {moved:?} mm");
+    assert!(
+        moved[0] > 3.0 * moved[1].abs().max(moved[2].abs()),
+        "tip moved {moved:?} mm"
+    );
+    // A value that is not a finite number never reaches the servo: refused, saying why.
+    c.send_raw(br#"{"op":"servo_cf","seq":1,"force":[1e999,0,0]}"#)
+        .unwrap();
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        match c.recv(5000).unwrap() {
+            Message::Other(v) if v["type"] == "error" => {
+                let m = v["message"].as_str().unwrap();
+                assert!(m.contains("number out of range"), "{v}");
+                break;
+            }
+            _ => assert!(Instant::now() < until, "no refusal"),
+        }
+    }
+    let e = refused(
+        c.request(json!({"op": "servo_cf", "seq": 2, "force": [0.0, 0.0, 0.0], "ttl_ms": 0})),
+    );
+    assert!(e.contains("ttl_ms"), "{e}");
+    // Stop feeding: the stale fallback (hold) within the time to live, as for servo_jf.
+    let seen = states_until(&mut c, 200, |s| s.mode != "servo_cf");
+    let (gap, first) = fallback_gap(&seen, "servo_cf");
+    assert_eq!(first.mode, "hold");
+    assert!(
+        gap <= 0.020 + 0.0015,
+        "fell back {gap} s after the last command"
+    );
+}

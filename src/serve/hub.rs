@@ -484,9 +484,11 @@ impl Hub {
                         client: c.id,
                         stream_ttl_ms: self.s.serve.stream_ttl_ms,
                         controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
-                        modes: ["idle", "hold", "track", "free", "servo_jp", "servo_jf"]
-                            .map(String::from)
-                            .into(),
+                        modes: [
+                            "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
+                        ]
+                        .map(String::from)
+                        .into(),
                     };
                     let mut v = serde_json::to_value(hello).unwrap_or_default();
                     v["type"] = json!("hello");
@@ -583,6 +585,14 @@ impl Hub {
             } => {
                 if let Some(ttl_s) = self.stream_check(i, id, op, &tau, ttl_ms) {
                     self.send_servo(i, id, op, ServoCommand::ServoJf { seq, tau, ttl_s }, None);
+                }
+            }
+            Request::ServoCf {
+                seq, force, ttl_ms, ..
+            } => {
+                if let Some(ttl_s) = self.stream_check(i, id, op, &force, ttl_ms) {
+                    let cmd = ServoCommand::ServoCf { seq, force, ttl_s };
+                    self.send_servo(i, id, op, cmd, None);
                 }
             }
             Request::Controller { controller, .. } => match ControllerKind::parse(&controller) {
@@ -714,7 +724,7 @@ impl Hub {
                 };
                 ServoCommand::Track(t)
             }
-            "servo_jp" | "servo_jf" => {
+            "servo_jp" | "servo_jf" | "servo_cf" => {
                 return self.fail(
                     i,
                     id,
@@ -1043,7 +1053,7 @@ impl Hub {
             ServoEvent::StreamStale { fallback } => (
                 "stream-stale",
                 format!(
-                    "no servo_jp/servo_jf command within its time to live (default {ttl} ms): \
+                    "no servo_jp/servo_jf/servo_cf command within its time to live (default {ttl} ms): \
                      now {}",
                     fallback.as_str()
                 ),

@@ -29,12 +29,18 @@ pub enum Activity {
     ServoJp,
     /// A client's joint torques on top of the compensation (stream with a time to live).
     ServoJf,
+    /// A client's tip force (N, OpenHaptics frame) on top of the compensation, as τ = Jᵀ F
+    /// (stream with a time to live).
+    ServoCf,
 }
 
 impl Activity {
     /// Modes that a client must keep feeding.
     pub fn is_stream(self) -> bool {
-        matches!(self, Activity::ServoJp | Activity::ServoJf)
+        matches!(
+            self,
+            Activity::ServoJp | Activity::ServoJf | Activity::ServoCf
+        )
     }
 
     pub fn mode(self) -> Mode {
@@ -45,6 +51,7 @@ impl Activity {
             Activity::Free => Mode::Free,
             Activity::ServoJp => Mode::ServoJp,
             Activity::ServoJf => Mode::ServoJf,
+            Activity::ServoCf => Mode::ServoCf,
         }
     }
 }
@@ -65,6 +72,13 @@ pub enum ServoCommand {
     ServoJf {
         seq: u64,
         tau: [f64; 3],
+        ttl_s: f64,
+    },
+    /// Tip force (N, OpenHaptics frame) added to the compensation as Jᵀ F, valid for
+    /// `ttl_s`; its norm is clamped to `[haptics] max_force_n` in the servo.
+    ServoCf {
+        seq: u64,
+        force: [f64; 3],
         ttl_s: f64,
     },
     /// The stream's owner is gone: leave a stream mode now.

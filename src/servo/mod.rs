@@ -16,8 +16,9 @@ use crate::device::{
     COMMAND_LEN,
 };
 use crate::estimate::KalmanBank;
+use crate::haptics::{limit_force, tip_force_torque, Force3};
 use crate::ident::Identifier;
-use crate::omni::Joint3;
+use crate::omni::{Geometry, Joint3};
 use crate::telemetry::record::{flags, Live, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, RunStats};
 pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
@@ -108,8 +109,12 @@ pub struct Servo {
     wall_upper: [f64; 3],
     /// `omnid serve`: commands in, replies and wake-ups out.
     link: Option<ServoLink>,
-    /// The client stream's torque (servo_jf), its last sequence number and its deadline.
+    /// The client stream's torque (servo_jf) or tip force (servo_cf, clamped to
+    /// `max_force_n`), its last sequence number and its deadline.
     stream_tau: crate::omni::Joint3,
+    stream_force: Force3,
+    max_force_n: f64,
+    geometry: Geometry,
     cmd_seq: u64,
     stream_deadline: f64,
     event: Option<ServoEvent>,
@@ -175,6 +180,9 @@ impl Servo {
             wall_upper: cfg.safety.wall_upper,
             link: None,
             stream_tau: Joint3::zeros(),
+            stream_force: Force3::zeros(),
+            max_force_n: cfg.haptics.max_force_n,
+            geometry: cfg.geometry,
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
@@ -299,7 +307,7 @@ impl Servo {
 
         // Control, with the weights as they are; the update below then learns from this
         // sample at the same point (one network pass serves both).
-        let (reference, tau_cmd) = self.control(t, &est);
+        let (reference, tau_cmd) = self.control(t, &q, &est);
 
         // Identify: learn from the torque that acted up to this sample.
         let dt = if self.tick == 0 { 0.0 } else { t - self.last_t };
@@ -463,8 +471,14 @@ impl Servo {
         }
     }
 
-    /// The reference and the controller's torque for this tick, by activity.
-    fn control(&mut self, t: f64, est: &crate::estimate::kalman::Estimate) -> (RefPoint, Joint3) {
+    /// The reference and the controller's torque for this tick, by activity (`q`: the
+    /// measured pose, where a tip force is mapped to joint torque).
+    fn control(
+        &mut self,
+        t: f64,
+        q: &Joint3,
+        est: &crate::estimate::kalman::Estimate,
+    ) -> (RefPoint, Joint3) {
         let here = RefPoint {
             q: est.q,
             ..RefPoint::default()
@@ -488,6 +502,11 @@ impl Servo {
             Activity::ServoJf => (
                 here,
                 self.controllers.compensation(t, est, id) + self.stream_tau,
+            ),
+            Activity::ServoCf => (
+                here,
+                self.controllers.compensation(t, est, id)
+                    + tip_force_torque(&self.geometry, q, &self.stream_force),
             ),
         }
     }
@@ -549,6 +568,14 @@ impl Servo {
                         self.stream_deadline = t + ttl_s;
                     }
                 }
+                ServoCommand::ServoCf { seq, force, ttl_s } => {
+                    if force.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
+                        self.enter(Activity::ServoCf, q);
+                        self.stream_force = limit_force(&force.into(), self.max_force_n);
+                        self.cmd_seq = seq;
+                        self.stream_deadline = t + ttl_s;
+                    }
+                }
                 ServoCommand::StreamEnded => {
                     if self.activity.is_stream() {
                         let fallback = self.stream_fallback(q);
@@ -582,6 +609,7 @@ impl Servo {
             .as_ref()
             .map_or(Activity::Hold, |l| l.stale_fallback);
         self.stream_tau = Joint3::zeros();
+        self.stream_force = Force3::zeros();
         self.enter(to, q);
         to.mode()
     }
@@ -797,6 +825,144 @@ mod tests {
     fn unpaced_runs_wait_for_the_writer_instead_of_dropping() {
         // 200 ticks and the stop row through a channel of 16 that fills before anyone reads.
         assert_eq!(run_with_slow_writer(false, 200), (0, 201));
+    }
+
+    /// A servo on the simulator with `Off` (no compensation, so the commanded torque is the
+    /// stream's alone), attached to a link; its record channel and the command sender.
+    fn linked_servo() -> (
+        Servo,
+        crossbeam_channel::Receiver<TickRecord>,
+        crossbeam_channel::Sender<ServoCommand>,
+    ) {
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(SimOmni::new(&cfg, false)),
+            ControllerSet::new(&cfg, ControllerKind::Off, 0.0),
+            Reference::new(Trajectory::Hold, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        let (ctx, crx) = crossbeam_channel::bounded(8);
+        let (rtx, _rrx) = crossbeam_channel::bounded(8);
+        servo.attach(ServoLink {
+            commands: crx,
+            replies: rtx,
+            wake: Arc::new(Wake::new().unwrap()),
+            stale_fallback: Activity::Hold,
+        });
+        (servo, rx, ctx)
+    }
+
+    fn next(servo: &mut Servo, rx: &crossbeam_channel::Receiver<TickRecord>) -> TickRecord {
+        assert!(servo.tick().is_none());
+        rx.try_recv().unwrap()
+    }
+
+    /// τ = Jᵀ F with J by central differences of the forward kinematics (metres per rad).
+    fn jt_f_by_differences(q: &[f64; 3], f: &[f64; 3]) -> [f64; 3] {
+        let g = Geometry::default();
+        let f = Force3::from(*f);
+        std::array::from_fn(|j| {
+            let (mut qp, mut qm) = (Joint3::from(*q), Joint3::from(*q));
+            qp[j] += 1e-6;
+            qm[j] -= 1e-6;
+            let dp = (crate::omni::tip_position_mm(&g, &qp)
+                - crate::omni::tip_position_mm(&g, &qm))
+                * (1e-3 / 2e-6);
+            f.dot(&dp)
+        })
+    }
+
+    #[test]
+    fn servo_cf_maps_the_tip_force_through_jt_and_clamps_its_norm() {
+        let (mut servo, rx, cmd) = linked_servo();
+        next(&mut servo, &rx);
+        // Not finite: never passed on (the hub refuses it first; the servo ignores it too).
+        cmd.send(ServoCommand::ServoCf {
+            seq: 1,
+            force: [f64::NAN, 0.0, 0.0],
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        assert_eq!(
+            (r.mode, r.live.cmd_seq, r.tau_cmd),
+            (Mode::Idle, 0, [0.0; 3])
+        );
+        // Within the peak: τ = Jᵀ F at the measured pose.
+        let f = [0.4, -0.9, 0.3];
+        cmd.send(ServoCommand::ServoCf {
+            seq: 2,
+            force: f,
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        assert_eq!((r.mode, r.live.cmd_seq), (Mode::ServoCf, 2));
+        let want = jt_f_by_differences(&r.q, &f);
+        for j in 0..3 {
+            assert!(
+                (r.tau_cmd[j] - want[j]).abs() < 1e-8,
+                "{:?} {want:?}",
+                r.tau_cmd
+            );
+        }
+        // Huge: the same direction at the configured peak, 3.3 N.
+        let huge = [0.0, -1e300, 0.0];
+        cmd.send(ServoCommand::ServoCf {
+            seq: 3,
+            force: huge,
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        let want = jt_f_by_differences(&r.q, &[0.0, -3.3, 0.0]);
+        for j in 0..3 {
+            assert!(
+                (r.tau_cmd[j] - want[j]).abs() < 1e-8,
+                "{:?} {want:?}",
+                r.tau_cmd
+            );
+        }
+    }
+
+    #[test]
+    fn a_stale_servo_cf_falls_back_and_never_holds_the_force() {
+        let (mut servo, rx, cmd) = linked_servo();
+        next(&mut servo, &rx);
+        cmd.send(ServoCommand::ServoCf {
+            seq: 9,
+            force: [0.5, 0.0, 0.0],
+            ttl_s: 0.005,
+        })
+        .unwrap();
+        let first = next(&mut servo, &rx);
+        assert_eq!(first.mode, Mode::ServoCf);
+        let mut seen = Vec::new();
+        for _ in 0..10 {
+            seen.push(next(&mut servo, &rx));
+        }
+        // Applied at t0: in effect up to t0 + 5 ms, the hold fallback the tick after.
+        let k = seen.iter().position(|r| r.mode != Mode::ServoCf).unwrap();
+        assert!(
+            seen[k].t - first.t <= 0.006 + 1e-9,
+            "{}",
+            seen[k].t - first.t
+        );
+        assert_eq!(seen[k].mode, Mode::Hold);
+        assert_eq!(
+            seen[k].live.event,
+            Some(ServoEvent::StreamStale {
+                fallback: Mode::Hold
+            })
+        );
+        // Off holds with nothing: the force is gone, not held.
+        assert!(seen[k..].iter().all(|r| r.tau_cmd == [0.0; 3]));
     }
 
     #[test]

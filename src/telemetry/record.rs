@@ -20,10 +20,12 @@ pub enum Mode {
     ServoJp,
     /// A client's joint torque stream on top of the compensation.
     ServoJf,
+    /// A client's tip force stream (Jᵀ F) on top of the compensation.
+    ServoCf,
 }
 
 impl Mode {
-    pub const ALL: [Mode; 8] = [
+    pub const ALL: [Mode; 9] = [
         Mode::Blend,
         Mode::Track,
         Mode::Stop,
@@ -32,6 +34,7 @@ impl Mode {
         Mode::Free,
         Mode::ServoJp,
         Mode::ServoJf,
+        Mode::ServoCf,
     ];
 
     pub fn as_str(self) -> &'static str {
@@ -44,6 +47,7 @@ impl Mode {
             Mode::Free => "free",
             Mode::ServoJp => "servo_jp",
             Mode::ServoJf => "servo_jf",
+            Mode::ServoCf => "servo_cf",
         }
     }
 
@@ -114,7 +118,7 @@ pub struct Live {
     pub inkwell: bool,
     /// The controller whose law is in effect (the new one during a bumpless switch).
     pub controller: Option<crate::control::ControllerKind>,
-    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`) applied.
+    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`/`servo_cf`) applied.
     pub cmd_seq: u64,
     /// Something happened this tick that every client is told about.
     pub event: Option<crate::servo::ServoEvent>,
