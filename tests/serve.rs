@@ -743,13 +743,14 @@ fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
     let mut last = start.clone();
     for _ in 0..200 {
         last = c.next_state(5000).unwrap();
-        c.send(&json!({"op": "servo_cf", "seq": last.seq, "force": [0.2, 0.0, 0.0], "ttl_ms": 20}))
-            .unwrap();
+        c.send(
+            &json!({"op": "servo_cf", "seq": last.seq, "force": [0.2, 0.0, 0.0], "ttl_ms": 100}),
+        )
+        .unwrap();
     }
     assert_eq!(last.mode, "servo_cf");
     assert!(last.cmd_seq > start.seq, "{} {}", last.cmd_seq, start.seq);
     let moved = [0, 1, 2].map(|k| last.tip_mm[k] - start.tip_mm[k]);
-    eprintln!("servo_cf +x: tip moved {moved:?} mm");
     assert!(moved[0] > 5.0, "tip moved {moved:?} mm");
     assert!(
         moved[0] > 3.0 * moved[1].abs().max(moved[2].abs()),
@@ -773,12 +774,13 @@ fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
         c.request(json!({"op": "servo_cf", "seq": 2, "force": [0.0, 0.0, 0.0], "ttl_ms": 0})),
     );
     assert!(e.contains("ttl_ms"), "{e}");
-    // Stop feeding: the stale fallback (hold) within the time to live, as for servo_jf.
-    let seen = states_until(&mut c, 200, |s| s.mode != "servo_cf");
+    // Stop feeding: the stale fallback (hold) within the time to live (100 ms here, so that a
+    // busy machine cannot starve the stream above), as for servo_jf.
+    let seen = states_until(&mut c, 400, |s| s.mode != "servo_cf");
     let (gap, first) = fallback_gap(&seen, "servo_cf");
     assert_eq!(first.mode, "hold");
     assert!(
-        gap <= 0.020 + 0.0015,
+        gap <= 0.100 + 0.0015,
         "fell back {gap} s after the last command"
     );
 }
