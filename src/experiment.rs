@@ -35,6 +35,8 @@ pub enum Experiment {
     Validation,
     Alpha,
     Payload,
+    /// Haptics: transparency, walls, force accuracy (`crate::haptics::experiment`).
+    Haptics,
 }
 
 impl FromStr for Experiment {
@@ -44,8 +46,9 @@ impl FromStr for Experiment {
             "validation" => Ok(Experiment::Validation),
             "alpha" => Ok(Experiment::Alpha),
             "payload" => Ok(Experiment::Payload),
+            "haptics" => Ok(Experiment::Haptics),
             _ => Err(format!(
-                "unknown experiment `{s}`: expected validation, alpha or payload"
+                "unknown experiment `{s}`: expected validation, alpha, payload or haptics"
             )),
         }
     }
@@ -57,6 +60,7 @@ impl Experiment {
             Experiment::Validation => "validation",
             Experiment::Alpha => "alpha",
             Experiment::Payload => "payload",
+            Experiment::Haptics => "haptics",
         }
     }
 }
@@ -133,6 +137,8 @@ pub fn run_experiment(
         Experiment::Validation => validation(out, quick, &mut figures)?,
         Experiment::Alpha => alpha(out, quick, &mut figures)?,
         Experiment::Payload => payload(out, quick, &mut figures)?,
+        // Writes its own report and results.json.
+        Experiment::Haptics => return crate::haptics::experiment::run_haptics(out, quick),
     };
     let report = out.join("report.md");
     crate::output::write_bytes(&report, markdown.as_bytes())?;
@@ -178,6 +184,8 @@ fn check_outputs(experiment: Experiment, out: &Path, quick: bool) -> Result<(), 
                 run_dir(out.join(name));
             }
         }
+        // Checks its own outputs.
+        Experiment::Haptics => {}
     }
     for dir in &dirs {
         crate::output::check_dir(dir)?;
@@ -222,6 +230,7 @@ fn sim_run(
         inject: Vec::new(),
         weights,
         no_adapt,
+        haptics: Default::default(),
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).map_err(|source| {
         ExperimentError::Run {

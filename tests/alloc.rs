@@ -148,6 +148,7 @@ fn replay_allocates_nothing_per_tick() {
         inject: Vec::new(),
         weights: None,
         no_adapt: false,
+        haptics: Default::default(),
     };
     let mut sim_cfg = cfg.clone();
     sim_cfg.safety.persist_heat = false;

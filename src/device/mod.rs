@@ -101,4 +101,10 @@ pub trait Device: Send {
     fn plant_model(&self) -> Option<&crate::omni::Dynamics> {
         None
     }
+
+    /// The force the simulated hand puts on the stylus tip, N (OpenHaptics frame): the
+    /// simulator only (docs/HAPTICS.md §5).
+    fn hand_force(&self) -> Option<[f64; 3]> {
+        None
+    }
 }

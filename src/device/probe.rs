@@ -1117,6 +1117,7 @@ mod tests {
             inject: Vec::new(),
             weights: None,
             no_adapt: false,
+            haptics: Default::default(),
         };
         let outcome = crate::run::execute(
             &run,

@@ -1,5 +1,6 @@
 //! `[haptics]`: the limits on forces rendered at the stylus tip (docs/HAPTICS.md).
 
+use super::hand::{HandConfig, HandPattern};
 use crate::config::ConfigError;
 use serde::{Deserialize, Serialize};
 
@@ -9,11 +10,28 @@ pub struct HapticsConfig {
     /// Largest tip force the servo passes on, N (the norm of a commanded force is clamped to
     /// it; the vendor's peak figure by default).
     pub max_force_n: f64,
+    /// A change of an effect's parameters fades in over this time, s (no force step).
+    pub fade_s: f64,
+    /// The passivity controller acts on the effects (docs/HAPTICS.md §6).
+    pub passivity: bool,
+    /// Largest damping the passivity controller adds, N·s/m.
+    pub passivity_max_damping_n_s_per_m: f64,
+    /// Most energy the passivity observer keeps in hand, J.
+    pub passivity_reserve_j: f64,
+    /// The simulated hand (simulator only).
+    pub hand: HandConfig,
 }
 
 impl Default for HapticsConfig {
     fn default() -> Self {
-        HapticsConfig { max_force_n: 3.3 }
+        HapticsConfig {
+            max_force_n: 3.3,
+            fade_s: 0.1,
+            passivity: true,
+            passivity_max_damping_n_s_per_m: 20.0,
+            passivity_reserve_j: 1e-3,
+            hand: HandConfig::default(),
+        }
     }
 }
 
@@ -26,6 +44,19 @@ pub const HAPTICS_FIELD_DOCS: &[(&str, &str)] = &[
         "haptics.max_force_n",
         "largest tip force passed on, N (a commanded force's norm is clamped to it; vendor peak 3.3 N)",
     ),
+    ("haptics.fade_s", "an effect's parameter change fades in over this time, s (no force step)"),
+    ("haptics.passivity", "passivity observer and controller on the effects (Hannaford & Ryu)"),
+    ("haptics.passivity_max_damping_n_s_per_m", "largest damping the passivity controller adds, N·s/m"),
+    ("haptics.passivity_reserve_j", "most energy the passivity observer keeps in hand, J"),
+    ("haptics.hand", "The simulated hand on the stylus (simulator only; `omnid run --hand`)."),
+    ("haptics.hand.pattern", "none, hold, path (3-D path at speed_m_s), push+x .. push-z (push a wall with push_force_n)"),
+    ("haptics.hand.stiffness_n_per_m", "grip stiffness between hand and tip, N/m (a grip: 200–1000)"),
+    ("haptics.hand.damping_n_s_per_m", "grip damping, N·s/m (a grip: 2–10)"),
+    ("haptics.hand.speed_m_s", "hand speed along the path and towards a wall, m/s"),
+    ("haptics.hand.push_force_n", "force a pushing hand settles at, N"),
+    ("haptics.hand.release_s", "the hand lets go at this time, s (0: never)"),
+    ("haptics.hand.approach_s", "time from the grasp to the workspace centre, s"),
+    ("haptics.hand.path_radius_m", "half-width of the path along x, m"),
 ];
 
 fn finite_in(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
@@ -48,6 +79,72 @@ impl HapticsConfig {
             0.0,
             20.0,
             "0 ..= 20 N",
+        )?;
+        finite_in("haptics.fade_s", self.fade_s, 0.0, 10.0, "0 ..= 10 s")?;
+        finite_in(
+            "haptics.passivity_max_damping_n_s_per_m",
+            self.passivity_max_damping_n_s_per_m,
+            0.0,
+            1000.0,
+            "0 ..= 1000 N·s/m",
+        )?;
+        finite_in(
+            "haptics.passivity_reserve_j",
+            self.passivity_reserve_j,
+            0.0,
+            1.0,
+            "0 ..= 1 J",
+        )?;
+        let h = &self.hand;
+        let _: HandPattern = h.pattern;
+        finite_in(
+            "haptics.hand.stiffness_n_per_m",
+            h.stiffness_n_per_m,
+            1.0,
+            1e5,
+            "1 ..= 1e5 N/m",
+        )?;
+        finite_in(
+            "haptics.hand.damping_n_s_per_m",
+            h.damping_n_s_per_m,
+            0.0,
+            1e3,
+            "0 ..= 1000 N·s/m",
+        )?;
+        finite_in(
+            "haptics.hand.speed_m_s",
+            h.speed_m_s,
+            0.001,
+            1.0,
+            "0.001 ..= 1 m/s",
+        )?;
+        finite_in(
+            "haptics.hand.push_force_n",
+            h.push_force_n,
+            0.0,
+            10.0,
+            "0 ..= 10 N",
+        )?;
+        finite_in(
+            "haptics.hand.release_s",
+            h.release_s,
+            0.0,
+            1e6,
+            "0 ..= 1e6 s",
+        )?;
+        finite_in(
+            "haptics.hand.approach_s",
+            h.approach_s,
+            0.0,
+            60.0,
+            "0 ..= 60 s",
+        )?;
+        finite_in(
+            "haptics.hand.path_radius_m",
+            h.path_radius_m,
+            0.001,
+            0.1,
+            "0.001 ..= 0.1 m",
         )
     }
 }
@@ -60,8 +157,34 @@ mod tests {
     fn defaults_are_valid_and_bad_values_name_the_field() {
         HapticsConfig::default().validate().unwrap();
         for bad in [-1.0, f64::NAN, 100.0] {
-            let e = HapticsConfig { max_force_n: bad }.validate().unwrap_err();
+            let e = HapticsConfig {
+                max_force_n: bad,
+                ..Default::default()
+            }
+            .validate()
+            .unwrap_err();
             assert!(e.to_string().contains("haptics.max_force_n"), "{e}");
         }
+        let mut bad = HapticsConfig::default();
+        bad.hand.stiffness_n_per_m = 0.0;
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(e.contains("haptics.hand.stiffness_n_per_m"), "{e}");
+    }
+
+    #[test]
+    fn a_hand_pattern_is_read_by_name_and_a_bad_one_named() {
+        let cfg: HapticsConfig = toml::from_str("[hand]\npattern = \"push-y\"\n").unwrap();
+        assert_eq!(
+            cfg.hand.pattern,
+            HandPattern::Push {
+                axis: 1,
+                sign: -1.0
+            }
+        );
+        let e = toml::from_str::<HapticsConfig>("[hand]\npattern = \"walk\"\n").unwrap_err();
+        assert!(
+            e.to_string().contains("walk") && e.to_string().contains("push+x"),
+            "{e}"
+        );
     }
 }

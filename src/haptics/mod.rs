@@ -4,10 +4,27 @@
 //! layer like every other.
 
 pub mod config;
+pub mod effects;
+pub mod experiment;
+pub mod hand;
+pub mod passivity;
+pub mod render;
+pub mod scene;
 
 pub use config::HapticsConfig;
+pub use effects::{Effect, Scene, MAX_EFFECTS};
+pub use hand::{Hand, HandConfig, HandPattern};
+pub use render::HapticLoop;
 
 use crate::omni::{jacobian, Geometry, Joint3};
+
+/// What `omnid run` renders: free mode instead of tracking, and the scene's effects.
+#[derive(Debug, Clone, Default)]
+pub struct HapticRun {
+    /// Free mode: only the controller's compensation and the effects (no trajectory).
+    pub free: bool,
+    pub effects: Vec<Effect>,
+}
 
 /// A tip force, N, OpenHaptics frame.
 pub type Force3 = nalgebra::Vector3<f64>;

@@ -43,6 +43,14 @@ impl Activity {
         )
     }
 
+    /// Whether the identifier may learn in this mode: only where the torque it sees is all
+    /// that moves the arm. Amplifiers off, the arm rests on something; in the haptic modes
+    /// (free, servo_cf) a hand moves it with a force no sensor measures, and learning from
+    /// that teaches the model the hand (docs/HAPTICS.md §3).
+    pub fn learns(self) -> bool {
+        !matches!(self, Activity::Idle | Activity::Free | Activity::ServoCf)
+    }
+
     pub fn mode(self) -> Mode {
         match self {
             Activity::Idle => Mode::Idle,
@@ -81,6 +89,13 @@ pub enum ServoCommand {
         force: [f64; 3],
         ttl_s: f64,
     },
+    /// Put an effect in a slot of the scene (None removes it), faded in.
+    Effect {
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+    },
+    /// Turn the passivity controller on or off.
+    Passivity(bool),
     /// The stream's owner is gone: leave a stream mode now.
     StreamEnded,
     /// Switch the control law (bumpless).

@@ -16,10 +16,10 @@ use crate::device::{
     COMMAND_LEN,
 };
 use crate::estimate::KalmanBank;
-use crate::haptics::{limit_force, tip_force_torque, Force3};
+use crate::haptics::{limit_force, Effect, Force3, HapticLoop};
 use crate::ident::Identifier;
-use crate::omni::{Geometry, Joint3};
-use crate::telemetry::record::{flags, Live, Mode, TickRecord};
+use crate::omni::Joint3;
+use crate::telemetry::record::{flags, HapticRecord, Live, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, RunStats};
 pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
 use crossbeam_channel::{Sender, TrySendError};
@@ -114,7 +114,8 @@ pub struct Servo {
     stream_tau: crate::omni::Joint3,
     stream_force: Force3,
     max_force_n: f64,
-    geometry: Geometry,
+    /// Forces at the tip: effects, passivity, Jᵀ F (docs/HAPTICS.md).
+    haptics: HapticLoop,
     cmd_seq: u64,
     stream_deadline: f64,
     event: Option<ServoEvent>,
@@ -182,7 +183,7 @@ impl Servo {
             stream_tau: Joint3::zeros(),
             stream_force: Force3::zeros(),
             max_force_n: cfg.haptics.max_force_n,
-            geometry: cfg.geometry,
+            haptics: HapticLoop::new(&cfg.haptics, cfg.geometry),
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
@@ -315,9 +316,10 @@ impl Servo {
         let mut ident_flag = 0;
         if let Some(id) = self.identifier.as_mut() {
             match self.acting_tau {
-                // Amplifiers off: whatever holds the arm (its rest, a hand) is not in the
-                // torque, so there is nothing true to learn from. Predict only.
-                Some(_) if self.activity == Activity::Idle => {
+                // Amplifiers off, or a hand moving the arm (free, servo_cf): whatever holds or
+                // moves it is not in the torque, so there is nothing true to learn from
+                // (docs/HAPTICS.md §3). Predict only.
+                Some(_) if !self.activity.learns() => {
                     tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
                 }
                 Some(acting) => {
@@ -426,6 +428,7 @@ impl Servo {
             amps: self.command.amps_on,
             mode,
             flags: tick_flags,
+            haptic: self.haptic_record(),
             live: Live {
                 seq: self.tick,
                 buttons: packet.buttons,
@@ -445,6 +448,27 @@ impl Servo {
         self.timing.record(wake, clock::now_ns(), t_dev, self.paced);
         self.tick += 1;
         None
+    }
+
+    /// This tick's haptic columns: the tip, the force commanded there, the simulated hand's.
+    fn haptic_record(&self) -> HapticRecord {
+        HapticRecord {
+            tip_mm: self.haptics.tip_mm,
+            force: self.haptics.force,
+            hand: self.device.hand_force().unwrap_or([f64::NAN; 3]),
+        }
+    }
+
+    /// Run in free mode (the compensation and the scene's effects) instead of tracking.
+    pub fn start_free(&mut self) {
+        self.activity = Activity::Free;
+    }
+
+    /// Put `effects` in the scene's first slots (they fade in from the first tick).
+    pub fn set_effects(&mut self, effects: &[Effect]) {
+        for (slot, e) in effects.iter().enumerate() {
+            self.haptics.set_effect(slot, Some(*e), 0.0);
+        }
     }
 
     /// Hand a row to the writer. Paced: never wait (a full channel drops the row and counts
@@ -493,20 +517,25 @@ impl Servo {
             reference: &reference,
         };
         let id = self.identifier.as_mut();
+        let dt = 1e-9 * self.period_ns as f64;
+        if !matches!(self.activity, Activity::Free | Activity::ServoCf) {
+            self.haptics.observe(q);
+        }
         match self.activity {
             Activity::Idle => (here, Joint3::zeros()),
             Activity::Track | Activity::Hold | Activity::ServoJp => {
                 (reference, self.controllers.torque(&input, id))
             }
-            Activity::Free => (here, self.controllers.compensation(t, est, id)),
+            // The haptic modes: the compensation plus the tip force (effects and a client's).
+            Activity::Free | Activity::ServoCf => {
+                let force = self
+                    .haptics
+                    .torque(t, dt, q, &est.qd, &self.stream_force, true);
+                (here, self.controllers.compensation(t, est, id) + force)
+            }
             Activity::ServoJf => (
                 here,
                 self.controllers.compensation(t, est, id) + self.stream_tau,
-            ),
-            Activity::ServoCf => (
-                here,
-                self.controllers.compensation(t, est, id)
-                    + tip_force_torque(&self.geometry, q, &self.stream_force),
             ),
         }
     }
@@ -576,6 +605,8 @@ impl Servo {
                         self.stream_deadline = t + ttl_s;
                     }
                 }
+                ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
+                ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
                 ServoCommand::StreamEnded => {
                     if self.activity.is_stream() {
                         let fallback = self.stream_fallback(q);
@@ -725,6 +756,10 @@ impl Servo {
             amps: false,
             mode: Mode::Stop,
             flags: 0,
+            haptic: HapticRecord {
+                force: [0.0; 3],
+                ..self.haptic_record()
+            },
             live: Live {
                 seq: self.tick,
                 controller: Some(self.controllers.active()),
@@ -865,7 +900,7 @@ mod tests {
 
     /// τ = Jᵀ F with J by central differences of the forward kinematics (metres per rad).
     fn jt_f_by_differences(q: &[f64; 3], f: &[f64; 3]) -> [f64; 3] {
-        let g = Geometry::default();
+        let g = crate::omni::Geometry::default();
         let f = Force3::from(*f);
         std::array::from_fn(|j| {
             let (mut qp, mut qm) = (Joint3::from(*q), Joint3::from(*q));

@@ -104,8 +104,22 @@ pub struct TickRecord {
     pub amps: bool,
     pub mode: Mode,
     pub flags: u32,
+    /// The tip and the forces there (docs/HAPTICS.md).
+    pub haptic: HapticRecord,
     /// What the daemon's clients see beyond the log's columns (not written to the log).
     pub live: Live,
+}
+
+/// The log's haptic columns.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct HapticRecord {
+    /// Stylus tip at the measured pose, mm, OpenHaptics frame (`tip1..3`).
+    pub tip_mm: [f64; 3],
+    /// The tip force commanded this tick (effects and a client's `servo_cf`, after the
+    /// passivity controller and the peak clamp), N (`fcmd1..3`).
+    pub force: [f64; 3],
+    /// Simulator: the force the simulated hand put on the tip, N (`fhand1..3`; NaN elsewhere).
+    pub hand: [f64; 3],
 }
 
 /// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
@@ -127,7 +141,7 @@ pub struct Live {
 /// Which optional column groups a log carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogSchema {
-    /// `tau_model1..3` (simulator runs).
+    /// `tau_model1..3` and `fhand1..3` (simulator runs).
     pub model: bool,
 }
 
@@ -142,6 +156,12 @@ impl LogSchema {
         }
         if self.model {
             c.extend((1..=3).map(|j| format!("tau_model{j}")));
+        }
+        for group in ["tip", "fcmd"] {
+            c.extend((1..=3).map(|j| format!("{group}{j}")));
+        }
+        if self.model {
+            c.extend((1..=3).map(|j| format!("fhand{j}")));
         }
         c.extend((1..=3).map(|j| format!("enc{j}")));
         c.extend(["amps", "mode", "flags"].map(String::from));
