@@ -784,3 +784,39 @@ fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
         "fell back {gap} s after the last command"
     );
 }
+
+#[test]
+fn effects_render_in_free_mode_and_bad_ones_are_refused() {
+    let d = Daemon::start(&["--controller", "ct"]);
+    let mut c = d.client("effects");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    feed_servo_jp(&mut c, 1500, [0.0, 0.6, 0.3]);
+    c.request(json!({"op": "free"})).unwrap();
+    let start = states_until(&mut c, 100, |s| s.mode == "free")
+        .pop()
+        .unwrap();
+    // A spring towards a point 30 mm to the right, with some damping: the tip goes there.
+    let mut centre = start.tip_mm;
+    centre[0] += 30.0;
+    let spring = json!({"type": "spring", "center_mm": centre, "stiffness_n_per_mm": 0.03,
+                        "damping_n_s_per_m": 1.0});
+    let r = c
+        .request(json!({"op": "effect", "slot": 2, "effect": spring}))
+        .unwrap();
+    assert_eq!(r["slot"], 2);
+    let seen = states_until(&mut c, 3000, |s| s.tip_mm[0] - start.tip_mm[0] > 20.0);
+    assert!(seen.iter().all(|s| s.mode == "free"));
+    // Removing it: the effect is gone (a reply), the arm stays in free mode.
+    c.request(json!({"op": "effect", "slot": 2, "effect": null}))
+        .unwrap();
+    c.request(json!({"op": "passivity", "on": false})).unwrap();
+    // Refused by name: a slot out of range, a bad parameter, an unknown effect.
+    let e = refused(c.request(json!({"op": "effect", "slot": 8, "effect": null})));
+    assert!(e.contains("slot 8"), "{e}");
+    let bad = json!({"type": "plane", "point_mm": [0, 0, 0], "normal": [0, 0, 0],
+                     "stiffness_n_per_mm": 1.0});
+    let e = refused(c.request(json!({"op": "effect", "slot": 0, "effect": bad})));
+    assert!(e.contains("effect.normal"), "{e}");
+    let e = refused(c.request(json!({"op": "effect", "slot": 0, "effect": {"type": "vortex"}})));
+    assert!(e.contains("vortex"), "{e}");
+}

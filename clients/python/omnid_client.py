@@ -713,6 +713,23 @@ class Client:
         :meth:`servo_jp`."""
         return self._stream_command("servo_cf", "force", force, seq, ttl_ms)
 
+    # ---------------------------------------------------------------- haptic effects
+
+    def effect(self, slot: int, effect: Optional[Dict[str, Any]]) -> Dict[str, Any]:
+        """Put a haptic effect in ``slot`` (0..7) of the scene, or remove it (``None``).
+
+        ``effect`` is a dict with ``type`` (``spring``, ``damper``, ``plane``, ``box``,
+        ``constant``) and its parameters (docs/HAPTICS.md), e.g.
+        ``{"type": "plane", "point_mm": [0, -40, 0], "normal": [0, 1, 0],
+        "stiffness_n_per_mm": 1.0}``. Effects are rendered in ``free`` and ``servo_cf``; a
+        change fades in without a jump. Returns the daemon's reply.
+        """
+        return self.request("effect", slot=int(slot), effect=effect)
+
+    def passivity(self, on: bool = True) -> bool:
+        """Turn the passivity controller on the effects on or off."""
+        return bool(self.request("passivity", on=bool(on))["passivity"])
+
     # ---------------------------------------------------------------- reading
 
     def next_state(self, timeout: Optional[float] = None) -> State:

@@ -483,6 +483,17 @@ class CommandTests(DaemonTestCase):
         self.assertEqual(c.wait_event("stream-stale", timeout=3.0)["mode"], "hold")
         c.hold()
 
+    def test_effects(self):
+        c = self.c
+        r = c.effect(0, {"type": "damper", "damping_n_s_per_m": 1.0})
+        self.assertEqual(r["slot"], 0)
+        self.assertEqual(c.effect(0, None)["slot"], 0)
+        with self.assertRaises(RefusedError) as cm:
+            c.effect(0, {"type": "damper", "damping_n_s_per_m": -1.0})
+        self.assertIn("damping_n_s_per_m", cm.exception.message)
+        self.assertFalse(c.passivity(False))
+        self.assertTrue(c.passivity(True))
+
     def test_lease(self):
         c = self.c
         holder = c.take_lease()

@@ -595,6 +595,30 @@ impl Hub {
                     self.send_servo(i, id, op, cmd, None);
                 }
             }
+            Request::Effect { slot, effect, .. } => {
+                if slot >= crate::haptics::MAX_EFFECTS {
+                    let max = crate::haptics::MAX_EFFECTS - 1;
+                    return self.fail(i, id, op, format!("slot {slot}: allowed 0 ..= {max}"));
+                }
+                if let Some(Err(why)) = effect.map(|e| e.validate("effect.")) {
+                    return self.fail(i, id, op, why);
+                }
+                let reply = json!({ "slot": slot, "effect": effect });
+                self.send_servo(
+                    i,
+                    id,
+                    op,
+                    ServoCommand::Effect { slot, effect },
+                    Some(reply),
+                );
+            }
+            Request::Passivity { on, .. } => self.send_servo(
+                i,
+                id,
+                op,
+                ServoCommand::Passivity(on),
+                Some(json!({ "passivity": on })),
+            ),
             Request::Controller { controller, .. } => match ControllerKind::parse(&controller) {
                 Some(kind) => self.send_servo(
                     i,

@@ -90,6 +90,20 @@ pub enum Request {
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
+    /// Put a haptic effect in a slot of the scene (`effect: null` removes it); rendered in
+    /// free and servo_cf, faded in (docs/HAPTICS.md).
+    Effect {
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Turn the passivity controller on the effects on or off.
+    Passivity {
+        on: bool,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
     /// Switch the control law (bumpless): pd, ct, nnidc, off.
     Controller {
         controller: String,
@@ -146,6 +160,8 @@ impl Request {
             Request::ServoJp { .. } => "servo_jp",
             Request::ServoJf { .. } => "servo_jf",
             Request::ServoCf { .. } => "servo_cf",
+            Request::Effect { .. } => "effect",
+            Request::Passivity { .. } => "passivity",
             Request::Controller { .. } => "controller",
             Request::Adapt { .. } => "adapt",
             Request::WeightsSave { .. } => "weights_save",
@@ -169,6 +185,8 @@ impl Request {
             | Request::ServoJp { id, .. }
             | Request::ServoJf { id, .. }
             | Request::ServoCf { id, .. }
+            | Request::Effect { id, .. }
+            | Request::Passivity { id, .. }
             | Request::Controller { id, .. }
             | Request::Adapt { id, .. }
             | Request::WeightsSave { id, .. }
