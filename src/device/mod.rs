@@ -103,7 +103,7 @@ pub trait Device: Send {
     }
 
     /// The force the simulated hand puts on the stylus tip, N (OpenHaptics frame): the
-    /// simulator only (docs/HAPTICS.md §5).
+    /// simulator only (docs/HAPTICS.md §7).
     fn hand_force(&self) -> Option<[f64; 3]> {
         None
     }

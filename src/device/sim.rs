@@ -32,7 +32,7 @@ pub struct SimOmni {
     last_watchdog: Option<u8>,
     paced: bool,
     start_ns: u64,
-    /// The simulated hand on the stylus (docs/HAPTICS.md §5), and the force it put on the tip
+    /// The simulated hand on the stylus (docs/HAPTICS.md §7), and the force it put on the tip
     /// at the last sample, N.
     hand: Option<Hand>,
     hand_force: Force3,

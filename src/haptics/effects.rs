@@ -1,4 +1,4 @@
-//! Haptic effects rendered in the 1 kHz loop (docs/HAPTICS.md §4): each maps the tip's
+//! Haptic effects rendered in the 1 kHz loop (docs/HAPTICS.md §5): each maps the tip's
 //! position and velocity to a force. Plain `Copy` data in fixed slots, so a scene is set up
 //! before the loop or changed by a command without allocating. A change of an effect's
 //! parameters fades in over `fade_s`, so the force never jumps.

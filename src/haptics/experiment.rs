@@ -1,4 +1,4 @@
-//! `omnid experiment haptics --out DIR` (docs/HAPTICS.md §8): on the simulator with the
+//! `omnid experiment haptics --out DIR` (docs/HAPTICS.md §9): on the simulator with the
 //! simulated hand, (1) transparency: the hand traces a 3-D path at 0.1 m/s in free mode with
 //! no compensation, the lab's parametric model, the learned model, and the plant's exact
 //! model; (2) walls: the hand pushes with 1 N into a wall on each axis, at the vendor's
@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-/// The vendor's nominal stiffness per axis, N/mm (docs/HAPTICS.md §4).
+/// The vendor's nominal stiffness per axis, N/mm (docs/HAPTICS.md §2).
 pub const NOMINAL_STIFFNESS: [f64; 3] = [1.26, 2.31, 1.02];
 /// Stiffer walls tried with the passivity controller, N/mm.
 const SWEEP: [f64; 7] = [3.0, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0];

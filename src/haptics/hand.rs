@@ -1,4 +1,4 @@
-//! A simulated hand on the stylus (docs/HAPTICS.md §5): a spring-damper between the tip and
+//! A simulated hand on the stylus (docs/HAPTICS.md §7): a spring-damper between the tip and
 //! where the hand is, the hand moving along a pattern. The force in that spring acts on the
 //! simulated tip (through Jᵀ) and is what a user would feel, so transparency and walls become
 //! numbers. Plain data, no allocation: it runs inside the simulator's integration.

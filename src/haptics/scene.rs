@@ -1,5 +1,5 @@
 //! Scene files (`omnid run --scene FILE`): the effects in TOML, one `[[effect]]` table each
-//! (docs/HAPTICS.md §7). Read and checked before the run; errors name the line or the field.
+//! (docs/HAPTICS.md §8). Read and checked before the run; errors name the line or the field.
 
 use super::effects::{Effect, MAX_EFFECTS};
 use serde::Deserialize;
