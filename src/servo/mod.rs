@@ -15,6 +15,7 @@ use crate::device::{
     decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
     COMMAND_LEN,
 };
+use crate::estimate::kalman::Estimate;
 use crate::estimate::KalmanBank;
 use crate::haptics::{limit_force, Effect, Force3, HapticLoop};
 use crate::ident::Identifier;
@@ -93,6 +94,29 @@ enum Target {
     Trajectory { reference: Reference, t0: f64 },
     /// A fixed point (hold, the latest `servo_jp` setpoint).
     Point(RefPoint),
+}
+
+/// One sample from the device: measured angles and counts, time since the first sample and
+/// device time, the stylus switches, and when the host woke with it.
+struct Sample {
+    q: Joint3,
+    enc: [i64; 3],
+    t: f64,
+    t_dev: f64,
+    buttons: [bool; 2],
+    inkwell: bool,
+    wake: u64,
+}
+
+/// What one tick computed, for its log row.
+struct Outcome {
+    reference: [f64; 3],
+    tau_cmd: [f64; 3],
+    tau_hat: [f64; 3],
+    tau_model: [f64; 3],
+    /// What the plant got.
+    tau_plant: [f64; 3],
+    flags: u32,
 }
 
 /// The servo loop's state. Build it, then call [`Servo::run`] (or [`Servo::tick`] by hand).
@@ -267,25 +291,67 @@ impl Servo {
         if self.max_ticks.is_some_and(|n| self.tick >= n) {
             return Some(EndReason::Completed);
         }
+        let s = match self.sense() {
+            Ok(s) => s,
+            Err(end) => return end,
+        };
+        // Estimate (the safety layer keeps what the encoders said, too).
+        let est = self.kalman.update(s.t_dev, &s.q);
+        self.safety.observe(s.t, &s.q);
+        // Clients' commands that arrived while the loop waited for this sample.
+        if self.link.is_some() {
+            self.take_commands(s.t, &est.q);
+            self.expire_stream(s.t, &est.q);
+        }
+        // Control, with the weights as they are; the update below then learns from this
+        // sample at the same point (one network pass serves both).
+        let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
+        let (tau_hat, ident_flag) = self.identify(s.t, &est);
+        let tau_model = self.oracle(&est);
+        let limited = match self.limit(&tau_cmd, &est, s.t, s.t_dev) {
+            Ok(l) => l,
+            Err(end) => return Some(end),
+        };
+        let tau_plant = self.actuate(&limited.tau);
+        let flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
+        self.held = false;
+        self.record(
+            &s,
+            &est,
+            Outcome {
+                reference: reference.q.into(),
+                tau_cmd: tau_cmd.into(),
+                tau_hat,
+                tau_model,
+                tau_plant,
+                flags,
+            },
+        );
+        None
+    }
+
+    /// Exchange one packet: send the command, decode the reply into joint angles and device
+    /// time. `Err` when there is no sample this tick (`Some`: the run ends; `None`: a missed
+    /// packet, survived).
+    fn sense(&mut self) -> Result<Sample, Option<EndReason>> {
         self.next_watchdog();
         let bytes = encode_command(&self.command);
         let result = self.device.exchange(&bytes);
         let wake = clock::now_ns();
         let raw = match result {
             Ok(raw) => raw,
-            Err(DeviceError::EndOfData) => return Some(EndReason::EndOfData),
+            Err(DeviceError::EndOfData) => return Err(Some(EndReason::EndOfData)),
             Err(DeviceError::Missed(_)) | Err(DeviceError::Malformed(_)) => {
-                return self.missed_packet();
+                return Err(self.missed_packet());
             }
-            Err(e) => return Some(self.fault_device(e)),
+            Err(e) => return Err(Some(self.fault_device(e))),
         };
         let packet = match decode_state(raw.packet()) {
             Ok(p) => p,
-            Err(_) => return self.missed_packet(),
+            Err(_) => return Err(self.missed_packet()),
         };
         self.consecutive_missed = 0;
         self.link_history <<= 1;
-
         // Decode: continuous counts → joint angles.
         let enc = self.unwrap.update(packet.encoder);
         let q = Joint3::new(
@@ -294,55 +360,58 @@ impl Servo {
             enc[2] as f64 * self.rad_per_count,
         );
         let t_dev = raw.device_time_s;
-        let t = t_dev - *self.t0.get_or_insert(t_dev);
+        Ok(Sample {
+            q,
+            enc,
+            t: t_dev - *self.t0.get_or_insert(t_dev),
+            t_dev,
+            buttons: packet.buttons,
+            inkwell: packet.inkwell,
+            wake,
+        })
+    }
 
-        // Estimate (the safety layer keeps what the encoders said, too).
-        let est = self.kalman.update(t_dev, &q);
-        self.safety.observe(t, &q);
-
-        // Clients' commands that arrived while the loop waited for this sample.
-        if self.link.is_some() {
-            self.take_commands(t, &est.q);
-            self.expire_stream(t, &est.q);
-        }
-
-        // Control, with the weights as they are; the update below then learns from this
-        // sample at the same point (one network pass serves both).
-        let (reference, tau_cmd) = self.control(t, &q, &est);
-
-        // Identify: learn from the torque that acted up to this sample.
+    /// Identify: learn from the torque that acted up to this sample. The prediction, and the
+    /// flag when the identifier has stopped.
+    fn identify(&mut self, t: f64, est: &Estimate) -> ([f64; 3], u32) {
         let dt = if self.tick == 0 { 0.0 } else { t - self.last_t };
         let mut tau_hat = [0.0; 3];
         let mut ident_flag = 0;
-        if let Some(id) = self.identifier.as_mut() {
-            match self.acting_tau {
-                // Amplifiers off, or a hand moving the arm (free, servo_cf): whatever holds or
-                // moves it is not in the torque, so there is nothing true to learn from
-                // (docs/HAPTICS.md §3). Predict only.
-                Some(_) if !self.activity.learns() => {
-                    tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
-                }
-                Some(acting) => {
-                    let predicted = id.update(&est.q, &est.qd, &est.qdd, &acting.into(), dt);
-                    if id.healthy() {
-                        tau_hat = predicted.into();
-                        self.stats.identifier.record(&acting, &tau_hat);
-                    } else {
-                        ident_flag = flags::IDENT_FAULT;
-                    }
-                }
-                // First sample: nothing has acted yet; log the prediction alone.
-                None => tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into(),
+        let Some(id) = self.identifier.as_mut() else {
+            return (tau_hat, ident_flag);
+        };
+        match self.acting_tau {
+            // Amplifiers off, or a hand moving the arm (free, servo_cf): whatever holds or
+            // moves it is not in the torque, so there is nothing true to learn from
+            // (docs/HAPTICS.md §3). Predict only.
+            Some(_) if !self.activity.learns() => {
+                tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
             }
-            if !id.healthy() {
-                // Stopped on a non-finite value: its last good weights still predict.
-                let p: [f64; 3] = id.predict(&est.q, &est.qd, &est.qdd).into();
-                if p.iter().all(|v| v.is_finite()) {
-                    tau_hat = p;
+            Some(acting) => {
+                let predicted = id.update(&est.q, &est.qd, &est.qdd, &acting.into(), dt);
+                if id.healthy() {
+                    tau_hat = predicted.into();
+                    self.stats.identifier.record(&acting, &tau_hat);
+                } else {
+                    ident_flag = flags::IDENT_FAULT;
                 }
+            }
+            // First sample: nothing has acted yet; log the prediction alone.
+            None => tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into(),
+        }
+        if !id.healthy() {
+            // Stopped on a non-finite value: its last good weights still predict.
+            let p: [f64; 3] = id.predict(&est.q, &est.qd, &est.qdd).into();
+            if p.iter().all(|v| v.is_finite()) {
+                tau_hat = p;
             }
         }
-        let tau_model = match self.device.plant_model() {
+        (tau_hat, ident_flag)
+    }
+
+    /// Simulator: the plant's exact inverse dynamics on the estimated states (NaN elsewhere).
+    fn oracle(&mut self, est: &Estimate) -> [f64; 3] {
+        match self.device.plant_model() {
             Some(m) => {
                 let tm: [f64; 3] = m.inverse_dynamics(&est.q, &est.qd, &est.qdd).into();
                 if let Some(acting) = self.acting_tau {
@@ -351,56 +420,64 @@ impl Servo {
                 tm
             }
             None => [f64::NAN; 3],
-        };
+        }
+    }
 
-        // Safety: every command passes through the limits; a trip ends the run (under
-        // `serve`: zero torque, amplifiers off, mode idle, every client told).
-        let limited = if self.activity == Activity::Idle {
-            self.safety.rest();
-            Ok(safety::Limited {
-                tau: Joint3::zeros(),
-                flags: 0,
-            })
-        } else {
-            self.safety.apply(&tau_cmd, &est.q, &est.qd)
+    /// Safety: every command passes through the limits; a trip ends the run (under `serve`:
+    /// zero torque, amplifiers off, mode idle, every client told).
+    fn limit(
+        &mut self,
+        tau_cmd: &Joint3,
+        est: &Estimate,
+        t: f64,
+        t_dev: f64,
+    ) -> Result<safety::Limited, EndReason> {
+        let rest = safety::Limited {
+            tau: Joint3::zeros(),
+            flags: 0,
         };
-        let limited = match limited {
-            Ok(l) => l,
+        if self.activity == Activity::Idle {
+            self.safety.rest();
+            return Ok(rest);
+        }
+        match self.safety.apply(tau_cmd, &est.q, &est.qd) {
+            Ok(l) => Ok(l),
             Err(trip) if self.link.is_some() => {
                 self.enter(Activity::Idle, &est.q);
                 self.safety.rest();
                 self.event = Some(ServoEvent::SafetyTrip(trip));
-                safety::Limited {
-                    tau: Joint3::zeros(),
-                    flags: 0,
-                }
+                Ok(rest)
             }
             Err(trip) => {
                 self.last_t = t;
-                return Some(EndReason::SafetyFault(self.explain(trip, t_dev)));
+                Err(EndReason::SafetyFault(self.explain(trip, t_dev)))
             }
-        };
-        let tau = limited.tau;
-        let tick_flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
-        self.held = false;
+        }
+    }
 
-        // Encode: the next exchange sends it, amplifiers on from now (unless idle).
-        let words = self.dac.to_words(&tau.into());
+    /// Encode: the next exchange sends it, amplifiers on from now (unless idle). Returns what
+    /// the plant got: the DAC's torque, or on a replay the recorded torque (ours cannot reach
+    /// it; it is still logged as `tau_cmd`).
+    fn actuate(&mut self, tau: &Joint3) -> [f64; 3] {
+        let words = self.dac.to_words(&(*tau).into());
         let tau_applied = self.dac.to_torque(&words);
         self.command.dac = words;
         self.command.amps_on = self.activity != Activity::Idle;
+        self.device.recorded_torque().unwrap_or(tau_applied)
+    }
 
-        // What the plant got: on a replay, the recorded torque (ours cannot reach it; it is
-        // still logged as `tau_cmd`).
-        let tau_plant = self.device.recorded_torque().unwrap_or(tau_applied);
-
+    /// Record: the mode and the statistics of this tick, its log row, and what the next tick
+    /// needs to remember.
+    fn record(&mut self, s: &Sample, est: &Estimate, o: Outcome) {
+        let t = s.t;
         let mode = match (self.activity, self.target) {
             (Activity::Track, Target::Trajectory { t0, .. }) => {
                 if t - t0 < self.blend_s {
                     Mode::Blend
                 } else {
                     if t - t0 >= self.settle_s {
-                        self.stats.record_tracking(&(reference.q - est.q).into());
+                        let e = Joint3::from(o.reference) - est.q;
+                        self.stats.record_tracking(&e.into());
                     }
                     Mode::Track
                 }
@@ -408,46 +485,46 @@ impl Servo {
             (activity, _) => activity.mode(),
         };
         self.stats.record_time(t);
-        self.stats.record_torque(&tau_plant);
+        self.stats.record_torque(&o.tau_plant);
         let event = self.event.take();
-        if tick_flags & flags::CLAMPED != 0 {
+        if o.flags & flags::CLAMPED != 0 {
             self.stats.clamped_ticks += 1;
         }
         self.emit(TickRecord {
             t,
-            q: q.into(),
-            tau: tau_plant,
+            q: s.q.into(),
+            tau: o.tau_plant,
             qf: est.q.into(),
             qd: est.qd.into(),
             qdd: est.qdd.into(),
-            reference: reference.q.into(),
-            tau_cmd: tau_cmd.into(),
-            tau_hat,
-            tau_model,
-            enc,
+            reference: o.reference,
+            tau_cmd: o.tau_cmd,
+            tau_hat: o.tau_hat,
+            tau_model: o.tau_model,
+            enc: s.enc,
             amps: self.command.amps_on,
             mode,
-            flags: tick_flags,
+            flags: o.flags,
             haptic: self.haptic_record(),
             live: Live {
                 seq: self.tick,
-                buttons: packet.buttons,
-                inkwell: packet.inkwell,
+                buttons: s.buttons,
+                inkwell: s.inkwell,
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
                 event,
             },
         });
         self.last_t = t;
-        self.last_q = q.into();
-        self.last_enc = enc;
-        self.last_reference = reference.q.into();
-        self.last_tau_model = tau_model;
-        self.acting_tau = Some(tau_plant);
-        self.last_tau_hat = tau_hat;
-        self.timing.record(wake, clock::now_ns(), t_dev, self.paced);
+        self.last_q = s.q.into();
+        self.last_enc = s.enc;
+        self.last_reference = o.reference;
+        self.last_tau_model = o.tau_model;
+        self.acting_tau = Some(o.tau_plant);
+        self.last_tau_hat = o.tau_hat;
+        self.timing
+            .record(s.wake, clock::now_ns(), s.t_dev, self.paced);
         self.tick += 1;
-        None
     }
 
     /// This tick's haptic columns: the tip, the force commanded there, the simulated hand's.
@@ -497,12 +574,7 @@ impl Servo {
 
     /// The reference and the controller's torque for this tick, by activity (`q`: the
     /// measured pose, where a tip force is mapped to joint torque).
-    fn control(
-        &mut self,
-        t: f64,
-        q: &Joint3,
-        est: &crate::estimate::kalman::Estimate,
-    ) -> (RefPoint, Joint3) {
+    fn control(&mut self, t: f64, q: &Joint3, est: &Estimate) -> (RefPoint, Joint3) {
         let here = RefPoint {
             q: est.q,
             ..RefPoint::default()
