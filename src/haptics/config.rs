@@ -1,6 +1,6 @@
 //! `[haptics]`: the limits on forces rendered at the stylus tip (docs/HAPTICS.md).
 
-use super::hand::{HandConfig, HandPattern};
+use super::hand::HandConfig;
 use crate::config::ConfigError;
 use serde::{Deserialize, Serialize};
 
@@ -10,6 +10,12 @@ pub struct HapticsConfig {
     /// Largest tip force the servo passes on, N (the norm of a commanded force is clamped to
     /// it; the vendor's peak figure by default).
     pub max_force_n: f64,
+    /// Continuous tip force, N: when the force's mean square over `continuous_time_s` has
+    /// reached this squared, the force is held to it until that falls to 90 % (the vendor's
+    /// continuous figure by default).
+    pub continuous_force_n: f64,
+    /// Time constant of that mean square, s.
+    pub continuous_time_s: f64,
     /// A change of an effect's parameters fades in over this time, s (no force step).
     pub fade_s: f64,
     /// The passivity controller acts on the effects (docs/HAPTICS.md §6).
@@ -26,6 +32,8 @@ impl Default for HapticsConfig {
     fn default() -> Self {
         HapticsConfig {
             max_force_n: 3.3,
+            continuous_force_n: 0.88,
+            continuous_time_s: 10.0,
             fade_s: 0.1,
             passivity: true,
             passivity_max_damping_n_s_per_m: 20.0,
@@ -44,6 +52,8 @@ pub const HAPTICS_FIELD_DOCS: &[(&str, &str)] = &[
         "haptics.max_force_n",
         "largest tip force passed on, N (a commanded force's norm is clamped to it; vendor peak 3.3 N)",
     ),
+    ("haptics.continuous_force_n", "continuous tip force, N: a force whose mean square (over continuous_time_s) reaches it squared is held to it (vendor 0.88 N)"),
+    ("haptics.continuous_time_s", "time constant of the tip force's mean square, s"),
     ("haptics.fade_s", "an effect's parameter change fades in over this time, s (no force step)"),
     ("haptics.passivity", "passivity observer and controller on the effects (Hannaford & Ryu)"),
     ("haptics.passivity_max_damping_n_s_per_m", "largest damping the passivity controller adds, N·s/m"),
@@ -80,6 +90,20 @@ impl HapticsConfig {
             20.0,
             "0 ..= 20 N",
         )?;
+        finite_in(
+            "haptics.continuous_force_n",
+            self.continuous_force_n,
+            0.0,
+            self.max_force_n,
+            "0 ..= haptics.max_force_n",
+        )?;
+        finite_in(
+            "haptics.continuous_time_s",
+            self.continuous_time_s,
+            0.01,
+            1e4,
+            "0.01 ..= 1e4 s",
+        )?;
         finite_in("haptics.fade_s", self.fade_s, 0.0, 10.0, "0 ..= 10 s")?;
         finite_in(
             "haptics.passivity_max_damping_n_s_per_m",
@@ -95,63 +119,67 @@ impl HapticsConfig {
             1.0,
             "0 ..= 1 J",
         )?;
-        let h = &self.hand;
-        let _: HandPattern = h.pattern;
-        finite_in(
-            "haptics.hand.stiffness_n_per_m",
-            h.stiffness_n_per_m,
-            1.0,
-            1e5,
-            "1 ..= 1e5 N/m",
-        )?;
-        finite_in(
-            "haptics.hand.damping_n_s_per_m",
-            h.damping_n_s_per_m,
-            0.0,
-            1e3,
-            "0 ..= 1000 N·s/m",
-        )?;
-        finite_in(
-            "haptics.hand.speed_m_s",
-            h.speed_m_s,
-            0.001,
-            1.0,
-            "0.001 ..= 1 m/s",
-        )?;
-        finite_in(
-            "haptics.hand.push_force_n",
-            h.push_force_n,
-            0.0,
-            10.0,
-            "0 ..= 10 N",
-        )?;
-        finite_in(
-            "haptics.hand.release_s",
-            h.release_s,
-            0.0,
-            1e6,
-            "0 ..= 1e6 s",
-        )?;
-        finite_in(
-            "haptics.hand.approach_s",
-            h.approach_s,
-            0.0,
-            60.0,
-            "0 ..= 60 s",
-        )?;
-        finite_in(
-            "haptics.hand.path_radius_m",
-            h.path_radius_m,
-            0.001,
-            0.1,
-            "0.001 ..= 0.1 m",
-        )
+        validate_hand(&self.hand)
     }
+}
+
+/// `[haptics.hand]` (the pattern was checked when it was read).
+fn validate_hand(h: &HandConfig) -> Result<(), ConfigError> {
+    finite_in(
+        "haptics.hand.stiffness_n_per_m",
+        h.stiffness_n_per_m,
+        1.0,
+        1e5,
+        "1 ..= 1e5 N/m",
+    )?;
+    finite_in(
+        "haptics.hand.damping_n_s_per_m",
+        h.damping_n_s_per_m,
+        0.0,
+        1e3,
+        "0 ..= 1000 N·s/m",
+    )?;
+    finite_in(
+        "haptics.hand.speed_m_s",
+        h.speed_m_s,
+        0.001,
+        1.0,
+        "0.001 ..= 1 m/s",
+    )?;
+    finite_in(
+        "haptics.hand.push_force_n",
+        h.push_force_n,
+        0.0,
+        10.0,
+        "0 ..= 10 N",
+    )?;
+    finite_in(
+        "haptics.hand.release_s",
+        h.release_s,
+        0.0,
+        1e6,
+        "0 ..= 1e6 s",
+    )?;
+    finite_in(
+        "haptics.hand.approach_s",
+        h.approach_s,
+        0.0,
+        60.0,
+        "0 ..= 60 s",
+    )?;
+    finite_in(
+        "haptics.hand.path_radius_m",
+        h.path_radius_m,
+        0.001,
+        0.1,
+        "0.001 ..= 0.1 m",
+    )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::haptics::HandPattern;
 
     #[test]
     fn defaults_are_valid_and_bad_values_name_the_field() {

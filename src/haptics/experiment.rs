@@ -228,6 +228,35 @@ const TRANSPARENCY: [(&str, ControllerKind, &str); 4] = [
     ),
 ];
 
+/// The hand traces the path, then lets go 2 s before the end: how far the tip moves over
+/// the last second, mm (the arm must stay stable without the hand).
+fn let_go(out: &Path, secs: f64) -> Result<f64, ExperimentError> {
+    let mut cfg = base_config();
+    cfg.haptics.hand.pattern = HandPattern::Path;
+    cfg.haptics.hand.release_s = secs - 2.0;
+    let log = run(
+        "free-nnidc-let-go",
+        &cfg,
+        ControllerKind::Nnidc,
+        secs,
+        &out.join("free-nnidc-let-go"),
+        HapticRun {
+            free: true,
+            effects: Vec::new(),
+        },
+    )?;
+    let t = log.col("t")?;
+    let tip = log.group("tip")?;
+    let from = t.iter().position(|&x| x >= secs - 1.0).unwrap_or(0);
+    let last = t.len() - 1;
+    let drift = ((0..3)
+        .map(|i| (tip[i][last] - tip[i][from]).powi(2))
+        .sum::<f64>())
+    .sqrt();
+
+    Ok(drift)
+}
+
 struct Transparency {
     rms: Vec<(&'static str, f64)>,
     let_go_drift_mm: f64,
@@ -285,30 +314,7 @@ fn transparency(
         vec![("none, ct, nnidc, exact", lines)],
         files,
     )?;
-    // Let go: the hand traces the path, then releases; the arm must come to rest.
-    let mut cfg = base_config();
-    cfg.haptics.hand.pattern = HandPattern::Path;
-    cfg.haptics.hand.release_s = secs - 2.0;
-    let log = run(
-        "free-nnidc-let-go",
-        &cfg,
-        ControllerKind::Nnidc,
-        secs,
-        &out.join("free-nnidc-let-go"),
-        HapticRun {
-            free: true,
-            effects: Vec::new(),
-        },
-    )?;
-    let t = log.col("t")?;
-    let tip = log.group("tip")?;
-    let from = t.iter().position(|&x| x >= secs - 1.0).unwrap_or(0);
-    let last = t.len() - 1;
-    let drift = ((0..3)
-        .map(|i| (tip[i][last] - tip[i][from]).powi(2))
-        .sum::<f64>())
-    .sqrt();
-
+    let drift = let_go(out, secs)?;
     let none = rms[0].1;
     md.push_str("## Transparency\n\nThe simulated hand (grip 500 N/m, 5 N·s/m) traces a closed 3-D path around the workspace centre at 0.1 m/s in free mode; the table gives the RMS of the force in the grip from 3 s on (what the user would feel).\n\n| compensation | what | hand force RMS (N) | × none |\n|---|---|---:|---:|\n");
     for ((name, r), (_, _, what)) in rms.iter().zip(TRANSPARENCY) {
@@ -415,8 +421,58 @@ fn wall_run(
     Ok((w, log))
 }
 
-/// Stiffest walls that hold per axis: (without, with) the passivity controller.
-type Stiffest = [(Option<f64>, Option<f64>); 3];
+/// The stiffest wall that held on one axis: (without, with) the passivity controller, N/mm.
+type AxisStiffest = (Option<f64>, Option<f64>);
+/// The same per axis.
+type Stiffest = [AxisStiffest; 3];
+
+/// One axis: the vendor's stiffness first, then stiffer until neither variant holds (a wall
+/// counts only when every softer one held too). Its walls, the figure's lines (the vendor's
+/// stiffness), and the stiffest that held.
+fn sweep_axis(
+    out: &Path,
+    quick: bool,
+    axis: usize,
+    all: &mut Vec<Wall>,
+) -> Result<(Vec<Series>, AxisStiffest), ExperimentError> {
+    let mut stiffest = (None, None);
+    let mut lines = Vec::new();
+    let sweep: &[f64] = if quick { &SWEEP[..2] } else { &SWEEP };
+    let ks = std::iter::once(NOMINAL_STIFFNESS[axis]).chain(
+        sweep
+            .iter()
+            .copied()
+            .filter(|&k| k > NOMINAL_STIFFNESS[axis]),
+    );
+    let mut holding = (true, true);
+    for k in ks {
+        let (open, log_open) = wall_run(out, quick, axis, k, false, 1.0)?;
+        let (pc, log_pc) = wall_run(out, quick, axis, k, true, 1.0)?;
+        if k == NOMINAL_STIFFNESS[axis] {
+            for (log, label, role) in [
+                (&log_open, "open", Role::Target),
+                (&log_pc, "passivity control", Role::Measured),
+            ] {
+                let t = log.col("t")?;
+                let tip = log.col(&format!("tip{}", axis + 1))?;
+                lines.push((label, role, series(&t, &tip, 1.0)));
+            }
+        }
+        holding = (holding.0 && open.stable, holding.1 && pc.stable);
+        if holding.0 {
+            stiffest.0 = Some(k);
+        }
+        if holding.1 {
+            stiffest.1 = Some(k);
+        }
+        all.push(open);
+        all.push(pc);
+        if !holding.0 && !holding.1 {
+            break;
+        }
+    }
+    Ok((lines, stiffest))
+}
 
 fn walls(
     out: &Path,
@@ -428,43 +484,8 @@ fn walls(
     let mut stiffest: Stiffest = [(None, None); 3];
     let mut panels = Vec::new();
     for axis in 0..3 {
-        let mut lines = Vec::new();
-        // The vendor's stiffness first, then stiffer until neither holds (a wall counts only
-        // when every softer one held too).
-        let sweep: &[f64] = if quick { &SWEEP[..2] } else { &SWEEP };
-        let ks = std::iter::once(NOMINAL_STIFFNESS[axis]).chain(
-            sweep
-                .iter()
-                .copied()
-                .filter(|&k| k > NOMINAL_STIFFNESS[axis]),
-        );
-        let mut holding = (true, true);
-        for k in ks {
-            let (open, log_open) = wall_run(out, quick, axis, k, false, 1.0)?;
-            let (pc, log_pc) = wall_run(out, quick, axis, k, true, 1.0)?;
-            if k == NOMINAL_STIFFNESS[axis] {
-                for (log, label, role) in [
-                    (&log_open, "open", Role::Target),
-                    (&log_pc, "passivity control", Role::Measured),
-                ] {
-                    let t = log.col("t")?;
-                    let tip = log.col(&format!("tip{}", axis + 1))?;
-                    lines.push((label, role, series(&t, &tip, 1.0)));
-                }
-            }
-            holding = (holding.0 && open.stable, holding.1 && pc.stable);
-            if holding.0 {
-                stiffest[axis].0 = Some(k);
-            }
-            if holding.1 {
-                stiffest[axis].1 = Some(k);
-            }
-            all.push(open);
-            all.push(pc);
-            if !holding.0 && !holding.1 {
-                break;
-            }
-        }
+        let (lines, s) = sweep_axis(out, quick, axis, &mut all)?;
+        stiffest[axis] = s;
         panels.push((["x axis", "y axis", "z axis"][axis], lines));
     }
     // What limits the stiffness: the same y walls with the kick limit ten times higher.
@@ -482,6 +503,12 @@ fn walls(
         panels,
         files,
     )?;
+    walls_markdown(md, &all, &stiffest);
+    Ok((all, stiffest))
+}
+
+/// The walls' tables.
+fn walls_markdown(md: &mut String, all: &[Wall], stiffest: &Stiffest) {
     md.push_str("## Walls\n\nThe hand moves from the centre towards a wall 10 mm away (x: to the right, y: down onto a floor, z: away from the user) at 0.1 m/s and settles pushing with 1 N. A wall *holds* when over the last second the tip moves at most 0.15 mm peak to peak (about two encoder counts at the tip) and the hand still pushes with at least 0.8 N (it is not bouncing off). The energy column is the work the wall did on the hand over the last second. The nnidc compensation is active.\n\n| axis | stiffness (N/mm) | passivity control | holds | max penetration (mm) | peak-to-peak, last s (mm) | hand force (N) | wall's work on the hand, last s (mJ) |\n|---|---:|---|---|---:|---:|---:|---:|\n");
     for w in all.iter().filter(|w| !w.kick_raised) {
         let _ = writeln!(
@@ -522,7 +549,6 @@ fn walls(
         );
     }
     md.push_str("\n![Walls](walls.png) ([SVG](walls.svg))\n\n");
-    Ok((all, stiffest))
 }
 
 // ---------------------------------------------------------------------------------------------
