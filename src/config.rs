@@ -13,6 +13,7 @@ pub use crate::device::sim::{SimConfig, SimSetup};
 pub use crate::device::usb::UsbConfig;
 pub use crate::device::DeviceConfig;
 pub use crate::estimate::kalman::KalmanConfig;
+pub use crate::haptics::HapticsConfig;
 pub use crate::ident::IdentifierConfig;
 use crate::omni::{Geometry, ModelParams};
 pub use crate::serve::ServeConfig;
@@ -62,6 +63,8 @@ pub struct Config {
     pub inject: InjectConfig,
     /// `omnid serve`: the client interface (docs/PROTOCOL.md).
     pub serve: ServeConfig,
+    /// Haptics: tip force limits, the passivity controller, and the simulated hand (docs/HAPTICS.md).
+    pub haptics: HapticsConfig,
 }
 
 impl Config {
@@ -112,6 +115,7 @@ impl Config {
         self.usb.validate()?;
         self.firewire.validate()?;
         self.inject.validate()?;
+        self.haptics.validate()?;
         self.telemetry.validate()
     }
 
@@ -220,6 +224,8 @@ impl<'a> From<&'a Config> for SimSetup<'a> {
             sim: &cfg.sim,
             model: &cfg.model,
             geometry: &cfg.geometry,
+            hand: &cfg.haptics.hand,
+            center: cfg.reference.center,
         }
     }
 }
@@ -244,6 +250,8 @@ impl<'a> From<&'a Config> for ServoSetup<'a> {
             safety: &cfg.safety,
             kalman: &cfg.kalman,
             seed: cfg.sim.seed,
+            haptics: &cfg.haptics,
+            geometry: &cfg.geometry,
         }
     }
 }

@@ -106,6 +106,7 @@ pub fn prepare(
         inject: opts.inject.clone(),
         weights: opts.weights.clone(),
         no_adapt: opts.no_adapt,
+        haptics: Default::default(),
     };
     let faults = check_device_options(&run_opts, cfg)?;
     let policy = Policy {

@@ -45,6 +45,7 @@ pub mod device;
 pub mod estimate;
 pub mod experiment;
 pub mod fastmath;
+pub mod haptics;
 pub mod ident;
 pub mod identify;
 pub mod input;

@@ -203,6 +203,24 @@ struct RunArgs {
     /// Freeze the identifier: no online adaptation.
     #[arg(long)]
     no_adapt: bool,
+    /// track: follow --trajectory; free: only the controller's compensation and the
+    /// scene's effects, the arm moved by a hand (docs/HAPTICS.md).
+    #[arg(long, value_enum, default_value = "track")]
+    mode: RunMode,
+    /// Haptic effects in TOML, one [[effect]] table each (rendered in free mode).
+    #[arg(long, value_name = "FILE")]
+    scene: Option<PathBuf>,
+    /// Simulator: a simulated hand on the stylus: none, hold, path, push+x .. push-z
+    /// ([haptics.hand] sets its grip).
+    #[arg(long, value_name = "PATTERN")]
+    hand: Option<String>,
+}
+
+/// What `omnid run` does with the arm.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum RunMode {
+    Track,
+    Free,
 }
 
 #[derive(clap::Args)]
@@ -433,13 +451,46 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
     }
 }
 
+/// `--mode`, `--scene` and `--hand`: the haptic part of a run (the hand goes into the
+/// simulator's config).
+fn haptic_options(
+    args: &RunArgs,
+    cfg: &mut omnid::config::Config,
+) -> Result<omnid::haptics::HapticRun, String> {
+    if let Some(name) = &args.hand {
+        if args.device != DeviceSpec::Sim {
+            return Err("--hand needs the simulator (--device sim)".into());
+        }
+        cfg.haptics.hand.pattern = omnid::haptics::HandPattern::try_from(name.clone())
+            .map_err(|e| format!("--hand: {e}"))?;
+    }
+    let effects = match &args.scene {
+        Some(path) => omnid::haptics::scene::read_scene(path)?,
+        None => Vec::new(),
+    };
+    if !effects.is_empty() && args.mode != RunMode::Free {
+        return Err("--scene: effects are rendered in free mode; add --mode free".into());
+    }
+    Ok(omnid::haptics::HapticRun {
+        free: args.mode == RunMode::Free,
+        effects,
+    })
+}
+
 fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     let stop = stop_on_signal()?;
-    let cfg = match load_config(args.config.as_deref(), Some(&stop)) {
+    let mut cfg = match load_config(args.config.as_deref(), Some(&stop)) {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
     let replay = matches!(args.device, DeviceSpec::Replay(_));
+    let haptics = match haptic_options(&args, &mut cfg) {
+        Ok(h) => h,
+        Err(e) => {
+            omnid::errln!("omnid: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+    };
     let opts = RunOptions {
         device: args.device,
         controller: args.controller,
@@ -454,6 +505,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         inject: args.inject,
         weights: args.weights,
         no_adapt: args.no_adapt,
+        haptics,
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,

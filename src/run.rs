@@ -83,6 +83,8 @@ pub struct RunOptions {
     pub weights: Option<PathBuf>,
     /// Freeze the identifier (no online adaptation).
     pub no_adapt: bool,
+    /// Free mode and a scene of effects (docs/HAPTICS.md).
+    pub haptics: crate::haptics::HapticRun,
 }
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
@@ -414,6 +416,10 @@ pub fn assemble(
         !opts.fast,
     );
     servo.set_identifier(identifier.clone());
+    if opts.haptics.free {
+        servo.start_free();
+    }
+    servo.set_effects(&opts.haptics.effects);
     if let Some(path) = &heat_path {
         let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
         if let Some(note) = note {

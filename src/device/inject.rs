@@ -227,6 +227,10 @@ impl Device for FaultyDevice {
     fn plant_model(&self) -> Option<&Dynamics> {
         self.inner.plant_model()
     }
+
+    fn hand_force(&self) -> Option<[f64; 3]> {
+        self.inner.hand_force()
+    }
 }
 
 #[cfg(test)]

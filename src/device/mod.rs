@@ -184,6 +184,12 @@ pub trait Device: Send {
     fn plant_model(&self) -> Option<&crate::omni::Dynamics> {
         None
     }
+
+    /// The force the simulated hand puts on the stylus tip, N (OpenHaptics frame): the
+    /// simulator only (docs/HAPTICS.md §7).
+    fn hand_force(&self) -> Option<[f64; 3]> {
+        None
+    }
 }
 
 #[cfg(test)]

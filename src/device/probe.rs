@@ -1127,6 +1127,7 @@ mod tests {
             inject: Vec::new(),
             weights: None,
             no_adapt: false,
+            haptics: Default::default(),
         };
         let outcome = crate::run::execute(
             &run,

@@ -484,9 +484,11 @@ impl Hub {
                         client: c.id,
                         stream_ttl_ms: self.s.serve.stream_ttl_ms,
                         controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
-                        modes: ["idle", "hold", "track", "free", "servo_jp", "servo_jf"]
-                            .map(String::from)
-                            .into(),
+                        modes: [
+                            "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
+                        ]
+                        .map(String::from)
+                        .into(),
                     };
                     let mut v = serde_json::to_value(hello).unwrap_or_default();
                     v["type"] = json!("hello");
@@ -585,6 +587,38 @@ impl Hub {
                     self.send_servo(i, id, op, ServoCommand::ServoJf { seq, tau, ttl_s }, None);
                 }
             }
+            Request::ServoCf {
+                seq, force, ttl_ms, ..
+            } => {
+                if let Some(ttl_s) = self.stream_check(i, id, op, &force, ttl_ms) {
+                    let cmd = ServoCommand::ServoCf { seq, force, ttl_s };
+                    self.send_servo(i, id, op, cmd, None);
+                }
+            }
+            Request::Effect { slot, effect, .. } => {
+                if slot >= crate::haptics::MAX_EFFECTS {
+                    let max = crate::haptics::MAX_EFFECTS - 1;
+                    return self.fail(i, id, op, format!("slot {slot}: allowed 0 ..= {max}"));
+                }
+                if let Some(Err(why)) = effect.map(|e| e.validate("effect.")) {
+                    return self.fail(i, id, op, why);
+                }
+                let reply = json!({ "slot": slot, "effect": effect });
+                self.send_servo(
+                    i,
+                    id,
+                    op,
+                    ServoCommand::Effect { slot, effect },
+                    Some(reply),
+                );
+            }
+            Request::Passivity { on, .. } => self.send_servo(
+                i,
+                id,
+                op,
+                ServoCommand::Passivity(on),
+                Some(json!({ "passivity": on })),
+            ),
             Request::Controller { controller, .. } => match ControllerKind::parse(&controller) {
                 Some(kind) => self.send_servo(
                     i,
@@ -714,7 +748,7 @@ impl Hub {
                 };
                 ServoCommand::Track(t)
             }
-            "servo_jp" | "servo_jf" => {
+            "servo_jp" | "servo_jf" | "servo_cf" => {
                 return self.fail(
                     i,
                     id,
@@ -1043,7 +1077,7 @@ impl Hub {
             ServoEvent::StreamStale { fallback } => (
                 "stream-stale",
                 format!(
-                    "no servo_jp/servo_jf command within its time to live (default {ttl} ms): \
+                    "no servo_jp/servo_jf/servo_cf command within its time to live (default {ttl} ms): \
                      now {}",
                     fallback.as_str()
                 ),

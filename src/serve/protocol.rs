@@ -80,6 +80,30 @@ pub enum Request {
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
+    /// Tip force stream (N, OpenHaptics frame) on top of the compensation, as τ = Jᵀ F; its
+    /// norm is clamped to `[haptics] max_force_n`. No reply unless refused.
+    ServoCf {
+        seq: u64,
+        force: [f64; 3],
+        #[serde(default)]
+        ttl_ms: Option<f64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Put a haptic effect in a slot of the scene (`effect: null` removes it); rendered in
+    /// free and servo_cf, faded in (docs/HAPTICS.md).
+    Effect {
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Turn the passivity controller on the effects on or off.
+    Passivity {
+        on: bool,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
     /// Switch the control law (bumpless): pd, ct, nnidc, off.
     Controller {
         controller: String,
@@ -135,6 +159,9 @@ impl Request {
             Request::Free { .. } => "free",
             Request::ServoJp { .. } => "servo_jp",
             Request::ServoJf { .. } => "servo_jf",
+            Request::ServoCf { .. } => "servo_cf",
+            Request::Effect { .. } => "effect",
+            Request::Passivity { .. } => "passivity",
             Request::Controller { .. } => "controller",
             Request::Adapt { .. } => "adapt",
             Request::WeightsSave { .. } => "weights_save",
@@ -157,6 +184,9 @@ impl Request {
             | Request::Free { id }
             | Request::ServoJp { id, .. }
             | Request::ServoJf { id, .. }
+            | Request::ServoCf { id, .. }
+            | Request::Effect { id, .. }
+            | Request::Passivity { id, .. }
             | Request::Controller { id, .. }
             | Request::Adapt { id, .. }
             | Request::WeightsSave { id, .. }
@@ -197,12 +227,12 @@ pub struct State {
     /// The identifier's prediction of the torque that acted, N·m.
     pub tau_hat: [f64; 3],
     pub controller: String,
-    /// idle, hold, blend, track, free, servo_jp, servo_jf, stop.
+    /// idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, stop.
     pub mode: String,
     pub amps: bool,
     /// Safety and status bits (README, Logs: `flags`).
     pub flags: u32,
-    /// Sequence number of the last servo_jp/servo_jf command applied.
+    /// Sequence number of the last servo_jp/servo_jf/servo_cf command applied.
     pub cmd_seq: u64,
 }
 
@@ -242,6 +272,20 @@ mod tests {
             }
         );
         assert!(r.commands());
+        let r: Request =
+            serde_json::from_str(r#"{"op":"servo_cf","seq":8,"force":[1.5,0,-0.5],"ttl_ms":20}"#)
+                .unwrap();
+        assert_eq!(
+            r,
+            Request::ServoCf {
+                seq: 8,
+                force: [1.5, 0.0, -0.5],
+                ttl_ms: Some(20.0),
+                id: None
+            }
+        );
+        assert!(r.commands());
+        assert_eq!(r.op(), "servo_cf");
         let r: Request = serde_json::from_str(r#"{"op":"status"}"#).unwrap();
         assert!(!r.commands());
         assert_eq!(r.op(), "status");

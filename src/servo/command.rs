@@ -28,12 +28,26 @@ pub enum Activity {
     ServoJp,
     /// A client's joint torques on top of the compensation (stream with a time to live).
     ServoJf,
+    /// A client's tip force (N, OpenHaptics frame) on top of the compensation, as τ = Jᵀ F
+    /// (stream with a time to live).
+    ServoCf,
 }
 
 impl Activity {
     /// Modes that a client must keep feeding.
     pub fn is_stream(self) -> bool {
-        matches!(self, Activity::ServoJp | Activity::ServoJf)
+        matches!(
+            self,
+            Activity::ServoJp | Activity::ServoJf | Activity::ServoCf
+        )
+    }
+
+    /// Whether the identifier may learn in this mode: only where the torque it sees is all
+    /// that moves the arm. Amplifiers off, the arm rests on something; in the haptic modes
+    /// (free, servo_cf) a hand moves it with a force no sensor measures, and learning from
+    /// that teaches the model the hand (docs/HAPTICS.md §3).
+    pub fn learns(self) -> bool {
+        !matches!(self, Activity::Idle | Activity::Free | Activity::ServoCf)
     }
 
     pub fn mode(self) -> Mode {
@@ -44,6 +58,7 @@ impl Activity {
             Activity::Free => Mode::Free,
             Activity::ServoJp => Mode::ServoJp,
             Activity::ServoJf => Mode::ServoJf,
+            Activity::ServoCf => Mode::ServoCf,
         }
     }
 }
@@ -66,6 +81,20 @@ pub enum ServoCommand {
         tau: [f64; 3],
         ttl_s: f64,
     },
+    /// Tip force (N, OpenHaptics frame) added to the compensation as Jᵀ F, valid for
+    /// `ttl_s`; its norm is clamped to `[haptics] max_force_n` in the servo.
+    ServoCf {
+        seq: u64,
+        force: [f64; 3],
+        ttl_s: f64,
+    },
+    /// Put an effect in a slot of the scene (None removes it), faded in.
+    Effect {
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+    },
+    /// Turn the passivity controller on or off.
+    Passivity(bool),
     /// The stream's owner is gone: leave a stream mode now.
     StreamEnded,
     /// Switch the control law (bumpless).

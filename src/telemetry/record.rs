@@ -20,10 +20,12 @@ pub enum Mode {
     ServoJp,
     /// A client's joint torque stream on top of the compensation.
     ServoJf,
+    /// A client's tip force stream (Jᵀ F) on top of the compensation.
+    ServoCf,
 }
 
 impl Mode {
-    pub const ALL: [Mode; 8] = [
+    pub const ALL: [Mode; 9] = [
         Mode::Blend,
         Mode::Track,
         Mode::Stop,
@@ -32,6 +34,7 @@ impl Mode {
         Mode::Free,
         Mode::ServoJp,
         Mode::ServoJf,
+        Mode::ServoCf,
     ];
 
     pub fn as_str(self) -> &'static str {
@@ -44,6 +47,7 @@ impl Mode {
             Mode::Free => "free",
             Mode::ServoJp => "servo_jp",
             Mode::ServoJf => "servo_jf",
+            Mode::ServoCf => "servo_cf",
         }
     }
 
@@ -100,8 +104,22 @@ pub struct TickRecord {
     pub amps: bool,
     pub mode: Mode,
     pub flags: u32,
+    /// The tip and the forces there (docs/HAPTICS.md).
+    pub haptic: HapticRecord,
     /// What the daemon's clients see beyond the log's columns (not written to the log).
     pub live: Live,
+}
+
+/// The log's haptic columns.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct HapticRecord {
+    /// Stylus tip at the measured pose, mm, OpenHaptics frame (`tip1..3`).
+    pub tip_mm: [f64; 3],
+    /// The tip force commanded this tick (effects and a client's `servo_cf`, after the
+    /// passivity controller and the peak clamp), N (`fcmd1..3`).
+    pub force: [f64; 3],
+    /// Simulator: the force the simulated hand put on the tip, N (`fhand1..3`; NaN elsewhere).
+    pub hand: [f64; 3],
 }
 
 /// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
@@ -114,7 +132,7 @@ pub struct Live {
     pub inkwell: bool,
     /// The controller whose law is in effect (the new one during a bumpless switch).
     pub controller: Option<crate::control::ControllerKind>,
-    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`) applied.
+    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`/`servo_cf`) applied.
     pub cmd_seq: u64,
     /// Something happened this tick that every client is told about.
     pub event: Option<ServoEvent>,
@@ -123,7 +141,7 @@ pub struct Live {
 /// Which optional column groups a log carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogSchema {
-    /// `tau_model1..3` (simulator runs).
+    /// `tau_model1..3` and `fhand1..3` (simulator runs).
     pub model: bool,
 }
 
@@ -138,6 +156,12 @@ impl LogSchema {
         }
         if self.model {
             c.extend((1..=3).map(|j| format!("tau_model{j}")));
+        }
+        for group in ["tip", "fcmd"] {
+            c.extend((1..=3).map(|j| format!("{group}{j}")));
+        }
+        if self.model {
+            c.extend((1..=3).map(|j| format!("fhand{j}")));
         }
         c.extend((1..=3).map(|j| format!("enc{j}")));
         c.extend(["amps", "mode", "flags"].map(String::from));

@@ -10,6 +10,8 @@
 //! `--quick` shortens every run and the pre-tuning so the whole experiment takes seconds (for
 //! tests and smoke checks); its numbers are not the paper's.
 
+mod haptics;
+
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::ident::{Identifier, PretuneConfig, Progress, WeightsFile};
@@ -35,6 +37,8 @@ pub enum Experiment {
     Validation,
     Alpha,
     Payload,
+    /// Haptics: transparency, walls, force accuracy (`haptics`).
+    Haptics,
 }
 
 impl FromStr for Experiment {
@@ -44,8 +48,9 @@ impl FromStr for Experiment {
             "validation" => Ok(Experiment::Validation),
             "alpha" => Ok(Experiment::Alpha),
             "payload" => Ok(Experiment::Payload),
+            "haptics" => Ok(Experiment::Haptics),
             _ => Err(format!(
-                "unknown experiment `{s}`: expected validation, alpha or payload"
+                "unknown experiment `{s}`: expected validation, alpha, payload or haptics"
             )),
         }
     }
@@ -57,6 +62,7 @@ impl Experiment {
             Experiment::Validation => "validation",
             Experiment::Alpha => "alpha",
             Experiment::Payload => "payload",
+            Experiment::Haptics => "haptics",
         }
     }
 }
@@ -133,6 +139,8 @@ pub fn run_experiment(
         Experiment::Validation => validation(out, quick, &mut figures)?,
         Experiment::Alpha => alpha(out, quick, &mut figures)?,
         Experiment::Payload => payload(out, quick, &mut figures)?,
+        // Writes its own report and results.json.
+        Experiment::Haptics => return haptics::run_haptics(out, quick),
     };
     let report = out.join("report.md");
     crate::output::write_bytes(&report, markdown.as_bytes())?;
@@ -178,6 +186,8 @@ fn check_outputs(experiment: Experiment, out: &Path, quick: bool) -> Result<(), 
                 run_dir(out.join(name));
             }
         }
+        // Checks its own outputs.
+        Experiment::Haptics => {}
     }
     for dir in &dirs {
         crate::output::check_dir(dir)?;
@@ -222,6 +232,7 @@ fn sim_run(
         inject: Vec::new(),
         weights,
         no_adapt,
+        haptics: Default::default(),
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).map_err(|source| {
         ExperimentError::Run {
