@@ -620,7 +620,11 @@ pub fn execute(
         &SummaryLabels {
             device: opts.device.name(),
             controller: opts.controller.as_str(),
-            trajectory: format!("{:?}", opts.trajectory).to_lowercase(),
+            trajectory: if opts.haptics.free {
+                "free".into()
+            } else {
+                format!("{:?}", opts.trajectory).to_lowercase()
+            },
             weights: ending.weights_label.clone(),
             seed: cfg.sim.seed,
             fast: opts.fast,

@@ -74,7 +74,7 @@ fn run_free_with_a_scene_and_a_hand_logs_the_tip_and_the_forces() {
     std::fs::write(&cfg, "[sim]\nstart_pose = [0.0, 0.65, 0.3]\n").unwrap();
     let log = dir.path().join("run.csv");
     let p = |p: &std::path::Path| p.display().to_string();
-    run_ok(&[
+    let out = run_ok(&[
         "run",
         "--fast",
         "--mode",
@@ -90,6 +90,8 @@ fn run_free_with_a_scene_and_a_hand_logs_the_tip_and_the_forces() {
         "--log",
         &p(&log),
     ]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("in free mode"), "{said}");
     let l = Log::read(&log);
     let modes: Vec<&str> = l.rows.iter().map(|r| r[l.col("mode")].as_str()).collect();
     assert!(modes[..modes.len() - 1].iter().all(|m| *m == "free"));

@@ -1094,6 +1094,44 @@ mod tests {
         assert!(seen[k..].iter().all(|r| r.tau_cmd == [0.0; 3]));
     }
 
+    /// The identifier's prediction at a fixed state.
+    fn prediction(servo: &Servo) -> Joint3 {
+        let mut id = servo.identifier().unwrap().clone();
+        let q = Joint3::new(0.1, 0.6, 0.3);
+        id.predict(
+            &q,
+            &Joint3::new(0.2, -0.1, 0.3),
+            &Joint3::new(1.0, 0.5, -0.5),
+        )
+    }
+
+    #[test]
+    fn the_identifier_learns_nothing_while_a_hand_moves_the_arm() {
+        // In hold the torque is all that moves the arm: the identifier learns. In free and
+        // servo_cf a hand may move it with a force nobody measures: it must not.
+        let mut learned = Vec::new();
+        for cmd in [
+            ServoCommand::Hold,
+            ServoCommand::Free,
+            ServoCommand::ServoCf {
+                seq: 1,
+                force: [0.0, 0.3, 0.0],
+                ttl_s: 10.0,
+            },
+        ] {
+            let (mut servo, rx, tx) = linked_servo();
+            tx.send(cmd).unwrap();
+            next(&mut servo, &rx);
+            let before = prediction(&servo);
+            for _ in 0..300 {
+                next(&mut servo, &rx);
+            }
+            learned.push((prediction(&servo) - before).norm());
+        }
+        assert!(learned[0] > 0.0, "hold: learned {}", learned[0]);
+        assert_eq!(&learned[1..], &[0.0, 0.0], "free, servo_cf");
+    }
+
     #[test]
     fn paced_runs_never_wait_for_the_writer() {
         // The realtime loop keeps going: 16 rows fit, the other 185 are dropped and counted.

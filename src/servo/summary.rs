@@ -419,6 +419,7 @@ impl RunSummary {
             self.controller,
             match self.trajectory.as_str() {
                 "serve" => " at start, as clients asked".to_string(),
+                "free" => " in free mode (compensation and effects)".to_string(),
                 t => format!(" following {t}"),
             },
             if self.fast { " (--fast)" } else { "" },
