@@ -1,7 +1,7 @@
 //! `[haptics]`: the limits on forces rendered at the stylus tip (docs/HAPTICS.md).
 
 use super::hand::HandConfig;
-use crate::config_check::ConfigError;
+use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -43,50 +43,38 @@ impl Default for HapticsConfig {
     }
 }
 
-fn finite_in(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
-    if v.is_finite() && (lo..=hi).contains(&v) {
-        Ok(())
-    } else {
-        Err(ConfigError::Invalid {
-            field: field.to_string(),
-            value: v.to_string(),
-            allowed: allowed.to_string(),
-        })
-    }
-}
-
 impl HapticsConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
-        finite_in(
+        check::in_range(
             "haptics.max_force_n",
             self.max_force_n,
             0.0,
             20.0,
             "0 ..= 20 N",
         )?;
-        finite_in(
+        check::in_range(
             "haptics.continuous_force_n",
             self.continuous_force_n,
             0.0,
             self.max_force_n,
             "0 ..= haptics.max_force_n",
         )?;
-        finite_in(
+        check::in_range(
             "haptics.continuous_time_s",
             self.continuous_time_s,
             0.01,
             1e4,
             "0.01 ..= 1e4 s",
         )?;
-        finite_in("haptics.fade_s", self.fade_s, 0.0, 10.0, "0 ..= 10 s")?;
-        finite_in(
+        check::in_range("haptics.fade_s", self.fade_s, 0.0, 10.0, "0 ..= 10 s")?;
+        check::in_range(
             "haptics.passivity_max_damping_n_s_per_m",
             self.passivity_max_damping_n_s_per_m,
             0.0,
             1000.0,
             "0 ..= 1000 N·s/m",
         )?;
-        finite_in(
+        check::in_range(
             "haptics.passivity_reserve_j",
             self.passivity_reserve_j,
             0.0,
@@ -99,49 +87,49 @@ impl HapticsConfig {
 
 /// `[haptics.hand]` (the pattern was checked when it was read).
 fn validate_hand(h: &HandConfig) -> Result<(), ConfigError> {
-    finite_in(
+    check::in_range(
         "haptics.hand.stiffness_n_per_m",
         h.stiffness_n_per_m,
         1.0,
         1e5,
         "1 ..= 1e5 N/m",
     )?;
-    finite_in(
+    check::in_range(
         "haptics.hand.damping_n_s_per_m",
         h.damping_n_s_per_m,
         0.0,
         1e3,
         "0 ..= 1000 N·s/m",
     )?;
-    finite_in(
+    check::in_range(
         "haptics.hand.speed_m_s",
         h.speed_m_s,
         0.001,
         1.0,
         "0.001 ..= 1 m/s",
     )?;
-    finite_in(
+    check::in_range(
         "haptics.hand.push_force_n",
         h.push_force_n,
         0.0,
         10.0,
         "0 ..= 10 N",
     )?;
-    finite_in(
+    check::in_range(
         "haptics.hand.release_s",
         h.release_s,
         0.0,
         1e6,
         "0 ..= 1e6 s",
     )?;
-    finite_in(
+    check::in_range(
         "haptics.hand.approach_s",
         h.approach_s,
         0.0,
         60.0,
         "0 ..= 60 s",
     )?;
-    finite_in(
+    check::in_range(
         "haptics.hand.path_radius_m",
         h.path_radius_m,
         0.001,
