@@ -14,7 +14,7 @@ pub use crate::device::usb::UsbConfig;
 pub use crate::device::DeviceConfig;
 pub use crate::estimate::kalman::KalmanConfig;
 pub use crate::haptics::HapticsConfig;
-pub use crate::ident::IdentifierConfig;
+pub use crate::identifier::IdentifierConfig;
 use crate::omni::{Geometry, ModelParams};
 pub use crate::serve::ServeConfig;
 pub use crate::servo::realtime::RealtimeConfig;

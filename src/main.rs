@@ -109,20 +109,20 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
-    let pretune_cfg = omnid::ident::PretuneConfig {
+    let pretune_cfg = omnid::identifier::PretuneConfig {
         epochs: args.epochs,
         ..Default::default()
     };
     let bar = omnid::progress::bar(args.epochs as u64, "identify");
-    let result = omnid::identify::identify(
+    let result = omnid::log_pretune::identify(
         &args.logs,
         &args.out,
         &cfg,
         &pretune_cfg,
         Some(&stop),
         |p| match p {
-            omnid::ident::Progress::Batch { .. } => {}
-            omnid::ident::Progress::Epoch(r) => {
+            omnid::identifier::Progress::Batch { .. } => {}
+            omnid::identifier::Progress::Epoch(r) => {
                 bar.inc(1);
                 bar.suspend(|| omnid::errln!(
                     "epoch {:>3}/{}: train NRMSE {:.3} / {:.3} / {:.3}   validation {:.3} / {:.3} / {:.3}",

@@ -12,7 +12,7 @@ use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
 use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
-use crate::ident::{Identifier, WeightsFile};
+use crate::identifier::{Identifier, WeightsFile};
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, Servo, ServoReport};
 use crate::telemetry::reader::ReadError;

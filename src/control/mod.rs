@@ -17,7 +17,7 @@ pub use set::ControllerSet;
 
 use crate::config_check::{self as check, ConfigError};
 use crate::estimate::kalman::Estimate;
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::{Geometry, Joint3, ModelParams};
 use serde::{Deserialize, Serialize};
 

@@ -2,7 +2,7 @@
 //! catches a non-finite output.
 
 use super::{ControlInput, Controller};
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
 /// A controller whose output turns non-finite from time T on (`nan@T`).

@@ -14,8 +14,8 @@ mod haptics;
 
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
-use crate::ident::{Identifier, PretuneConfig, Progress, WeightsFile};
-use crate::identify::{identify, samples_from_log, IdentifyError};
+use crate::identifier::{Identifier, PretuneConfig, Progress, WeightsFile};
+use crate::log_pretune::{identify, samples_from_log, IdentifyError};
 use crate::output::OutputError;
 use crate::plot::figures::{Role, FIGURES};
 use crate::plot::render::{self, Figure, Line, Panel, FORMATS};

@@ -9,7 +9,7 @@ use super::access::{Access, Policy};
 use super::protocol::{Hello, Request, State, MAX_MESSAGE, PROTOCOL_VERSION};
 use super::socket::{Conn, Listener, Peer};
 use crate::control::{ControllerKind, Trajectory};
-use crate::ident::{Identifier, IdentifierConfig};
+use crate::identifier::{Identifier, IdentifierConfig};
 use crate::omni::kinematics::{tip_position_mm, Geometry};
 use crate::servo::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{ServoCommand, ServoEvent, ServoReply, Snapshot, Wake};
@@ -903,7 +903,7 @@ impl Hub {
                 Waiting::Save { client, id, path } => {
                     let result = match (&snap.weights, snap.weights_copied) {
                         (Some(w), true) => {
-                            crate::ident::weights::save(w, &path).map_err(|e| e.to_string())
+                            crate::identifier::weights::save(w, &path).map_err(|e| e.to_string())
                         }
                         _ => Err("the servo has no identifier of the configured sizes".into()),
                     };

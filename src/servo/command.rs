@@ -6,7 +6,7 @@
 
 use super::timing::TickTiming;
 use crate::control::{ControllerKind, Trajectory};
-use crate::ident::{Fault, Identifier};
+use crate::identifier::{Fault, Identifier};
 use crate::servo::summary::RunStats;
 use crate::telemetry::record::Mode;
 use std::os::fd::{AsRawFd, OwnedFd};

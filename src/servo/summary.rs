@@ -349,7 +349,7 @@ pub struct SummaryLabels<'a> {
 /// The identifier's state at the time of the summary.
 pub struct IdentifierState {
     pub adapt: bool,
-    pub fault: Option<crate::ident::Fault>,
+    pub fault: Option<crate::identifier::Fault>,
 }
 
 impl RunSummary {
@@ -520,7 +520,7 @@ mod tests {
             &TickTiming::new(1_000_000),
             IdentifierState {
                 adapt: true,
-                fault: Some(crate::ident::Fault::NonFiniteUpdate),
+                fault: Some(crate::identifier::Fault::NonFiniteUpdate),
             },
             0,
             0,
