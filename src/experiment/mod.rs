@@ -24,6 +24,7 @@ use crate::run::{
     execute, DeviceSpec, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
 };
 use crate::servo::summary::RunSummary;
+use crate::telemetry::reader::ColumnReader;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -632,29 +633,35 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
 /// Tracking RMS per joint over `from..to` s of a log: reference against the filtered angle,
 /// control ticks only.
 pub fn window_rms(log: &Path, from: f64, to: f64) -> Result<[f64; 3], ExperimentError> {
+    const COLUMNS: [&str; 8] = ["t", "mode", "ref1", "ref2", "ref3", "qf1", "qf2", "qf3"];
     let bad = |why: String| ExperimentError::ReadLog {
         path: log.to_path_buf(),
         why,
     };
-    let mut r = csv::Reader::from_path(log).map_err(|e| bad(e.to_string()))?;
-    let h = r.headers().map_err(|e| bad(e.to_string()))?.clone();
-    let col = |n: &str| {
-        h.iter()
-            .position(|x| x == n)
-            .ok_or_else(|| bad(format!("no column `{n}`")))
-    };
-    let (t, mode) = (col("t")?, col("mode")?);
+    // The one log reader (as replay, plot's input checks and identify use): named columns,
+    // every field checked, errors naming the line and the column.
+    let mut r = ColumnReader::open(log, &COLUMNS, false, None).map_err(|e| bad(e.to_string()))?;
+    let col = |n: &str| r.require(n, &COLUMNS).map_err(|e| bad(e.to_string()));
+    let mode = col("mode")?;
     let refs = [col("ref1")?, col("ref2")?, col("ref3")?];
     let qf = [col("qf1")?, col("qf2")?, col("qf3")?];
     let (mut s, mut n) = ([0.0; 3], 0.0);
-    let parse = |v: &str| v.parse::<f64>().map_err(|e| bad(format!("`{v}`: {e}")));
-    for rec in r.records() {
-        let rec = rec.map_err(|e| bad(e.to_string()))?;
-        let tt = parse(&rec[t])?;
-        if tt >= from && tt < to && &rec[mode] != "stop" {
+    while let Some(errors) = r
+        .next_with(|row| {
+            if row.t < from || row.t >= to || row.field(mode) == b"stop" {
+                return Ok(None);
+            }
+            let mut e = [0.0; 3];
             for j in 0..3 {
-                let e = parse(&rec[refs[j]])? - parse(&rec[qf[j]])?;
-                s[j] += e * e;
+                e[j] = row.f64(refs[j])? - row.f64(qf[j])?;
+            }
+            Ok(Some(e))
+        })
+        .map_err(|e| bad(e.to_string()))?
+    {
+        if let Some(e) = errors {
+            for j in 0..3 {
+                s[j] += e[j] * e[j];
             }
             n += 1.0;
         }
@@ -730,4 +737,35 @@ fn payload(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, 
     md.push_str("\n## Figures\n\n");
     md.push_str(&figs_md);
     Ok(md)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn window_rms_reads_through_the_log_reader_and_names_a_bad_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let log = dir.path().join("log.csv");
+        let head = "t,mode,ref1,ref2,ref3,qf1,qf2,qf3\n";
+        std::fs::write(
+            &log,
+            format!(
+                "{head}0.0,track,1,1,1,0,0,0\n0.001,track,3,1,1,0,0,0\n0.002,stop,9,9,9,0,0,0\n"
+            ),
+        )
+        .unwrap();
+        let rms = window_rms(&log, 0.0, 1.0).unwrap();
+        assert!(
+            (rms[0] - 5f64.sqrt()).abs() < 1e-12 && rms[1] == 1.0,
+            "{rms:?}"
+        );
+        std::fs::write(
+            &log,
+            format!("{head}0.0,track,1,1,1,0,0,0\n0.001,track,1,x,1,0,0,0\n"),
+        )
+        .unwrap();
+        let e = window_rms(&log, 0.0, 1.0).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("ref2"), "{e}");
+    }
 }
