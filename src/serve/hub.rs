@@ -470,56 +470,7 @@ impl Hub {
         let id = request.id().cloned();
         let id = id.as_ref();
         if !self.clients[i].greeted {
-            match request {
-                Request::Hello { protocol, name, .. } if protocol == PROTOCOL_VERSION => {
-                    let c = &mut self.clients[i];
-                    c.greeted = true;
-                    c.name = name.unwrap_or_default().chars().take(64).collect();
-                    let hello = Hello {
-                        protocol: PROTOCOL_VERSION,
-                        server: format!("omnid {}", env!("CARGO_PKG_VERSION")),
-                        device: self.s.device.clone(),
-                        rate_hz: self.s.rate_hz,
-                        access: c.access.as_str().into(),
-                        client: c.id,
-                        stream_ttl_ms: self.s.serve.stream_ttl_ms,
-                        controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
-                        modes: [
-                            "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
-                        ]
-                        .map(String::from)
-                        .into(),
-                    };
-                    let mut v = serde_json::to_value(hello).unwrap_or_default();
-                    v["type"] = json!("hello");
-                    if let Some(id) = id {
-                        v["id"] = id.clone();
-                    }
-                    self.queue_msg(i, v);
-                }
-                Request::Hello { protocol, .. } => {
-                    self.fail(
-                        i,
-                        id,
-                        op,
-                        format!(
-                            "protocol {protocol} is not supported: this daemon speaks \
-                             {PROTOCOL_VERSION}"
-                        ),
-                    );
-                    self.clients[i].closing = true;
-                }
-                _ => {
-                    self.fail(
-                        i,
-                        id,
-                        op,
-                        "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
-                    );
-                    self.clients[i].closing = true;
-                }
-            }
-            return;
+            return self.greet(i, id, op, request);
         }
         if request.commands() {
             if self.clients[i].access != Access::Control {
@@ -532,23 +483,7 @@ impl Hub {
         }
         match request {
             Request::Hello { .. } => self.fail(i, id, op, "already greeted".into()),
-            Request::Stream { rate_hz, .. } => {
-                if !(rate_hz.is_finite() && rate_hz >= 0.0) {
-                    return self.fail(i, id, op, format!("rate_hz {rate_hz}: allowed ≥ 0"));
-                }
-                let every = if rate_hz == 0.0 {
-                    0
-                } else {
-                    (self.s.rate_hz / rate_hz).round().max(1.0) as u64
-                };
-                self.clients[i].every = every;
-                let actual = if every == 0 {
-                    0.0
-                } else {
-                    self.s.rate_hz / every as f64
-                };
-                self.reply(i, op, id, json!({ "rate_hz": actual, "every": every }));
-            }
+            Request::Stream { rate_hz, .. } => self.set_stream(i, id, op, rate_hz),
             Request::Status { .. } => {
                 let client = self.clients[i].id;
                 self.ask_snapshot(Waiting::Status {
@@ -560,16 +495,7 @@ impl Hub {
                 let client = self.clients[i].id;
                 self.reply(i, op, id, json!({ "holder": client }));
             }
-            Request::Release { .. } => {
-                self.lease = None;
-                let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
-                self.reply(i, op, id, json!({}));
-                let client = self.clients[i].id;
-                self.broadcast(json!({
-                    "type": "event", "event": "lease", "holder": null,
-                    "message": format!("client {client} released the command lease"),
-                }));
-            }
+            Request::Release { .. } => self.release(i, id, op),
             Request::Mode {
                 mode, trajectory, ..
             } => self.mode(i, id, &mode, trajectory.as_deref()),
@@ -595,23 +521,7 @@ impl Hub {
                     self.send_servo(i, id, op, cmd, None);
                 }
             }
-            Request::Effect { slot, effect, .. } => {
-                if slot >= crate::haptics::MAX_EFFECTS {
-                    let max = crate::haptics::MAX_EFFECTS - 1;
-                    return self.fail(i, id, op, format!("slot {slot}: allowed 0 ..= {max}"));
-                }
-                if let Some(Err(why)) = effect.map(|e| e.validate("effect.")) {
-                    return self.fail(i, id, op, why);
-                }
-                let reply = json!({ "slot": slot, "effect": effect });
-                self.send_servo(
-                    i,
-                    id,
-                    op,
-                    ServoCommand::Effect { slot, effect },
-                    Some(reply),
-                );
-            }
+            Request::Effect { slot, effect, .. } => self.effect(i, id, op, slot, effect),
             Request::Passivity { on, .. } => self.send_servo(
                 i,
                 id,
@@ -652,29 +562,7 @@ impl Hub {
                     path: PathBuf::from(path),
                 });
             }
-            Request::WeightsLoad { path, .. } => {
-                // No stop flag: the hub never waits on a client's pipe (it is refused).
-                let mut loaded = match Identifier::from_weights_file(
-                    &self.s.identifier_cfg,
-                    std::path::Path::new(&path),
-                    None,
-                ) {
-                    Ok(id) => id,
-                    Err(e) => return self.fail(i, id, op, e.to_string()),
-                };
-                loaded.set_adapt(self.adapt);
-                let client = self.clients[i].id;
-                if self
-                    .s
-                    .commands
-                    .try_send(ServoCommand::LoadIdentifier(Box::new(loaded)))
-                    .is_ok()
-                {
-                    self.loads.push_back((client, id.cloned(), path));
-                } else {
-                    self.fail(i, id, op, "the servo is not taking commands".into());
-                }
-            }
+            Request::WeightsLoad { path, .. } => self.weights_load(i, id, op, path),
             Request::RecordStart { path, .. } => self.record_start(i, id, path),
             Request::RecordStop { .. } => match self.record_stop() {
                 Some((path, rows, error)) => {
@@ -688,6 +576,142 @@ impl Hub {
                 self.s.stop.store(true, Ordering::SeqCst);
                 self.reply(i, op, id, json!({}));
             }
+        }
+    }
+
+    /// A client's first message must be a hello in our protocol version; anything else
+    /// closes the connection after a reply saying why.
+    fn greet(&mut self, i: usize, id: Option<&Value>, op: &'static str, request: Request) {
+        match request {
+            Request::Hello { protocol, name, .. } if protocol == PROTOCOL_VERSION => {
+                let c = &mut self.clients[i];
+                c.greeted = true;
+                c.name = name.unwrap_or_default().chars().take(64).collect();
+                let hello = Hello {
+                    protocol: PROTOCOL_VERSION,
+                    server: format!("omnid {}", env!("CARGO_PKG_VERSION")),
+                    device: self.s.device.clone(),
+                    rate_hz: self.s.rate_hz,
+                    access: c.access.as_str().into(),
+                    client: c.id,
+                    stream_ttl_ms: self.s.serve.stream_ttl_ms,
+                    controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
+                    modes: [
+                        "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
+                    ]
+                    .map(String::from)
+                    .into(),
+                };
+                let mut v = serde_json::to_value(hello).unwrap_or_default();
+                v["type"] = json!("hello");
+                if let Some(id) = id {
+                    v["id"] = id.clone();
+                }
+                self.queue_msg(i, v);
+            }
+            Request::Hello { protocol, .. } => {
+                self.fail(
+                    i,
+                    id,
+                    op,
+                    format!(
+                        "protocol {protocol} is not supported: this daemon speaks \
+                         {PROTOCOL_VERSION}"
+                    ),
+                );
+                self.clients[i].closing = true;
+            }
+            _ => {
+                self.fail(
+                    i,
+                    id,
+                    op,
+                    "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
+                );
+                self.clients[i].closing = true;
+            }
+        }
+    }
+
+    /// Start (every `rate / rate_hz`-th tick) or stop (0) this client's state stream.
+    fn set_stream(&mut self, i: usize, id: Option<&Value>, op: &'static str, rate_hz: f64) {
+        if !(rate_hz.is_finite() && rate_hz >= 0.0) {
+            return self.fail(i, id, op, format!("rate_hz {rate_hz}: allowed ≥ 0"));
+        }
+        let every = if rate_hz == 0.0 {
+            0
+        } else {
+            (self.s.rate_hz / rate_hz).round().max(1.0) as u64
+        };
+        self.clients[i].every = every;
+        let actual = if every == 0 {
+            0.0
+        } else {
+            self.s.rate_hz / every as f64
+        };
+        self.reply(i, op, id, json!({ "rate_hz": actual, "every": every }));
+    }
+
+    /// Give the command lease back: a stream mode falls back as if its stream ended.
+    fn release(&mut self, i: usize, id: Option<&Value>, op: &'static str) {
+        self.lease = None;
+        let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
+        self.reply(i, op, id, json!({}));
+        let client = self.clients[i].id;
+        self.broadcast(json!({
+            "type": "event", "event": "lease", "holder": null,
+            "message": format!("client {client} released the command lease"),
+        }));
+    }
+
+    /// Put `effect` in `slot` (None clears it), checked here so the servo gets only valid ones.
+    fn effect(
+        &mut self,
+        i: usize,
+        id: Option<&Value>,
+        op: &'static str,
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+    ) {
+        if slot >= crate::haptics::MAX_EFFECTS {
+            let max = crate::haptics::MAX_EFFECTS - 1;
+            return self.fail(i, id, op, format!("slot {slot}: allowed 0 ..= {max}"));
+        }
+        if let Some(Err(why)) = effect.map(|e| e.validate("effect.")) {
+            return self.fail(i, id, op, why);
+        }
+        let reply = json!({ "slot": slot, "effect": effect });
+        self.send_servo(
+            i,
+            id,
+            op,
+            ServoCommand::Effect { slot, effect },
+            Some(reply),
+        );
+    }
+
+    /// Read a weights file here, off the servo thread, and hand the servo a ready identifier.
+    fn weights_load(&mut self, i: usize, id: Option<&Value>, op: &'static str, path: String) {
+        // No stop flag: the hub never waits on a client's pipe (it is refused).
+        let mut loaded = match Identifier::from_weights_file(
+            &self.s.identifier_cfg,
+            std::path::Path::new(&path),
+            None,
+        ) {
+            Ok(id) => id,
+            Err(e) => return self.fail(i, id, op, e.to_string()),
+        };
+        loaded.set_adapt(self.adapt);
+        let client = self.clients[i].id;
+        if self
+            .s
+            .commands
+            .try_send(ServoCommand::LoadIdentifier(Box::new(loaded)))
+            .is_ok()
+        {
+            self.loads.push_back((client, id.cloned(), path));
+        } else {
+            self.fail(i, id, op, "the servo is not taking commands".into());
         }
     }
 
