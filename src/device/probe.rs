@@ -365,7 +365,8 @@ fn run<B: FireWireBus, W: Write>(
     Ok(())
 }
 
-/// The capture with the amplifiers off, guided.
+/// The capture with the amplifiers off, guided. Long on purpose: it is the operator's script
+/// (prompt, wait, record, check), step by step in the order they are asked.
 fn capture_phase<B: FireWireBus, W: Write>(
     s: &mut Session<'_, B, W>,
     report: &mut ProbeReport,
@@ -581,7 +582,8 @@ fn hold<B: FireWireBus, W: Write>(
     Ok(moved)
 }
 
-/// The output steps; on any stop the caller sends safe packets and closes.
+/// The output steps; on any stop the caller sends safe packets and closes. Long on purpose:
+/// each step is confirmed by the operator before any torque, in the order they are asked.
 fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3], Stop> {
     let per_second = s.per_second();
     let counts = s.opts.pulse_counts.clamp(1, MAX_PULSE_COUNTS);

@@ -72,6 +72,8 @@ impl Default for SafetyConfig {
 }
 
 impl SafetyConfig {
+    /// Check every value; the first problem names its field (`safety.…`). Long on purpose:
+    /// one check per field in the fields' order.
     pub fn validate(&self) -> Result<(), ConfigError> {
         for j in 0..3 {
             let f = |name: &str| format!("safety.{name}[{j}]");
@@ -279,7 +281,9 @@ impl SafetyLayer {
         self.heat
     }
 
-    /// Pass one command through every limit. `q`, `qd`: the estimated joint state.
+    /// Pass one command through every limit. `q`, `qd`: the estimated joint state. Long on
+    /// purpose: the limits act in a fixed order (the order is part of the safety contract,
+    /// docs/DESIGN.md §4.7), and reading them top to bottom in one function shows it.
     pub fn apply(
         &mut self,
         tau_cmd: &Joint3,

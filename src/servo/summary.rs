@@ -405,7 +405,8 @@ impl RunSummary {
         }
     }
 
-    /// The printout at the end of a run.
+    /// The printout at the end of a run. Long on purpose: one line per figure, in the order
+    /// they are printed.
     pub fn human(&self) -> String {
         // A daemon's session follows whatever its clients asked for.
         let what = match self.trajectory.as_str() {
