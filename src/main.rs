@@ -509,23 +509,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
-        Err(e) if e.is_stopped() => {
-            omnid::errln!("omnid: {e}; nothing ran");
-            return Ok(EXIT_OPERATOR_STOP);
-        }
-        Err(e @ RunError::BadInput(_)) | Err(e @ RunError::Replay(_)) => {
-            omnid::errln!("omnid: {e}");
-            return Ok(EXIT_BAD_INPUT);
-        }
-        Err(e @ RunError::Device(_)) => {
-            omnid::errln!("omnid: {e}");
-            return Ok(EXIT_DEVICE_FAULT);
-        }
-        Err(e @ RunError::Log(_)) => {
-            omnid::errln!("omnid: {e}");
-            return Ok(EXIT_BAD_INPUT);
-        }
-        Err(e) => return Err(e.into()),
+        Err(e) => return run_failed(e),
     };
     omnid::out!("{}", outcome.summary.human());
     for w in &outcome.warnings {
@@ -537,6 +521,30 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         let json = serde_json::to_string_pretty(&outcome.summary)?;
         json_error = omnid::output::write_bytes(path, (json + "\n").as_bytes()).err();
     }
+    Ok(report_ending(&outcome, json_error))
+}
+
+/// The exit code of a run that could not start or ended in error, its message printed.
+fn run_failed(e: RunError) -> Result<u8, anyhow::Error> {
+    let code = match &e {
+        e if e.is_stopped() => {
+            omnid::errln!("omnid: {e}; nothing ran");
+            return Ok(EXIT_OPERATOR_STOP);
+        }
+        RunError::BadInput(_) | RunError::Replay(_) | RunError::Log(_) => EXIT_BAD_INPUT,
+        RunError::Device(_) => EXIT_DEVICE_FAULT,
+        _ => return Err(e.into()),
+    };
+    omnid::errln!("omnid: {e}");
+    Ok(code)
+}
+
+/// How the run ended, said on stderr (fault, dump, incomplete log or summary, dropped rows),
+/// and the exit code it gives.
+fn report_ending(
+    outcome: &omnid::run::RunOutcome,
+    json_error: Option<omnid::output::OutputError>,
+) -> u8 {
     let stopped = if outcome.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {
@@ -593,7 +601,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
             outcome.summary.telemetry_dropped
         );
     }
-    Ok(code)
+    code
 }
 
 const EXIT_REFUSED: u8 = 1;
