@@ -465,6 +465,8 @@ impl Hub {
         }
     }
 
+    /// One request from client `i`. Long only in its match: one arm per request op, each a
+    /// call or a few lines, so the whole protocol reads in one place.
     fn handle(&mut self, i: usize, request: Request) {
         let op = request.op();
         let id = request.id().cloned();
