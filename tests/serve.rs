@@ -367,6 +367,56 @@ while True:
 }
 
 #[test]
+fn a_holder_that_asked_for_idle_leaves_zero_torque_when_killed() {
+    let d = Daemon::start(&[]);
+    let mut watcher = d.client("watcher");
+    watcher
+        .request(json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    // A haptic program: it takes the lease asking for `idle`, streams forces, is killed.
+    let script = r#"
+import json, socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+s.connect(sys.argv[1])
+s.send(json.dumps({"op": "hello", "protocol": 1, "name": "haptic"}).encode())
+s.recv(65536)
+s.send(json.dumps({"op": "lease", "fallback": "idle", "id": 1}).encode())
+while True:
+    m = json.loads(s.recv(65536))
+    if m.get("id") == 1:
+        assert m["type"] == "reply" and m["fallback"] == "idle", m
+        break
+s.send(json.dumps({"op": "stream", "rate_hz": 1000}).encode())
+while True:
+    m = json.loads(s.recv(65536))
+    if m.get("type") == "state":
+        s.send(json.dumps({"op": "servo_cf", "seq": m["seq"], "force": [0.3, 0.0, 0.0], "ttl_ms": 1000}).encode())
+"#;
+    let mut victim = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&d.socket)
+        .spawn()
+        .expect("python3 runs");
+    states_until(&mut watcher, 10_000, |s| {
+        s.mode == "servo_cf" && s.cmd_seq > 0
+    });
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+    let seen = states_until(&mut watcher, 2000, |s| s.mode != "servo_cf");
+    let first = seen.last().unwrap();
+    // Idle: amplifiers off and no torque, not a hold at the pose (the config's default).
+    assert_eq!(first.mode, "idle");
+    assert!(!first.amps && first.tau == [0.0; 3], "{first:?}");
+    // The next holder that asks nothing gets the config's fallback again.
+    let mut next = d.client("next");
+    let r = next.request(json!({"op": "lease"})).unwrap();
+    assert_eq!(r["fallback"], "hold", "{r}");
+    let e = refused(next.request(json!({"op": "lease", "fallback": "drop"})));
+    assert!(e.contains("hold, idle or free"), "{e}");
+}
+
+#[test]
 fn controller_switches_mid_motion_are_bumpless() {
     let d = Daemon::start(&["--controller", "pd"]);
     let mut c = d.client("switcher");

@@ -8,11 +8,12 @@
 use super::access::{Access, Policy};
 use super::protocol::{Hello, Request, State, MAX_MESSAGE, PROTOCOL_VERSION};
 use super::socket::{Conn, Listener, Peer};
+use super::StaleFallback;
 use crate::control::{ControllerKind, Trajectory};
 use crate::identifier::{Identifier, IdentifierConfig};
 use crate::omni::kinematics::{tip_position_mm, Geometry};
 use crate::servo::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabels};
-use crate::servo::{ServoCommand, ServoEvent, ServoReply, Snapshot, Wake};
+use crate::servo::{Activity, ServoCommand, ServoEvent, ServoReply, Snapshot, Wake};
 use crate::telemetry::record::{LogSchema, Mode, TickRecord};
 use crate::telemetry::writer::dump_rows;
 use crate::telemetry::{spawn_writer, LogError, LogFile, WriterReport};
@@ -162,6 +163,8 @@ pub struct Hub {
     clients: Vec<Client>,
     next_id: u64,
     lease: Option<u64>,
+    /// The stream fallback the holder chose (`lease` with `fallback`), if it did.
+    lease_fallback: Option<Activity>,
     /// One snapshot box circulates: here when `Some`, at the servo otherwise.
     spare: Option<Box<Snapshot>>,
     waiting: Vec<Waiting>,
@@ -198,6 +201,7 @@ impl Hub {
             clients: Vec::new(),
             next_id: 1,
             lease: None,
+            lease_fallback: None,
             spare,
             waiting: Vec::new(),
             loads: VecDeque::new(),
@@ -424,8 +428,7 @@ impl Hub {
         c.dead = true;
         let id = c.id;
         if self.lease == Some(id) {
-            self.lease = None;
-            let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
+            self.end_lease();
             self.broadcast(json!({
                 "type": "event", "event": "lease", "holder": null,
                 "message": format!("client {id} left; the command lease is free"),
@@ -493,10 +496,7 @@ impl Hub {
                     id: id.cloned(),
                 });
             }
-            Request::Lease { .. } => {
-                let client = self.clients[i].id;
-                self.reply(i, op, id, json!({ "holder": client }));
-            }
+            Request::Lease { fallback, .. } => self.lease(i, id, op, fallback.as_deref()),
             Request::Release { .. } => self.release(i, id, op),
             Request::Mode {
                 mode, trajectory, ..
@@ -654,10 +654,62 @@ impl Hub {
         self.reply(i, op, id, json!({ "rate_hz": actual, "every": every }));
     }
 
-    /// Give the command lease back: a stream mode falls back as if its stream ended.
-    fn release(&mut self, i: usize, id: Option<&Value>, op: &'static str) {
+    /// The lease (taken before any command runs), with this holder's stream fallback.
+    fn lease(&mut self, i: usize, id: Option<&Value>, op: &'static str, fallback: Option<&str>) {
+        let to = match fallback {
+            None => None,
+            Some("hold") => Some(Activity::Hold),
+            Some("idle") => Some(Activity::Idle),
+            Some("free") => Some(Activity::Free),
+            Some(other) => {
+                let why = format!("fallback `{other}`: expected hold, idle or free");
+                return self.fail(i, id, op, why);
+            }
+        };
+        if let Some(to) = to {
+            if self
+                .s
+                .commands
+                .try_send(ServoCommand::Fallback(to))
+                .is_err()
+            {
+                return self.fail(i, id, op, "the servo is not taking commands".into());
+            }
+            self.lease_fallback = Some(to);
+        }
+        let client = self.clients[i].id;
+        let fallback = self.current_fallback();
+        self.reply(i, op, id, json!({ "holder": client, "fallback": fallback }));
+    }
+
+    /// The fallback's name: the holder's choice, else the config's.
+    fn current_fallback(&self) -> &'static str {
+        match self.lease_fallback {
+            Some(a) => a.mode().as_str(),
+            None => match self.s.serve.stale_fallback {
+                StaleFallback::Hold => "hold",
+                StaleFallback::Idle => "idle",
+            },
+        }
+    }
+
+    /// The lease is free again: a stream falls back (the holder's choice), then the config's
+    /// fallback is back for the next holder.
+    fn end_lease(&mut self) {
         self.lease = None;
         let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
+        if self.lease_fallback.take().is_some() {
+            let to = match self.s.serve.stale_fallback {
+                StaleFallback::Hold => Activity::Hold,
+                StaleFallback::Idle => Activity::Idle,
+            };
+            let _ = self.s.commands.try_send(ServoCommand::Fallback(to));
+        }
+    }
+
+    /// Give the command lease back: a stream mode falls back as if its stream ended.
+    fn release(&mut self, i: usize, id: Option<&Value>, op: &'static str) {
+        self.end_lease();
         self.reply(i, op, id, json!({}));
         let client = self.clients[i].id;
         self.broadcast(json!({

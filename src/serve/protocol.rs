@@ -36,6 +36,11 @@ pub enum Request {
     },
     /// Take the command lease (also taken by any command while it is free).
     Lease {
+        /// Where this holder's stream falls back when it goes stale or the holder leaves:
+        /// "hold", "idle" or "free" (default: the config's `serve.stale_fallback`). Haptic
+        /// programs ask for "idle" or "free", so a crash leaves no force of theirs.
+        #[serde(default)]
+        fallback: Option<String>,
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
@@ -177,7 +182,7 @@ impl Request {
             Request::Hello { id, .. }
             | Request::Stream { id, .. }
             | Request::Status { id }
-            | Request::Lease { id }
+            | Request::Lease { id, .. }
             | Request::Release { id }
             | Request::Mode { id, .. }
             | Request::Hold { id }

@@ -97,6 +97,8 @@ pub enum ServoCommand {
     Passivity(bool),
     /// The stream's owner is gone: leave a stream mode now.
     StreamEnded,
+    /// Where a stale or abandoned stream falls back to from now on (`Hold`, `Idle` or `Free`).
+    Fallback(Activity),
     /// Switch the control law (bumpless).
     Controller(ControllerKind),
     /// Resume (`true`) or freeze (`false`) online adaptation.

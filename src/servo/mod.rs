@@ -706,6 +706,11 @@ impl Servo {
                         self.event = Some(ServoEvent::StreamEnded { fallback });
                     }
                 }
+                ServoCommand::Fallback(to) => {
+                    if let Some(link) = self.link.as_mut() {
+                        link.stale_fallback = to;
+                    }
+                }
                 ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
                 ServoCommand::Adapt(on) => {
                     if let Some(id) = self.identifier.as_mut() {
