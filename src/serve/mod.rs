@@ -6,6 +6,7 @@
 pub mod access;
 pub mod client;
 pub mod config;
+pub mod device_info;
 pub mod hub;
 pub mod protocol;
 pub mod socket;
@@ -235,6 +236,7 @@ pub fn prepare(
         policy,
         serve: cfg.serve.clone(),
         device: opts.device.name().to_string(),
+        serial: pipeline.servo.device_serial(),
         rate_hz: cfg.device.rate_hz,
         period_ns: (1e9 / cfg.device.rate_hz).round() as u64,
         schema: pipeline.schema,

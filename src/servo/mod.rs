@@ -222,6 +222,11 @@ impl Servo {
         self.activity = Activity::Idle;
     }
 
+    /// The device's serial number, when its backend knows one (the daemon's hello).
+    pub fn device_serial(&self) -> Option<String> {
+        self.device.serial().map(String::from)
+    }
+
     pub fn activity(&self) -> Activity {
         self.activity
     }
@@ -422,6 +427,7 @@ impl Servo {
                 seq: self.tick,
                 buttons: packet.buttons,
                 inkwell: packet.inkwell,
+                gimbal: packet.gimbal,
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
                 event,
