@@ -72,7 +72,7 @@ impl HD {
                 prefix,
                 bin,
             };
-            for name in ["abi", "chai", "ros", "jhu", "vrpn", "nodaemon"] {
+            for name in ["abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench"] {
                 hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
             }
             hd.compile("abi_cpp", "abi.c", "c++", &["-x", "c++", "-std=c++11"]);
