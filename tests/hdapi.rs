@@ -361,6 +361,7 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
         .stderr(Stdio::inherit())
         .spawn()
         .expect("chai replay starts");
+    let _watchdog = hd::Watchdog::new(&chai, Duration::from_secs(60));
     let mut lines = BufReader::new(chai.stdout.take().unwrap()).lines();
     let mut printed = String::new();
     for line in lines.by_ref() {
@@ -413,4 +414,26 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
             _ => {}
         }
     }
+}
+
+/// The daemon stopping under a running program is a communication error in its servo
+/// callback (which ends on it), never a hang.
+#[test]
+fn a_daemon_that_stops_is_a_communication_error_in_the_servo_callback() {
+    let hd = HD::get();
+    let mut daemon = Daemon::start(&[]);
+    let mut child = std::process::Command::new(hd.exe("gone"))
+        .env("OMNID_SOCKET", &daemon.socket)
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("starts");
+    let watchdog = hd::Watchdog::new(&child, Duration::from_secs(60));
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    assert_eq!(lines.next().unwrap().unwrap(), "running");
+    daemon.stop();
+    let rest: Vec<String> = lines.map(|l| l.unwrap()).collect();
+    let status = child.wait().unwrap();
+    drop(watchdog);
+    assert!(status.success(), "{status}: {rest:?}");
+    assert_eq!(rest, ["servo-error 0x302"]);
 }

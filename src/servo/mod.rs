@@ -673,12 +673,15 @@ impl Servo {
         // The stop row: the reply's state when one comes back, else the last known state.
         let period = 1e-9 * self.period_ns as f64;
         let (mut t, mut q, mut enc) = (self.last_t + period, self.last_q, self.last_enc);
+        // Mid-scale (0 rad) unless the reply says otherwise.
+        let mut gimbal = [0x8000; 3];
         match self.device.exchange(&bytes) {
             Ok(raw) => {
                 if let Some(t0) = self.t0 {
                     t = (raw.device_time_s - t0).max(self.last_t);
                 }
                 if let Ok(p) = decode_state(raw.packet()) {
+                    gimbal = p.gimbal;
                     enc = self.unwrap.update(p.encoder);
                     q = enc.map(|c| c as f64 * self.rad_per_count);
                 }
@@ -707,6 +710,7 @@ impl Servo {
                 seq: self.tick,
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
+                gimbal,
                 ..Live::default()
             },
         });

@@ -72,7 +72,9 @@ impl HD {
                 prefix,
                 bin,
             };
-            for name in ["abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench"] {
+            for name in [
+                "abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench", "gone",
+            ] {
                 hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
             }
             hd.compile("abi_cpp", "abi.c", "c++", &["-x", "c++", "-std=c++11"]);
@@ -131,28 +133,53 @@ pub fn run(exe: PathBuf, args: &[&str], env: &[(&str, &str)]) -> String {
     stdout
 }
 
-/// The child's output, killing it after `limit` (a hang fails the test instead of CI).
-pub fn wait_output(mut child: Child, limit: Duration) -> std::process::Output {
-    let pid = child.id();
-    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let watchdog = {
-        let done = done.clone();
-        std::thread::spawn(move || {
-            let until = Instant::now() + limit;
-            while Instant::now() < until {
-                if done.load(std::sync::atomic::Ordering::SeqCst) {
-                    return;
+/// Kills a child that outlives `limit` (a hang fails the test instead of stalling CI);
+/// disarmed when dropped.
+pub struct Watchdog {
+    done: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Watchdog {
+    pub fn new(child: &Child, limit: Duration) -> Watchdog {
+        let pid = child.id();
+        let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let thread = {
+            let done = done.clone();
+            std::thread::spawn(move || {
+                let until = Instant::now() + limit;
+                while Instant::now() < until {
+                    if done.load(std::sync::atomic::Ordering::SeqCst) {
+                        return;
+                    }
+                    std::thread::sleep(Duration::from_millis(50));
                 }
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            // SAFETY: kill on the pid of our own child, still unreaped (we hold it).
-            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
-        })
-    };
-    let _ = child.stdin.take();
+                // SAFETY: kill on the pid of our own child; its owner reaps it only when it
+                // exits, so at the limit the pid is still ours (or a zombie of ours).
+                unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+            })
+        };
+        Watchdog {
+            done,
+            thread: Some(thread),
+        }
+    }
+}
+
+impl Drop for Watchdog {
+    fn drop(&mut self) {
+        self.done.store(true, std::sync::atomic::Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The child's output, killing it after `limit`.
+pub fn wait_output(child: Child, limit: Duration) -> std::process::Output {
+    let watchdog = Watchdog::new(&child, limit);
     let out = child.wait_with_output().unwrap();
-    done.store(true, std::sync::atomic::Ordering::SeqCst);
-    let _ = watchdog.join();
+    drop(watchdog);
     out
 }
 
@@ -196,6 +223,15 @@ impl Daemon {
             std::thread::sleep(Duration::from_millis(20));
         }
         d
+    }
+
+    /// Stop the daemon (SIGTERM: zero torque, goodbye to every client) and wait for it.
+    pub fn stop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            // SAFETY: kill on our own child's pid, not yet reaped.
+            unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
+            let _ = c.wait();
+        }
     }
 
     pub fn client(&self, name: &str) -> Client {

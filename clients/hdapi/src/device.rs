@@ -207,6 +207,11 @@ impl Device {
         lock(&self.inbox.0).inkwell_seen
     }
 
+    /// The daemon closed the connection (or said goodbye).
+    pub fn is_closed(&self) -> bool {
+        lock(&self.inbox.0).closed
+    }
+
     /// The device's rate as measured over the last two samples, Hz.
     pub fn instantaneous_rate(&self) -> f64 {
         let dt = lock(&self.inbox.0).dt;
@@ -239,8 +244,9 @@ impl Device {
     }
 
     /// `hdBeginFrame`: the outermost begin snapshots the latest sample and clears the forces
-    /// (a force not set in a frame is zero, never carried over).
-    pub fn begin_frame(&self) {
+    /// (a force not set in a frame is zero, never carried over). False when the daemon is
+    /// gone (the frame still opens, on the last sample).
+    pub fn begin_frame(&self) -> bool {
         let latest = self.latest();
         let mut f = lock(&self.frame);
         f.depth += 1;
@@ -251,6 +257,7 @@ impl Device {
             f.gimbal_torque = [0.0; 3];
             f.torque = [0.0; 3];
         }
+        !self.is_closed()
     }
 
     /// `hdEndFrame`: the outermost end commits the frame's force (when `force_output`).

@@ -139,7 +139,11 @@ pub extern "C" fn hdGetCurrentDevice() -> u32 {
 #[no_mangle]
 pub extern "C" fn hdBeginFrame(hhd: u32) {
     guard((), || match REGISTRY.get(hhd) {
-        Some(d) => d.begin_frame(),
+        Some(d) => {
+            if !d.begin_frame() {
+                error::push(HD_COMM_ERROR, Internal::Refused, hhd);
+            }
+        }
         None => error::push(HD_BAD_HANDLE, Internal::None, hhd),
     })
 }

@@ -80,6 +80,12 @@ impl Ticker for Registry {
     fn wait_tick(&self, seen: u64) -> Option<u64> {
         let first = lock(&self.devices).iter().flatten().next().cloned();
         match first {
+            Some(d) if d.is_closed() => {
+                // The daemon is gone: keep ticking slowly so callbacks see HD_COMM_ERROR in
+                // their frames and synchronous calls return (docs/HDAPI.md, Scheduler).
+                std::thread::sleep(Duration::from_millis(10));
+                Some(seen + 1)
+            }
             Some(d) => {
                 let seen = seen.min(d.samples());
                 d.wait_sample(seen, Duration::from_millis(100))
