@@ -12,6 +12,15 @@ public:
     hduMatrix() { makeIdentity(); }
     explicit hduMatrix(const double *p) { set(p); }
     hduMatrix(const double m[4][4]) { set(&m[0][0]); }
+    /* Sixteen values in storage order: a00 a01 a02 a03 is m[0][0..3] (the first column). */
+    hduMatrix(double a00, double a01, double a02, double a03, double a10, double a11, double a12,
+              double a13, double a20, double a21, double a22, double a23, double a30, double a31,
+              double a32, double a33)
+    {
+        const double p[16] = {a00, a01, a02, a03, a10, a11, a12, a13,
+                              a20, a21, a22, a23, a30, a31, a32, a33};
+        set(p);
+    }
 
     void set(const double *p) { for (int i = 0; i < 16; ++i) (&m_[0][0])[i] = p[i]; }
     void get(double *p) const { for (int i = 0; i < 16; ++i) p[i] = (&m_[0][0])[i]; }
@@ -49,6 +58,15 @@ public:
         out = t;
     }
     void getTranslation(hduVector3Dd &t) const { t.set(m_[3][0], m_[3][1], m_[3][2]); }
+    /* This matrix without its translation (the rotation part alone). */
+    void getRotationMatrix(hduMatrix &r) const
+    {
+        hduMatrix out(*this);
+        out.m_[3][0] = out.m_[3][1] = out.m_[3][2] = 0.0;
+        out.m_[0][3] = out.m_[1][3] = out.m_[2][3] = 0.0;
+        out.m_[3][3] = 1.0;
+        r = out;
+    }
 
 private:
     double m_[4][4];

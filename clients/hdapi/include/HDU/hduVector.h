@@ -42,9 +42,10 @@ private:
 
 template <typename T> hduVector3D<T> operator+(hduVector3D<T> a, const hduVector3D<T> &b) { return a += b; }
 template <typename T> hduVector3D<T> operator-(hduVector3D<T> a, const hduVector3D<T> &b) { return a -= b; }
-template <typename T> hduVector3D<T> operator*(hduVector3D<T> a, T s) { return a *= s; }
-template <typename T> hduVector3D<T> operator*(T s, hduVector3D<T> a) { return a *= s; }
-template <typename T> hduVector3D<T> operator/(hduVector3D<T> a, T s) { return a /= s; }
+/* The scalar is not deduced, so `v * 3` and `v / 2` work for a vector of doubles. */
+template <typename T> hduVector3D<T> operator*(hduVector3D<T> a, typename hduVector3D<T>::EltType s) { return a *= s; }
+template <typename T> hduVector3D<T> operator*(typename hduVector3D<T>::EltType s, hduVector3D<T> a) { return a *= s; }
+template <typename T> hduVector3D<T> operator/(hduVector3D<T> a, typename hduVector3D<T>::EltType s) { return a /= s; }
 template <typename T> bool operator==(const hduVector3D<T> &a, const hduVector3D<T> &b)
 {
     return a[0] == b[0] && a[1] == b[1] && a[2] == b[2];

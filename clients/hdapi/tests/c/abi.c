@@ -84,6 +84,13 @@ int main(void)
         hduVector3Dd p;
         m.multVecMatrix(a, p);
         hduQuaternion q(m);
+        /* The ROS driver's uses: 16 scalars, the rotation part, integer scale, division. */
+        hduMatrix offset(0.0, -1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0);
+        hduMatrix rotation;
+        m.getRotationMatrix(rotation);
+        hduQuaternion r(offset * rotation);
+        hduVector3Dd v = (a * 3 - 4 * b + a) / 0.002;
+        printf("ROS %.1f %.3f %.1f\n", rotation[3][0], r.norm(), v[0]);
         printf("HDU %.1f %.1f %.1f %.1f %.3f\n", (a + b).magnitude() * 0 + a.dotProduct(b), p[0], p[1],
                p[2], q.norm());
     }
