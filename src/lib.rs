@@ -36,6 +36,7 @@ macro_rules! errln {
 }
 
 pub mod config;
+pub mod config_check;
 pub mod control;
 pub mod device;
 pub mod estimate;

@@ -218,7 +218,7 @@ fn open_device(
     match &opts.device {
         DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, !opts.fast))),
         DeviceSpec::Replay(path) => {
-            let device = ReplayDevice::open(path, cfg, !opts.fast, opts.lenient, stop)?
+            let device = ReplayDevice::open(path, &cfg.device, !opts.fast, opts.lenient, stop)?
                 .with_duration_limit(opts.duration_s.is_finite().then_some(opts.duration_s));
             if device.info().skipped.count > 0 {
                 warnings.push(format!(

@@ -154,7 +154,7 @@ fn replay_allocates_nothing_per_tick() {
     omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
 
     let device = Box::new(
-        omnid::device::replay::ReplayDevice::open(&log, &cfg, false, false, &Arc::default())
+        omnid::device::replay::ReplayDevice::open(&log, &cfg.device, false, false, &Arc::default())
             .unwrap(),
     );
     let reference = Reference::new(Trajectory::Multisine, &cfg.reference, cfg.sim.seed);

@@ -1,7 +1,6 @@
 //! Malformed logs: every case is a typed error naming the file, the line and the column, never
 //! a panic; `--lenient` skips and counts; random bytes never panic the reader.
 
-use omnid::config::Config;
 use omnid::device::replay::{ReplayDevice, ReplayError};
 use omnid::telemetry::reader::{LogReader, ReadError, MAX_ROW_BYTES};
 use omnid::telemetry::record::Mode;
@@ -30,7 +29,7 @@ fn error_of(name: &str, text: &str) -> (ReadError, String) {
     assert!(msg.contains(name), "message does not name the file: {msg}");
     assert!(!msg.contains('\n'), "one line: {msg}");
     // The replay device refuses it with the same message, before anything runs.
-    match ReplayDevice::open(&path, &Config::default(), false, false, &Arc::default()) {
+    match ReplayDevice::open(&path, &Default::default(), false, false, &Arc::default()) {
         Err(ReplayError::Read(r)) => assert_eq!(r.to_string(), msg),
         Err(other) => panic!("replay: another error: {other}"),
         Ok(_) => panic!("replay accepted it"),
@@ -198,7 +197,7 @@ fn empty_file() {
 fn header_only_file_has_nothing_to_replay() {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, "header.csv", HEADER);
-    let e = ReplayDevice::open(&path, &Config::default(), false, false, &Arc::default())
+    let e = ReplayDevice::open(&path, &Default::default(), false, false, &Arc::default())
         .err()
         .unwrap();
     assert!(matches!(e, ReplayError::NoRows { .. }));
@@ -227,7 +226,7 @@ fn lenient_counts_skipped_rows_and_where() {
         .unwrap()
         .collect::<Result<Vec<_>, _>>()
         .is_err());
-    let dev = ReplayDevice::open(&path, &Config::default(), false, true, &Arc::default()).unwrap();
+    let dev = ReplayDevice::open(&path, &Default::default(), false, true, &Arc::default()).unwrap();
     let info = dev.info();
     assert_eq!(info.rows, 200 - 8);
     assert_eq!(info.skipped.count, 9);
@@ -244,7 +243,7 @@ fn lenient_counts_skipped_rows_and_where() {
 fn lenient_with_nothing_good_left_is_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let path = file(&dir, "junk.csv", &format!("{HEADER}a,b,c,d,e,f,g\nx\n"));
-    let e = ReplayDevice::open(&path, &Config::default(), false, true, &Arc::default())
+    let e = ReplayDevice::open(&path, &Default::default(), false, true, &Arc::default())
         .err()
         .unwrap();
     let msg = e.to_string();
@@ -348,7 +347,7 @@ proptest! {
     fn replay_open_never_panics(body in "[0-9.,\\n-]{0,400}", lenient in any::<bool>()) {
         let dir = tempfile::tempdir().unwrap();
         let path = file(&dir, "fuzz.csv", &format!("{HEADER}{body}"));
-        let _ = ReplayDevice::open(&path, &Config::default(), false, lenient, &Arc::default());
+        let _ = ReplayDevice::open(&path, &Default::default(), false, lenient, &Arc::default());
     }
 }
 

@@ -3,8 +3,8 @@
 //! What a lab with an identified parametric model would run; the oracle NNIDC is measured
 //! against on the simulator.
 
+use super::ControlSetup;
 use super::{ControlInput, Controller, RefPoint};
-use crate::config::Config;
 use crate::estimate::kalman::Estimate;
 use crate::ident::Identifier;
 use crate::omni::{Dynamics, Joint3};
@@ -17,7 +17,8 @@ pub struct OuterLoop {
 }
 
 impl OuterLoop {
-    pub fn from_config(cfg: &Config) -> Self {
+    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+        let cfg = cfg.into();
         let w = cfg.control.omega_n;
         OuterLoop {
             kp: w * w,
@@ -43,8 +44,9 @@ impl ComputedTorque {
 
     /// CT with the configured model: the plant's parameters scaled by `ct_model_scale`,
     /// friction compensation as configured.
-    pub fn from_config(cfg: &Config) -> Self {
-        let mut model = Dynamics::new(cfg.model.scaled(cfg.control.ct_model_scale), cfg.geometry);
+    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+        let cfg = cfg.into();
+        let mut model = Dynamics::new(cfg.model.scaled(cfg.control.ct_model_scale), *cfg.geometry);
         model.friction = cfg.control.ct_friction;
         ComputedTorque::new(model, OuterLoop::from_config(cfg))
     }
@@ -69,6 +71,7 @@ impl Controller for ComputedTorque {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
 
     #[test]
     fn on_the_reference_ct_is_the_model_inverse_dynamics() {

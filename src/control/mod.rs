@@ -10,12 +10,70 @@ pub mod set;
 pub use ct::{ComputedTorque, OuterLoop};
 pub use nnidc::Nnidc;
 pub use pd::{Off, Pd};
-pub use reference::{RefPoint, Reference, Trajectory};
+pub use reference::{RefPoint, Reference, ReferenceConfig, Trajectory};
 pub use set::ControllerSet;
 
+use crate::config_check::{self as check, ConfigError};
 use crate::estimate::kalman::Estimate;
 use crate::ident::Identifier;
-use crate::omni::Joint3;
+use crate::omni::{Geometry, Joint3, ModelParams};
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControlConfig {
+    /// Closed-loop natural frequency, rad/s (K_p = ω², K_d = 2ζω, scaled by M₀ for PD).
+    pub omega_n: f64,
+    /// Closed-loop damping ratio.
+    pub zeta: f64,
+    /// Computed torque: its rigid-body model is the plant's parameters times this factor.
+    pub ct_model_scale: f64,
+    /// Computed torque: also compensate the model's viscous and Coulomb friction.
+    pub ct_friction: bool,
+}
+
+impl Default for ControlConfig {
+    fn default() -> Self {
+        ControlConfig {
+            omega_n: 25.0,
+            zeta: 1.0,
+            ct_model_scale: 1.0,
+            ct_friction: false,
+        }
+    }
+}
+
+impl ControlConfig {
+    /// Check every value; the first problem names its field (`control.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check::in_range(
+            "control.omega_n",
+            self.omega_n,
+            0.1,
+            200.0,
+            "0.1 ..= 200 rad/s",
+        )?;
+        check::in_range("control.zeta", self.zeta, 0.05, 10.0, "0.05 ..= 10")?;
+        check::in_range(
+            "control.ct_model_scale",
+            self.ct_model_scale,
+            0.1,
+            10.0,
+            "0.1 ..= 10",
+        )
+    }
+}
+
+/// The sections of the configuration the control laws are built from (a `&Config` gives
+/// them).
+#[derive(Debug, Clone, Copy)]
+pub struct ControlSetup<'a> {
+    pub control: &'a ControlConfig,
+    pub model: &'a ModelParams,
+    pub geometry: &'a Geometry,
+    /// PD's nominal inertia is taken at the reference's centre.
+    pub reference: &'a ReferenceConfig,
+}
 
 /// What a controller sees each tick.
 #[derive(Debug, Clone, Copy)]
@@ -42,7 +100,11 @@ pub trait Controller: Send {
 }
 
 /// A fresh law of `kind` from the config.
-pub fn make_controller(kind: ControllerKind, cfg: &crate::config::Config) -> Box<dyn Controller> {
+pub fn make_controller<'a>(
+    kind: ControllerKind,
+    cfg: impl Into<ControlSetup<'a>>,
+) -> Box<dyn Controller> {
+    let cfg = cfg.into();
     match kind {
         ControllerKind::Pd => Box::new(Pd::from_config(cfg)),
         ControllerKind::Off => Box::new(Off),

@@ -5,8 +5,8 @@
 
 use super::ct::OuterLoop;
 use super::pd::Pd;
+use super::ControlSetup;
 use super::{ControlInput, Controller};
-use crate::config::Config;
 use crate::ident::Identifier;
 use crate::omni::Joint3;
 
@@ -17,7 +17,8 @@ pub struct Nnidc {
 }
 
 impl Nnidc {
-    pub fn from_config(cfg: &Config) -> Self {
+    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+        let cfg = cfg.into();
         Nnidc {
             gains: OuterLoop::from_config(cfg),
             fallback: Pd::from_config(cfg),
@@ -66,6 +67,7 @@ impl Controller for Nnidc {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::control::RefPoint;
     use crate::estimate::kalman::Estimate;
 

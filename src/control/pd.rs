@@ -2,8 +2,8 @@
 //! inertia at the workspace centre, so that it is comparable with CT and NNIDC. No gravity
 //! compensation: that is what the model-based controllers add.
 
+use super::ControlSetup;
 use super::{ControlInput, Controller};
-use crate::config::Config;
 use crate::ident::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
@@ -18,8 +18,9 @@ impl Pd {
     }
 
     /// The baseline gains from the config.
-    pub fn from_config(cfg: &Config) -> Self {
-        let nominal = Dynamics::new(cfg.model, cfg.geometry);
+    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+        let cfg = cfg.into();
+        let nominal = Dynamics::new(*cfg.model, *cfg.geometry);
         let m0 = nominal.mass(&Joint3::from(cfg.reference.center)).diagonal();
         let w = cfg.control.omega_n;
         Pd::new(m0 * (w * w), m0 * (2.0 * cfg.control.zeta * w))
@@ -58,6 +59,7 @@ impl Controller for Off {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::control::RefPoint;
     use crate::estimate::kalman::Estimate;
 

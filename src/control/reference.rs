@@ -1,11 +1,112 @@
 //! Reference trajectories (sine, multisine, hold) and the quintic blend from the pose at start
 //! onto them, so that start-up never kicks.
 
-use crate::config::ReferenceConfig;
+use crate::config_check::{self as check, ConfigError};
 use crate::omni::Joint3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReferenceConfig {
+    /// Mid-workspace pose the trajectories move about, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
+    pub center: [f64; 3],
+    /// Sine amplitudes, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
+    pub amplitude: [f64; 3],
+    /// Sine frequency, Hz.
+    pub frequency_hz: f64,
+    /// Duration of the quintic blend from the start pose onto the reference, s.
+    pub blend_s: f64,
+    /// Tracking statistics start here (after the blend and its transient), s.
+    pub settle_s: f64,
+    /// Multisine: amplitude per joint (sum over components), rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
+    pub multisine_amplitude: [f64; 3],
+    /// Multisine: lowest and highest component frequency, Hz.
+    #[serde(deserialize_with = "crate::config_check::exact")]
+    pub multisine_band_hz: [f64; 2],
+    /// Multisine: number of components per joint.
+    pub multisine_components: u32,
+}
+
+impl Default for ReferenceConfig {
+    fn default() -> Self {
+        ReferenceConfig {
+            center: [0.0, 0.65, 0.3],
+            amplitude: [0.4, 0.3, 0.3],
+            frequency_hz: 0.5,
+            blend_s: 1.0,
+            settle_s: 2.0,
+            multisine_amplitude: [0.45, 0.32, 0.32],
+            multisine_band_hz: [0.1, 1.5],
+            multisine_components: 6,
+        }
+    }
+}
+
+impl ReferenceConfig {
+    /// Check every value; the centre must lie inside the joint limits `lower ..= upper`.
+    pub fn validate(&self, lower: &[f64; 3], upper: &[f64; 3]) -> Result<(), ConfigError> {
+        for i in 0..3 {
+            check::in_range(
+                &format!("reference.center[{i}]"),
+                self.center[i],
+                lower[i],
+                upper[i],
+                "inside model.limit_lower ..= model.limit_upper",
+            )?;
+        }
+        check::each("reference.amplitude", &self.amplitude, |f, v| {
+            check::in_range(f, v, 0.0, 1.0, "0 ..= 1 rad")
+        })?;
+        check::in_range(
+            "reference.frequency_hz",
+            self.frequency_hz,
+            0.0,
+            10.0,
+            "0 ..= 10 Hz",
+        )?;
+        check::in_range(
+            "reference.blend_s",
+            self.blend_s,
+            0.05,
+            60.0,
+            "0.05 ..= 60 s",
+        )?;
+        check::in_range("reference.settle_s", self.settle_s, 0.0, 1e6, "0 ..= 1e6 s")?;
+        check::each(
+            "reference.multisine_amplitude",
+            &self.multisine_amplitude,
+            |f, v| check::in_range(f, v, 0.0, 1.0, "0 ..= 1 rad"),
+        )?;
+        let [lo, hi] = self.multisine_band_hz;
+        check::in_range(
+            "reference.multisine_band_hz[0]",
+            lo,
+            0.01,
+            hi,
+            "0.01 Hz ..= multisine_band_hz[1]",
+        )?;
+        check::in_range(
+            "reference.multisine_band_hz[1]",
+            hi,
+            lo,
+            10.0,
+            "multisine_band_hz[0] ..= 10 Hz",
+        )?;
+        check::int_in(
+            "reference.multisine_components",
+            self.multisine_components,
+            1,
+            32,
+            "1 ..= 32",
+        )
+    }
+}
 
 /// Desired position, velocity and acceleration.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]

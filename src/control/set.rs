@@ -4,8 +4,8 @@
 //! leaning on the safety layer's kick limit.
 
 use super::reference::quintic;
+use super::ControlSetup;
 use super::{ControlInput, Controller, ControllerKind};
-use crate::config::Config;
 use crate::estimate::kalman::Estimate;
 use crate::ident::Identifier;
 use crate::omni::Joint3;
@@ -31,17 +31,17 @@ fn slot(kind: ControllerKind) -> usize {
 impl ControllerSet {
     /// All four laws from the config, `active` in effect. `fade_s`: crossfade length of a
     /// switch (0: switch at once).
-    pub fn new(cfg: &Config, active: ControllerKind, fade_s: f64) -> Self {
+    pub fn new<'a>(cfg: impl Into<ControlSetup<'a>>, active: ControllerKind, fade_s: f64) -> Self {
         ControllerSet {
             laws: ControllerKind::ALL.map(|_| Box::new(super::Off) as Box<dyn Controller>),
             active,
             fading: None,
             fade_s,
         }
-        .with_laws(cfg)
+        .with_laws(cfg.into())
     }
 
-    fn with_laws(mut self, cfg: &Config) -> Self {
+    fn with_laws(mut self, cfg: ControlSetup) -> Self {
         for kind in ControllerKind::ALL {
             self.laws[slot(kind)] = super::make_controller(kind, cfg);
         }
@@ -122,6 +122,7 @@ impl ControllerSet {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::control::RefPoint;
 
     #[test]

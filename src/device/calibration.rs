@@ -29,7 +29,7 @@ pub struct Calibration {
     /// Serial number of the device this belongs to.
     pub serial: String,
     /// Joint angles (OpenHaptics convention) with the stylus in the inkwell, rad.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub docked_pose_rad: [f64; 3],
 }
 

@@ -7,15 +7,54 @@
 
 use super::codec::STATE_LAYOUT;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use crate::config_check::{self as check, ConfigError};
 use crate::control::{ControlInput, Controller};
 use crate::ident::Identifier;
 use crate::omni::{Dynamics, Joint3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 use std::str::FromStr;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use thiserror::Error;
+
+/// Faults to inject (testing the safety layer); same specs as `--inject`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct InjectConfig {
+    /// E.g. ["disconnect@5", "stall@2:50", "corrupt:0.01", "encoder-jump@3:800", "nan@4", "slow@1:5"].
+    pub faults: Vec<String>,
+}
+
+impl InjectConfig {
+    pub fn parsed(&self) -> Result<Vec<Fault>, ConfigError> {
+        self.faults
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                f.parse().map_err(|e: FaultSpecError| {
+                    check::invalid(format!("inject.faults[{i}]"), format!("{f:?}"), e.why)
+                })
+            })
+            .collect()
+    }
+}
+
+impl InjectConfig {
+    /// Every spec parses, and there are at most [`MAX_FAULTS`].
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let faults = self.parsed()?;
+        if faults.len() > MAX_FAULTS {
+            return Err(check::invalid(
+                "inject.faults",
+                format!("{} faults", faults.len()),
+                format!("at most {MAX_FAULTS}"),
+            ));
+        }
+        Ok(())
+    }
+}
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Fault {

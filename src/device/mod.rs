@@ -20,7 +20,59 @@ pub use codec::{
     COMMAND_LEN, STATE_LEN,
 };
 
+use crate::config_check::{self as check, ConfigError};
+use serde::{Deserialize, Serialize};
 use thiserror::Error;
+
+/// Device-independent facts of the Omni's electronics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct DeviceConfig {
+    /// Encoder counts per joint revolution.
+    pub counts_per_rev: f64,
+    /// Motor torque per DAC count, N·m (12-bit offset binary, ±2047 counts).
+    #[serde(deserialize_with = "crate::config_check::exact")]
+    pub nm_per_count: [f64; 3],
+    /// Servo rate, Hz.
+    pub rate_hz: f64,
+}
+
+impl Default for DeviceConfig {
+    fn default() -> Self {
+        DeviceConfig {
+            counts_per_rev: 15000.0,
+            nm_per_count: [2.2e-4; 3],
+            rate_hz: 1000.0,
+        }
+    }
+}
+
+impl DeviceConfig {
+    pub fn rad_per_count(&self) -> f64 {
+        std::f64::consts::TAU / self.counts_per_rev
+    }
+}
+
+impl DeviceConfig {
+    /// Check every value; the first problem names its field (`device.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check::in_range(
+            "device.counts_per_rev",
+            self.counts_per_rev,
+            100.0,
+            1e7,
+            "100 ..= 1e7",
+        )?;
+        check::each("device.nm_per_count", &self.nm_per_count, check::positive)?;
+        check::in_range(
+            "device.rate_hz",
+            self.rate_hz,
+            100.0,
+            10_000.0,
+            "100 ..= 10000 Hz",
+        )
+    }
+}
 
 /// One state packet as it came off the wire, with the device's own timestamp.
 #[derive(Debug, Clone, Copy)]

@@ -32,8 +32,8 @@
 //! damaged rows but a log this configuration cannot carry.
 
 use super::codec::{decode_command, encode_state, StatePacket};
+use super::DeviceConfig;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
-use crate::config::Config;
 use crate::servo::clock;
 use crate::telemetry::reader::{LogReader, LogRow, ReadError, SkipReport};
 use crate::telemetry::record::Mode;
@@ -120,10 +120,10 @@ struct EncoderPath {
 }
 
 impl EncoderPath {
-    fn new(cfg: &Config) -> Self {
+    fn new(device: &DeviceConfig) -> Self {
         EncoderPath {
-            rad_per_count: cfg.device.rad_per_count(),
-            counts_per_rev: cfg.device.counts_per_rev,
+            rad_per_count: device.rad_per_count(),
+            counts_per_rev: device.counts_per_rev,
             last: None,
         }
     }
@@ -218,18 +218,18 @@ impl ReplayDevice {
     /// validation pass ([`ReadError::Stopped`]) and any paced wait.
     pub fn open(
         path: &Path,
-        cfg: &Config,
+        device: &DeviceConfig,
         paced: bool,
         lenient: bool,
         stop: &Arc<AtomicBool>,
     ) -> Result<Self, ReplayError> {
-        let info = Self::scan(path, cfg, lenient, stop)?;
+        let info = Self::scan(path, device, lenient, stop)?;
         Ok(ReplayDevice {
             // No stop flag for playback: the servo loop looks at it itself each tick, and a
             // read that failed on it would end the run as a device fault (or spoil the final
             // safe packet). Without one, only a regular file opens, as the scan found it.
             reader: LogReader::open(path, lenient, None)?,
-            encoder: EncoderPath::new(cfg),
+            encoder: EncoderPath::new(device),
             first_t: info.first_t,
             info,
             paced,
@@ -253,7 +253,7 @@ impl ReplayDevice {
     /// Read the whole file once: every row checked as playback will see it.
     pub fn scan(
         path: &Path,
-        cfg: &Config,
+        device: &DeviceConfig,
         lenient: bool,
         stop: &Arc<AtomicBool>,
     ) -> Result<ReplayInfo, ReplayError> {
@@ -269,7 +269,7 @@ impl ReplayDevice {
         }
         let mut reader = LogReader::open(path, lenient, Some(stop))?;
         let name = reader.path().to_string();
-        let mut encoder = EncoderPath::new(cfg);
+        let mut encoder = EncoderPath::new(device);
         let (mut rows, mut first_t, mut last_t, mut has_stop) = (0u64, 0.0, 0.0, false);
         while let Some(row) = reader.next_row()? {
             encoder.counts(&row, &name)?;
@@ -385,6 +385,7 @@ impl Device for ReplayDevice {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::device::codec::{decode_state, encode_command, EncoderUnwrap, MotorCommand};
     use std::io::Write;
 
@@ -423,7 +424,8 @@ mod tests {
             );
         }
         let f = write(&text);
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default()).unwrap();
+        let mut dev =
+            ReplayDevice::open(f.path(), &cfg.device, false, false, &Arc::default()).unwrap();
         assert_eq!(dev.info().rows, 2000);
         let mut unwrap = EncoderUnwrap::new();
         for (k, enc) in truth.iter().enumerate() {
@@ -456,7 +458,8 @@ mod tests {
         let rpc = cfg.device.rad_per_count();
         let f =
             write("t,q1,q2,q3,tau1,tau2,tau3\n0,0.5,-0.25,1e-5,0,0,0\n0.0137,0.6,-0.3,0,0,0,0\n");
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default()).unwrap();
+        let mut dev =
+            ReplayDevice::open(f.path(), &cfg.device, false, false, &Arc::default()).unwrap();
         let mut unwrap = EncoderUnwrap::new();
         for (t, q) in [(0.0, [0.5, -0.25, 1e-5]), (0.0137, [0.6, -0.3, 0.0])] {
             let raw = dev.exchange(&live(1)).unwrap();
@@ -477,7 +480,7 @@ mod tests {
         cfg.device.counts_per_rev = 1e6;
         // 0.5 rad at 1e6 counts/rev is ~79577 counts: not representable as the first packet.
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0.5,0,0,0,0\n");
-        let e = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default())
+        let e = ReplayDevice::open(f.path(), &cfg.device, false, false, &Arc::default())
             .err()
             .unwrap()
             .to_string();
@@ -491,7 +494,7 @@ mod tests {
     fn enc_inconsistent_with_q_is_refused() {
         let cfg = Config::default();
         let f = write("t,q1,q2,q3,tau1,tau2,tau3,enc1,enc2,enc3\n0,0,0,0.5,0,0,0,0,0,100\n");
-        let e = ReplayDevice::open(f.path(), &cfg, false, true, &Arc::default())
+        let e = ReplayDevice::open(f.path(), &cfg.device, false, true, &Arc::default())
             .err()
             .unwrap()
             .to_string();
@@ -505,7 +508,7 @@ mod tests {
     fn huge_step_is_refused() {
         let cfg = Config::default();
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n0.001,0,0,20,0,0,0\n");
-        let e = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default())
+        let e = ReplayDevice::open(f.path(), &cfg.device, false, false, &Arc::default())
             .err()
             .unwrap()
             .to_string();
@@ -519,7 +522,8 @@ mod tests {
             "t,q1,q2,q3,tau1,tau2,tau3,mode\n0,0,0,0,0.1,0,0,track\n0.001,0,0,0,0.2,0,0,track\n\
              0.002,0,0,0,0,0,0,stop\n",
         );
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default()).unwrap();
+        let mut dev =
+            ReplayDevice::open(f.path(), &cfg.device, false, false, &Arc::default()).unwrap();
         assert!(dev.info().has_stop);
         dev.exchange(&live(1)).unwrap();
         dev.exchange(&live(2)).unwrap();
@@ -547,7 +551,7 @@ mod tests {
             text += &format!("{},0,0,0,0,0,0\n", 10.0 + k as f64 * 0.01);
         }
         let f = write(&text);
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &Arc::default())
+        let mut dev = ReplayDevice::open(f.path(), &cfg.device, false, false, &Arc::default())
             .unwrap()
             .with_duration_limit(Some(0.1));
         let mut n = 0;
@@ -568,7 +572,7 @@ mod tests {
         // The second row is an hour after the first.
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n3600,0,0,0,0,0,0\n");
         let stop = Arc::new(AtomicBool::new(false));
-        let mut dev = ReplayDevice::open(f.path(), &cfg, true, false, &stop).unwrap();
+        let mut dev = ReplayDevice::open(f.path(), &cfg.device, true, false, &stop).unwrap();
         dev.exchange(&live(1)).unwrap();
         let flag = stop.clone();
         let setter = std::thread::spawn(move || {
@@ -582,7 +586,7 @@ mod tests {
         assert!(t0.elapsed().as_secs_f64() < 2.0, "{:?}", t0.elapsed());
 
         // A set flag stops the validation pass.
-        let e = ReplayDevice::open(f.path(), &cfg, false, false, &stop)
+        let e = ReplayDevice::open(f.path(), &cfg.device, false, false, &stop)
             .err()
             .unwrap();
         assert!(
@@ -595,7 +599,7 @@ mod tests {
         let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
         // SAFETY: a valid NUL-terminated path.
         assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
-        let e = ReplayDevice::open(&fifo, &cfg, true, false, &Arc::default())
+        let e = ReplayDevice::open(&fifo, &cfg.device, true, false, &Arc::default())
             .err()
             .unwrap();
         assert!(
@@ -615,7 +619,7 @@ mod tests {
         }
         let f = write(&text);
         let stop = Arc::new(AtomicBool::new(false));
-        let mut dev = ReplayDevice::open(f.path(), &cfg, false, false, &stop).unwrap();
+        let mut dev = ReplayDevice::open(f.path(), &cfg.device, false, false, &stop).unwrap();
         dev.exchange(&live(0)).unwrap();
         stop.store(true, std::sync::atomic::Ordering::Relaxed);
         // Far past the reader's buffer: it refills from the file several times.
@@ -629,9 +633,15 @@ mod tests {
     #[test]
     fn header_only_file_has_no_rows() {
         let f = write("t,q1,q2,q3,tau1,tau2,tau3\n");
-        let e = ReplayDevice::open(f.path(), &Config::default(), false, false, &Arc::default())
-            .err()
-            .unwrap();
+        let e = ReplayDevice::open(
+            f.path(),
+            &DeviceConfig::default(),
+            false,
+            false,
+            &Arc::default(),
+        )
+        .err()
+        .unwrap();
         assert!(matches!(e, ReplayError::NoRows { .. }), "{e}");
     }
 }

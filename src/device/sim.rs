@@ -3,13 +3,168 @@
 //! Paced by absolute deadlines (one packet per period), or not at all under `--fast`.
 
 use super::codec::{decode_command, encode_state, DacScale, StatePacket};
+use super::DeviceConfig;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
-use crate::config::Config;
-use crate::omni::{Dynamics, Joint3};
+use crate::config_check::{self as check, ConfigError};
+use crate::omni::{Dynamics, Geometry, Joint3, ModelParams};
 use crate::servo::clock;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+/// The simulated Omni.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimConfig {
+    /// Seeds all randomness of a run (noise, multisine phases).
+    pub seed: u64,
+    /// Viscous and Coulomb friction in the plant.
+    pub friction: bool,
+    /// Extra point mass at the tip, kg ...
+    pub payload_kg: f64,
+    /// ... added at this time, s.
+    pub payload_at_s: f64,
+    /// RK4 substeps per servo tick.
+    pub substeps: u32,
+    /// Standard deviation of a random torque disturbance (motor ripple), N·m.
+    pub torque_noise_nm: f64,
+    /// Joint angles at power-on, rad (default: stylus in the inkwell).
+    #[serde(deserialize_with = "crate::config_check::exact")]
+    pub start_pose: [f64; 3],
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        SimConfig {
+            seed: 1,
+            friction: true,
+            payload_kg: 0.0,
+            payload_at_s: 0.0,
+            substeps: 2,
+            torque_noise_nm: 2e-4,
+            start_pose: [0.0, 0.27, -0.37],
+        }
+    }
+}
+
+impl SimConfig {
+    /// Check every value; the first problem names its field (`sim.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check::in_range("sim.payload_kg", self.payload_kg, 0.0, 1.0, "0 ..= 1 kg")?;
+        check::in_range(
+            "sim.payload_at_s",
+            self.payload_at_s,
+            0.0,
+            1e6,
+            "0 ..= 1e6 s",
+        )?;
+        check::int_in("sim.substeps", self.substeps, 1, 100, "1 ..= 100")?;
+        check::in_range(
+            "sim.torque_noise_nm",
+            self.torque_noise_nm,
+            0.0,
+            0.1,
+            "0 ..= 0.1 N·m",
+        )?;
+        check::each("sim.start_pose", &self.start_pose, |f, v| {
+            check::in_range(f, v, -3.2, 3.2, "-3.2 ..= 3.2 rad")
+        })
+    }
+
+    /// What the simulated plant needs beyond `validate` (checked when the simulator is the
+    /// device, so a hardware configuration at another servo rate is not refused for it).
+    pub fn check_plant(
+        &self,
+        d: &DeviceConfig,
+        m: &ModelParams,
+        geometry: Geometry,
+    ) -> Result<(), ConfigError> {
+        let s = self;
+        let least_inertia = m
+            .mass_over_joint_range(geometry)
+            .map(|(_, mass)| mass.symmetric_eigenvalues().min())
+            .fold(f64::INFINITY, f64::min);
+        // The RK4 substep must resolve the plant's fastest mode: near zero velocity
+        // the smoothed Coulomb curve is a damper of slope coulomb/coulomb_velocity, on as little
+        // as the smallest inertia. Past h·rate ≈ 2.8 RK4 blows up; we ask for h·rate ≤ 1.
+        let coulomb = (0..3)
+            .map(|i| m.coulomb[i] / m.coulomb_velocity)
+            .fold(0.0, f64::max);
+        let viscous = m.viscous.iter().copied().fold(0.0, f64::max);
+        let terms = [
+            (
+                "model.coulomb_velocity",
+                m.coulomb_velocity,
+                coulomb / least_inertia,
+            ),
+            ("model.viscous", viscous, viscous / least_inertia),
+            (
+                "model.limit_damping",
+                m.limit_damping,
+                m.limit_damping / least_inertia,
+            ),
+            (
+                "model.limit_stiffness",
+                m.limit_stiffness,
+                (m.limit_stiffness / least_inertia).sqrt(),
+            ),
+        ];
+        let rate: f64 = terms.iter().map(|t| t.2).sum();
+        let needed = (rate / d.rate_hz).ceil().max(1.0);
+        if (s.substeps as f64) < needed {
+            let why = format!(
+                "its fastest mode, damping and limit spring on the smallest inertia \
+                 {least_inertia:.2e} kg·m², runs at {rate:.0}/s"
+            );
+            // Blame the servo rate if the default rate would do, the substeps if the default
+            // substeps would, else the model's stiffest term.
+            let at_default_rate = (rate / DeviceConfig::default().rate_hz).ceil();
+            return Err(if at_default_rate <= s.substeps as f64 {
+                check::invalid(
+                    "device.rate_hz",
+                    d.rate_hz,
+                    format!(
+                        "≥ {:.0} Hz with sim.substeps = {}, or sim.substeps ≥ {needed} at \
+                         {} Hz ({why})",
+                        rate / s.substeps as f64,
+                        s.substeps,
+                        d.rate_hz
+                    ),
+                )
+            } else if needed <= SimConfig::default().substeps as f64 {
+                check::invalid(
+                    "sim.substeps",
+                    s.substeps,
+                    format!("sim.substeps ≥ {needed} for this model ({why})"),
+                )
+            } else {
+                let (field, value, _) = terms
+                    .iter()
+                    .fold(terms[0], |a, &b| if b.2 > a.2 { b } else { a });
+                check::invalid(
+                    field,
+                    value,
+                    format!(
+                        "a plant that sim.substeps = {} resolves; this one needs \
+                         sim.substeps ≥ {needed} ({why})",
+                        s.substeps
+                    ),
+                )
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The sections of the configuration the simulator is built from.
+#[derive(Debug, Clone, Copy)]
+pub struct SimSetup<'a> {
+    pub device: &'a DeviceConfig,
+    pub sim: &'a SimConfig,
+    pub model: &'a ModelParams,
+    pub geometry: &'a Geometry,
+}
 
 /// How close to the start pose (rad) counts as "stylus in the inkwell".
 const INKWELL_TOLERANCE: f64 = 0.02;
@@ -34,8 +189,10 @@ pub struct SimOmni {
 }
 
 impl SimOmni {
-    pub fn new(cfg: &Config, paced: bool) -> Self {
-        let mut plant = Dynamics::new(cfg.model, cfg.geometry);
+    /// A simulator from its sections of the configuration (a `&Config` gives them).
+    pub fn new<'a>(cfg: impl Into<SimSetup<'a>>, paced: bool) -> Self {
+        let cfg = cfg.into();
+        let mut plant = Dynamics::new(*cfg.model, *cfg.geometry);
         plant.friction = cfg.sim.friction;
         let start_pose = Joint3::from(cfg.sim.start_pose);
         SimOmni {
@@ -164,6 +321,7 @@ impl Device for SimOmni {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::device::codec::{encode_command, MotorCommand, DAC_ZERO};
 
     fn frictionless() -> Config {

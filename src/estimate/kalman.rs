@@ -1,9 +1,67 @@
 //! Per-joint Kalman filter (DESIGN §4.3): constant-acceleration model driven by white jerk,
 //! the standard continuous white-noise discretisation, time step from the device timestamps.
 
-use crate::config::KalmanConfig;
+use crate::config_check::{self as check, ConfigError};
 use crate::omni::Joint3;
 use nalgebra::{Matrix3, RowVector3, Vector3};
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct KalmanConfig {
+    /// Spectral density of the white jerk driving the model, rad²/s⁵.
+    pub jerk_psd: f64,
+    /// Measurement variance R, rad² (default Δ²/12 of the encoder step).
+    pub measurement_var: f64,
+}
+
+impl Default for KalmanConfig {
+    fn default() -> Self {
+        let step = std::f64::consts::TAU / 15000.0;
+        KalmanConfig {
+            jerk_psd: 100.0,
+            measurement_var: step * step / 12.0,
+        }
+    }
+}
+
+/// The Kalman filter must follow a sinusoidal motion of this frequency (a fast hand motion)...
+pub const KALMAN_CHECK_HZ: f64 = 5.0;
+/// ... with a position error of at most this fraction of the motion (the default: 1 %).
+pub const KALMAN_MAX_LAG: f64 = 0.2;
+
+impl KalmanConfig {
+    /// Check every value at the servo rate `rate_hz`; the first problem names its field.
+    pub fn validate(&self, rate_hz: f64) -> Result<(), ConfigError> {
+        check::positive("kalman.jerk_psd", self.jerk_psd)?;
+        check::positive("kalman.measurement_var", self.measurement_var)?;
+        // The safety limits also watch the encoders, but control acts on the estimate: one
+        // that cannot follow a hand-speed motion is refused before any torque is sent.
+        let lag = tracking_error(
+            self.jerk_psd,
+            self.measurement_var,
+            1.0 / rate_hz,
+            KALMAN_CHECK_HZ,
+        );
+        if lag.is_nan() || lag > KALMAN_MAX_LAG {
+            return Err(check::invalid(
+                "kalman.jerk_psd",
+                format!(
+                    "{} with kalman.measurement_var = {:e}",
+                    self.jerk_psd, self.measurement_var
+                ),
+                format!(
+                    "an estimate that follows a {KALMAN_CHECK_HZ} Hz motion within {:.0} % (this \
+                     one is off by {:.0} %): raise kalman.jerk_psd or lower \
+                     kalman.measurement_var",
+                    KALMAN_MAX_LAG * 100.0,
+                    lag * 100.0
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
 
 /// Initial variances of velocity and acceleration when the filter starts from one reading.
 const INITIAL_VEL_VAR: f64 = 1.0;

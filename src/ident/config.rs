@@ -2,10 +2,10 @@
 //! defaults, validation naming the field and the allowed range, and one line of documentation
 //! per key for `omnid config --print-default`.
 
-use crate::config::ConfigError;
+use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct IdentifierConfig {
     /// Bandwidth of the modified error α·e + ė = ε (eq. 21), 1/s.
@@ -19,19 +19,23 @@ pub struct IdentifierConfig {
     pub adapt: bool,
     /// Fourth network for joint friction F̂(q̇); false gives the paper's three networks.
     pub friction_net: bool,
-    /// WAE weights of e2 (diagonal skew-symmetry), e3 (off-diagonal) and e4 (eigenvalue
-    /// bounds); 0 switches a term off, the paper asks for > 1 when on.
+    /// WAE weight of e2 (diagonal of Ṁ̂ − 2Ĉ); 0 = off, paper: > 1.
     pub lambda1: f64,
+    /// WAE weight of e3 (off-diagonal skew-symmetry); 0 = off, paper: > 1.
     pub lambda2: f64,
+    /// WAE weight of e4 (eigenvalues of M̂ in [eig_min, eig_max]); 0 = off.
     pub lambda3: f64,
-    /// Learning rates Γ per network, [hidden layer, output layer].
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Learning rates Γ of the M-net, [hidden layer, output layer].
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub rate_m: [f64; 2],
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Learning rates Γ of the C-net, [hidden layer, output layer].
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub rate_c: [f64; 2],
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Learning rates Γ of the G-net, [hidden layer, output layer].
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub rate_g: [f64; 2],
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Learning rates Γ of the F-net, [hidden layer, output layer].
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub rate_f: [f64; 2],
     /// Dead zone: no update while the modified error at the scale of ε (α·‖e‖, or ‖e‖ with
     /// `unit_gain_filter`), in N·m, is at or below this; 0 switches it off.
@@ -43,35 +47,40 @@ pub struct IdentifierConfig {
     pub sigma: f64,
     /// Projection: bound on each network's parameter norm ‖θ‖_F; 0 switches it off.
     pub w_max: f64,
-    /// Bounds on the eigenvalues of M̂ enforced by e4, kg·m².
+    /// Lower bound on the eigenvalues of M̂ (e4), kg·m².
     pub eig_min: f64,
+    /// Upper bound on the eigenvalues of M̂ (e4), kg·m².
     pub eig_max: f64,
-    /// Joint-angle inputs enter as (q − q_center)/q_scale, rad.
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Joint angles are fed as (q − q_center)/q_scale, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub q_center: [f64; 3],
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Joint-angle input scale, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub q_scale: [f64; 3],
     /// Joint-velocity inputs of the C-net enter as q̇/qd_scale, rad/s.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub qd_scale: [f64; 3],
     /// Joint-velocity inputs of the F-net enter as q̇/friction_qd_scale, rad/s (smaller than
     /// qd_scale: Coulomb friction changes sign within a few 0.01 rad/s).
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub friction_qd_scale: [f64; 3],
-    /// Output units of the networks: M̂ in kg·m², Ĉ in kg·m² (·rad/s → N·m), Ĝ and F̂ in N·m.
+    /// Output unit of the M-net and of e4, kg·m².
     pub inertia_scale: f64,
+    /// Output unit of the C-net, kg·m².
     pub coriolis_scale: f64,
+    /// Output unit of the G-net, N·m.
     pub gravity_scale: f64,
+    /// Output unit of the F-net, N·m.
     pub friction_scale: f64,
     /// The errors are made dimensionless with this torque, N·m (e1, e2, e3; e4 with
     /// inertia_scale), so the rates are O(1)–O(100) instead of O(1e6).
     pub torque_scale: f64,
     /// Initial diagonal of M̂ (output biases of the M-net), kg·m²; zeros start from M̂ = 0.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub init_mass_diag: [f64; 3],
-    /// Standard deviation of the initial weights: hidden layer (divided by √inputs) and output
-    /// layer.
+    /// Std of fresh hidden-layer weights (divided by √inputs).
     pub init_std_hidden: f64,
+    /// Std of fresh output-layer weights.
     pub init_std_output: f64,
     /// Seed of the initial weights.
     pub seed: u64,
@@ -114,137 +123,11 @@ impl Default for IdentifierConfig {
     }
 }
 
-/// One-line explanations of every `[identifier]` key (merge into `config::FIELD_DOCS`).
-pub const IDENTIFIER_FIELD_DOCS: &[(&str, &str)] = &[
-    (
-        "identifier",
-        "Adaptive NN identifier (DESIGN §3): M-, C-, G- (and F-) networks learning online.",
-    ),
-    (
-        "identifier.alpha",
-        "bandwidth α of the modified error α·e + ė = ε (eq. 21), 1/s",
-    ),
-    (
-        "identifier.unit_gain_filter",
-        "modified-error filter with unit DC gain (α = bandwidth only); false = eq. 21 (gain 1/α)",
-    ),
-    ("identifier.hidden", "hidden tanh units of every network"),
-    ("identifier.adapt", "adapt the weights online"),
-    (
-        "identifier.friction_net",
-        "fourth network for joint friction F̂(q̇); false = the paper's three nets",
-    ),
-    (
-        "identifier.lambda1",
-        "WAE weight of e2 (diagonal of Ṁ̂ − 2Ĉ); 0 = off, paper: > 1",
-    ),
-    (
-        "identifier.lambda2",
-        "WAE weight of e3 (off-diagonal skew-symmetry); 0 = off, paper: > 1",
-    ),
-    (
-        "identifier.lambda3",
-        "WAE weight of e4 (eigenvalues of M̂ in [eig_min, eig_max]); 0 = off",
-    ),
-    (
-        "identifier.rate_m",
-        "learning rates Γ of the M-net, [hidden layer, output layer]",
-    ),
-    (
-        "identifier.rate_c",
-        "learning rates Γ of the C-net, [hidden layer, output layer]",
-    ),
-    (
-        "identifier.rate_g",
-        "learning rates Γ of the G-net, [hidden layer, output layer]",
-    ),
-    (
-        "identifier.rate_f",
-        "learning rates Γ of the F-net, [hidden layer, output layer]",
-    ),
-    (
-        "identifier.dead_zone",
-        "no update while the modified error at WAE scale (α·‖e‖) ≤ this, N·m; 0 = off",
-    ),
-    (
-        "identifier.sigma",
-        "σ-modification: leakage −σΓ(θ − θ0) toward pre-tuned or loaded weights (none for fresh ones); 0 = off",
-    ),
-    (
-        "identifier.w_max",
-        "projection: bound on each network's parameter norm; 0 = off",
-    ),
-    (
-        "identifier.eig_min",
-        "lower bound on the eigenvalues of M̂ (e4), kg·m²",
-    ),
-    (
-        "identifier.eig_max",
-        "upper bound on the eigenvalues of M̂ (e4), kg·m²",
-    ),
-    (
-        "identifier.q_center",
-        "joint angles are fed as (q − q_center)/q_scale, rad",
-    ),
-    ("identifier.q_scale", "joint-angle input scale, rad"),
-    (
-        "identifier.qd_scale",
-        "joint-velocity input scale of the C-net, rad/s",
-    ),
-    (
-        "identifier.friction_qd_scale",
-        "joint-velocity input scale of the F-net, rad/s",
-    ),
-    (
-        "identifier.inertia_scale",
-        "output unit of the M-net and of e4, kg·m²",
-    ),
-    (
-        "identifier.coriolis_scale",
-        "output unit of the C-net, kg·m²",
-    ),
-    ("identifier.gravity_scale", "output unit of the G-net, N·m"),
-    ("identifier.friction_scale", "output unit of the F-net, N·m"),
-    (
-        "identifier.torque_scale",
-        "unit that makes e1, e2, e3 dimensionless, N·m",
-    ),
-    (
-        "identifier.init_mass_diag",
-        "initial diagonal of M̂ for fresh weights, kg·m²",
-    ),
-    (
-        "identifier.init_std_hidden",
-        "std of fresh hidden-layer weights (divided by √inputs)",
-    ),
-    (
-        "identifier.init_std_output",
-        "std of fresh output-layer weights",
-    ),
-    ("identifier.seed", "seed of the fresh random weights"),
-];
-
-fn invalid(field: &str, value: impl std::fmt::Display, allowed: &str) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.to_string(),
-        value: value.to_string(),
-        allowed: allowed.to_string(),
-    }
-}
-
-fn range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
-    if v.is_finite() && v >= lo && v <= hi {
-        Ok(())
-    } else {
-        Err(invalid(field, v, allowed))
-    }
-}
-
 fn positive(field: &str, v: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
     if v.is_finite() && v > 0.0 && v <= hi {
         Ok(())
     } else {
-        Err(invalid(field, v, allowed))
+        Err(check::invalid(field, v, allowed))
     }
 }
 
@@ -258,7 +141,11 @@ impl IdentifierConfig {
             "finite, > 0 and ≤ 1e6 1/s",
         )?;
         if !(1..=256).contains(&self.hidden) {
-            return Err(invalid("identifier.hidden", self.hidden, "1 ..= 256"));
+            return Err(check::invalid(
+                "identifier.hidden",
+                self.hidden,
+                "1 ..= 256",
+            ));
         }
         for (name, v) in [
             ("lambda1", self.lambda1),
@@ -266,8 +153,8 @@ impl IdentifierConfig {
             ("lambda3", self.lambda3),
         ] {
             if !(v == 0.0 || (v.is_finite() && (1.0..=1e6).contains(&v))) {
-                return Err(invalid(
-                    &format!("identifier.{name}"),
+                return Err(check::invalid(
+                    format!("identifier.{name}"),
                     v,
                     "0 (off) or 1 ..= 1e6 (the paper asks > 1)",
                 ));
@@ -280,7 +167,7 @@ impl IdentifierConfig {
             ("rate_f", self.rate_f),
         ] {
             for (i, v) in rates.iter().enumerate() {
-                range(
+                check::in_range(
                     &format!("identifier.{name}[{i}]"),
                     *v,
                     0.0,
@@ -289,23 +176,23 @@ impl IdentifierConfig {
                 )?;
             }
         }
-        range(
+        check::in_range(
             "identifier.dead_zone",
             self.dead_zone,
             0.0,
             1.0,
             "0 (off) ..= 1 N·m",
         )?;
-        range("identifier.sigma", self.sigma, 0.0, 1e3, "0 (off) ..= 1e3")?;
-        range("identifier.w_max", self.w_max, 0.0, 1e6, "0 (off) ..= 1e6")?;
-        range(
+        check::in_range("identifier.sigma", self.sigma, 0.0, 1e3, "0 (off) ..= 1e3")?;
+        check::in_range("identifier.w_max", self.w_max, 0.0, 1e6, "0 (off) ..= 1e6")?;
+        check::in_range(
             "identifier.eig_min",
             self.eig_min,
             0.0,
             1.0,
             "0 ..= 1 kg·m², below identifier.eig_max",
         )?;
-        range(
+        check::in_range(
             "identifier.eig_max",
             self.eig_max,
             0.0,
@@ -313,14 +200,14 @@ impl IdentifierConfig {
             "0 ..= 1 kg·m², above identifier.eig_min",
         )?;
         if self.eig_min >= self.eig_max {
-            return Err(invalid(
+            return Err(check::invalid(
                 "identifier.eig_min",
                 self.eig_min,
                 "below identifier.eig_max",
             ));
         }
         for (i, v) in self.q_center.iter().enumerate() {
-            range(
+            check::in_range(
                 &format!("identifier.q_center[{i}]"),
                 *v,
                 -3.2,
@@ -357,7 +244,7 @@ impl IdentifierConfig {
             )?;
         }
         for (i, v) in self.init_mass_diag.iter().enumerate() {
-            range(
+            check::in_range(
                 &format!("identifier.init_mass_diag[{i}]"),
                 *v,
                 0.0,
@@ -365,14 +252,14 @@ impl IdentifierConfig {
                 "0 ..= 1 kg·m²",
             )?;
         }
-        range(
+        check::in_range(
             "identifier.init_std_hidden",
             self.init_std_hidden,
             0.0,
             10.0,
             "0 ..= 10",
         )?;
-        range(
+        check::in_range(
             "identifier.init_std_output",
             self.init_std_output,
             0.0,
@@ -406,23 +293,6 @@ mod tests {
         assert_eq!((c.alpha, c.hidden, c.adapt), (50.0, 16, true));
         assert!(c.friction_net);
         assert_eq!(parse("[identifier]\n").unwrap(), c);
-    }
-
-    #[test]
-    fn every_key_is_documented_and_no_doc_is_stale() {
-        let value = toml::Value::try_from(IdentifierConfig::default()).unwrap();
-        let table = value.as_table().unwrap();
-        for key in table.keys() {
-            let full = format!("identifier.{key}");
-            assert!(
-                IDENTIFIER_FIELD_DOCS.iter().any(|(k, _)| *k == full),
-                "undocumented: {full}"
-            );
-        }
-        for (k, _) in IDENTIFIER_FIELD_DOCS {
-            let key = k.strip_prefix("identifier.");
-            assert!(key.is_none_or(|k| table.contains_key(k)), "stale doc: {k}");
-        }
     }
 
     #[test]

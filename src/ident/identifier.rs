@@ -7,7 +7,7 @@
 
 use super::config::IdentifierConfig;
 use super::mlp::{Mlp, MlpError, NetScaling};
-use crate::config::ConfigError;
+use crate::config_check::ConfigError;
 use nalgebra::{Matrix3, SVector, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

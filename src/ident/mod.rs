@@ -13,7 +13,7 @@ mod gradcheck;
 #[cfg(test)]
 mod testdata;
 
-pub use config::{IdentifierConfig, IDENTIFIER_FIELD_DOCS};
+pub use config::IdentifierConfig;
 pub use identifier::{ErrorSnapshot, Fault, IdentError, Identifier, Net, Wae};
 pub use mlp::{Mlp, MlpError, NetScaling};
 pub use pretune::{

@@ -4,41 +4,51 @@
 
 use super::kinematics::{jacobian, jacobian_dot, tip_position_mm, Geometry};
 use super::{Joint3, Mat3, GRAVITY};
+use crate::config_check::{self as check, ConfigError};
 use crate::fastmath::tanh;
 use serde::{Deserialize, Serialize};
 use wide::f64x2;
 
 /// Every constant of the plant model. Units: kg·m², N·m, N·m·s/rad, rad, rad/s.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ModelParams {
-    /// Lumped inertia parameters k1..k5, k7 (kg·m²) and gravity parameters k8, k9 (N·m).
+    /// Inertia parameter, kg·m².
     pub k1: f64,
+    /// Inertia parameter, kg·m².
     pub k2: f64,
+    /// Inertia parameter, kg·m².
     pub k3: f64,
+    /// Inertia parameter, kg·m².
     pub k4: f64,
+    /// Inertia parameter, kg·m².
     pub k5: f64,
+    /// Inertia parameter, kg·m².
     pub k7: f64,
+    /// Gravity parameter, N·m.
     pub k8: f64,
+    /// Gravity parameter, N·m.
     pub k9: f64,
     /// Reflected rotor inertia added to the diagonal, kg·m².
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub rotor_inertia: [f64; 3],
     /// Viscous friction, N·m·s/rad.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub viscous: [f64; 3],
-    /// Coulomb friction level, N·m.
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Level of the Coulomb friction, N·m.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub coulomb: [f64; 3],
     /// Velocity scale of the tanh that smooths Coulomb friction, rad/s.
     pub coulomb_velocity: f64,
-    /// Joint limits (lower, upper), rad: beyond them a stiff spring pushes back.
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Lower joint limits, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub limit_lower: [f64; 3],
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Upper joint limits, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub limit_upper: [f64; 3],
-    /// Joint-limit spring stiffness (N·m/rad) and damping (N·m·s/rad).
+    /// Joint-limit spring stiffness, N·m/rad.
     pub limit_stiffness: f64,
+    /// Joint-limit spring damping, N·m·s/rad.
     pub limit_damping: f64,
 }
 
@@ -62,6 +72,94 @@ impl Default for ModelParams {
             limit_stiffness: 5.0,
             limit_damping: 0.02,
         }
+    }
+}
+
+impl ModelParams {
+    /// M(q) of this model on a 5×5 grid of (q2, q3) spanning the joint limits (M does not
+    /// depend on q1), with the grid point.
+    pub fn mass_over_joint_range(
+        &self,
+        geometry: Geometry,
+    ) -> impl Iterator<Item = ((f64, f64), Mat3)> {
+        let (m, dynamics) = (*self, Dynamics::new(*self, geometry));
+        let across = move |i: usize, k: usize| {
+            m.limit_lower[i] + (m.limit_upper[i] - m.limit_lower[i]) * k as f64 / 4.0
+        };
+        (0..=4)
+            .flat_map(move |a| (0..=4).map(move |b| (across(1, a), across(2, b))))
+            .map(move |(q2, q3)| {
+                let q = Joint3::new(0.0, q2, q3);
+                ((q2, q3), dynamics.mass(&q))
+            })
+    }
+
+    /// Check every value, and that the inertia is positive definite over the whole joint
+    /// range of this arm (`geometry`); the first problem names its field (`model.…`).
+    pub fn validate(&self, geometry: Geometry) -> Result<(), ConfigError> {
+        for (name, v) in [("k1", self.k1), ("k5", self.k5), ("k7", self.k7)] {
+            check::positive(&format!("model.{name}"), v)?;
+        }
+        for (name, v) in [
+            ("k2", self.k2),
+            ("k3", self.k3),
+            ("k4", self.k4),
+            ("k8", self.k8),
+            ("k9", self.k9),
+        ] {
+            check::in_range(&format!("model.{name}"), v, -1.0, 1.0, "-1 ..= 1")?;
+        }
+        check::each("model.rotor_inertia", &self.rotor_inertia, |f, v| {
+            check::in_range(f, v, 0.0, 1.0, "0 ..= 1 kg·m²")
+        })?;
+        check::each("model.viscous", &self.viscous, |f, v| {
+            check::in_range(f, v, 0.0, 1.0, "0 ..= 1 N·m·s/rad")
+        })?;
+        check::each("model.coulomb", &self.coulomb, |f, v| {
+            check::in_range(f, v, 0.0, 1.0, "0 ..= 1 N·m")
+        })?;
+        check::positive("model.coulomb_velocity", self.coulomb_velocity)?;
+        for i in 0..3 {
+            let (lower, upper) = (self.limit_lower[i], self.limit_upper[i]);
+            check::in_range(
+                &format!("model.limit_lower[{i}]"),
+                lower,
+                -3.2,
+                upper,
+                "-3.2 rad ..= model.limit_upper",
+            )?;
+            check::in_range(
+                &format!("model.limit_upper[{i}]"),
+                upper,
+                lower,
+                3.2,
+                "model.limit_lower ..= 3.2 rad",
+            )?;
+        }
+        check::in_range(
+            "model.limit_stiffness",
+            self.limit_stiffness,
+            0.0,
+            1e4,
+            "0 ..= 1e4 N·m/rad",
+        )?;
+        check::in_range(
+            "model.limit_damping",
+            self.limit_damping,
+            0.0,
+            100.0,
+            "0 ..= 100 N·m·s/rad",
+        )?;
+        for ((q2, q3), mass) in self.mass_over_joint_range(geometry) {
+            if mass.cholesky().is_none() {
+                return Err(check::invalid(
+                    "model.k1..k7",
+                    format!("M(q) not positive definite at q = [0, {q2:.2}, {q3:.2}]"),
+                    "parameters that give a positive definite inertia",
+                ));
+            }
+        }
+        Ok(())
     }
 }
 

@@ -3,10 +3,11 @@
 //! parallelogram). Tip in the OpenHaptics frame: +x right, +y up, +z toward the user.
 
 use super::{Joint3, Mat3};
+use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
 /// Link lengths and the offsets of the OpenHaptics origin, in millimetres.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct Geometry {
     /// Upper arm length, mm.
@@ -27,6 +28,21 @@ impl Default for Geometry {
             y_offset_mm: 23.35,
             z_offset_mm: 168.35,
         }
+    }
+}
+
+impl Geometry {
+    /// Check every value; the first problem names its field (`geometry.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check::in_range("geometry.l1_mm", self.l1_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
+        check::in_range("geometry.l2_mm", self.l2_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
+        for (field, v) in [
+            ("geometry.y_offset_mm", self.y_offset_mm),
+            ("geometry.z_offset_mm", self.z_offset_mm),
+        ] {
+            check::in_range(field, v, -1000.0, 1000.0, "-1000 ..= 1000 mm")?;
+        }
+        Ok(())
     }
 }
 

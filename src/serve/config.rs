@@ -1,17 +1,17 @@
 //! `[serve]`: the daemon's client interface (socket, access, stream time to live, fault ring).
 
-use crate::config::ConfigError;
+use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
 /// Where a stale or abandoned stream leaves the arm.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum StaleFallback {
     Hold,
     Idle,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ServeConfig {
     /// Socket path; empty: $XDG_RUNTIME_DIR/omnid/<device>.sock (or /run/omnid/ as root).
@@ -54,62 +54,32 @@ impl Default for ServeConfig {
     }
 }
 
-pub const SERVE_FIELD_DOCS: &[(&str, &str)] = &[
-    ("serve", "`omnid serve`: the client interface (docs/PROTOCOL.md)."),
-    ("serve.socket", "socket path; empty: $XDG_RUNTIME_DIR/omnid/<device>.sock, or /run/omnid/<device>.sock as root"),
-    ("serve.stream_ttl_ms", "a servo_jp/servo_jf command stays in effect this long unless renewed, ms"),
-    ("serve.stale_fallback", "where a stale or abandoned stream leaves the arm: \"hold\" or \"idle\""),
-    ("serve.switch_fade_s", "crossfade of a controller switch, s (also used by `run`, which never switches)"),
-    ("serve.read_group", "members of this group may read the state stream (empty: the daemon's user and root only)"),
-    ("serve.control_group", "members of this group may also command (empty: the daemon's user and root only)"),
-    ("serve.max_clients", "most clients connected at once"),
-    ("serve.client_queue", "state messages queued per client before the oldest are dropped (counted)"),
-    ("serve.ring_s", "seconds of ticks kept in memory for the fault dump"),
-    ("serve.dump_dir", "directory for fault dumps; empty: $OMNID_STATE_DIR or ~/.local/state/omnid"),
-];
-
-fn invalid(field: &str, value: String, allowed: &str) -> ConfigError {
-    ConfigError::Invalid {
-        field: field.to_string(),
-        value,
-        allowed: allowed.to_string(),
-    }
-}
-
-fn finite_in(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
-    if v.is_finite() && (lo..=hi).contains(&v) {
-        Ok(())
-    } else {
-        Err(invalid(field, v.to_string(), allowed))
-    }
-}
-
 impl ServeConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
-        finite_in(
+        check::in_range(
             "serve.stream_ttl_ms",
             self.stream_ttl_ms,
             1.0,
             10_000.0,
             "1 ..= 10000 ms",
         )?;
-        finite_in(
+        check::in_range(
             "serve.switch_fade_s",
             self.switch_fade_s,
             0.0,
             10.0,
             "0 ..= 10 s",
         )?;
-        finite_in("serve.ring_s", self.ring_s, 0.0, 600.0, "0 ..= 600 s")?;
+        check::in_range("serve.ring_s", self.ring_s, 0.0, 600.0, "0 ..= 600 s")?;
         if !(1..=1024).contains(&self.max_clients) {
-            return Err(invalid(
+            return Err(check::invalid(
                 "serve.max_clients",
                 self.max_clients.to_string(),
                 "1 ..= 1024",
             ));
         }
         if !(16..=1_000_000).contains(&self.client_queue) {
-            return Err(invalid(
+            return Err(check::invalid(
                 "serve.client_queue",
                 self.client_queue.to_string(),
                 "16 ..= 1000000",
@@ -120,7 +90,7 @@ impl ServeConfig {
             ("serve.control_group", &self.control_group),
         ] {
             if group.len() > 32 || group.contains(|c: char| c.is_whitespace() || c == ':') {
-                return Err(invalid(
+                return Err(check::invalid(
                     field,
                     format!("{group:?}"),
                     "a group name (no spaces or colons, at most 32 characters)",
@@ -128,9 +98,9 @@ impl ServeConfig {
             }
         }
         if self.socket.contains('\0') || self.dump_dir.contains('\0') {
-            return Err(invalid(
+            return Err(check::invalid(
                 "serve.socket",
-                "a path with a NUL byte".into(),
+                "a path with a NUL byte",
                 "a path",
             ));
         }

@@ -9,19 +9,23 @@ pub mod safety;
 pub mod thermal_store;
 pub mod timing;
 
-use crate::config::{Config, ReferenceConfig};
+use crate::control::ReferenceConfig;
 use crate::control::{ControlInput, ControllerSet, RefPoint, Reference};
+use crate::device::DeviceConfig;
 use crate::device::{
     decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
     COMMAND_LEN,
 };
+use crate::estimate::kalman::KalmanConfig;
 use crate::estimate::KalmanBank;
 use crate::ident::Identifier;
+use crate::ident::IdentifierConfig;
 use crate::omni::Joint3;
 use crate::telemetry::record::{flags, Live, Mode, TickRecord};
 use crate::telemetry::summary::{FaultEntry, RunStats};
 pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
 use crossbeam_channel::{Sender, TrySendError};
+use safety::SafetyConfig;
 use safety::SafetyLayer;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -150,10 +154,22 @@ pub struct Servo {
     missed: u64,
 }
 
+/// The sections of the configuration the loop is built from (a `&Config` gives them).
+#[derive(Debug, Clone, Copy)]
+pub struct ServoSetup<'a> {
+    pub device: &'a DeviceConfig,
+    pub identifier: &'a IdentifierConfig,
+    pub reference: &'a ReferenceConfig,
+    pub safety: &'a SafetyConfig,
+    pub kalman: &'a KalmanConfig,
+    /// Seeds the trajectories a client asks for (`[sim] seed`).
+    pub seed: u64,
+}
+
 impl Servo {
     #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        cfg: &Config,
+    pub fn new<'a>(
+        cfg: impl Into<ServoSetup<'a>>,
         device: Box<dyn Device>,
         controllers: ControllerSet,
         reference: Reference,
@@ -162,15 +178,16 @@ impl Servo {
         max_ticks: Option<u64>,
         paced: bool,
     ) -> Self {
+        let cfg = cfg.into();
         let period_ns = (1e9 / cfg.device.rate_hz).round() as u64;
         Servo {
             device,
             controllers,
-            identifier: Identifier::new(&cfg.identifier).ok(),
+            identifier: Identifier::new(cfg.identifier).ok(),
             activity: Activity::Track,
             target: Target::Trajectory { reference, t0: 0.0 },
             reference_cfg: cfg.reference.clone(),
-            seed: cfg.sim.seed,
+            seed: cfg.seed,
             wall_lower: cfg.safety.wall_lower,
             wall_upper: cfg.safety.wall_upper,
             link: None,
@@ -178,13 +195,13 @@ impl Servo {
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
-            kalman: KalmanBank::new(&cfg.kalman),
+            kalman: KalmanBank::new(cfg.kalman),
             unwrap: EncoderUnwrap::new(),
             dac: DacScale {
                 nm_per_count: cfg.device.nm_per_count,
             },
             rad_per_count: cfg.device.rad_per_count(),
-            safety: SafetyLayer::new(&cfg.safety, 1.0 / cfg.device.rate_hz, [0.0; 3])
+            safety: SafetyLayer::new(cfg.safety, 1.0 / cfg.device.rate_hz, [0.0; 3])
                 .with_encoder_step(cfg.device.rad_per_count()),
             blend_s: cfg.reference.blend_s,
             settle_s: cfg.reference.settle_s,
@@ -765,6 +782,7 @@ impl Servo {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::control::{ControllerKind, Trajectory};
     use crate::device::sim::SimOmni;
 

@@ -3,10 +3,10 @@
 //! on this thread. Each step is configurable; a step that is not permitted gives one warning
 //! naming the fix and the run goes on.
 
-use crate::config::ConfigError;
+use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct RealtimeConfig {
     /// SCHED_FIFO priority of the servo thread (1..=99); 0 leaves the normal scheduler.
@@ -30,38 +30,10 @@ impl Default for RealtimeConfig {
     }
 }
 
-pub const REALTIME_FIELD_DOCS: &[(&str, &str)] = &[
-    (
-        "realtime",
-        "Realtime set-up of the servo thread (paced runs only; see udev/omnid-limits.conf).",
-    ),
-    (
-        "realtime.fifo_priority",
-        "SCHED_FIFO priority 1..=99 of the servo thread; 0 = normal scheduling",
-    ),
-    (
-        "realtime.lock_memory",
-        "mlockall: keep every page in RAM so the loop never page-faults",
-    ),
-    (
-        "realtime.cpu",
-        "pin the servo thread to this CPU; -1 = no pinning",
-    ),
-    (
-        "realtime.prefault_stack_kib",
-        "stack touched before the first tick, KiB",
-    ),
-];
-
 impl RealtimeConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |field: &str, value: String, allowed: &str| ConfigError::Invalid {
-            field: field.into(),
-            value,
-            allowed: allowed.into(),
-        };
         if !(0..=99).contains(&self.fifo_priority) {
-            return Err(bad(
+            return Err(check::invalid(
                 "realtime.fifo_priority",
                 self.fifo_priority.to_string(),
                 "0 ..= 99",
@@ -71,14 +43,14 @@ impl RealtimeConfig {
             .map(|n| n.get() as i32)
             .unwrap_or(1);
         if self.cpu < -1 || self.cpu >= cpus.max(1024) {
-            return Err(bad(
+            return Err(check::invalid(
                 "realtime.cpu",
                 self.cpu.to_string(),
                 "-1 or a CPU number",
             ));
         }
         if self.prefault_stack_kib > 1024 {
-            return Err(bad(
+            return Err(check::invalid(
                 "realtime.prefault_stack_kib",
                 self.prefault_stack_kib.to_string(),
                 "0 ..= 1024 (the servo thread's stack is 2 MiB)",

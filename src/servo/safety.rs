@@ -3,44 +3,47 @@
 //! clamp, torque-rate (kick) limit and a motor thermal model. It runs in the 1 kHz loop: fixed
 //! state, no allocation. Each limit that acts sets a bit in the tick's `flags`.
 
-use crate::config::ConfigError;
+use crate::config_check::{self as check, ConfigError};
 use crate::omni::Joint3;
 use crate::telemetry::record::flags;
 use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct SafetyConfig {
     /// Per-joint torque clamp, N·m.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub max_torque_nm: [f64; 3],
     /// Consecutive missed or bad packets that make a device fault.
     pub max_missed_ticks: u32,
     /// Largest torque change per second (kick limit), N·m/s.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub max_torque_rate_nm_s: [f64; 3],
     /// Start-up ramp from zero to full authority, s.
     pub ramp_s: f64,
     /// Joint speed beyond which the run stops with a safety fault, rad/s.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub max_velocity_rad_s: [f64; 3],
-    /// Soft walls: beyond these angles a spring-damper pushes back, rad.
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Soft wall: lower joint angles, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub wall_lower: [f64; 3],
-    #[serde(deserialize_with = "crate::config::exact")]
+    /// Soft wall: upper joint angles, rad.
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub wall_upper: [f64; 3],
-    /// Wall stiffness (N·m/rad) and damping (N·m·s/rad).
+    /// Soft wall stiffness, N·m/rad.
     pub wall_stiffness: f64,
+    /// Soft wall damping, N·m·s/rad.
     pub wall_damping: f64,
     /// Continuous torque rating per motor, N·m: the thermal model's unit of heating.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub continuous_torque_nm: [f64; 3],
     /// Thermal time constant of the motor windings, s.
     pub thermal_time_constant_s: f64,
-    /// Heat level (1 = steady state at the continuous torque) that warns, and that clamps the
-    /// motor to its continuous torque until it cools below `thermal_release`.
+    /// Heat level that warns (1 = steady state at continuous torque).
     pub thermal_warn: f64,
+    /// Heat level that clamps the motor to its continuous torque.
     pub thermal_limit: f64,
+    /// Heat level below which the thermal clamp releases.
     pub thermal_release: f64,
     /// Carry motor heat over between runs (a small file in the user's state directory).
     pub persist_heat: bool,
@@ -68,81 +71,46 @@ impl Default for SafetyConfig {
     }
 }
 
-pub const SAFETY_FIELD_DOCS: &[(&str, &str)] = &[
-    ("safety", "Limits every command passes through (in this order: non-finite guard, velocity fault, walls, ramp, thermal, clamp, kick)."),
-    ("safety.max_torque_nm", "per-joint torque clamp, N·m"),
-    ("safety.max_missed_ticks", "consecutive missed or bad packets that make a device fault"),
-    ("safety.max_torque_rate_nm_s", "kick limit: largest torque change per second, N·m/s"),
-    ("safety.ramp_s", "start-up ramp from zero to full authority, s"),
-    ("safety.max_velocity_rad_s", "joint speed that stops the run with a safety fault, rad/s"),
-    ("safety.wall_lower", "soft wall: lower joint angles, rad"),
-    ("safety.wall_upper", "soft wall: upper joint angles, rad"),
-    ("safety.wall_stiffness", "soft wall stiffness, N·m/rad"),
-    ("safety.wall_damping", "soft wall damping, N·m·s/rad"),
-    ("safety.continuous_torque_nm", "continuous torque rating per motor, N·m"),
-    ("safety.thermal_time_constant_s", "motor winding thermal time constant, s"),
-    ("safety.thermal_warn", "heat level that warns (1 = steady state at continuous torque)"),
-    ("safety.thermal_limit", "heat level that clamps the motor to its continuous torque"),
-    ("safety.thermal_release", "heat level below which the thermal clamp releases"),
-    ("safety.persist_heat", "carry motor heat over between runs ($OMNID_STATE_DIR or ~/.local/state/omnid)"),
-];
-
-fn invalid(field: String, value: String, allowed: &str) -> ConfigError {
-    ConfigError::Invalid {
-        field,
-        value,
-        allowed: allowed.to_string(),
-    }
-}
-
-fn check(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
-    if v.is_finite() && v >= lo && v <= hi {
-        Ok(())
-    } else {
-        Err(invalid(field.to_string(), format!("{v}"), allowed))
-    }
-}
-
 impl SafetyConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         for j in 0..3 {
             let f = |name: &str| format!("safety.{name}[{j}]");
-            check(
+            check::in_range(
                 &f("max_torque_nm"),
                 self.max_torque_nm[j],
                 f64::MIN_POSITIVE,
                 2.0,
                 "> 0 and ≤ 2 N·m",
             )?;
-            check(
+            check::in_range(
                 &f("max_torque_rate_nm_s"),
                 self.max_torque_rate_nm_s[j],
                 1e-3,
                 1e6,
                 "1e-3 ..= 1e6 N·m/s",
             )?;
-            check(
+            check::in_range(
                 &f("max_velocity_rad_s"),
                 self.max_velocity_rad_s[j],
                 0.1,
                 1000.0,
                 "0.1 ..= 1000 rad/s",
             )?;
-            check(
+            check::in_range(
                 &f("wall_lower"),
                 self.wall_lower[j],
                 -3.2,
                 self.wall_upper[j],
                 "-3.2 rad ..= safety.wall_upper",
             )?;
-            check(
+            check::in_range(
                 &f("wall_upper"),
                 self.wall_upper[j],
                 self.wall_lower[j],
                 3.2,
                 "safety.wall_lower ..= 3.2 rad",
             )?;
-            check(
+            check::in_range(
                 &f("continuous_torque_nm"),
                 self.continuous_torque_nm[j],
                 f64::MIN_POSITIVE,
@@ -151,49 +119,49 @@ impl SafetyConfig {
             )?;
         }
         if !(1..=10_000).contains(&self.max_missed_ticks) {
-            return Err(invalid(
-                "safety.max_missed_ticks".into(),
+            return Err(check::invalid(
+                "safety.max_missed_ticks",
                 self.max_missed_ticks.to_string(),
                 "1 ..= 10000",
             ));
         }
-        check("safety.ramp_s", self.ramp_s, 0.0, 60.0, "0 ..= 60 s")?;
-        check(
+        check::in_range("safety.ramp_s", self.ramp_s, 0.0, 60.0, "0 ..= 60 s")?;
+        check::in_range(
             "safety.wall_stiffness",
             self.wall_stiffness,
             0.0,
             1e3,
             "0 ..= 1000 N·m/rad",
         )?;
-        check(
+        check::in_range(
             "safety.wall_damping",
             self.wall_damping,
             0.0,
             10.0,
             "0 ..= 10 N·m·s/rad",
         )?;
-        check(
+        check::in_range(
             "safety.thermal_time_constant_s",
             self.thermal_time_constant_s,
             0.1,
             1e5,
             "0.1 ..= 1e5 s",
         )?;
-        check(
+        check::in_range(
             "safety.thermal_limit",
             self.thermal_limit,
             0.1,
             100.0,
             "0.1 ..= 100",
         )?;
-        check(
+        check::in_range(
             "safety.thermal_warn",
             self.thermal_warn,
             0.0,
             self.thermal_limit,
             "0 ..= safety.thermal_limit",
         )?;
-        check(
+        check::in_range(
             "safety.thermal_release",
             self.thermal_release,
             0.0,

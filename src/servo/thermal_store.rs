@@ -10,7 +10,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 struct Saved {
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     heat: [f64; 3],
     unix_time_s: f64,
 }

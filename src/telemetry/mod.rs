@@ -13,6 +13,36 @@ pub use record::{LogSchema, Mode, TickRecord};
 pub use summary::RunSummary;
 pub use writer::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
 
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct TelemetryConfig {
+    /// Capacity of the bounded channel from the servo loop to the log writer, ticks.
+    pub channel_capacity: usize,
+}
+
+impl Default for TelemetryConfig {
+    fn default() -> Self {
+        TelemetryConfig {
+            channel_capacity: 8192,
+        }
+    }
+}
+
+impl TelemetryConfig {
+    /// Check every value; the first problem names its field (`telemetry.…`).
+    pub fn validate(&self) -> Result<(), crate::config_check::ConfigError> {
+        crate::config_check::int_in(
+            "telemetry.channel_capacity",
+            self.channel_capacity,
+            16,
+            10_000_000,
+            "16 ..= 10000000",
+        )
+    }
+}
+
 /// `YYYYMMDD-HHMMSS` in UTC, for file names.
 pub fn utc_stamp(time: std::time::SystemTime) -> String {
     let secs = time

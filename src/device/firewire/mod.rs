@@ -28,7 +28,7 @@ use super::stream::{
     WireFormat,
 };
 use super::{Device, DeviceError, RawSample, COMMAND_LEN, STATE_LEN};
-use crate::config::ConfigError;
+use crate::config_check::{self as check, ConfigError};
 use rate::RateMeasurement;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -84,7 +84,7 @@ pub mod reg {
 }
 
 /// `[firewire]`: which node, how long to wait, and the start sequence's options.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct FirewireConfig {
     /// Device node to use (`/dev/fw1`); empty = search every `/dev/fw*` for vendor 0x000B99.
@@ -105,11 +105,11 @@ pub struct FirewireConfig {
     /// Pause before each such retry, ms.
     pub busy_retry_ms: u32,
     /// Sign per joint that turns encoder counts into the OpenHaptics joint directions.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub encoder_sign: [i8; 3],
     /// Sign per motor of the DAC word; 0 = not measured yet (`omnid probe --outputs`): no
     /// torque on that motor, and `run`/`serve` refuse to start.
-    #[serde(deserialize_with = "crate::config::exact")]
+    #[serde(deserialize_with = "crate::config_check::exact")]
     pub dac_sign: [i8; 3],
     /// Byte 7 of every command: "0x53" (the open drivers) or another "0xNN", or "counter".
     pub command_byte7: String,
@@ -136,72 +136,15 @@ impl Default for FirewireConfig {
 /// Encoder count direction → OpenHaptics joint direction, per joint (docs/FIREWIRE.md §6).
 pub const OPENHAPTICS_ENCODER_SIGN: [i8; 3] = [-1, -1, 1];
 
-/// One-line explanations of every `[firewire]` key, for `omnid config --print-default`.
-pub const FIREWIRE_FIELD_DOCS: &[(&str, &str)] = &[
-    (
-        "firewire",
-        "FireWire Omni on Linux firewire-cdev (/dev/fw*); facts and sources in docs/FIREWIRE.md.",
-    ),
-    (
-        "firewire.device",
-        "device node to use, e.g. \"/dev/fw1\"; empty = search for vendor 0x000B99",
-    ),
-    (
-        "firewire.serial",
-        "the 11-digit label serial of the Omni to use when several are connected; empty = the only one",
-    ),
-    (
-        "firewire.timeout_ms",
-        "wait for the next state packet, ms (1..=1000); a timeout is a missed tick",
-    ),
-    (
-        "firewire.register_timeout_ms",
-        "wait for a register transaction or channel allocation, ms (1..=5000)",
-    ),
-    (
-        "firewire.vendor_init",
-        "write the vendor library's quadlet to 0x20010 before starting (docs/FIREWIRE.md §2)",
-    ),
-    (
-        "firewire.scratch_test",
-        "the vendor library's scratch test: write 0x40 to 0x1001 and read it back",
-    ),
-    (
-        "firewire.busy_retries",
-        "retries of a register transaction the node answers busy (0..=50)",
-    ),
-    (
-        "firewire.busy_retry_ms",
-        "pause before each busy retry, ms (1..=1000)",
-    ),
-    (
-        "firewire.encoder_sign",
-        "per joint, +1 or -1: encoder counts to OpenHaptics joint directions (docs/FIREWIRE.md §6)",
-    ),
-    (
-        "firewire.dac_sign",
-        "per motor, +1 or -1 as `omnid probe --outputs` measured it; 0 = not measured: no torque, run refuses",
-    ),
-    (
-        "firewire.command_byte7",
-        "byte 7 of every command: \"0x53\" (the open drivers), another \"0xNN\", or \"counter\"",
-    ),
-];
-
 impl FirewireConfig {
     /// Check every value; the first problem names its field (`firewire.timeout_ms`, ...).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let invalid = |field: &str, value: String, allowed: &str| ConfigError::Invalid {
-            field: field.to_string(),
-            value,
-            allowed: allowed.to_string(),
-        };
         let node_ok = self
             .device
             .strip_prefix("/dev/fw")
             .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
         if !self.device.is_empty() && !node_ok {
-            return Err(invalid(
+            return Err(check::invalid(
                 "firewire.device",
                 format!("{:?}", self.device),
                 "empty (search) or a node like \"/dev/fw1\"",
@@ -209,36 +152,36 @@ impl FirewireConfig {
         }
         if !self.serial.is_empty() {
             if let Err(e) = serial::parse(&self.serial) {
-                return Err(invalid(
+                return Err(check::invalid(
                     "firewire.serial",
                     format!("{:?}", self.serial),
-                    &format!("empty, or {}", e.0),
+                    format!("empty, or {}", e.0),
                 ));
             }
         }
         if !(1..=1000).contains(&self.timeout_ms) {
-            return Err(invalid(
+            return Err(check::invalid(
                 "firewire.timeout_ms",
                 self.timeout_ms.to_string(),
                 "1 ..= 1000 ms",
             ));
         }
         if !(1..=5000).contains(&self.register_timeout_ms) {
-            return Err(invalid(
+            return Err(check::invalid(
                 "firewire.register_timeout_ms",
                 self.register_timeout_ms.to_string(),
                 "1 ..= 5000 ms",
             ));
         }
         if self.busy_retries > 50 {
-            return Err(invalid(
+            return Err(check::invalid(
                 "firewire.busy_retries",
                 self.busy_retries.to_string(),
                 "0 ..= 50",
             ));
         }
         if !(1..=1000).contains(&self.busy_retry_ms) {
-            return Err(invalid(
+            return Err(check::invalid(
                 "firewire.busy_retry_ms",
                 self.busy_retry_ms.to_string(),
                 "1 ..= 1000 ms",
@@ -246,8 +189,8 @@ impl FirewireConfig {
         }
         for (j, s) in self.encoder_sign.iter().enumerate() {
             if !matches!(s, -1 | 1) {
-                return Err(invalid(
-                    &format!("firewire.encoder_sign[{j}]"),
+                return Err(check::invalid(
+                    format!("firewire.encoder_sign[{j}]"),
                     s.to_string(),
                     "1 or -1",
                 ));
@@ -255,15 +198,15 @@ impl FirewireConfig {
         }
         for (j, s) in self.dac_sign.iter().enumerate() {
             if !matches!(s, -1..=1) {
-                return Err(invalid(
-                    &format!("firewire.dac_sign[{j}]"),
+                return Err(check::invalid(
+                    format!("firewire.dac_sign[{j}]"),
                     s.to_string(),
                     "1 or -1, or 0 (not measured yet)",
                 ));
             }
         }
         if self.byte7().is_none() {
-            return Err(invalid(
+            return Err(check::invalid(
                 "firewire.command_byte7",
                 format!("{:?}", self.command_byte7),
                 "\"0x53\" (the open drivers), another \"0xNN\", or \"counter\"",

@@ -1,0 +1,142 @@
+//! A configuration value's error and the checks every section uses. It depends on no other
+//! module of the crate (but the leaves `text` and `input`), so each component can define and validate its own section beside its
+//! code while `config` only gathers the sections (no import cycle between them).
+
+use serde::Deserialize;
+use std::fmt::Display;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("config {path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("config: `{field}` = {} is out of range: allowed {allowed}", crate::text::cut(.value))]
+    Invalid {
+        field: String,
+        value: String,
+        allowed: String,
+    },
+}
+
+impl ConfigError {
+    /// Reading the file was stopped by the operator.
+    pub fn is_stopped(&self) -> bool {
+        matches!(self, ConfigError::Read { source, .. } if crate::input::is_stopped(source))
+    }
+}
+
+/// `field` = `value` is not allowed; `allowed` says what is.
+pub fn invalid(
+    field: impl Into<String>,
+    value: impl Display,
+    allowed: impl Into<String>,
+) -> ConfigError {
+    ConfigError::Invalid {
+        field: field.into(),
+        value: value.to_string(),
+        allowed: allowed.into(),
+    }
+}
+
+/// A finite `v` in `lo ..= hi`.
+pub fn in_range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(invalid(field, v, allowed))
+    }
+}
+
+/// A finite `v` > 0.
+pub fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(invalid(field, v, "finite and > 0"))
+    }
+}
+
+/// An integer (or any ordered value) in `lo ..= hi`.
+pub fn int_in<T: PartialOrd + Display>(
+    field: &str,
+    v: T,
+    lo: T,
+    hi: T,
+    allowed: &str,
+) -> Result<(), ConfigError> {
+    if v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(invalid(field, v, allowed))
+    }
+}
+
+/// `check` on every element, each named `field[i]`.
+pub fn each<const N: usize>(
+    field: &str,
+    v: &[f64; N],
+    check: impl Fn(&str, f64) -> Result<(), ConfigError>,
+) -> Result<(), ConfigError> {
+    for (i, x) in v.iter().enumerate() {
+        check(&format!("{field}[{i}]"), *x)?;
+    }
+    Ok(())
+}
+
+/// `[T; N]` from exactly N values. serde's own impl for arrays stops after N elements without
+/// looking further, so with `toml` a longer array was silently cut to its first N; every
+/// fixed-length field of a config or stored-state file takes its values through this
+/// (`#[serde(deserialize_with = "crate::config_check::exact")]`).
+pub fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let values = Vec::<T>::deserialize(d)?;
+    let got = values.len();
+    values
+        .try_into()
+        .map_err(|_| serde::de::Error::invalid_length(got, &ArrayOf(N)))
+}
+
+/// What [`exact`] expects, for its message.
+struct ArrayOf(usize);
+
+impl serde::de::Expected for ArrayOf {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "an array of exactly {} values", self.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checks_name_the_field_and_refuse_non_finite_values() {
+        assert!(in_range("a.b", 0.5, 0.0, 1.0, "0 ..= 1").is_ok());
+        for bad in [f64::NAN, f64::INFINITY, -0.1, 1.1] {
+            let e = in_range("a.b", bad, 0.0, 1.0, "0 ..= 1").unwrap_err();
+            assert!(e.to_string().contains("`a.b`"), "{e}");
+        }
+        assert!(positive("p", 0.0).is_err() && positive("p", f64::NAN).is_err());
+        assert!(int_in("n", 7u32, 1, 5, "1 ..= 5").is_err());
+        let e = each("v", &[1.0, -1.0], |f, v| {
+            in_range(f, v, 0.0, 2.0, "0 ..= 2")
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains("`v[1]` = -1"), "{e}");
+    }
+
+    #[test]
+    fn a_huge_value_is_quoted_cut() {
+        let e = invalid("k", "é".repeat(10_000), "short");
+        let text = e.to_string();
+        assert!(text.len() < 400 && text.contains("(20000 bytes)"), "{text}");
+    }
+}
