@@ -324,9 +324,16 @@ fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
     );
     consistent(&sample(&jhu, "sample"), "jhu");
 
-    // VRPN: synchronous reads outside a frame; a read on the main thread; usage errors.
+    // VRPN: synchronous reads outside a frame (one sample per tick); a read on the main
+    // thread before the scheduler runs (each call the latest sample: the idle arm may move
+    // between them, a little); usage errors.
     let vrpn = run(hd.exe("vrpn"), &[], &env);
-    consistent(&sample(&vrpn, "outside"), "vrpn outside");
+    let outside = sample(&vrpn, "outside");
+    let fk = tip_position_mm(&Geometry::default(), &outside.q.into());
+    assert!(
+        (0..3).all(|j| (outside.pos[j] - fk[j]).abs() < 5.0),
+        "{vrpn}"
+    );
     consistent(&sample(&vrpn, "sync"), "vrpn sync");
     assert_eq!(field(&vrpn, "errors"), "0x104 0x100 0x401 0");
     assert!(field(&vrpn, "string").contains("omnid"), "{vrpn}");
@@ -377,12 +384,16 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     consistent(&sample(&printed, "sample"), "chai");
     assert!(printed.contains("force-set 0.500000 0 0"), "{printed}");
 
-    // The servo applies Jᵀ F (within a DAC step of 2.2e-4 N·m and the tick's motion), and
-    // the arm turns about its base towards +x.
-    let until = Instant::now() + Duration::from_secs(20);
-    let mut first_x = None;
-    let matched = loop {
-        assert!(Instant::now() < until, "the force never reached the device");
+    // The servo applies Jᵀ F (within a DAC step of 2.2e-4 N·m and the tick's motion) once
+    // its start-up ramp is over, and the arm turns about its base towards +x.
+    let until = Instant::now() + Duration::from_secs(30);
+    let (mut first_x, mut applied, mut moved, mut last) = (None, false, false, None);
+    while !(applied && moved) {
+        assert!(
+            Instant::now() < until,
+            "the force never reached the device (applied {applied}, moved {moved}); last \
+             state in a stream mode: {last:?}"
+        );
         let Ok(s) = watch.next_state(2000) else {
             continue;
         };
@@ -392,15 +403,12 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
         let x = *first_x.get_or_insert(s.tip_mm[0]);
         let j = jacobian(&Geometry::default(), &s.q.into());
         let want = j.transpose() * omnid::omni::Joint3::new(0.5, 0.0, 0.0);
-        let close = (0..3).all(|k| (s.tau[k] - want[k]).abs() < 2e-3);
-        if close && s.amps && s.tau[0].abs() > 0.01 && s.tip_mm[0] > x + 1.0 {
-            break s;
-        }
-    };
-    assert!(
-        matched.tau[0] < 0.0,
-        "+x at the tip is a negative base torque"
-    );
+        // +x at the tip is a negative base torque. The base joint only: gravity takes the
+        // uncompensated arm down into its soft walls, whose torque adds to the other joints.
+        applied |= s.amps && s.tau[0] < -0.01 && (s.tau[0] - want[0]).abs() < 2e-3;
+        moved |= s.tip_mm[0] > x + 1.0;
+        last = Some(s);
+    }
 
     chai.kill().unwrap();
     chai.wait().unwrap();

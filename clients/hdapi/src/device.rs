@@ -16,7 +16,7 @@ use thiserror::Error;
 
 /// How long a stream command stays in effect at the daemon: a client that stops sending
 /// (crash, stopped scheduler) loses its force within this (docs/HDAPI.md, Safety).
-pub const FORCE_TTL_MS: f64 = 10.0;
+pub const FORCE_TTL_MS: f64 = 20.0;
 
 /// How long we wait for the daemon's first sample or a reply.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(5);
@@ -51,6 +51,9 @@ struct Inbox {
 #[derive(Default, Clone)]
 pub struct Frame {
     pub depth: u32,
+    /// The sample of the scheduler's tick in progress: what reads outside a frame see while
+    /// the scheduler runs, so a callback without a frame (VRPN) reads one sample throughout.
+    pub tick: Option<State>,
     /// The sample this frame reads (`CURRENT_…`); the last frame's is `LAST_…`.
     pub current: Option<State>,
     pub last: Option<State>,
@@ -241,6 +244,12 @@ impl Device {
                 .unwrap_or_else(|e| e.into_inner())
                 .0;
         }
+    }
+
+    /// The scheduler begins a tick (`Some`: its sample) or stopped (`None`).
+    pub fn set_tick(&self, tick: bool) {
+        let latest = if tick { self.latest() } else { None };
+        lock(&self.frame).tick = latest;
     }
 
     /// `hdBeginFrame`: the outermost begin snapshots the latest sample and clears the forces

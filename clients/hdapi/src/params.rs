@@ -23,14 +23,15 @@ fn nums<const N: usize>(v: [f64; N]) -> Result<Value, u32> {
     Ok(Value::Nums(v.to_vec()))
 }
 
-/// The sample a read sees: inside a frame its snapshot, outside the latest.
+/// The sample a read sees: inside a frame its snapshot; outside a frame the scheduler's
+/// tick's sample while it runs, else the latest.
 fn sample(d: &Device, f: &Frame, last: bool) -> Result<State, u32> {
     let s = if last {
         f.last.clone().or_else(|| f.current.clone())
     } else if f.depth > 0 {
         f.current.clone()
     } else {
-        None
+        f.tick.clone()
     };
     s.or_else(|| d.latest()).ok_or(HD_COMM_ERROR)
 }

@@ -97,6 +97,12 @@ impl Ticker for Registry {
         }
     }
 
+    fn tick_sample(&self, ticking: bool) {
+        for d in self.all() {
+            d.set_tick(ticking);
+        }
+    }
+
     fn after_tick(&self) {
         // A frame a callback left open is closed without committing: the next tick's frame
         // starts clean.

@@ -40,6 +40,8 @@ pub trait Ticker: Sync {
     /// Wait for a sample newer than `seen` (a count); None after a short time-out, so the
     /// scheduler can look at its stop flag.
     fn wait_tick(&self, seen: u64) -> Option<u64>;
+    /// A tick begins (`true`) or the scheduler stopped (`false`).
+    fn tick_sample(&self, ticking: bool);
     /// After every callback of a tick ran: close frames left open.
     fn after_tick(&self);
 }
@@ -189,9 +191,11 @@ impl Scheduler {
                 Some(n) => seen = n,
                 None => continue,
             }
+            ticker.tick_sample(true);
             self.tick();
             ticker.after_tick();
         }
+        ticker.tick_sample(false);
         let mut s = lock(&self.inner);
         s.running = false;
         s.tick_start = None;
