@@ -3,7 +3,6 @@
 //! the SONAME, C programs replaying the call orders of CHAI3D, the ROS driver, the JHU driver
 //! and VRPN, and pyOpenHaptics from PyPI (tests/hdapi_python.rs).
 
-mod common;
 pub mod hd;
 
 use hd::{run, Daemon, HD};

@@ -3,7 +3,6 @@
 //! spring (clients/hdapi/tests/pyopenhaptics_spring.py). Skipped, loudly, only when the
 //! package registry cannot be reached.
 
-mod common;
 pub mod hd;
 
 use hd::{wait_output, Daemon, HD};
