@@ -3,7 +3,7 @@
 //! (a) round trip: a client streams state at 1 kHz in `servo_jp` mode and answers every state
 //!     k with a command `seq = k`; on time when state k + 1 carries `cmd_seq = k`. Beside it,
 //!     the floor of a bare Unix SOCK_SEQPACKET ping-pong (400 bytes out, 64 back, 1 kHz), in
-//!     Rust and, when `../shared/bench/uds_pingpong.c` and `cc` are there, in C;
+//!     Rust and, when `cc` is there, in C (`benches/uds_pingpong.c`);
 //! (b) fan-out: the servo's lateness p99 with 0, 10 and 50 reader clients streaming at 1 kHz
 //!     (a fresh daemon per count, the arm in `hold`).
 //!
@@ -458,9 +458,9 @@ fn uds_floor(n: usize) -> Option<Pct> {
     Pct::of(&mut rt)
 }
 
-/// `../shared/bench/uds_pingpong.c` compiled and run for `n` iterations: its line, or why not.
+/// `benches/uds_pingpong.c` compiled and run for `n` iterations: its line, or why not.
 fn c_floor(root: &Path, n: usize) -> Result<String, String> {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/bench/uds_pingpong.c");
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/uds_pingpong.c");
     if !src.is_file() {
         return Err(format!("skipped: {} not found", src.display()));
     }
@@ -712,8 +712,8 @@ fn main() {
         Pct::line(floor)
     );
     match &c_line {
-        Ok(l) => println!("uds floor (shared/bench/uds_pingpong.c):  {l}"),
-        Err(e) => println!("uds floor (shared/bench/uds_pingpong.c):  {e}"),
+        Ok(l) => println!("uds floor (benches/uds_pingpong.c):  {l}"),
+        Err(e) => println!("uds floor (benches/uds_pingpong.c):  {e}"),
     }
     let p99 = |f: &FanOut| f.status["timing_us"]["lateness"]["p99"].as_f64();
     println!(

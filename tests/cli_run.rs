@@ -45,7 +45,8 @@ fn ten_second_pd_run_writes_log_and_summary() {
     assert_eq!(s["ticks"], 10_000);
     assert_eq!(s["faults"].as_array().unwrap().len(), 0);
     assert_eq!(s["telemetry_dropped"], 0);
-    // DESIGN §4.4: PD ≈ 5.5 / 9.8 / 47 mrad on this plant. Same order of magnitude.
+    // docs/DESIGN.md §4.4: PD gives 6.55 / 9.49 / 47.1 mrad on this plant. Same order of
+    // magnitude: within a factor of two of an earlier build's 5.5 / 9.8 / 47.
     let expected = [5.5e-3, 9.8e-3, 47e-3];
     for j in 0..3 {
         let rms = s["tracking_rms_rad"][j].as_f64().unwrap();

@@ -185,7 +185,7 @@ fn irregular_time_steps_flow_through_as_device_time() {
     let (file, log) = (dir.path().join("jitter.csv"), dir.path().join("out.csv"));
     let truth = jittered_sine(&file, 1000);
     let mut cfg = Config::default();
-    cfg.kalman.jerk_psd = 10.0; // DESIGN §4.3: suits 0.5 Hz motion
+    cfg.kalman.jerk_psd = 10.0; // docs/DESIGN.md §4.3: suits 0.5 Hz motion
     let out = run(
         DeviceSpec::Replay(file),
         ControllerKind::Off,

@@ -1,4 +1,4 @@
-//! The real Geomagic Touch recording (../shared/data, ROS joint convention): converted with
+//! The real Geomagic Touch recording (shipped in `data/`, ROS joint convention): converted with
 //! `omnid convert --from ros-touch`, checked against the recorded tip, and replayed end to end.
 
 mod common;
@@ -6,30 +6,30 @@ use common::{run_ok, Log};
 use omnid::omni::{tip_position_mm, Geometry, Joint3};
 use omnid::telemetry::reader::LogReader;
 
-const RECORDING: &str = "data/touch-2016-joint-and-tip.csv";
+const RECORDING: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/data/touch-2016-joint-and-tip.csv"
+);
 
-/// Convert the recording into a temporary directory (None: the recording is not here).
-fn converted() -> Option<(tempfile::TempDir, std::path::PathBuf)> {
-    let input = common::shared_file(RECORDING)?;
+/// Convert the recording into a temporary directory.
+fn converted() -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("touch.csv");
     let o = run_ok(&[
         "convert",
         "--from",
         "ros-touch",
-        input.to_str().unwrap(),
+        RECORDING,
         "--out",
         out.to_str().unwrap(),
     ]);
     assert!(String::from_utf8_lossy(&o.stdout).contains("2743 rows"));
-    Some((dir, out))
+    (dir, out)
 }
 
 #[test]
 fn converted_angles_reproduce_the_recorded_tip() {
-    let Some((_dir, out)) = converted() else {
-        return;
-    };
+    let (_dir, out) = converted();
     let l = Log::read(&out);
     assert_eq!(
         &l.header[..7],
@@ -61,9 +61,7 @@ fn converted_angles_reproduce_the_recorded_tip() {
 
 #[test]
 fn converted_recording_replays_end_to_end() {
-    let Some((dir, out)) = converted() else {
-        return;
-    };
+    let (dir, out) = converted();
     let log = dir.path().join("replayed.csv");
     let device = format!("replay:{}", out.display());
     let o = run_ok(&[

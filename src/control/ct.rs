@@ -1,5 +1,5 @@
-//! Computed torque (DESIGN §3): the inverse-dynamics law with the rigid-body parametric model,
-//! τ = M(q)·v + C(q, q̇)·q̇ + G(q) (+ friction), v = q̈_d + K_d(q̇_d − q̇) + K_p(q_d − q).
+//! Computed torque (docs/DESIGN.md §3): the inverse-dynamics law with the rigid-body parametric
+//! model, τ = M(q)·v + C(q, q̇)·q̇ + G(q) (+ friction), v = q̈_d + K_d(q̇_d − q̇) + K_p(q_d − q).
 //! What a lab with an identified parametric model would run; the oracle NNIDC is measured
 //! against on the simulator.
 

@@ -1,4 +1,4 @@
-//! NNIDC (paper Fig. 7, DESIGN §3): the inverse-dynamics law with the networks' model,
+//! NNIDC (paper Fig. 7, docs/DESIGN.md §3): the inverse-dynamics law with the networks' model,
 //! τ = M̂(q)·v + Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(q̇), v = q̈_d + K_d(q̇_d − q̇) + K_p(q_d − q),
 //! while the identifier keeps learning. When the identifier has stopped on a non-finite value
 //! (or there is none), it falls back to the PD baseline until the operator resets.

@@ -1,5 +1,5 @@
-//! The PD baseline (DESIGN §3): gains K_p = M₀·ω², K_d = M₀·2ζω with M₀ the nominal diagonal
-//! inertia at the workspace centre, so that it is comparable with CT and NNIDC. No gravity
+//! The PD baseline (docs/DESIGN.md §3): gains K_p = M₀·ω², K_d = M₀·2ζω with M₀ the nominal
+//! diagonal inertia at the workspace centre, so that it is comparable with CT and NNIDC. No gravity
 //! compensation: that is what the model-based controllers add.
 
 use super::ControlSetup;

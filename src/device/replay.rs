@@ -1,4 +1,4 @@
-//! The mock device: replays a recorded log (DESIGN §2.1 `--device replay:PATH`).
+//! The mock device: replays a recorded log (docs/DESIGN.md §2.1 `--device replay:PATH`).
 //!
 //! - Each exchange returns the next row as a state packet: the angles go through the encoder
 //!   path (the `enc1..3` counts when the log has them, else `round(q / rad_per_count)`), wrapped

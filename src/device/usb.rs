@@ -1,5 +1,5 @@
-//! The USB bridge backend (DESIGN §4.6): a device that forwards the Omni's packets over USB,
-//! one 16-byte command out and one 44-byte state packet in per millisecond, on configured
+//! The USB bridge backend (docs/DESIGN.md §4.6): a device that forwards the Omni's packets over
+//! USB, one 16-byte command out and one 44-byte state packet in per millisecond, on configured
 //! endpoints (bulk or interrupt).
 //!
 //! Split in two:

@@ -1,5 +1,6 @@
-//! Per-joint Kalman filter (DESIGN §4.3): constant-acceleration model driven by white jerk,
-//! the standard continuous white-noise discretisation, time step from the device timestamps.
+//! Per-joint Kalman filter (docs/DESIGN.md §4.3): constant-acceleration model driven by white
+//! jerk, the standard continuous white-noise discretisation, time step from the device
+//! timestamps.
 
 use crate::config_check::{self as check, ConfigError};
 use crate::omni::Joint3;

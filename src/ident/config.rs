@@ -1,4 +1,4 @@
-//! `[identifier]` configuration: every tunable of the adaptive identifier (DESIGN §3), its
+//! `[identifier]` configuration: every tunable of the adaptive identifier (docs/DESIGN.md §3), its
 //! defaults, validation naming the field and the allowed range, and one line of documentation
 //! per key for `omnid config --print-default`.
 

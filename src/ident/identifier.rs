@@ -1,5 +1,5 @@
-//! The adaptive identifier of DESIGN §3: M-, C-, G- (and F-) networks, the errors e1..e4, the
-//! weighted augmented error ε, the modified error α·e + ė = ε, and the update
+//! The adaptive identifier of docs/DESIGN.md §3: M-, C-, G- (and F-) networks, the errors e1..e4,
+//! the weighted augmented error ε, the modified error α·e + ė = ε, and the update
 //! Δθ = −T·Γ·(∂ε/∂θ)ᵀe with dead zone, σ-modification, projection and a non-finite guard.
 //!
 //! Everything per tick works in preallocated buffers (the networks' own) and fixed-size

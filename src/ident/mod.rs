@@ -1,4 +1,4 @@
-//! The adaptive neural-network identifier (DESIGN §3, Agand & Aliyari Shoorehdeli 2019):
+//! The adaptive neural-network identifier (docs/DESIGN.md §3, Agand & Aliyari Shoorehdeli 2019):
 //! the tanh MLP with hand-derived gradients, the online identifier with its robust update,
 //! the weights file and batch pre-tuning. See `docs/IDENTIFIER.md`.
 

@@ -1,4 +1,4 @@
-//! Rigid-body model of the Omni (DESIGN §4.2): M(q), C(q, q̇), G(q) of the Cavusoglu
+//! Rigid-body model of the Omni (docs/DESIGN.md §4.2): M(q), C(q, q̇), G(q) of the Cavusoglu
 //! structure in the OpenHaptics joint angles, plus reflected rotor inertia, viscous and smoothed
 //! Coulomb friction, joint-limit springs and an optional point-mass payload at the tip.
 

@@ -1,4 +1,4 @@
-//! Forward kinematics of the Omni arm (DESIGN §4.1), OpenHaptics joint convention:
+//! Forward kinematics of the Omni arm (docs/DESIGN.md §4.1), OpenHaptics joint convention:
 //! j1 base yaw, j2 upper arm up from horizontal, j3 lower arm angle (absolute, through the
 //! parallelogram). Tip in the OpenHaptics frame: +x right, +y up, +z toward the user.
 

@@ -1,5 +1,5 @@
-//! Realtime set-up of the servo thread (DESIGN §4.7): SCHED_FIFO, locked memory, optional CPU
-//! pinning, a prefaulted stack, and SIGINT/SIGTERM blocked so the Ctrl-C handler never runs
+//! Realtime set-up of the servo thread (docs/DESIGN.md §4.7): SCHED_FIFO, locked memory, optional
+//! CPU pinning, a prefaulted stack, and SIGINT/SIGTERM blocked so the Ctrl-C handler never runs
 //! on this thread. Each step is configurable; a step that is not permitted gives one warning
 //! naming the fix and the run goes on.
 

@@ -1,4 +1,4 @@
-//! The safety layer every command passes through (DESIGN §4.7, issue "Safety and faults"):
+//! The safety layer every command passes through (docs/DESIGN.md §4.7, issue "Safety and faults"):
 //! non-finite guard, joint velocity limit, soft joint-limit walls, start-up ramp, per-joint
 //! clamp, torque-rate (kick) limit and a motor thermal model. It runs in the 1 kHz loop: fixed
 //! state, no allocation. Each limit that acts sets a bit in the tick's `flags`.

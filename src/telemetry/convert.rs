@@ -1,9 +1,9 @@
-//! `omnid convert`: turn a recording into a replayable log (DESIGN §2.2: `t, q1..3, tau1..3`
-//! first).
+//! `omnid convert`: turn a recording into a replayable log (docs/DESIGN.md §2.2: `t, q1..3,
+//! tau1..3` first).
 //!
 //! Sources:
 //! - `ros-touch`: the ROS Geomagic/Phantom driver's joint states as in
-//!   `shared/data/touch-2016-joint-and-tip.csv`: `t, waist, shoulder, elbow` (any order) in the
+//!   `data/touch-2016-joint-and-tip.csv`: `t, waist, shoulder, elbow` (any order) in the
 //!   ROS convention (waist = −j1, shoulder = j2, elbow = j3 − j2), mapped to OpenHaptics joints
 //!   with [`crate::omni::kinematics::from_ros`]. No torque was recorded, so `tau = 0`. Every
 //!   other column (`x_mm, y_mm, z_mm`, the gimbal angles, …) is kept, unchanged, after them.

@@ -1,6 +1,6 @@
-//! Telemetry: the per-tick log record, the writer thread that turns it into the CSV of DESIGN
-//! §2.2, the streaming reader that reads such logs back (for replay), and the run summary of
-//! §2.3.
+//! Telemetry: the per-tick log record, the writer thread that turns it into the CSV of
+//! docs/DESIGN.md §2.2, the streaming reader that reads such logs back (for replay), and the
+//! run summary of docs/DESIGN.md §2.3.
 
 pub mod convert;
 pub mod reader;

@@ -1,6 +1,6 @@
-//! Streaming CSV log reader: omnid's own log (DESIGN §2.2) or any file with the seven required
-//! columns `t, q1, q2, q3, tau1, tau2, tau3` (any order; extra columns ignored; `enc1..3` and
-//! `mode` used when present).
+//! Streaming CSV log reader: omnid's own log (docs/DESIGN.md §2.2) or any file with the seven
+//! required columns `t, q1, q2, q3, tau1, tau2, tau3` (any order; extra columns ignored;
+//! `enc1..3` and `mode` used when present).
 //!
 //! Two layers:
 //! - [`ColumnReader`]: header → column indices, one reused `ByteRecord`, field-count, number and

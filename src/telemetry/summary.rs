@@ -1,4 +1,4 @@
-//! The run summary (DESIGN §2.3): accumulated in the loop without allocation (`RunStats`),
+//! The run summary (docs/DESIGN.md §2.3): accumulated in the loop without allocation (`RunStats`),
 //! turned into JSON and a human printout at the end.
 
 use crate::servo::timing::{Percentiles, TickTiming};

@@ -1,7 +1,7 @@
 //! Helpers shared by the integration tests: run the `omnid` binary, read its CSV logs.
 #![allow(dead_code)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
 pub fn omnid() -> Command {
@@ -63,21 +63,5 @@ impl Log {
             .iter()
             .map(|r| r[c].parse::<f64>().expect("numeric"))
             .collect()
-    }
-}
-
-/// The shared directory beside the repository (present in CI), if it is there.
-pub fn shared_file(rel: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared")
-        .join(rel);
-    if p.exists() {
-        Some(p)
-    } else {
-        eprintln!(
-            "skipping: {} not found (../shared is beside the clone in CI)",
-            p.display()
-        );
-        None
     }
 }
