@@ -158,6 +158,7 @@ pub fn prepare(
         policy,
         serve: cfg.serve.clone(),
         device: opts.device.name().to_string(),
+        serial: pipeline.servo.device_serial(),
         rate_hz: cfg.device.rate_hz,
         period_ns: (1e9 / cfg.device.rate_hz).round() as u64,
         schema: pipeline.schema,

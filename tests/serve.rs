@@ -768,7 +768,9 @@ fn free_mode_compensates_and_servo_jf_adds_torque() {
     let mut last = start.clone();
     for _ in 0..300 {
         last = c.next_state(5000).unwrap();
-        c.send(&json!({"op": "servo_jf", "seq": last.seq, "tau": [0.03, 0.0, 0.0]}))
+        // A long time to live: this checks the torque, not the stream's deadline, and a
+        // loaded machine can delay this loop by more than the default 20 ms.
+        c.send(&json!({"op": "servo_jf", "seq": last.seq, "tau": [0.03, 0.0, 0.0], "ttl_ms": 200}))
             .unwrap();
     }
     assert_eq!(last.mode, "servo_jf");

@@ -78,6 +78,8 @@ pub struct HubSetup {
     pub policy: Policy,
     pub serve: super::ServeConfig,
     pub device: String,
+    /// The device's serial number, when its backend knows one.
+    pub serial: Option<String>,
     pub rate_hz: f64,
     pub period_ns: u64,
     pub schema: LogSchema,
@@ -603,6 +605,10 @@ impl Hub {
                     ]
                     .map(String::from)
                     .into(),
+                    model: super::device_info::model(&self.s.device).into(),
+                    vendor: super::device_info::VENDOR.into(),
+                    serial: self.s.serial.clone(),
+                    firmware: None,
                 };
                 let mut v = serde_json::to_value(hello).unwrap_or_default();
                 v["type"] = json!("hello");
@@ -1139,6 +1145,7 @@ impl Hub {
             tip_mm: tip_position_mm(&self.s.geometry, &r.q.into()).into(),
             buttons: r.live.buttons,
             inkwell: r.live.inkwell,
+            gimbal: super::device_info::gimbal_angles(r.live.gimbal),
             tau: r.tau,
             tau_hat: r.tau_hat,
             controller: r.live.controller.map_or("none", |k| k.as_str()).to_string(),

@@ -6,6 +6,7 @@
 pub mod access;
 pub mod client;
 pub mod config;
+pub mod device_info;
 pub mod hub;
 pub mod protocol;
 pub mod socket;

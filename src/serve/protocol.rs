@@ -227,6 +227,9 @@ pub struct State {
     pub tip_mm: [f64; 3],
     pub buttons: [bool; 2],
     pub inkwell: bool,
+    /// Gimbal angles, rad (nominal, uncalibrated: `serve::device_info`; 0 at mid-scale).
+    #[serde(default)]
+    pub gimbal: [f64; 3],
     /// Torque sent to the motors, N·m.
     pub tau: [f64; 3],
     /// The identifier's prediction of the torque that acted, N·m.
@@ -255,6 +258,16 @@ pub struct Hello {
     pub stream_ttl_ms: f64,
     pub controllers: Vec<String>,
     pub modes: Vec<String>,
+    /// The device's identification: model, vendor, serial number and firmware (`null` when
+    /// the backend does not know it).
+    #[serde(default)]
+    pub model: String,
+    #[serde(default)]
+    pub vendor: String,
+    #[serde(default)]
+    pub serial: Option<String>,
+    #[serde(default)]
+    pub firmware: Option<String>,
 }
 
 #[cfg(test)]

@@ -111,6 +111,8 @@ struct Sample {
     t_dev: f64,
     buttons: [bool; 2],
     inkwell: bool,
+    /// Gimbal potentiometer words, raw.
+    gimbal: [u16; 3],
     wake: u64,
 }
 
@@ -276,6 +278,11 @@ impl Servo {
         self.activity = Activity::Idle;
     }
 
+    /// The device's serial number, when its backend knows one (the daemon's hello).
+    pub fn device_serial(&self) -> Option<String> {
+        self.device.serial().map(String::from)
+    }
+
     pub fn activity(&self) -> Activity {
         self.activity
     }
@@ -388,6 +395,7 @@ impl Servo {
             t_dev,
             buttons: packet.buttons,
             inkwell: packet.inkwell,
+            gimbal: packet.gimbal,
             wake,
         })
     }
@@ -531,6 +539,7 @@ impl Servo {
                 seq: self.tick,
                 buttons: s.buttons,
                 inkwell: s.inkwell,
+                gimbal: s.gimbal,
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
                 event,
@@ -824,12 +833,15 @@ impl Servo {
         // The stop row: the reply's state when one comes back, else the last known state.
         let period = 1e-9 * self.period_ns as f64;
         let (mut t, mut q, mut enc) = (self.last_t + period, self.last_q, self.last_enc);
+        // Mid-scale (0 rad) unless the reply says otherwise.
+        let mut gimbal = [0x8000; 3];
         match self.device.exchange(&bytes) {
             Ok(raw) => {
                 if let Some(t0) = self.t0 {
                     t = (raw.device_time_s - t0).max(self.last_t);
                 }
                 if let Ok(p) = decode_state(raw.packet()) {
+                    gimbal = p.gimbal;
                     enc = self.unwrap.update(p.encoder);
                     q = enc.map(|c| c as f64 * self.rad_per_count);
                 }
@@ -862,6 +874,7 @@ impl Servo {
                 seq: self.tick,
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
+                gimbal,
                 ..Live::default()
             },
         });

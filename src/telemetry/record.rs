@@ -130,6 +130,9 @@ pub struct Live {
     /// Stylus buttons pressed, and the stylus in its inkwell.
     pub buttons: [bool; 2],
     pub inkwell: bool,
+    /// Gimbal potentiometer words as the device sent them (the hub converts them to angles,
+    /// `serve::device_info`).
+    pub gimbal: [u16; 3],
     /// The controller whose law is in effect (the new one during a bumpless switch).
     pub controller: Option<crate::control::ControllerKind>,
     /// Sequence number of the last stream command (`servo_jp`/`servo_jf`/`servo_cf`) applied.

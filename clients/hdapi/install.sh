@@ -1,0 +1,34 @@
+#!/bin/sh
+# Install omnid's libHD: the library as libHD.so.3.4.0 with the links programs look for
+# (libHD.so.3.4, its SONAME; libHD.so.3.0, the 3.0 SDK's; libHD.so, what dlopen users ask
+# for) and the headers (HD/, HDU/, HL/). docs/HDAPI.md, Install.
+#
+#   clients/hdapi/install.sh [--lib PATH/libomnid_hd.so] PREFIX
+#
+# Without --lib it builds the library (cargo build --release -p omnid-hd) first.
+set -eu
+here=$(cd "$(dirname "$0")" && pwd)
+lib=
+if [ "${1:-}" = "--lib" ]; then
+  lib=$2
+  shift 2
+fi
+if [ $# -ne 1 ]; then
+  echo "usage: $0 [--lib PATH/libomnid_hd.so] PREFIX   (e.g. /usr/local or \$HOME/.local)" >&2
+  exit 2
+fi
+prefix=$1
+if [ -z "$lib" ]; then
+  (cd "$here/../.." && cargo build --release -p omnid-hd)
+  target=${CARGO_TARGET_DIR:-$here/../../target}
+  lib=$target/release/libomnid_hd.so
+fi
+[ -f "$lib" ] || { echo "$0: no library at $lib" >&2; exit 1; }
+mkdir -p "$prefix/lib" "$prefix/include"
+cp "$lib" "$prefix/lib/libHD.so.3.4.0.tmp"
+mv -f "$prefix/lib/libHD.so.3.4.0.tmp" "$prefix/lib/libHD.so.3.4.0"
+for name in libHD.so.3.4 libHD.so.3.0 libHD.so; do
+  ln -sfn libHD.so.3.4.0 "$prefix/lib/$name"
+done
+cp -R "$here/include/HD" "$here/include/HDU" "$here/include/HL" "$prefix/include/"
+echo "libHD (omnid) installed in $prefix/lib, headers in $prefix/include"

@@ -1,0 +1,422 @@
+//! One device: a connection to `omnid serve` with a receiving thread that keeps the latest
+//! state sample (so reads outside a frame and before the scheduler starts are fresh), answers
+//! to our requests, and the frame (snapshot in, force out). docs/HDAPI.md, Devices and Frames.
+
+use crate::kin;
+use omnid::serve::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
+use omnid::serve::socket::Conn;
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use thiserror::Error;
+
+/// How long a stream command stays in effect at the daemon: a client that stops sending
+/// (crash, stopped scheduler) loses its force within this (docs/HDAPI.md, Safety).
+pub const FORCE_TTL_MS: f64 = 20.0;
+
+/// How long we wait for the daemon's first sample or a reply.
+const ANSWER_TIMEOUT: Duration = Duration::from_secs(5);
+
+#[derive(Debug, Error)]
+pub enum DeviceError {
+    #[error("no omnid daemon: {0}")]
+    NoDaemon(String),
+    #[error("the daemon refused: {0}")]
+    Refused(String),
+    #[error("the daemon did not answer in time")]
+    Timeout,
+    #[error("the connection to the daemon is closed")]
+    Closed,
+}
+
+/// What the receiving thread shares.
+#[derive(Default)]
+struct Inbox {
+    latest: Option<State>,
+    /// Samples received (the scheduler runs one frame per sample).
+    samples: u64,
+    /// Receipt time of the latest sample and the device time between the last two.
+    dt: f64,
+    /// The stylus has been seen in its inkwell since the device was opened.
+    inkwell_seen: bool,
+    replies: HashMap<u64, Value>,
+    closed: bool,
+}
+
+/// The frame in progress and what the last one committed.
+#[derive(Default, Clone)]
+pub struct Frame {
+    pub depth: u32,
+    /// The sample of the scheduler's tick in progress: what reads outside a frame see while
+    /// the scheduler runs, so a callback without a frame (VRPN) reads one sample throughout.
+    pub tick: Option<State>,
+    /// The sample this frame reads (`CURRENT_…`); the last frame's is `LAST_…`.
+    pub current: Option<State>,
+    pub last: Option<State>,
+    /// Cartesian force, N; joint torque, mN·m (docs/HDAPI.md, Units).
+    pub force: [f64; 3],
+    pub joint_torque: [f64; 3],
+    pub gimbal_torque: [f64; 3],
+    pub torque: [f64; 3],
+    pub last_force: [f64; 3],
+    pub last_joint_torque: [f64; 3],
+    pub last_gimbal_torque: [f64; 3],
+    pub last_torque: [f64; 3],
+}
+
+pub struct Device {
+    pub hhd: u32,
+    conn: Arc<Conn>,
+    pub hello: Hello,
+    pub socket: PathBuf,
+    inbox: Arc<(Mutex<Inbox>, Condvar)>,
+    closing: Arc<AtomicBool>,
+    rx: Mutex<Option<JoinHandle<()>>>,
+    next_id: AtomicU64,
+    pub frame: Mutex<Frame>,
+    /// We hold the daemon's command lease (taken when the scheduler starts).
+    pub commanding: AtomicBool,
+    /// `hdUpdateCalibration` was called after the inkwell was seen.
+    pub calibrated: AtomicBool,
+    /// The daemon offers `servo_cf` (Cartesian force); else forces go as `servo_jf`.
+    servo_cf: bool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A panic elsewhere never poisons the library for good: the data are plain values.
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The socket for a device name: NULL or "Default Device" → `$OMNID_SOCKET` or the only
+/// socket in the default directories (as `omnid ctl` finds it); a path (has a `/`) → that
+/// socket; another name → `<dir>/<name>.sock` in the default directories.
+pub fn socket_for(name: Option<&str>) -> Result<PathBuf, String> {
+    match name.map(str::trim) {
+        None | Some("") => omnid::serve::find_socket(),
+        Some(n)
+            if n.eq_ignore_ascii_case("Default Device") || n.eq_ignore_ascii_case("default") =>
+        {
+            omnid::serve::find_socket()
+        }
+        Some(n) if n.contains('/') => Ok(PathBuf::from(n)),
+        Some(n) => {
+            let dirs = omnid::serve::default_socket_dirs();
+            dirs.iter()
+                .map(|d| d.join(format!("{n}.sock")))
+                .find(|p| p.exists())
+                .ok_or_else(|| {
+                    format!(
+                        "no socket {n}.sock in {} (is `omnid serve --device {n}` running?)",
+                        dirs.iter()
+                            .map(|d| d.display().to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
+                })
+        }
+    }
+}
+
+impl Device {
+    /// Connect, greet, start the state stream at the device's rate and wait for a sample.
+    pub fn open(hhd: u32, socket: &Path) -> Result<Device, DeviceError> {
+        let conn = Conn::connect(socket)
+            .map_err(|e| DeviceError::NoDaemon(format!("{}: {e}", socket.display())))?;
+        let hello = greet(&conn)?;
+        let conn = Arc::new(conn);
+        let inbox = Arc::new((Mutex::new(Inbox::default()), Condvar::new()));
+        let closing = Arc::new(AtomicBool::new(false));
+        let rx = {
+            let (conn, inbox, closing) = (conn.clone(), inbox.clone(), closing.clone());
+            std::thread::Builder::new()
+                .name("omnid-hd-rx".into())
+                .spawn(move || receive(&conn, &inbox, &closing))
+                .map_err(|e| DeviceError::Refused(format!("cannot start a thread: {e}")))?
+        };
+        let servo_cf = hello.modes.iter().any(|m| m == "servo_cf");
+        let d = Device {
+            hhd,
+            conn,
+            hello,
+            socket: socket.to_path_buf(),
+            inbox,
+            closing,
+            rx: Mutex::new(Some(rx)),
+            next_id: AtomicU64::new(1),
+            frame: Mutex::new(Frame::default()),
+            commanding: AtomicBool::new(false),
+            calibrated: AtomicBool::new(false),
+            servo_cf,
+        };
+        let rate = d.hello.rate_hz;
+        d.request(json!({"op": "stream", "rate_hz": rate}))?;
+        d.wait_sample(0, ANSWER_TIMEOUT)
+            .ok_or(DeviceError::Timeout)?;
+        Ok(d)
+    }
+
+    /// Send a request and wait for its reply (the receiving thread hands it over).
+    pub fn request(&self, mut req: Value) -> Result<Value, DeviceError> {
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        req["id"] = json!(id);
+        self.send(&req)?;
+        let (m, cv) = &*self.inbox;
+        let until = Instant::now() + ANSWER_TIMEOUT;
+        let mut inbox = lock(m);
+        loop {
+            if let Some(v) = inbox.replies.remove(&id) {
+                return if v["type"] == "error" {
+                    Err(DeviceError::Refused(
+                        v["message"].as_str().unwrap_or("refused").to_string(),
+                    ))
+                } else {
+                    Ok(v)
+                };
+            }
+            if inbox.closed {
+                return Err(DeviceError::Closed);
+            }
+            let left = until.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Err(DeviceError::Timeout);
+            }
+            inbox = cv
+                .wait_timeout(inbox, left)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    pub fn send(&self, msg: &Value) -> Result<(), DeviceError> {
+        let bytes = serde_json::to_vec(msg).map_err(|_| DeviceError::Closed)?;
+        self.conn.send(&bytes).map_err(|_| DeviceError::Closed)
+    }
+
+    /// The latest sample (None before the first).
+    pub fn latest(&self) -> Option<State> {
+        lock(&self.inbox.0).latest.clone()
+    }
+
+    /// Samples received so far.
+    pub fn samples(&self) -> u64 {
+        lock(&self.inbox.0).samples
+    }
+
+    pub fn inkwell_seen(&self) -> bool {
+        lock(&self.inbox.0).inkwell_seen
+    }
+
+    /// The daemon closed the connection (or said goodbye).
+    pub fn is_closed(&self) -> bool {
+        lock(&self.inbox.0).closed
+    }
+
+    /// The device's rate as measured over the last two samples, Hz.
+    pub fn instantaneous_rate(&self) -> f64 {
+        let dt = lock(&self.inbox.0).dt;
+        if dt > 0.0 {
+            1.0 / dt
+        } else {
+            self.hello.rate_hz
+        }
+    }
+
+    /// Wait until more than `seen` samples have arrived: the new count, or None on time-out
+    /// or when the connection closed.
+    pub fn wait_sample(&self, seen: u64, timeout: Duration) -> Option<u64> {
+        let (m, cv) = &*self.inbox;
+        let until = Instant::now() + timeout;
+        let mut inbox = lock(m);
+        loop {
+            if inbox.samples > seen {
+                return Some(inbox.samples);
+            }
+            let left = until.saturating_duration_since(Instant::now());
+            if inbox.closed || left.is_zero() {
+                return None;
+            }
+            inbox = cv
+                .wait_timeout(inbox, left)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    /// The scheduler begins a tick (`Some`: its sample) or stopped (`None`).
+    pub fn set_tick(&self, tick: bool) {
+        let latest = if tick { self.latest() } else { None };
+        lock(&self.frame).tick = latest;
+    }
+
+    /// `hdBeginFrame`: the outermost begin snapshots the latest sample and clears the forces
+    /// (a force not set in a frame is zero, never carried over). False when the daemon is
+    /// gone (the frame still opens, on the last sample).
+    pub fn begin_frame(&self) -> bool {
+        let latest = self.latest();
+        let mut f = lock(&self.frame);
+        f.depth += 1;
+        if f.depth == 1 {
+            f.current = latest;
+            f.force = [0.0; 3];
+            f.joint_torque = [0.0; 3];
+            f.gimbal_torque = [0.0; 3];
+            f.torque = [0.0; 3];
+        }
+        !self.is_closed()
+    }
+
+    /// `hdEndFrame`: the outermost end commits the frame's force (when `force_output`).
+    /// False when no frame was begun.
+    pub fn end_frame(&self, force_output: bool) -> Result<bool, DeviceError> {
+        let mut f = lock(&self.frame);
+        if f.depth == 0 {
+            return Ok(false);
+        }
+        f.depth -= 1;
+        if f.depth > 0 {
+            return Ok(true);
+        }
+        f.last = f.current.clone();
+        f.last_force = f.force;
+        f.last_joint_torque = f.joint_torque;
+        f.last_gimbal_torque = f.gimbal_torque;
+        f.last_torque = f.torque;
+        let Some(state) = f.current.clone() else {
+            return Ok(true);
+        };
+        let (force, joint_torque) = if force_output {
+            (f.force, f.joint_torque)
+        } else {
+            ([0.0; 3], [0.0; 3])
+        };
+        drop(f);
+        if self.commanding.load(Ordering::Relaxed) {
+            self.send(&self.command(&state, force, joint_torque))?;
+        }
+        Ok(true)
+    }
+
+    /// The stream command for a frame: the force as `servo_cf` when the daemon offers it and
+    /// no joint torque was set, else everything as one joint torque `servo_jf` (τ = Jᵀ F +
+    /// joint torque). `seq` is the sample's tick, so the state stream's `cmd_seq` tells when
+    /// it was applied.
+    fn command(&self, state: &State, force: [f64; 3], joint_torque_mnm: [f64; 3]) -> Value {
+        let force = kin::clamp_force(force);
+        if self.servo_cf && joint_torque_mnm == [0.0; 3] {
+            return json!({"op": "servo_cf", "seq": state.seq, "force": force,
+                          "ttl_ms": FORCE_TTL_MS});
+        }
+        let jt = kin::joint_torque(&state.q, &force);
+        let tau: [f64; 3] = std::array::from_fn(|j| jt[j] + joint_torque_mnm[j] * 1e-3);
+        json!({"op": "servo_jf", "seq": state.seq, "tau": tau, "ttl_ms": FORCE_TTL_MS})
+    }
+
+    /// Take the command lease (the scheduler starts).
+    pub fn take_lease(&self) -> Result<(), DeviceError> {
+        // A program that dies must leave no force of its own: its stream falls back to idle
+        // (amplifiers off, zero torque) whatever the daemon's `serve.stale_fallback`.
+        self.request(json!({"op": "lease", "fallback": "idle"}))?;
+        self.commanding.store(true, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Leave the arm with the amplifiers off (as the daemon started) and give the lease back:
+    /// a stopped program leaves zero force.
+    pub fn stand_down(&self) {
+        if self.commanding.swap(false, Ordering::Relaxed) {
+            let _ = self.request(json!({"op": "mode", "mode": "idle"}));
+            let _ = self.request(json!({"op": "release"}));
+        }
+    }
+
+    /// Close the connection and join the receiving thread.
+    pub fn close(&self) {
+        self.stand_down();
+        self.closing.store(true, Ordering::Relaxed);
+        // SAFETY: shutdown on a descriptor we own; it wakes the receiver's poll.
+        unsafe { libc::shutdown(self.conn.raw(), libc::SHUT_RDWR) };
+        if let Some(h) = lock(&self.rx).take() {
+            let _ = h.join();
+        }
+    }
+}
+
+/// Say hello; the daemon's hello.
+fn greet(conn: &Conn) -> Result<Hello, DeviceError> {
+    let hello = json!({"op": "hello", "protocol": PROTOCOL_VERSION, "name": "libHD"});
+    let sent = conn.send(hello.to_string().as_bytes());
+    let mut buf = vec![0u8; MAX_MESSAGE + 1];
+    loop {
+        if !conn.wait_readable(5000).unwrap_or(false) {
+            return Err(DeviceError::Timeout);
+        }
+        let n = match conn.recv(&mut buf) {
+            Ok(0) | Err(_) => return Err(DeviceError::Closed),
+            Ok(n) => n.min(buf.len()),
+        };
+        let v: Value = serde_json::from_slice(&buf[..n]).unwrap_or(Value::Null);
+        match v["type"].as_str() {
+            Some("hello") => {
+                return serde_json::from_value(v)
+                    .map_err(|e| DeviceError::Refused(format!("unreadable hello: {e}")))
+            }
+            Some("error") => {
+                return Err(DeviceError::Refused(
+                    v["message"].as_str().unwrap_or("refused").into(),
+                ))
+            }
+            _ if sent.is_err() => return Err(DeviceError::Closed),
+            _ => {}
+        }
+    }
+}
+
+/// The receiving thread: samples into the inbox (waking the scheduler), replies by id.
+fn receive(conn: &Conn, inbox: &(Mutex<Inbox>, Condvar), closing: &AtomicBool) {
+    let (m, cv) = inbox;
+    let mut buf = vec![0u8; MAX_MESSAGE + 1];
+    while !closing.load(Ordering::Relaxed) {
+        match conn.wait_readable(100) {
+            Ok(true) => {}
+            Ok(false) => continue,
+            Err(_) => break,
+        }
+        let n = match conn.recv(&mut buf) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => n.min(buf.len()),
+        };
+        let Ok(v) = serde_json::from_slice::<Value>(&buf[..n]) else {
+            continue;
+        };
+        let mut i = lock(m);
+        match v["type"].as_str() {
+            Some("state") => {
+                if let Ok(s) = serde_json::from_value::<State>(v) {
+                    if let Some(prev) = &i.latest {
+                        let dt = s.t - prev.t;
+                        if dt > 0.0 {
+                            i.dt = dt;
+                        }
+                    }
+                    i.inkwell_seen |= s.inkwell;
+                    i.latest = Some(s);
+                    i.samples += 1;
+                }
+            }
+            Some("bye") => break,
+            _ => {
+                if let Some(id) = v.get("id").and_then(Value::as_u64) {
+                    i.replies.insert(id, v);
+                }
+            }
+        }
+        drop(i);
+        cv.notify_all();
+    }
+    lock(m).closed = true;
+    cv.notify_all();
+}

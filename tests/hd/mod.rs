@@ -1,0 +1,249 @@
+//! The libHD test kit: build and install the library once per test binary, compile the C
+//! call-order replays against the installed headers, run `omnid serve --device sim`.
+#![allow(dead_code)]
+
+use omnid::serve::client::Client;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+/// The installed library and the compiled programs.
+pub struct HD {
+    _dir: tempfile::TempDir,
+    /// `lib/libHD.so*`, `include/HD/…` as `install.sh` lays them out.
+    pub prefix: PathBuf,
+    bin: PathBuf,
+}
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// `cargo build -p omnid-hd`: the path of the cdylib it made.
+fn build_library() -> PathBuf {
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let out = Command::new(cargo)
+        .args(["build", "-p", "omnid-hd", "--message-format=json"])
+        .current_dir(root())
+        .stderr(Stdio::inherit())
+        .output()
+        .expect("cargo runs");
+    assert!(out.status.success(), "cargo build -p omnid-hd failed");
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v["reason"] == "compiler-artifact" && v["target"]["name"] == "omnid_hd")
+        .flat_map(|v| {
+            v["filenames"]
+                .as_array()
+                .cloned()
+                .unwrap_or_default()
+                .into_iter()
+                .filter_map(|f| f.as_str().map(PathBuf::from))
+        })
+        .find(|p| p.extension().is_some_and(|e| e == "so"))
+        .expect("cargo reported the cdylib")
+}
+
+impl HD {
+    pub fn get() -> &'static HD {
+        static HD: OnceLock<HD> = OnceLock::new();
+        HD.get_or_init(|| {
+            let lib = build_library();
+            let dir = tempfile::tempdir().unwrap();
+            let prefix = dir.path().join("prefix");
+            let install = Command::new("sh")
+                .arg(root().join("clients/hdapi/install.sh"))
+                .arg("--lib")
+                .arg(&lib)
+                .arg(&prefix)
+                .output()
+                .expect("install.sh runs");
+            assert!(
+                install.status.success(),
+                "install.sh: {}",
+                String::from_utf8_lossy(&install.stderr)
+            );
+            let bin = dir.path().join("bin");
+            std::fs::create_dir_all(&bin).unwrap();
+            let hd = HD {
+                _dir: dir,
+                prefix,
+                bin,
+            };
+            for name in [
+                "abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench", "gone",
+            ] {
+                hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
+            }
+            hd.compile("abi_cpp", "abi.c", "c++", &["-x", "c++", "-std=c++11"]);
+            hd
+        })
+    }
+
+    /// Compile `tests/c/<src>` against the installed headers and library.
+    fn compile(&self, name: &str, src: &str, compiler: &str, flags: &[&str]) {
+        let lib = self.prefix.join("lib");
+        let out = Command::new(compiler)
+            .args(flags)
+            .args(["-Wall", "-Werror", "-O1", "-D_DEFAULT_SOURCE", "-I"])
+            .arg(self.prefix.join("include"))
+            .arg(root().join("clients/hdapi/tests/c").join(src))
+            .arg("-o")
+            .arg(self.exe(name))
+            .arg(format!("-L{}", lib.display()))
+            .arg(format!("-Wl,-rpath,{}", lib.display()))
+            .args(["-lHD", "-lpthread"])
+            .output()
+            .unwrap_or_else(|e| panic!("{compiler}: {e} (a C/C++ compiler is needed)"));
+        assert!(
+            out.status.success(),
+            "{compiler} {src}:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+
+    pub fn exe(&self, name: &str) -> PathBuf {
+        self.bin.join(name)
+    }
+}
+
+/// Run a program to its end (at most 60 s): its stdout; fails on a non-zero exit.
+pub fn run(exe: PathBuf, args: &[&str], env: &[(&str, &str)]) -> String {
+    let mut cmd = Command::new(&exe);
+    cmd.args(args).env_remove("OMNID_SOCKET");
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let out = wait_output(child, Duration::from_secs(60));
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{} failed ({}):\n{stdout}\n{}",
+        exe.display(),
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+/// Kills a child that outlives `limit` (a hang fails the test instead of stalling CI);
+/// disarmed when dropped.
+pub struct Watchdog {
+    done: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Watchdog {
+    pub fn new(child: &Child, limit: Duration) -> Watchdog {
+        let pid = child.id();
+        let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let thread = {
+            let done = done.clone();
+            std::thread::spawn(move || {
+                let until = Instant::now() + limit;
+                while Instant::now() < until {
+                    if done.load(std::sync::atomic::Ordering::SeqCst) {
+                        return;
+                    }
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+                // SAFETY: kill on the pid of our own child; its owner reaps it only when it
+                // exits, so at the limit the pid is still ours (or a zombie of ours).
+                unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+            })
+        };
+        Watchdog {
+            done,
+            thread: Some(thread),
+        }
+    }
+}
+
+impl Drop for Watchdog {
+    fn drop(&mut self) {
+        self.done.store(true, std::sync::atomic::Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The child's output, killing it after `limit`.
+pub fn wait_output(child: Child, limit: Duration) -> std::process::Output {
+    let watchdog = Watchdog::new(&child, limit);
+    let out = child.wait_with_output().unwrap();
+    drop(watchdog);
+    out
+}
+
+/// `omnid serve --device sim` in its own directory, killed when dropped.
+pub struct Daemon {
+    child: Option<Child>,
+    _dir: tempfile::TempDir,
+    pub socket: PathBuf,
+}
+
+impl Daemon {
+    pub fn start(extra: &[&str]) -> Daemon {
+        Daemon::start_with_config(extra, "")
+    }
+
+    /// With `config` (TOML) as its config file.
+    pub fn start_with_config(extra: &[&str], config: &str) -> Daemon {
+        let dir = tempfile::tempdir().unwrap();
+        let socket = dir.path().join("sim.sock");
+        let config_path = dir.path().join("omnid.toml");
+        std::fs::write(&config_path, config).unwrap();
+        let child = Command::new(env!("CARGO_BIN_EXE_omnid"))
+            .args(["serve", "--device", "sim", "--socket"])
+            .arg(&socket)
+            .arg("--config")
+            .arg(&config_path)
+            .args(extra)
+            .env("OMNID_STATE_DIR", dir.path().join("state"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("omnid serve starts");
+        let d = Daemon {
+            child: Some(child),
+            _dir: dir,
+            socket,
+        };
+        let until = Instant::now() + Duration::from_secs(20);
+        while Client::connect(&d.socket, "probe").is_err() {
+            assert!(Instant::now() < until, "omnid serve did not start");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        d
+    }
+
+    /// Stop the daemon (SIGTERM: zero torque, goodbye to every client) and wait for it.
+    pub fn stop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            // SAFETY: kill on our own child's pid, not yet reaped.
+            unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
+            let _ = c.wait();
+        }
+    }
+
+    pub fn client(&self, name: &str) -> Client {
+        Client::connect(&self.socket, name).expect("connects")
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}

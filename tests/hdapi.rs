@@ -1,0 +1,445 @@
+//! The OpenHaptics-compatible libHD (clients/hdapi, docs/HDAPI.md) against this build's
+//! `omnid serve --device sim`: the ABI and constants of our headers, the exported names and
+//! the SONAME, C programs replaying the call orders of CHAI3D, the ROS driver, the JHU driver
+//! and VRPN, and pyOpenHaptics from PyPI (tests/hdapi_python.rs).
+
+pub mod hd;
+
+use hd::{run, Daemon, HD};
+use omnid::omni::kinematics::{jacobian, tip_position_mm, Geometry};
+use omnid::serve::client::Message;
+use std::io::{BufRead, BufReader};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+/// Every constant of docs/HDAPI.md's table, written from that table (not from our header).
+const TABLE: &[(&str, u64)] = &[
+    ("HD_TRUE", 1),
+    ("HD_FALSE", 0),
+    ("HD_CALLBACK_DONE", 0),
+    ("HD_CALLBACK_CONTINUE", 1),
+    ("HD_WAIT_CHECK_STATUS", 0),
+    ("HD_WAIT_INFINITE", 1),
+    ("HD_INVALID_HANDLE", 0xFFFF_FFFF),
+    ("HD_MAX_SCHEDULER_PRIORITY", 65535),
+    ("HD_MIN_SCHEDULER_PRIORITY", 0),
+    ("HD_DEFAULT_SCHEDULER_PRIORITY", 32767),
+    ("HD_DEVICE_BUTTON_1", 1),
+    ("HD_DEVICE_BUTTON_2", 2),
+    ("HD_DEVICE_BUTTON_3", 4),
+    ("HD_DEVICE_BUTTON_4", 8),
+    ("HD_CALIBRATION_OK", 0x5000),
+    ("HD_CALIBRATION_NEEDS_UPDATE", 0x5001),
+    ("HD_CALIBRATION_NEEDS_MANUAL_INPUT", 0x5002),
+    ("HD_CALIBRATION_ENCODER_RESET", 1),
+    ("HD_CALIBRATION_AUTO", 2),
+    ("HD_CALIBRATION_INKWELL", 4),
+    ("HD_SUCCESS", 0),
+    ("HD_INVALID_ENUM", 0x100),
+    ("HD_INVALID_VALUE", 0x101),
+    ("HD_INVALID_OPERATION", 0x102),
+    ("HD_INVALID_INPUT_TYPE", 0x103),
+    ("HD_BAD_HANDLE", 0x104),
+    ("HD_WARM_MOTORS", 0x200),
+    ("HD_EXCEEDED_MAX_FORCE", 0x201),
+    ("HD_EXCEEDED_MAX_FORCE_IMPULSE", 0x202),
+    ("HD_EXCEEDED_MAX_VELOCITY", 0x203),
+    ("HD_FORCE_ERROR", 0x204),
+    ("HD_DEVICE_FAULT", 0x300),
+    ("HD_DEVICE_ALREADY_INITIATED", 0x301),
+    ("HD_COMM_ERROR", 0x302),
+    ("HD_COMM_CONFIG_ERROR", 0x303),
+    ("HD_TIMER_ERROR", 0x304),
+    ("HD_ILLEGAL_BEGIN", 0x400),
+    ("HD_ILLEGAL_END", 0x401),
+    ("HD_FRAME_ERROR", 0x402),
+    ("HD_INVALID_PRIORITY", 0x500),
+    ("HD_SCHEDULER_FULL", 0x501),
+    ("HD_INVALID_LICENSE", 0x600),
+    ("HD_CURRENT_BUTTONS", 0x2000),
+    ("HD_CURRENT_SAFETY_SWITCH", 0x2001),
+    ("HD_CURRENT_INKWELL_SWITCH", 0x2002),
+    ("HD_CURRENT_ENCODER_VALUES", 0x2010),
+    ("HD_CURRENT_POSITION", 0x2050),
+    ("HD_CURRENT_VELOCITY", 0x2051),
+    ("HD_CURRENT_TRANSFORM", 0x2052),
+    ("HD_CURRENT_ANGULAR_VELOCITY", 0x2053),
+    ("HD_CURRENT_JACOBIAN", 0x2054),
+    ("HD_CURRENT_JOINT_ANGLES", 0x2100),
+    ("HD_CURRENT_GIMBAL_ANGLES", 0x2150),
+    ("HD_LAST_BUTTONS", 0x2200),
+    ("HD_LAST_SAFETY_SWITCH", 0x2201),
+    ("HD_LAST_INKWELL_SWITCH", 0x2202),
+    ("HD_LAST_ENCODER_VALUES", 0x2210),
+    ("HD_LAST_POSITION", 0x2250),
+    ("HD_LAST_VELOCITY", 0x2251),
+    ("HD_LAST_TRANSFORM", 0x2252),
+    ("HD_LAST_ANGULAR_VELOCITY", 0x2253),
+    ("HD_LAST_JACOBIAN", 0x2254),
+    ("HD_LAST_JOINT_ANGLES", 0x2300),
+    ("HD_LAST_GIMBAL_ANGLES", 0x2350),
+    ("HD_VERSION", 0x2500),
+    ("HD_DEVICE_MODEL_TYPE", 0x2501),
+    ("HD_DEVICE_DRIVER_VERSION", 0x2502),
+    ("HD_DEVICE_VENDOR", 0x2503),
+    ("HD_DEVICE_SERIAL_NUMBER", 0x2504),
+    ("HD_DEVICE_FIRMWARE_VERSION", 0x2505),
+    ("HD_MAX_WORKSPACE_DIMENSIONS", 0x2550),
+    ("HD_USABLE_WORKSPACE_DIMENSIONS", 0x2551),
+    ("HD_TABLETOP_OFFSET", 0x2552),
+    ("HD_INPUT_DOF", 0x2553),
+    ("HD_OUTPUT_DOF", 0x2554),
+    ("HD_CALIBRATION_STYLE", 0x2555),
+    ("HD_UPDATE_RATE", 0x2600),
+    ("HD_INSTANTANEOUS_UPDATE_RATE", 0x2601),
+    ("HD_NOMINAL_MAX_STIFFNESS", 0x2602),
+    ("HD_NOMINAL_MAX_FORCE", 0x2603),
+    ("HD_NOMINAL_MAX_CONTINUOUS_FORCE", 0x2604),
+    ("HD_MOTOR_TEMPERATURE", 0x2605),
+    ("HD_SOFTWARE_VELOCITY_LIMIT", 0x2606),
+    ("HD_SOFTWARE_FORCE_IMPULSE_LIMIT", 0x2607),
+    ("HD_FORCE_RAMPING_RATE", 0x2608),
+    ("HD_NOMINAL_MAX_DAMPING", 0x2609),
+    ("HD_CURRENT_FORCE", 0x2700),
+    ("HD_CURRENT_TORQUE", 0x2701),
+    ("HD_CURRENT_JOINT_TORQUE", 0x2703),
+    ("HD_CURRENT_GIMBAL_TORQUE", 0x2704),
+    ("HD_CURRENT_MOTOR_DAC_VALUES", 0x2750),
+    ("HD_LAST_FORCE", 0x2800),
+    ("HD_LAST_TORQUE", 0x2801),
+    ("HD_LAST_JOINT_TORQUE", 0x2802),
+    ("HD_LAST_GIMBAL_TORQUE", 0x2803),
+    ("HD_FORCE_OUTPUT", 0x4000),
+    ("HD_MAX_FORCE_CLAMPING", 0x4001),
+    ("HD_FORCE_RAMPING", 0x4002),
+    ("HD_SOFTWARE_FORCE_LIMIT", 0x4003),
+    ("HD_ONE_FRAME_LIMIT", 0x4004),
+    ("HD_DEFAULT_DEVICE_IS_NULL", 1),
+    ("HD_DEVICE_ERROR", 1),
+];
+
+/// The 36 functions the library exports (docs/HDAPI.md, Functions).
+const EXPORTS: [&str; 36] = [
+    "hdBeginFrame",
+    "hdCheckCalibration",
+    "hdCheckCalibrationStyle",
+    "hdDeploymentLicense",
+    "hdDisable",
+    "hdDisableDevice",
+    "hdEnable",
+    "hdEndFrame",
+    "hdGetBooleanv",
+    "hdGetCurrentDevice",
+    "hdGetDoublev",
+    "hdGetError",
+    "hdGetErrorString",
+    "hdGetFloatv",
+    "hdGetIntegerv",
+    "hdGetLongv",
+    "hdGetSchedulerTimeStamp",
+    "hdGetString",
+    "hdInitDevice",
+    "hdIsEnabled",
+    "hdMakeCurrentDevice",
+    "hdScaleGimbalAngles",
+    "hdScheduleAsynchronous",
+    "hdScheduleSynchronous",
+    "hdSetBooleanv",
+    "hdSetDoublev",
+    "hdSetFloatv",
+    "hdSetIntegerv",
+    "hdSetLongv",
+    "hdSetSchedulerRate",
+    "hdStartScheduler",
+    "hdStopScheduler",
+    "hdUnschedule",
+    "hdUpdateCalibration",
+    "hdUpdateCalibrationMessage",
+    "hdWaitForCompletion",
+];
+
+#[test]
+fn headers_match_the_abi_and_every_constant_of_the_table() {
+    let hd = HD::get();
+    for exe in ["abi", "abi_cpp"] {
+        let out = run(hd.exe(exe), &[], &[]);
+        let printed: Vec<(String, u64)> = out
+            .lines()
+            .filter(|l| !l.starts_with("HDU") && !l.starts_with("ROS"))
+            .map(|l| {
+                let (k, v) = l.split_once(' ').expect("NAME VALUE");
+                (k.to_string(), v.parse().expect("a number"))
+            })
+            .collect();
+        let expected: Vec<(String, u64)> = TABLE.iter().map(|(k, v)| (k.to_string(), *v)).collect();
+        assert_eq!(printed, expected, "{exe}");
+        if exe == "abi_cpp" {
+            // (1,2,3)·(4,5,6) = 32; a quarter turn about z then (10,20,30); a unit quaternion.
+            assert!(
+                out.contains("HDU 32.0 8.0 21.0 33.0 1.000"),
+                "HDU helpers: {out}"
+            );
+            // (3·1 − 4·4 + 1) / 0.002 = −6000.
+            assert!(out.contains("ROS 0.0 1.000 -6000.0"), "HDU helpers: {out}");
+        }
+    }
+}
+
+#[test]
+fn library_exports_the_36_names_under_its_soname_with_the_links() {
+    let hd = HD::get();
+    let lib = hd.prefix.join("lib");
+    let nm = std::process::Command::new("nm")
+        .args(["-D", "--defined-only"])
+        .arg(lib.join("libHD.so.3.4.0"))
+        .output()
+        .expect("nm runs");
+    assert!(nm.status.success());
+    let mut names: Vec<String> = String::from_utf8_lossy(&nm.stdout)
+        .lines()
+        .filter_map(|l| l.split_whitespace().nth(2).map(String::from))
+        .collect();
+    names.sort();
+    assert_eq!(names, EXPORTS, "exactly the 36 names, nothing else");
+    let readelf = std::process::Command::new("readelf")
+        .arg("-d")
+        .arg(lib.join("libHD.so.3.4.0"))
+        .output()
+        .expect("readelf runs");
+    assert!(
+        String::from_utf8_lossy(&readelf.stdout).contains("Library soname: [libHD.so.3.4]"),
+        "{}",
+        String::from_utf8_lossy(&readelf.stdout)
+    );
+    for link in ["libHD.so.3.4", "libHD.so.3.0", "libHD.so"] {
+        let target = std::fs::read_link(lib.join(link)).expect("a link");
+        assert_eq!(target.to_str(), Some("libHD.so.3.4.0"), "{link}");
+    }
+}
+
+#[test]
+fn no_daemon_is_a_communication_error_not_a_crash() {
+    let hd = HD::get();
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("none.sock");
+    let out = run(
+        hd.exe("nodaemon"),
+        &[],
+        &[("OMNID_SOCKET", missing.to_str().unwrap())],
+    );
+    assert_eq!(out.trim(), "handle 0xffffffff error 0x302 then 0");
+}
+
+/// A printed sample's fields after `tag`.
+struct Sample {
+    pos: [f64; 3],
+    q: [f64; 3],
+    tr: [f64; 3],
+    gimbal: [f64; 3],
+    buttons: i64,
+}
+
+fn sample(out: &str, tag: &str) -> Sample {
+    let line = out
+        .lines()
+        .find(|l| l.starts_with(&format!("{tag} pos ")))
+        .unwrap_or_else(|| panic!("no `{tag}` sample in:\n{out}"));
+    let w: Vec<&str> = line.split_whitespace().collect();
+    let three = |key: &str| -> [f64; 3] {
+        let k = w.iter().position(|x| *x == key).unwrap();
+        std::array::from_fn(|j| w[k + 1 + j].parse().unwrap())
+    };
+    let b = w.iter().position(|x| *x == "buttons").unwrap();
+    Sample {
+        pos: three("pos"),
+        q: three("q"),
+        tr: three("tr"),
+        gimbal: three("g"),
+        buttons: w[b + 1].parse().unwrap(),
+    }
+}
+
+/// Position in mm as omnid's own forward kinematics puts it for the joint angles read in
+/// the same frame; the transform's translation the same; the simulator's gimbal at 0 and no
+/// button pressed.
+fn consistent(s: &Sample, what: &str) {
+    let fk = tip_position_mm(&Geometry::default(), &s.q.into());
+    for j in 0..3 {
+        assert!(
+            (s.pos[j] - fk[j]).abs() < 1e-6,
+            "{what}: {:?} vs {fk:?}",
+            s.pos
+        );
+        assert_eq!(s.tr[j], s.pos[j], "{what}: transform translation");
+        assert_eq!(s.gimbal[j], 0.0, "{what}: gimbal");
+    }
+    // A stylus near the simulator's start pose, a plausible Omni tip: not a zero vector.
+    assert!(s.pos.iter().any(|v| v.abs() > 1.0), "{what}: {:?}", s.pos);
+    assert_eq!(s.buttons, 0, "{what}");
+}
+
+fn field<'a>(out: &'a str, key: &str) -> &'a str {
+    out.lines()
+        .find_map(|l| l.strip_prefix(&format!("{key} ")))
+        .unwrap_or_else(|| panic!("no `{key}` in:\n{out}"))
+}
+
+#[test]
+fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
+    let hd = HD::get();
+    let daemon = Daemon::start(&[]);
+    let env = [("OMNID_SOCKET", daemon.socket.to_str().unwrap())];
+
+    // ROS: calibration loop on the main thread, schedule after start.
+    let ros = run(hd.exe("ros"), &[], &env);
+    assert!(field(&ros, "model").starts_with("PHANTOM Omni"), "{ros}");
+    assert_eq!(field(&ros, "vendor"), "SensAble Technologies");
+    assert!(field(&ros, "driver").starts_with("omnid "), "{ros}");
+    assert_eq!(field(&ros, "calibration-style"), "4", "inkwell");
+    assert_eq!(field(&ros, "calibration-final"), "0x5000", "{ros}");
+    assert_eq!(
+        field(&ros, "rate"),
+        "1000.0 max-force 3.30 workspace -80.0 80.0"
+    );
+    let ticks = field(&ros, "ticks");
+    assert!(ticks.ends_with(" servo-error 0"), "{ros}");
+    assert!(
+        ticks.split(' ').next().unwrap().parse::<u32>().unwrap() >= 200,
+        "{ros}"
+    );
+    consistent(&sample(&ros, "sample"), "ros");
+    assert!(ros.ends_with("done\n"), "{ros}");
+
+    // JHU: schedule before start, unschedule after stop, priorities, completion.
+    let jhu = run(hd.exe("jhu"), &[], &env);
+    assert_eq!(field(&jhu, "once"), "1");
+    assert_eq!(field(&jhu, "scheduled-while-running"), "1");
+    assert_eq!(field(&jhu, "scheduled-after-unschedule"), "0");
+    let ticks = field(&jhu, "ticks");
+    assert!(ticks.ends_with(" order 1 stopped-on-error 0"), "{jhu}");
+    assert!(
+        ticks.split(' ').next().unwrap().parse::<u32>().unwrap() >= 300,
+        "{jhu}"
+    );
+    consistent(&sample(&jhu, "sample"), "jhu");
+
+    // VRPN: synchronous reads outside a frame (one sample per tick); a read on the main
+    // thread before the scheduler runs (each call the latest sample: the idle arm may move
+    // between them, a little); usage errors.
+    let vrpn = run(hd.exe("vrpn"), &[], &env);
+    let outside = sample(&vrpn, "outside");
+    let fk = tip_position_mm(&Geometry::default(), &outside.q.into());
+    assert!(
+        (0..3).all(|j| (outside.pos[j] - fk[j]).abs() < 5.0),
+        "{vrpn}"
+    );
+    consistent(&sample(&vrpn, "sync"), "vrpn sync");
+    assert_eq!(field(&vrpn, "errors"), "0x104 0x100 0x401 0");
+    assert!(field(&vrpn, "string").contains("omnid"), "{vrpn}");
+
+    // The stylus the programs read is the daemon's: its own stream agrees on the pose.
+    let mut c = daemon.client("check");
+    c.request(serde_json::json!({"op": "stream", "rate_hz": 100}))
+        .unwrap();
+    let s = c.next_state(5000).unwrap();
+    let fk = tip_position_mm(&Geometry::default(), &s.q.into());
+    assert!((0..3).all(|j| (fk[j] - s.tip_mm[j]).abs() < 1e-9));
+    assert_eq!(s.gimbal, [0.0; 3]);
+}
+
+/// CHAI3D's order (constructor init, blocking set-force) puts a force on the simulated arm
+/// and killing the program takes it off.
+#[test]
+fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
+    let hd = HD::get();
+    // No compensation: the motors' torque is exactly the program's (Jᵀ F). The daemon's
+    // config is the default (a stale stream holds): the library's lease asks for idle.
+    let daemon = Daemon::start(&["--controller", "off"]);
+    let mut watch = daemon.client("watch");
+    watch
+        .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    let mut chai = std::process::Command::new(hd.exe("chai"))
+        .arg("0.5")
+        .env("OMNID_SOCKET", &daemon.socket)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("chai replay starts");
+    let _watchdog = hd::Watchdog::new(&chai, Duration::from_secs(60));
+    let mut lines = BufReader::new(chai.stdout.take().unwrap()).lines();
+    let mut printed = String::new();
+    for line in lines.by_ref() {
+        let line = line.unwrap();
+        printed.push_str(&line);
+        printed.push('\n');
+        if line.starts_with("force-set") {
+            break;
+        }
+    }
+    consistent(&sample(&printed, "sample"), "chai");
+    assert!(printed.contains("force-set 0.500000 0 0"), "{printed}");
+
+    // The servo applies Jᵀ F (within a DAC step of 2.2e-4 N·m and the tick's motion) once
+    // its start-up ramp is over, and the arm turns about its base towards +x.
+    let until = Instant::now() + Duration::from_secs(30);
+    let (mut first_x, mut applied, mut moved, mut last) = (None, false, false, None);
+    while !(applied && moved) {
+        assert!(
+            Instant::now() < until,
+            "the force never reached the device (applied {applied}, moved {moved}); last \
+             state in a stream mode: {last:?}"
+        );
+        let Ok(s) = watch.next_state(2000) else {
+            continue;
+        };
+        if !s.mode.starts_with("servo_") {
+            continue;
+        }
+        let x = *first_x.get_or_insert(s.tip_mm[0]);
+        let j = jacobian(&Geometry::default(), &s.q.into());
+        let want = j.transpose() * omnid::omni::Joint3::new(0.5, 0.0, 0.0);
+        // +x at the tip is a negative base torque. The base joint only: gravity takes the
+        // uncompensated arm down into its soft walls, whose torque adds to the other joints.
+        applied |= s.amps && s.tau[0] < -0.01 && (s.tau[0] - want[0]).abs() < 2e-3;
+        moved |= s.tip_mm[0] > x + 1.0;
+        last = Some(s);
+    }
+
+    chai.kill().unwrap();
+    chai.wait().unwrap();
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        assert!(Instant::now() < until, "the force outlived its client");
+        match watch.recv(2000) {
+            Ok(Message::State(s)) if !s.mode.starts_with("servo_") => {
+                assert_eq!(s.tau, [0.0; 3], "zero force once the client is gone");
+                assert!(!s.amps && s.mode == "idle", "{s:?}");
+                break;
+            }
+            _ => {}
+        }
+    }
+}
+
+/// The daemon stopping under a running program is a communication error in its servo
+/// callback (which ends on it), never a hang.
+#[test]
+fn a_daemon_that_stops_is_a_communication_error_in_the_servo_callback() {
+    let hd = HD::get();
+    let mut daemon = Daemon::start(&[]);
+    let mut child = std::process::Command::new(hd.exe("gone"))
+        .env("OMNID_SOCKET", &daemon.socket)
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("starts");
+    let watchdog = hd::Watchdog::new(&child, Duration::from_secs(60));
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    assert_eq!(lines.next().unwrap().unwrap(), "running");
+    daemon.stop();
+    let rest: Vec<String> = lines.map(|l| l.unwrap()).collect();
+    let status = child.wait().unwrap();
+    drop(watchdog);
+    assert!(status.success(), "{status}: {rest:?}");
+    assert_eq!(rest, ["servo-error 0x302"]);
+}
