@@ -6,8 +6,8 @@
 //! cargo bench --bench baseline -- 60     # seconds (default 10)
 //! ```
 
+use omnid::clock;
 use omnid::config::RealtimeConfig;
-use omnid::servo::clock;
 use omnid::servo::realtime;
 use omnid::servo::timing::Histogram;
 

@@ -47,6 +47,7 @@ fn main() {
         inject: Vec::new(),
         weights: None,
         no_adapt: false,
+        haptics: Default::default(),
     };
     let stop = Arc::new(AtomicBool::new(false));
     let sampler_stop = stop.clone();

@@ -8,11 +8,13 @@ pub use crate::control::reference::ReferenceConfig;
 pub use crate::control::{ControlConfig, ControlSetup};
 pub use crate::device::firewire::FirewireConfig;
 pub use crate::device::inject::InjectConfig;
+pub use crate::device::probe::ProbeSetup;
 pub use crate::device::sim::{SimConfig, SimSetup};
 pub use crate::device::usb::UsbConfig;
 pub use crate::device::DeviceConfig;
 pub use crate::estimate::kalman::KalmanConfig;
-pub use crate::ident::IdentifierConfig;
+pub use crate::haptics::HapticsConfig;
+pub use crate::identifier::IdentifierConfig;
 use crate::omni::{Geometry, ModelParams};
 pub use crate::serve::ServeConfig;
 pub use crate::servo::realtime::RealtimeConfig;
@@ -61,6 +63,8 @@ pub struct Config {
     pub inject: InjectConfig,
     /// `omnid serve`: the client interface (docs/PROTOCOL.md).
     pub serve: ServeConfig,
+    /// Haptics: tip force limits, the passivity controller, and the simulated hand (docs/HAPTICS.md).
+    pub haptics: HapticsConfig,
 }
 
 impl Config {
@@ -111,6 +115,7 @@ impl Config {
         self.usb.validate()?;
         self.firewire.validate()?;
         self.inject.validate()?;
+        self.haptics.validate()?;
         self.telemetry.validate()
     }
 
@@ -219,6 +224,8 @@ impl<'a> From<&'a Config> for SimSetup<'a> {
             sim: &cfg.sim,
             model: &cfg.model,
             geometry: &cfg.geometry,
+            hand: &cfg.haptics.hand,
+            center: cfg.reference.center,
         }
     }
 }
@@ -243,6 +250,17 @@ impl<'a> From<&'a Config> for ServoSetup<'a> {
             safety: &cfg.safety,
             kalman: &cfg.kalman,
             seed: cfg.sim.seed,
+            haptics: &cfg.haptics,
+            geometry: &cfg.geometry,
+        }
+    }
+}
+
+impl<'a> From<&'a Config> for ProbeSetup<'a> {
+    fn from(cfg: &'a Config) -> Self {
+        ProbeSetup {
+            device: &cfg.device,
+            firewire: &cfg.firewire,
         }
     }
 }

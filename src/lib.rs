@@ -35,16 +35,20 @@ macro_rules! errln {
     }};
 }
 
+pub mod clock;
 pub mod config;
 pub mod config_check;
 pub mod control;
+pub mod convert;
+pub mod daemon;
 pub mod device;
 pub mod estimate;
 pub mod experiment;
-pub mod fastmath;
-pub mod ident;
-pub mod identify;
+pub mod fast_tanh;
+pub mod haptics;
+pub mod identifier;
 pub mod input;
+pub mod log_pretune;
 pub mod omni;
 pub mod output;
 pub mod plot;

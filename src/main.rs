@@ -5,10 +5,10 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
+use omnid::convert::{convert, SourceFormat};
 use omnid::device::inject::Fault;
 use omnid::run::{execute, DeviceSpec, RunError, RunOptions};
 use omnid::servo::EndReason;
-use omnid::telemetry::convert::{convert, SourceFormat};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -109,20 +109,20 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
-    let pretune_cfg = omnid::ident::PretuneConfig {
+    let pretune_cfg = omnid::identifier::PretuneConfig {
         epochs: args.epochs,
         ..Default::default()
     };
     let bar = omnid::progress::bar(args.epochs as u64, "identify");
-    let result = omnid::identify::identify(
+    let result = omnid::log_pretune::identify(
         &args.logs,
         &args.out,
         &cfg,
         &pretune_cfg,
         Some(&stop),
         |p| match p {
-            omnid::ident::Progress::Batch { .. } => {}
-            omnid::ident::Progress::Epoch(r) => {
+            omnid::identifier::Progress::Batch { .. } => {}
+            omnid::identifier::Progress::Epoch(r) => {
                 bar.inc(1);
                 bar.suspend(|| omnid::errln!(
                     "epoch {:>3}/{}: train NRMSE {:.3} / {:.3} / {:.3}   validation {:.3} / {:.3} / {:.3}",
@@ -203,6 +203,24 @@ struct RunArgs {
     /// Freeze the identifier: no online adaptation.
     #[arg(long)]
     no_adapt: bool,
+    /// track: follow --trajectory; free: only the controller's compensation and the
+    /// scene's effects, the arm moved by a hand (docs/HAPTICS.md).
+    #[arg(long, value_enum, default_value = "track")]
+    mode: RunMode,
+    /// Haptic effects in TOML, one [[effect]] table each (rendered in free mode).
+    #[arg(long, value_name = "FILE")]
+    scene: Option<PathBuf>,
+    /// Simulator: a simulated hand on the stylus: none, hold, path, push+x .. push-z
+    /// ([haptics.hand] sets its grip).
+    #[arg(long, value_name = "PATTERN")]
+    hand: Option<String>,
+}
+
+/// What `omnid run` does with the arm.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum RunMode {
+    Track,
+    Free,
 }
 
 #[derive(clap::Args)]
@@ -433,13 +451,46 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
     }
 }
 
+/// `--mode`, `--scene` and `--hand`: the haptic part of a run (the hand goes into the
+/// simulator's config).
+fn haptic_options(
+    args: &RunArgs,
+    cfg: &mut omnid::config::Config,
+) -> Result<omnid::haptics::HapticRun, String> {
+    if let Some(name) = &args.hand {
+        if args.device != DeviceSpec::Sim {
+            return Err("--hand needs the simulator (--device sim)".into());
+        }
+        cfg.haptics.hand.pattern = omnid::haptics::HandPattern::try_from(name.clone())
+            .map_err(|e| format!("--hand: {e}"))?;
+    }
+    let effects = match &args.scene {
+        Some(path) => omnid::haptics::scene::read_scene(path)?,
+        None => Vec::new(),
+    };
+    if !effects.is_empty() && args.mode != RunMode::Free {
+        return Err("--scene: effects are rendered in free mode; add --mode free".into());
+    }
+    Ok(omnid::haptics::HapticRun {
+        free: args.mode == RunMode::Free,
+        effects,
+    })
+}
+
 fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
     let stop = stop_on_signal()?;
-    let cfg = match load_config(args.config.as_deref(), Some(&stop)) {
+    let mut cfg = match load_config(args.config.as_deref(), Some(&stop)) {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
     let replay = matches!(args.device, DeviceSpec::Replay(_));
+    let haptics = match haptic_options(&args, &mut cfg) {
+        Ok(h) => h,
+        Err(e) => {
+            omnid::errln!("omnid: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+    };
     let opts = RunOptions {
         device: args.device,
         controller: args.controller,
@@ -454,26 +505,11 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         inject: args.inject,
         weights: args.weights,
         no_adapt: args.no_adapt,
+        haptics,
     };
     let outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
-        Err(e) if e.is_stopped() => {
-            omnid::errln!("omnid: {e}; nothing ran");
-            return Ok(EXIT_OPERATOR_STOP);
-        }
-        Err(e @ RunError::BadInput(_)) | Err(e @ RunError::Replay(_)) => {
-            omnid::errln!("omnid: {e}");
-            return Ok(EXIT_BAD_INPUT);
-        }
-        Err(e @ RunError::Device(_)) => {
-            omnid::errln!("omnid: {e}");
-            return Ok(EXIT_DEVICE_FAULT);
-        }
-        Err(e @ RunError::Log(_)) => {
-            omnid::errln!("omnid: {e}");
-            return Ok(EXIT_BAD_INPUT);
-        }
-        Err(e) => return Err(e.into()),
+        Err(e) => return run_failed(e),
     };
     omnid::out!("{}", outcome.summary.human());
     for w in &outcome.warnings {
@@ -485,6 +521,30 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         let json = serde_json::to_string_pretty(&outcome.summary)?;
         json_error = omnid::output::write_bytes(path, (json + "\n").as_bytes()).err();
     }
+    Ok(report_ending(&outcome, json_error))
+}
+
+/// The exit code of a run that could not start or ended in error, its message printed.
+fn run_failed(e: RunError) -> Result<u8, anyhow::Error> {
+    let code = match &e {
+        e if e.is_stopped() => {
+            omnid::errln!("omnid: {e}; nothing ran");
+            return Ok(EXIT_OPERATOR_STOP);
+        }
+        RunError::BadInput(_) | RunError::Replay(_) | RunError::Log(_) => EXIT_BAD_INPUT,
+        RunError::Device(_) => EXIT_DEVICE_FAULT,
+        _ => return Err(e.into()),
+    };
+    omnid::errln!("omnid: {e}");
+    Ok(code)
+}
+
+/// How the run ended, said on stderr (fault, dump, incomplete log or summary, dropped rows),
+/// and the exit code it gives.
+fn report_ending(
+    outcome: &omnid::run::RunOutcome,
+    json_error: Option<omnid::output::OutputError>,
+) -> u8 {
     let stopped = if outcome.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {
@@ -541,7 +601,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
             outcome.summary.telemetry_dropped
         );
     }
-    Ok(code)
+    code
 }
 
 const EXIT_REFUSED: u8 = 1;
@@ -573,7 +633,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
-    let opts = omnid::serve::ServeOptions {
+    let opts = omnid::daemon::ServeOptions {
         device: args.device,
         controller: args.controller,
         socket: args.socket,
@@ -582,7 +642,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         lenient: args.lenient,
         inject: args.inject,
     };
-    let outcome = match omnid::serve::serve(&opts, &cfg, stop) {
+    let outcome = match omnid::daemon::serve(&opts, &cfg, stop) {
         Ok(o) => o,
         Err(e) if e.is_stopped() => {
             omnid::errln!("omnid serve: {e}; nothing served");

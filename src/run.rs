@@ -3,19 +3,22 @@
 
 use crate::config::Config;
 pub use crate::control::make_controller;
+use crate::control::NanAfter;
 use crate::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use crate::device::calibration::{self, CalibrationError};
 use crate::device::firewire::{find_firewire, FirewireConfig};
-use crate::device::inject::{Fault, FaultyDevice, NanAfter};
+use crate::device::inject::{Fault, FaultyDevice};
 use crate::device::replay::{ReplayDevice, ReplayError};
 use crate::device::sim::SimOmni;
 use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
-use crate::ident::{Identifier, WeightsFile};
+use crate::identifier::{Identifier, WeightsFile};
+use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, Servo, ServoReport};
 use crate::telemetry::reader::ReadError;
-use crate::telemetry::summary::{IdentifierState, RunSummary, SummaryLabels};
-use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, LogSchema};
+use crate::telemetry::{
+    dump_path, spawn_writer, write_dump, LogError, LogFile, LogSchema, WriterReport,
+};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::sync::atomic::AtomicBool;
@@ -82,6 +85,8 @@ pub struct RunOptions {
     pub weights: Option<PathBuf>,
     /// Freeze the identifier (no online adaptation).
     pub no_adapt: bool,
+    /// Free mode and a scene of effects (docs/HAPTICS.md).
+    pub haptics: crate::haptics::HapticRun,
 }
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
@@ -413,6 +418,10 @@ pub fn assemble(
         !opts.fast,
     );
     servo.set_identifier(identifier.clone());
+    if opts.haptics.free {
+        servo.start_free();
+    }
+    servo.set_effects(&opts.haptics.effects);
     if let Some(path) = &heat_path {
         let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
         if let Some(note) = note {
@@ -555,16 +564,7 @@ pub fn execute(
     check_outputs(opts)?;
     let (tx, rx) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
     let pipeline = assemble(opts, cfg, &faults, tx, stop)?;
-    let log = match &opts.log {
-        Some(path) => LogFile::create(path)?,
-        None => LogFile::create_unique(
-            Path::new("logs"),
-            &format!(
-                "omnid-{}",
-                crate::telemetry::utc_stamp(std::time::SystemTime::now())
-            ),
-        )?,
-    };
+    let log = open_log(opts)?;
     let path = log.path.clone();
     let writer = spawn_writer(log, pipeline.schema, rx)
         .map_err(|source| RunError::Log(LogError::Io { path, source }))?;
@@ -579,58 +579,14 @@ pub fn execute(
         report.end,
         EndReason::DeviceFault(_) | EndReason::SafetyFault(_)
     );
-    let mut dump = None;
-    // Rows lost on the way to the file: a failed write (disk full), or dropped by a paced
-    // loop whose writer fell behind.
-    let log_incomplete = match &written.error {
-        Some(e) => Some(format!(
-            "{} of {} rows did not reach the file: {e}",
-            written.received - written.rows,
-            written.received
-        )),
-        None if report.telemetry_dropped > 0 => Some(format!(
-            "{} rows dropped (the writer fell behind)",
-            report.telemetry_dropped
-        )),
-        None => None,
+    let (dump, dump_error) = if is_fault {
+        dump_beside(&written)
+    } else {
+        (None, None)
     };
+    let log_incomplete = log_shortfall(&written, report.telemetry_dropped);
     let log_error = written.error.as_ref().map(|e| e.to_string());
-    let mut dump_error = None;
-    if is_fault && !written.file.metadata().is_ok_and(|m| m.is_file()) {
-        // Not beside /dev/null or a FIFO: /dev is no place for our files.
-        dump_error = Some(format!(
-            "the log {} is not a file, so no dump is written beside it",
-            written.path.display()
-        ));
-    } else if is_fault {
-        let path = dump_path(&written.path);
-        match write_dump(&path, &written.schema, &written.tail) {
-            Ok(()) => dump = Some(path),
-            Err(e) => dump_error = Some(e.to_string()),
-        }
-    }
-    let mut summary = RunSummary::from_results(
-        &SummaryLabels {
-            device: opts.device.name(),
-            controller: opts.controller.as_str(),
-            trajectory: format!("{:?}", opts.trajectory).to_lowercase(),
-            weights: ending.weights_label.clone(),
-            seed: cfg.sim.seed,
-            fast: opts.fast,
-        },
-        &report.stats,
-        &report.timing,
-        IdentifierState {
-            adapt: cfg.identifier.adapt && !opts.no_adapt,
-            fault: report.identifier.as_ref().and_then(|id| id.fault()),
-        },
-        report.telemetry_dropped,
-        report.missed_packets,
-    );
-    summary.faults = report.faults;
-    summary.end = report.end.as_str().to_string();
-    summary.estimator_restarts = report.estimator_restarts;
-    summary.longest_gap_s = report.longest_gap_s;
+    let mut summary = summarise(opts, cfg, &report, ending.weights_label.clone());
     let mut warnings = ending.warnings;
     warnings.extend(unreached_faults(&faults, summary.duration_s));
     summary.warnings = warnings.clone();
@@ -648,4 +604,80 @@ pub fn execute(
         dump,
         dump_error,
     })
+}
+
+/// The log file: `--log`, else a new time-stamped file under `logs/`.
+fn open_log(opts: &RunOptions) -> Result<LogFile, RunError> {
+    Ok(match &opts.log {
+        Some(path) => LogFile::create(path)?,
+        None => LogFile::create_unique(
+            Path::new("logs"),
+            &format!(
+                "omnid-{}",
+                crate::telemetry::utc_stamp(std::time::SystemTime::now())
+            ),
+        )?,
+    })
+}
+
+/// Rows lost on the way to the file: a failed write (disk full), or dropped by a paced loop
+/// whose writer fell behind.
+fn log_shortfall(written: &WriterReport, dropped: u64) -> Option<String> {
+    match &written.error {
+        Some(e) => Some(format!(
+            "{} of {} rows did not reach the file: {e}",
+            written.received - written.rows,
+            written.received
+        )),
+        None if dropped > 0 => Some(format!("{dropped} rows dropped (the writer fell behind)")),
+        None => None,
+    }
+}
+
+/// After a fault: the last ticks written beside the log (the dump's path, or why not).
+fn dump_beside(written: &WriterReport) -> (Option<PathBuf>, Option<String>) {
+    if !written.file.metadata().is_ok_and(|m| m.is_file()) {
+        // Not beside /dev/null or a FIFO: /dev is no place for our files.
+        let why = format!(
+            "the log {} is not a file, so no dump is written beside it",
+            written.path.display()
+        );
+        return (None, Some(why));
+    }
+    let path = dump_path(&written.path);
+    match write_dump(&path, &written.schema, &written.tail) {
+        Ok(()) => (Some(path), None),
+        Err(e) => (None, Some(e.to_string())),
+    }
+}
+
+/// The run's summary from what the loop reported (the log's fields are filled in after).
+fn summarise(opts: &RunOptions, cfg: &Config, report: &ServoReport, weights: String) -> RunSummary {
+    let mut summary = RunSummary::from_results(
+        &SummaryLabels {
+            device: opts.device.name(),
+            controller: opts.controller.as_str(),
+            trajectory: if opts.haptics.free {
+                "free".into()
+            } else {
+                format!("{:?}", opts.trajectory).to_lowercase()
+            },
+            weights,
+            seed: cfg.sim.seed,
+            fast: opts.fast,
+        },
+        &report.stats,
+        &report.timing,
+        IdentifierState {
+            adapt: cfg.identifier.adapt && !opts.no_adapt,
+            fault: report.identifier.as_ref().and_then(|id| id.fault()),
+        },
+        report.telemetry_dropped,
+        report.missed_packets,
+    );
+    summary.faults = report.faults.clone();
+    summary.end = report.end.as_str().to_string();
+    summary.estimator_restarts = report.estimator_restarts;
+    summary.longest_gap_s = report.longest_gap_s;
+    summary
 }

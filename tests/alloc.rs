@@ -129,6 +129,80 @@ fn sim_off_allocates_nothing_per_tick() {
     ticks_allocate_nothing(ControllerKind::Off, Trajectory::Hold);
 }
 
+/// Every effect kind at once, the tip inside most of them.
+fn every_effect(centre: [f64; 3]) -> Vec<omnid::haptics::Effect> {
+    use omnid::haptics::Effect;
+    let [x, y, z] = centre;
+    vec![
+        Effect::Spring {
+            center_mm: [x + 5.0, y, z],
+            stiffness_n_per_mm: 0.05,
+            damping_n_s_per_m: 0.5,
+        },
+        Effect::Damper {
+            damping_n_s_per_m: 1.0,
+        },
+        Effect::Plane {
+            point_mm: [x, y - 15.0, z],
+            normal: [0.0, 1.0, 0.0],
+            stiffness_n_per_mm: 2.31,
+            damping_n_s_per_m: 1.0,
+        },
+        Effect::Box {
+            min_mm: [x - 30.0, y - 30.0, z - 30.0],
+            max_mm: [x + 30.0, y + 30.0, z + 30.0],
+            stiffness_n_per_mm: 1.0,
+            damping_n_s_per_m: 0.0,
+        },
+        Effect::Constant {
+            force_n: [0.0, -0.2, 0.1],
+        },
+    ]
+}
+
+/// Free mode with every effect, the passivity controller on, and the simulated hand doing
+/// `hand` (each pattern in turn), through the scene changes a client makes.
+fn haptic_ticks_allocate_nothing(hand: &str) {
+    let mut cfg = Config::default();
+    cfg.sim.start_pose = cfg.reference.center;
+    cfg.haptics.hand.pattern = omnid::haptics::HandPattern::try_from(hand.to_string()).unwrap();
+    cfg.haptics.hand.release_s = 4.0;
+    assert!(cfg.haptics.passivity);
+    let device = Box::new(SimOmni::new(&cfg, false));
+    let controller = ControllerSet::new(&cfg, ControllerKind::Nnidc, 0.0);
+    let reference = Reference::new(Trajectory::Hold, &cfg.reference, cfg.sim.seed);
+    let (tx, rx) = crossbeam_channel::bounded(64);
+    let consumer = std::thread::spawn(move || rx.iter().count());
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
+    let (id, _) =
+        omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
+    servo.set_identifier(id);
+    servo.start_free();
+    let centre: [f64; 3] =
+        omnid::omni::tip_position_mm(&cfg.geometry, &cfg.reference.center.into()).into();
+    servo.set_effects(&every_effect(centre));
+    for _ in 0..1_500 {
+        assert!(servo.tick().is_none());
+    }
+    let n = count_allocations(|| {
+        for _ in 0..4_000 {
+            assert!(servo.tick().is_none());
+        }
+    });
+    assert_eq!(n, 0, "hand {hand}: {n} allocations in 4000 haptic ticks");
+    let report = servo.finish(EndReason::Completed);
+    assert!(report.last_command.is_safe());
+    assert!(consumer.join().unwrap() > 0);
+}
+
+#[test]
+fn free_mode_with_every_effect_and_each_hand_allocates_nothing() {
+    for hand in ["path", "push-y", "hold"] {
+        haptic_ticks_allocate_nothing(hand);
+    }
+}
+
 #[test]
 fn replay_allocates_nothing_per_tick() {
     // The replay device reads the next row of the file inside `exchange`: that must reuse its
@@ -148,6 +222,7 @@ fn replay_allocates_nothing_per_tick() {
         inject: Vec::new(),
         weights: None,
         no_adapt: false,
+        haptics: Default::default(),
     };
     let mut sim_cfg = cfg.clone();
     sim_cfg.safety.persist_heat = false;
@@ -191,7 +266,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     cfg.safety.persist_heat = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let socket = dir.path().join("sim.sock");
-    let opts = omnid::serve::ServeOptions {
+    let opts = omnid::daemon::ServeOptions {
         device: omnid::run::DeviceSpec::Sim,
         controller: ControllerKind::Nnidc,
         socket: Some(socket.clone()),
@@ -202,7 +277,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     };
     let stop = Arc::new(AtomicBool::new(false));
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
-    let prepared = omnid::serve::prepare(&opts, &cfg, stop).unwrap();
+    let prepared = omnid::daemon::prepare(&opts, &cfg, stop).unwrap();
     let mut servo = prepared.pipeline.servo;
     let hub = std::thread::spawn(move || omnid::serve::hub::Hub::new(prepared.hub).run());
 
@@ -238,19 +313,29 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
             loop {
                 let Ok(s) = c.next_state(5000) else { return };
                 let q = [s.q[0], 0.6, 0.3];
-                if c.send(&json!({"op": "servo_jp", "seq": s.seq, "q": q}))
-                    .is_err()
-                {
+                // Joint setpoints, and in every other half second a tip force stream.
+                let sent = if counting.load(Ordering::SeqCst) && s.seq / 500 % 2 == 1 {
+                    c.send(
+                        &json!({"op": "servo_cf", "seq": s.seq, "force": [0.0, 0.1, 0.0],
+                                   "ttl_ms": 100}),
+                    )
+                } else {
+                    c.send(&json!({"op": "servo_jp", "seq": s.seq, "q": q}))
+                };
+                if sent.is_err() {
                     return;
                 }
                 if counting.load(Ordering::SeqCst) && s.seq % 100 == 0 {
-                    let r = match k % 4 {
+                    let effect = json!({"type": "damper", "damping_n_s_per_m": 0.5});
+                    let r = match k % 6 {
                         0 => c.request(
-                            json!({"op": "controller", "controller": controllers[k / 4 % 3]}),
+                            json!({"op": "controller", "controller": controllers[k / 6 % 3]}),
                         ),
                         1 => c.request(json!({"op": "status"})),
                         2 => c.request(json!({"op": "weights_load", "path": weights})),
-                        _ => c.request(json!({"op": "adapt", "on": k % 8 != 3})),
+                        3 => c.request(json!({"op": "effect", "slot": k % 8, "effect": effect})),
+                        4 => c.request(json!({"op": "passivity", "on": k % 12 != 4})),
+                        _ => c.request(json!({"op": "adapt", "on": k % 12 != 5})),
                     };
                     if r.is_err() {
                         return;
@@ -271,7 +356,10 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         }
     });
     let done = cycles.load(Ordering::SeqCst);
-    assert_eq!(servo.activity(), omnid::servo::Activity::ServoJp);
+    assert!(matches!(
+        servo.activity(),
+        omnid::servo::Activity::ServoJp | omnid::servo::Activity::ServoCf
+    ));
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
     hub.join().unwrap();

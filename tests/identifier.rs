@@ -32,6 +32,7 @@ fn run(
         inject: Vec::new(),
         weights,
         no_adapt: false,
+        haptics: Default::default(),
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
     assert!(out.summary.faults.is_empty(), "{:?}", out.summary.faults);

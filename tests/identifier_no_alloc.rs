@@ -2,7 +2,7 @@
 //! a counting allocator watches this thread while it runs.
 
 use nalgebra::Vector3;
-use omnid::ident::{Identifier, IdentifierConfig};
+use omnid::identifier::{Identifier, IdentifierConfig};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 

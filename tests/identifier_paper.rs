@@ -6,8 +6,8 @@
 use nalgebra::Matrix3;
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
-use omnid::ident::{pretune, Identifier, IdentifierConfig, PretuneConfig, Sample};
-use omnid::identify::samples_from_log;
+use omnid::identifier::{pretune, Identifier, IdentifierConfig, PretuneConfig, Sample};
+use omnid::log_pretune::samples_from_log;
 use omnid::omni::{Dynamics, Geometry, ModelParams};
 use omnid::run::{execute, DeviceSpec, RunOptions, RunOutcome};
 use std::path::{Path, PathBuf};
@@ -36,6 +36,7 @@ fn run(
         inject: Vec::new(),
         weights,
         no_adapt: false,
+        haptics: Default::default(),
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
     assert!(out.summary.faults.is_empty(), "{:?}", out.summary.faults);
@@ -105,7 +106,7 @@ fn skew_symmetry_terms_bring_c_hat_closer_to_the_plant() {
         .unwrap();
         let rep = pretune(&mut id, &train, &pcfg, None, |_| {}).unwrap();
         let (rms, mean) = coriolis_error(&mut id, &val);
-        let nrmse = omnid::ident::nrmse(&mut id, &val, None);
+        let nrmse = omnid::identifier::nrmse(&mut id, &val, None);
         eprintln!(
             "λ1 = λ2 = {lambda}: ‖Ĉ − C‖/‖C‖ {rms:.3} (mean per state {mean:.3}); τ̂ NRMSE on \
              the validation log {nrmse:.3?} (kept epoch {})",

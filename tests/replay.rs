@@ -31,6 +31,7 @@ fn run(
         inject: Vec::new(),
         weights: None,
         no_adapt: false,
+        haptics: Default::default(),
     };
     // Motors start cold: no heat carried over from other runs, so every run is reproducible.
     let mut cfg = cfg.clone();
@@ -153,6 +154,7 @@ fn paced_and_fast_replays_agree() {
             inject: Vec::new(),
             weights: None,
             no_adapt: false,
+            haptics: Default::default(),
         };
         let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
         assert_eq!(out.end, EndReason::EndOfData);

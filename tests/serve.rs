@@ -367,6 +367,56 @@ while True:
 }
 
 #[test]
+fn a_holder_that_asked_for_idle_leaves_zero_torque_when_killed() {
+    let d = Daemon::start(&[]);
+    let mut watcher = d.client("watcher");
+    watcher
+        .request(json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    // A haptic program: it takes the lease asking for `idle`, streams forces, is killed.
+    let script = r#"
+import json, socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+s.connect(sys.argv[1])
+s.send(json.dumps({"op": "hello", "protocol": 1, "name": "haptic"}).encode())
+s.recv(65536)
+s.send(json.dumps({"op": "lease", "fallback": "idle", "id": 1}).encode())
+while True:
+    m = json.loads(s.recv(65536))
+    if m.get("id") == 1:
+        assert m["type"] == "reply" and m["fallback"] == "idle", m
+        break
+s.send(json.dumps({"op": "stream", "rate_hz": 1000}).encode())
+while True:
+    m = json.loads(s.recv(65536))
+    if m.get("type") == "state":
+        s.send(json.dumps({"op": "servo_cf", "seq": m["seq"], "force": [0.3, 0.0, 0.0], "ttl_ms": 1000}).encode())
+"#;
+    let mut victim = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&d.socket)
+        .spawn()
+        .expect("python3 runs");
+    states_until(&mut watcher, 10_000, |s| {
+        s.mode == "servo_cf" && s.cmd_seq > 0
+    });
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+    let seen = states_until(&mut watcher, 2000, |s| s.mode != "servo_cf");
+    let first = seen.last().unwrap();
+    // Idle: amplifiers off and no torque, not a hold at the pose (the config's default).
+    assert_eq!(first.mode, "idle");
+    assert!(!first.amps && first.tau == [0.0; 3], "{first:?}");
+    // The next holder that asks nothing gets the config's fallback again.
+    let mut next = d.client("next");
+    let r = next.request(json!({"op": "lease"})).unwrap();
+    assert_eq!(r["fallback"], "hold", "{r}");
+    let e = refused(next.request(json!({"op": "lease", "fallback": "drop"})));
+    assert!(e.contains("hold, idle or free"), "{e}");
+}
+
+#[test]
 fn controller_switches_mid_motion_are_bumpless() {
     let d = Daemon::start(&["--controller", "pd"]);
     let mut c = d.client("switcher");
@@ -727,4 +777,96 @@ fn free_mode_compensates_and_servo_jf_adds_torque() {
         "base turned {} rad",
         last.q[0] - start.q[0]
     );
+}
+
+#[test]
+fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
+    let d = Daemon::start(&["--controller", "ct"]);
+    let mut c = d.client("forces");
+    assert!(c.hello().modes.iter().any(|m| m == "servo_cf"));
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let pose = [0.0, 0.6, 0.3];
+    feed_servo_jp(&mut c, 1500, pose);
+    // A force towards +x (the user's right) on top of the compensation: the tip moves that
+    // way, far more than across it.
+    let start = c.next_state(5000).unwrap();
+    let mut last = start.clone();
+    for _ in 0..200 {
+        last = c.next_state(5000).unwrap();
+        c.send(
+            &json!({"op": "servo_cf", "seq": last.seq, "force": [0.2, 0.0, 0.0], "ttl_ms": 100}),
+        )
+        .unwrap();
+    }
+    assert_eq!(last.mode, "servo_cf");
+    assert!(last.cmd_seq > start.seq, "{} {}", last.cmd_seq, start.seq);
+    let moved = [0, 1, 2].map(|k| last.tip_mm[k] - start.tip_mm[k]);
+    assert!(moved[0] > 5.0, "tip moved {moved:?} mm");
+    assert!(
+        moved[0] > 3.0 * moved[1].abs().max(moved[2].abs()),
+        "tip moved {moved:?} mm"
+    );
+    // A value that is not a finite number never reaches the servo: refused, saying why.
+    c.send_raw(br#"{"op":"servo_cf","seq":1,"force":[1e999,0,0]}"#)
+        .unwrap();
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        match c.recv(5000).unwrap() {
+            Message::Other(v) if v["type"] == "error" => {
+                let m = v["message"].as_str().unwrap();
+                assert!(m.contains("number out of range"), "{v}");
+                break;
+            }
+            _ => assert!(Instant::now() < until, "no refusal"),
+        }
+    }
+    let e = refused(
+        c.request(json!({"op": "servo_cf", "seq": 2, "force": [0.0, 0.0, 0.0], "ttl_ms": 0})),
+    );
+    assert!(e.contains("ttl_ms"), "{e}");
+    // Stop feeding: the stale fallback (hold) within the time to live (100 ms here, so that a
+    // busy machine cannot starve the stream above), as for servo_jf.
+    let seen = states_until(&mut c, 400, |s| s.mode != "servo_cf");
+    let (gap, first) = fallback_gap(&seen, "servo_cf");
+    assert_eq!(first.mode, "hold");
+    assert!(
+        gap <= 0.100 + 0.0015,
+        "fell back {gap} s after the last command"
+    );
+}
+
+#[test]
+fn effects_render_in_free_mode_and_bad_ones_are_refused() {
+    let d = Daemon::start(&["--controller", "ct"]);
+    let mut c = d.client("effects");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    feed_servo_jp(&mut c, 1500, [0.0, 0.6, 0.3]);
+    c.request(json!({"op": "free"})).unwrap();
+    let start = states_until(&mut c, 100, |s| s.mode == "free")
+        .pop()
+        .unwrap();
+    // A spring towards a point 30 mm to the right, with some damping: the tip goes there.
+    let mut centre = start.tip_mm;
+    centre[0] += 30.0;
+    let spring = json!({"type": "spring", "center_mm": centre, "stiffness_n_per_mm": 0.03,
+                        "damping_n_s_per_m": 1.0});
+    let r = c
+        .request(json!({"op": "effect", "slot": 2, "effect": spring}))
+        .unwrap();
+    assert_eq!(r["slot"], 2);
+    let seen = states_until(&mut c, 3000, |s| s.tip_mm[0] - start.tip_mm[0] > 20.0);
+    assert!(seen.iter().all(|s| s.mode == "free"));
+    // Removing it: the effect is gone (a reply), the arm stays in free mode.
+    c.request(json!({"op": "effect", "slot": 2, "effect": null}))
+        .unwrap();
+    c.request(json!({"op": "passivity", "on": false})).unwrap();
+    // Refused by name: a slot out of range, a bad parameter, an unknown effect.
+    let e = refused(c.request(json!({"op": "effect", "slot": 8, "effect": null})));
+    assert!(e.contains("slot 8"), "{e}");
+    let bad = json!({"type": "plane", "point_mm": [0, 0, 0], "normal": [0, 0, 0],
+                     "stiffness_n_per_mm": 1.0});
+    let e = refused(c.request(json!({"op": "effect", "slot": 0, "effect": bad})));
+    assert!(e.contains("effect.normal"), "{e}");
+    let e = refused(c.request(json!({"op": "effect", "slot": 0, "effect": {"type": "vortex"}})));
+    assert!(e.contains("vortex"), "{e}");
 }

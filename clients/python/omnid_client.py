@@ -89,7 +89,7 @@ MAX_MESSAGE = 64 * 1024
 _RECV_SIZE = 2 * MAX_MESSAGE
 
 # Stream commands: the daemon answers them only when it refuses one.
-_STREAM_OPS = ("servo_jp", "servo_jf")
+_STREAM_OPS = ("servo_jp", "servo_jf", "servo_cf")
 
 
 # --------------------------------------------------------------------------------------
@@ -178,11 +178,11 @@ class State(NamedTuple):
     """The identifier's prediction of the torque that acted, N·m."""
     controller: str
     mode: str
-    """idle, hold, blend, track, free, servo_jp, servo_jf, or stop (the last tick)."""
+    """idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, or stop (the last tick)."""
     amps: bool
     flags: int
     cmd_seq: int
-    """``seq`` of the last servo_jp/servo_jf command applied."""
+    """``seq`` of the last servo_jp/servo_jf/servo_cf command applied."""
 
     @classmethod
     def from_message(cls, m: Dict[str, Any]) -> "State":
@@ -288,7 +288,7 @@ class Client:
             (the largest ``total`` of its ``lost`` messages).
         dropped_total: state samples this client dropped from its own full buffer.
         bye: the daemon's goodbye message once it said ``bye`` (else None).
-        seq: the ``seq`` of the last servo_jp/servo_jf sent.
+        seq: the ``seq`` of the last servo_jp/servo_jf/servo_cf sent.
     """
 
     def __init__(
@@ -534,11 +534,12 @@ class Client:
         Raises :class:`RefusedError` with the daemon's message when it refuses,
         :class:`ConnectionClosedError` on ``bye`` or a closed connection, and
         :class:`OmnidTimeout` after ``timeout`` s (default: the client's). Messages that
-        arrive meanwhile are kept for later reads. Stream commands (servo_jp, servo_jf)
-        have no reply: use :meth:`servo_jp`, :meth:`servo_jf` or :meth:`send`.
+        arrive meanwhile are kept for later reads. Stream commands (servo_jp, servo_jf,
+        servo_cf) have no reply: use :meth:`servo_jp`, :meth:`servo_jf`, :meth:`servo_cf` or
+        :meth:`send`.
         """
         if op in _STREAM_OPS:
-            raise ValueError("%s has no reply; use servo_jp/servo_jf or send()" % op)
+            raise ValueError("%s has no reply; use servo_jp/servo_jf/servo_cf or send()" % op)
         rid = self._next_id
         self._next_id += 1
         msg: Dict[str, Any] = {"op": op}
@@ -579,7 +580,7 @@ class Client:
         return int(self.request("lease")["holder"])
 
     def release(self) -> None:
-        """Give the command lease back (a servo_jp/servo_jf stream then falls back)."""
+        """Give the command lease back (a servo_jp/servo_jf/servo_cf stream then falls back)."""
         self.request("release")
 
     def mode(self, name: str, trajectory: Optional[str] = None) -> str:
@@ -691,7 +692,7 @@ class Client:
         send them continuously (e.g. one per state sample, ``seq=state.seq``). ``seq``
         defaults to the previous one plus 1; the sequence number sent is returned and
         echoed as ``cmd_seq`` in the stream. A refusal by the daemon arrives later: it is
-        raised as :class:`RefusedError` by the next servo_jp/servo_jf call (and is among
+        raised as :class:`RefusedError` by the next servo_jp/servo_jf/servo_cf call (and is among
         the events).
         """
         return self._stream_command("servo_jp", "q", q, seq, ttl_ms)
@@ -702,6 +703,32 @@ class Client:
         """Joint torque ``tau`` (3 values, N·m) on top of the compensation; as
         :meth:`servo_jp`."""
         return self._stream_command("servo_jf", "tau", tau, seq, ttl_ms)
+
+    def servo_cf(
+        self, force: Sequence[float], seq: Optional[int] = None, ttl_ms: Optional[float] = None
+    ) -> int:
+        """Tip force ``force`` (3 values, N, OpenHaptics frame: +x right, +y up, +z toward
+        the user) on top of the compensation, applied as joint torque Jᵀ F; its norm is
+        clamped to the daemon's ``[haptics] max_force_n`` (3.3 N by default). As
+        :meth:`servo_jp`."""
+        return self._stream_command("servo_cf", "force", force, seq, ttl_ms)
+
+    # ---------------------------------------------------------------- haptic effects
+
+    def effect(self, slot: int, effect: Optional[Dict[str, Any]]) -> Dict[str, Any]:
+        """Put a haptic effect in ``slot`` (0..7) of the scene, or remove it (``None``).
+
+        ``effect`` is a dict with ``type`` (``spring``, ``damper``, ``plane``, ``box``,
+        ``constant``) and its parameters (docs/HAPTICS.md), e.g.
+        ``{"type": "plane", "point_mm": [0, -40, 0], "normal": [0, 1, 0],
+        "stiffness_n_per_mm": 1.0}``. Effects are rendered in ``free`` and ``servo_cf``; a
+        change fades in without a jump. Returns the daemon's reply.
+        """
+        return self.request("effect", slot=int(slot), effect=effect)
+
+    def passivity(self, on: bool = True) -> bool:
+        """Turn the passivity controller on the effects on or off."""
+        return bool(self.request("passivity", on=bool(on))["passivity"])
 
     # ---------------------------------------------------------------- reading
 

@@ -193,7 +193,8 @@ class ReadingTests(DaemonTestCase):
         self.assertEqual(h["stream_ttl_ms"], 20.0)
         self.assertEqual(set(h["controllers"]), {"pd", "nnidc", "ct", "off"})
         self.assertEqual(
-            h["modes"], ["idle", "hold", "track", "free", "servo_jp", "servo_jf"]
+            h["modes"],
+            ["idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf"],
         )
         other = self.connect("hello-test-2")
         self.assertNotEqual(other.client_id, c.client_id)
@@ -465,6 +466,33 @@ class CommandTests(DaemonTestCase):
         self.wait_for(c, lambda s: s.cmd_seq == second, "cmd_seq %d" % second)
         self.assertEqual(c.wait_event("stream-stale", timeout=3.0)["mode"], "hold")
         c.hold()
+
+    def test_servo_cf_stream_and_bad_values(self):
+        c = self.c
+        self.settle(c)
+        # A non-finite force never leaves the client.
+        with self.assertRaises(ValueError):
+            c.servo_cf([float("nan"), 0.0, 0.0])
+        with self.assertRaises(ValueError):
+            c.servo_cf([0.0, 0.0])
+        first = c.servo_cf([0.0, 0.0, 0.0], ttl_ms=200)
+        self.wait_for(c, lambda s: s.mode == "servo_cf", "mode servo_cf")
+        second = c.servo_cf([0.0, 0.0, 0.0], ttl_ms=200)
+        self.assertEqual(second, first + 1)
+        self.wait_for(c, lambda s: s.cmd_seq == second, "cmd_seq %d" % second)
+        self.assertEqual(c.wait_event("stream-stale", timeout=3.0)["mode"], "hold")
+        c.hold()
+
+    def test_effects(self):
+        c = self.c
+        r = c.effect(0, {"type": "damper", "damping_n_s_per_m": 1.0})
+        self.assertEqual(r["slot"], 0)
+        self.assertEqual(c.effect(0, None)["slot"], 0)
+        with self.assertRaises(RefusedError) as cm:
+            c.effect(0, {"type": "damper", "damping_n_s_per_m": -1.0})
+        self.assertIn("damping_n_s_per_m", cm.exception.message)
+        self.assertFalse(c.passivity(False))
+        self.assertTrue(c.passivity(True))
 
     def test_lease(self):
         c = self.c

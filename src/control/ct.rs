@@ -6,7 +6,7 @@
 use super::ControlSetup;
 use super::{ControlInput, Controller, RefPoint};
 use crate::estimate::kalman::Estimate;
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
 /// Outer-loop gains of the inverse-dynamics laws: K_p = ω², K_d = 2ζω (per unit inertia).

@@ -2,12 +2,14 @@
 //! joint torque. Every controller is behind one trait and chosen by flag.
 
 pub mod ct;
+pub mod nan_after;
 pub mod nnidc;
 pub mod pd;
 pub mod reference;
 pub mod set;
 
 pub use ct::{ComputedTorque, OuterLoop};
+pub use nan_after::NanAfter;
 pub use nnidc::Nnidc;
 pub use pd::{Off, Pd};
 pub use reference::{RefPoint, Reference, ReferenceConfig, Trajectory};
@@ -15,7 +17,7 @@ pub use set::ControllerSet;
 
 use crate::config_check::{self as check, ConfigError};
 use crate::estimate::kalman::Estimate;
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::{Geometry, Joint3, ModelParams};
 use serde::{Deserialize, Serialize};
 

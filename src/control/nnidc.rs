@@ -7,7 +7,7 @@ use super::ct::OuterLoop;
 use super::pd::Pd;
 use super::ControlSetup;
 use super::{ControlInput, Controller};
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
 pub struct Nnidc {

@@ -4,7 +4,7 @@
 
 use super::ControlSetup;
 use super::{ControlInput, Controller};
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
 pub struct Pd {

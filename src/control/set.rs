@@ -7,7 +7,7 @@ use super::reference::quintic;
 use super::ControlSetup;
 use super::{ControlInput, Controller, ControllerKind};
 use crate::estimate::kalman::Estimate;
-use crate::ident::Identifier;
+use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
 pub struct ControllerSet {

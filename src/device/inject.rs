@@ -1,4 +1,4 @@
-//! Fault injection: a wrapper around any device (and a controller wrapper for `nan@T`) that
+//! Fault injection: a wrapper around any device (and, for `nan@T`, `control::NanAfter`) that
 //! makes the faults the safety layer must survive or stop on, at chosen device times.
 //!
 //! Specs (`--inject`, repeatable, or `[inject] faults = [...]`):
@@ -6,11 +6,9 @@
 //! with T in seconds of device time, MS in milliseconds, P a probability per packet.
 
 use super::codec::STATE_LAYOUT;
-use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use super::{Device, DeviceError, MissReason, RawSample, COMMAND_LEN};
 use crate::config_check::{self as check, ConfigError};
-use crate::control::{ControlInput, Controller};
-use crate::ident::Identifier;
-use crate::omni::{Dynamics, Joint3};
+use crate::omni::Dynamics;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -204,15 +202,15 @@ impl Device for FaultyDevice {
                 }
                 Some(Fault::Slow { at_s, ms }) if t >= at_s && !self.slow_done[i] => {
                     self.slow_done[i] = true;
-                    let until = crate::servo::clock::now_ns().saturating_add((ms * 1e6) as u64);
-                    crate::servo::clock::sleep_until_ns_or_stop(until, &self.stop);
+                    let until = crate::clock::now_ns().saturating_add((ms * 1e6) as u64);
+                    crate::clock::sleep_until_ns_or_stop(until, &self.stop);
                 }
                 _ => {}
             }
         }
         if let Some(until) = self.stalled_until {
             if t < until {
-                return Err(DeviceError::Missed("injected stall".into()));
+                return Err(DeviceError::Missed(MissReason::InjectedStall));
             }
         }
         Ok(sample)
@@ -229,26 +227,9 @@ impl Device for FaultyDevice {
     fn plant_model(&self) -> Option<&Dynamics> {
         self.inner.plant_model()
     }
-}
 
-/// A controller whose output turns non-finite from time T on (`nan@T`).
-pub struct NanAfter {
-    pub inner: Box<dyn Controller>,
-    pub at_s: f64,
-}
-
-impl Controller for NanAfter {
-    fn name(&self) -> &'static str {
-        self.inner.name()
-    }
-
-    fn torque(&mut self, input: &ControlInput, learned: Option<&mut Identifier>) -> Joint3 {
-        let tau = self.inner.torque(input, learned);
-        if input.t >= self.at_s {
-            Joint3::new(tau[0], f64::NAN, tau[2])
-        } else {
-            tau
-        }
+    fn hand_force(&self) -> Option<[f64; 3]> {
+        self.inner.hand_force()
     }
 }
 

@@ -98,6 +98,36 @@ impl RawSample {
     }
 }
 
+/// Why an exchange returned no sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MissReason {
+    /// No packet arrived before the exchange timeout.
+    ReadTimeout,
+    /// The command could not be written before the timeout (or the transmit queue is stuck).
+    WriteStalled,
+    /// Data arrived but no complete fresh packet could be cut from it in time.
+    NoFreshPacket,
+    /// The command handed to the backend was malformed; the safe packet went instead.
+    MalformedCommand,
+    /// A FireWire bus reset: streaming was restarted, this tick has no sample.
+    BusReset,
+    /// A stall made on purpose (`--inject stall@T:MS`).
+    InjectedStall,
+}
+
+impl std::fmt::Display for MissReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            MissReason::ReadTimeout => "no packet before the exchange timeout",
+            MissReason::WriteStalled => "the command could not be written in time",
+            MissReason::NoFreshPacket => "no complete fresh packet in time",
+            MissReason::MalformedCommand => "malformed command (the safe packet went instead)",
+            MissReason::BusReset => "bus reset (streaming restarted)",
+            MissReason::InjectedStall => "injected stall",
+        })
+    }
+}
+
 /// Errors at the device boundary. `Missed` is survivable (the loop holds the last torque);
 /// the others end the run.
 #[derive(Debug, Error)]
@@ -107,9 +137,10 @@ pub enum DeviceError {
     NotFound { looked_for: String, hint: String },
     #[error("permission denied opening {what}. {hint}")]
     Permission { what: String, hint: String },
-    /// The packet for this tick did not arrive in time or was corrupt: hold and go on.
+    /// The packet for this tick did not arrive in time or was corrupt: hold and go on. The
+    /// reason is a `Copy` value, so a miss on the servo thread allocates nothing.
     #[error("missed packet: {0}")]
-    Missed(String),
+    Missed(MissReason),
     #[error("malformed packet: {0}")]
     Malformed(#[from] CodecError),
     #[error("device disconnected: {0}")]
@@ -152,5 +183,27 @@ pub trait Device: Send {
     /// The plant's exact dynamics at this moment, for simulated devices (the oracle model).
     fn plant_model(&self) -> Option<&crate::omni::Dynamics> {
         None
+    }
+
+    /// The force the simulated hand puts on the stylus tip, N (OpenHaptics frame): the
+    /// simulator only (docs/HAPTICS.md §7).
+    fn hand_force(&self) -> Option<[f64; 3]> {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_miss_says_why_without_carrying_any_heap_data() {
+        fn copy<T: Copy>(_: T) {}
+        copy(MissReason::ReadTimeout);
+        let text = DeviceError::Missed(MissReason::ReadTimeout).to_string();
+        assert_eq!(text, "missed packet: no packet before the exchange timeout");
+        assert!(DeviceError::Missed(MissReason::BusReset)
+            .to_string()
+            .contains("bus reset"));
     }
 }

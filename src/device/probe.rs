@@ -365,7 +365,8 @@ fn run<B: FireWireBus, W: Write>(
     Ok(())
 }
 
-/// The capture with the amplifiers off, guided.
+/// The capture with the amplifiers off, guided. Long on purpose: it is the operator's script
+/// (prompt, wait, record, check), step by step in the order they are asked.
 fn capture_phase<B: FireWireBus, W: Write>(
     s: &mut Session<'_, B, W>,
     report: &mut ProbeReport,
@@ -581,7 +582,8 @@ fn hold<B: FireWireBus, W: Write>(
     Ok(moved)
 }
 
-/// The output steps; on any stop the caller sends safe packets and closes.
+/// The output steps; on any stop the caller sends safe packets and closes. Long on purpose:
+/// each step is confirmed by the operator before any torque, in the order they are asked.
 fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3], Stop> {
     let per_second = s.per_second();
     let counts = s.opts.pulse_counts.clamp(1, MAX_PULSE_COUNTS);
@@ -745,9 +747,17 @@ pub struct ProbePlan {
     pub counts: u16,
 }
 
+/// The sections of the configuration a probe reads (a `&Config` gives them).
+#[derive(Debug, Clone, Copy)]
+pub struct ProbeSetup<'a> {
+    pub device: &'a super::DeviceConfig,
+    pub firewire: &'a super::firewire::FirewireConfig,
+}
+
 impl ProbePlan {
     /// The probe's options for this configuration, or what is wrong with the plan.
-    pub fn options(&self, cfg: &crate::config::Config) -> Result<ProbeOptions, ProbeError> {
+    pub fn options<'a>(&self, cfg: impl Into<ProbeSetup<'a>>) -> Result<ProbeOptions, ProbeError> {
+        let cfg = cfg.into();
         if !(self.seconds.is_finite() && self.seconds > 0.0 && self.seconds <= 3600.0) {
             return Err(ProbeError::BadInput(format!(
                 "--seconds {} is out of range: allowed 0 < seconds <= 3600",
@@ -774,7 +784,8 @@ impl ProbePlan {
 
 /// The capture's header lines for this configuration (the converter reads `kind`,
 /// `encoder_sign`, `counts_per_rev` and `rate_hz`).
-pub fn capture_header(cfg: &crate::config::Config, kind: &str) -> String {
+pub fn capture_header<'a>(cfg: impl Into<ProbeSetup<'a>>, kind: &str) -> String {
+    let cfg = cfg.into();
     let s = cfg.firewire.encoder_sign;
     format!(
         "kind {kind}\nomnid {}\nrate_hz {}\nencoder_sign {} {} {}\ncounts_per_rev {}\n\
@@ -791,14 +802,15 @@ pub fn capture_header(cfg: &crate::config::Config, kind: &str) -> String {
 
 /// `omnid probe` on the configured FireWire Omni: find it (reads only), open the capture,
 /// then [`probe`].
-pub fn probe_firewire(
-    cfg: &crate::config::Config,
+pub fn probe_firewire<'a>(
+    cfg: impl Into<ProbeSetup<'a>>,
     plan: &ProbePlan,
     op: &mut dyn Operator,
     stop: &AtomicBool,
 ) -> Result<ProbeReport, ProbeError> {
+    let cfg = cfg.into();
     let opts = plan.options(cfg)?;
-    let omni = super::firewire::find_firewire(&cfg.firewire, cfg.device.rate_hz)?;
+    let omni = super::firewire::find_firewire(cfg.firewire, cfg.device.rate_hz)?;
     let path = plan.capture.display().to_string();
     let cap = |source| ProbeError::Capture {
         path: path.clone(),
@@ -1095,8 +1107,8 @@ mod tests {
         assert!(rx > 1000 && tx > 1000, "{rx} received, {tx} sent");
         assert_eq!(report.captured, (rx + tx) as u64);
         let log = dir.path().join("capture-log.csv");
-        let conv = crate::telemetry::convert::convert(
-            crate::telemetry::convert::SourceFormat::Capture,
+        let conv = crate::convert::convert(
+            crate::convert::SourceFormat::Capture,
             &cap,
             &log,
             false,
@@ -1117,6 +1129,7 @@ mod tests {
             inject: Vec::new(),
             weights: None,
             no_adapt: false,
+            haptics: Default::default(),
         };
         let outcome = crate::run::execute(
             &run,

@@ -34,7 +34,7 @@
 use super::codec::{decode_command, encode_state, StatePacket};
 use super::DeviceConfig;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
-use crate::servo::clock;
+use crate::clock;
 use crate::telemetry::reader::{LogReader, LogRow, ReadError, SkipReport};
 use crate::telemetry::record::Mode;
 use std::path::{Path, PathBuf};

@@ -5,9 +5,10 @@
 use super::codec::{decode_command, encode_state, DacScale, StatePacket};
 use super::DeviceConfig;
 use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use crate::clock;
 use crate::config_check::{self as check, ConfigError};
-use crate::omni::{Dynamics, Geometry, Joint3, ModelParams};
-use crate::servo::clock;
+use crate::haptics::{tip_force_torque, Force3, Hand, HandConfig, HandPattern};
+use crate::omni::{jacobian, tip_position_mm, Dynamics, Geometry, Joint3, ModelParams};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -164,6 +165,10 @@ pub struct SimSetup<'a> {
     pub sim: &'a SimConfig,
     pub model: &'a ModelParams,
     pub geometry: &'a Geometry,
+    /// The simulated hand on the stylus (none by default).
+    pub hand: &'a HandConfig,
+    /// Where the hand's paths are centred: the tip at this pose (the reference's centre), rad.
+    pub center: [f64; 3],
 }
 
 /// How close to the start pose (rad) counts as "stylus in the inkwell".
@@ -186,6 +191,10 @@ pub struct SimOmni {
     last_watchdog: Option<u8>,
     paced: bool,
     start_ns: u64,
+    /// The simulated hand on the stylus (docs/HAPTICS.md §7), and the force it put on the tip
+    /// at the last sample, N.
+    hand: Option<Hand>,
+    hand_force: Force3,
 }
 
 impl SimOmni {
@@ -195,6 +204,9 @@ impl SimOmni {
         let mut plant = Dynamics::new(*cfg.model, *cfg.geometry);
         plant.friction = cfg.sim.friction;
         let start_pose = Joint3::from(cfg.sim.start_pose);
+        let tip = |q: [f64; 3]| tip_position_mm(cfg.geometry, &q.into()) * 1e-3;
+        let hand = (cfg.hand.pattern != HandPattern::None)
+            .then(|| Hand::new(cfg.hand, tip(cfg.sim.start_pose), tip(cfg.center)));
         SimOmni {
             plant,
             payload_kg: cfg.sim.payload_kg,
@@ -215,6 +227,8 @@ impl SimOmni {
             last_watchdog: None,
             paced,
             start_ns: 0,
+            hand,
+            hand_force: Force3::zeros(),
         }
     }
 
@@ -236,22 +250,60 @@ impl SimOmni {
 
     /// Advance the plant by `dt` under constant torque `tau` (classic RK4, `substeps` steps).
     pub fn integrate(&mut self, tau: &Joint3, dt: f64) {
+        self.integrate_from(0.0, tau, dt);
+    }
+
+    /// The force the hand puts on the tip at (q, q̇), `s` s into the tick starting at `t`.
+    fn hand_force_at(&self, t: f64, s: f64, q: &Joint3, qd: &Joint3) -> Force3 {
+        let Some(hand) = &self.hand else {
+            return Force3::zeros();
+        };
+        let g = &self.plant.geometry;
+        let tip = tip_position_mm(g, q) * 1e-3;
+        hand.force(t + s, &tip, &(jacobian(g, q) * qd), s)
+    }
+
+    /// [`integrate`](Self::integrate) over the tick starting at `t`, with the hand's force on
+    /// the tip (through Jᵀ) inside every evaluation: the grip is stiff next to the arm.
+    fn integrate_from(&mut self, t: f64, tau: &Joint3, dt: f64) {
         let h = dt / self.substeps as f64;
-        let f = |q: &Joint3, qd: &Joint3| self.plant.forward_dynamics(q, qd, tau);
+        let with_hand = self.hand.is_some();
+        let f = |s: f64, q: &Joint3, qd: &Joint3| {
+            if with_hand {
+                let fh = self.hand_force_at(t, s, q, qd);
+                let ext = tip_force_torque(&self.plant.geometry, q, &fh);
+                self.plant.forward_dynamics(q, qd, &(tau + ext))
+            } else {
+                self.plant.forward_dynamics(q, qd, tau)
+            }
+        };
         let (mut q, mut qd) = (self.q, self.qd);
-        for _ in 0..self.substeps {
-            let a1 = f(&q, &qd);
+        for k in 0..self.substeps {
+            let s = k as f64 * h;
+            let a1 = f(s, &q, &qd);
             let (q2, v2) = (q + qd * (h / 2.0), qd + a1 * (h / 2.0));
-            let a2 = f(&q2, &v2);
+            let a2 = f(s + h / 2.0, &q2, &v2);
             let (q3, v3) = (q + v2 * (h / 2.0), qd + a2 * (h / 2.0));
-            let a3 = f(&q3, &v3);
+            let a3 = f(s + h / 2.0, &q3, &v3);
             let (q4, v4) = (q + v3 * h, qd + a3 * h);
-            let a4 = f(&q4, &v4);
+            let a4 = f(s + h, &q4, &v4);
             q += (qd + v2 * 2.0 + v3 * 2.0 + v4) * (h / 6.0);
             qd += (a1 + a2 * 2.0 + a3 * 2.0 + a4) * (h / 6.0);
         }
         self.q = q;
         self.qd = qd;
+    }
+
+    /// One tick of the plant from time `t`: the hand moves on, the arm moves under the motor
+    /// torque and the hand, and the hand's force at the new sample is kept for the log.
+    fn step(&mut self, t: f64, tau: &Joint3) {
+        let felt = self.hand_force;
+        if let Some(hand) = &mut self.hand {
+            hand.advance(t, self.period_s, &felt);
+        }
+        self.integrate_from(t, tau, self.period_s);
+        let (q, qd) = (self.q, self.qd);
+        self.hand_force = self.hand_force_at(t, self.period_s, &q, &qd);
     }
 
     fn encoder_words(&self) -> [u16; 3] {
@@ -293,7 +345,7 @@ impl Device for SimOmni {
             } else {
                 0.0
             };
-            self.integrate(&tau, self.period_s);
+            self.step(t, &tau);
             if self.paced {
                 clock::sleep_until_ns(
                     self.start_ns + (self.tick as f64 * self.period_s * 1e9) as u64,
@@ -315,6 +367,10 @@ impl Device for SimOmni {
 
     fn plant_model(&self) -> Option<&Dynamics> {
         Some(&self.plant)
+    }
+
+    fn hand_force(&self) -> Option<[f64; 3]> {
+        Some(self.hand_force.into())
     }
 }
 

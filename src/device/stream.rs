@@ -18,6 +18,7 @@ use super::codec::{
     decode_command, encode_command, CodecError, MotorCommand, COMMAND_LEN, DAC_MAX, DAC_ZERO,
     DRIVERS_BYTE7, STATE_LAYOUT, STATE_LEN,
 };
+use super::MissReason;
 
 /// A forward jump of the per-packet counter up to this many counts is taken as packets lost on
 /// the way; a bigger jump (or a bigger step back) means the bytes are not a packet.
@@ -27,24 +28,6 @@ pub const MAX_COUNTER_JUMP: u32 = 4096;
 pub fn packet_counter(p: &[u8]) -> u32 {
     let at = STATE_LAYOUT.counter;
     u32::from_le_bytes([p[at], p[at + 1], p[at + 2], p[at + 3]])
-}
-
-/// Why an exchange returned no sample (the `Missed` error carries no text, so that a miss
-/// allocates nothing; the reason is kept here).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum MissReason {
-    #[default]
-    None,
-    /// No packet arrived before the exchange timeout.
-    ReadTimeout,
-    /// The command could not be written before the timeout (or the transmit queue is stuck).
-    WriteStalled,
-    /// Data arrived but no complete fresh packet could be cut from it in time.
-    NoFreshPacket,
-    /// The command handed to the backend was malformed; the safe packet went instead.
-    MalformedCommand,
-    /// A FireWire bus reset: streaming was restarted, this tick has no sample.
-    BusReset,
 }
 
 /// Counters of everything unusual the stream has seen since open.
@@ -71,7 +54,7 @@ pub struct StreamStats {
     /// Streaming restarts (FireWire bus resets).
     pub restarts: u64,
     /// Why the last miss happened.
-    pub last_miss: MissReason,
+    pub last_miss: Option<MissReason>,
 }
 
 /// What the counter of a newly arrived packet means.

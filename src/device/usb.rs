@@ -16,8 +16,8 @@
 //! transfers allocate their transfer structure inside libusb on every call; that is outside
 //! this crate.)
 
-use super::stream::{CommandGate, CounterTracker, Framer, MissReason, StreamStats};
-use super::{Device, DeviceError, RawSample, COMMAND_LEN, STATE_LEN};
+use super::stream::{CommandGate, CounterTracker, Framer, StreamStats};
+use super::{Device, DeviceError, MissReason, RawSample, COMMAND_LEN, STATE_LEN};
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -273,9 +273,8 @@ impl<T: UsbTransport> UsbOmni<T> {
 
     fn miss(&mut self, reason: MissReason) -> DeviceError {
         self.stats.misses += 1;
-        self.stats.last_miss = reason;
-        // No text: a miss must not allocate (the reason is in `stats().last_miss`).
-        DeviceError::Missed(String::new())
+        self.stats.last_miss = Some(reason);
+        DeviceError::Missed(reason)
     }
 
     fn fail(&mut self, e: TransportError) -> DeviceError {
@@ -317,7 +316,7 @@ impl<T: UsbTransport> Device for UsbOmni<T> {
         }
         if let Some(e) = malformed {
             self.stats.misses += 1;
-            self.stats.last_miss = MissReason::MalformedCommand;
+            self.stats.last_miss = Some(MissReason::MalformedCommand);
             return Err(DeviceError::Malformed(e));
         }
         let mut out = [0u8; STATE_LEN];
@@ -1188,7 +1187,7 @@ mod tests {
         assert!(sent[3].amps_on && sent[3].dac == [0x0900, 0x0700, 0x07FF]);
         // The caller's byte 7 does not matter: the wire carries the drivers' constant.
         assert_wire_discipline(&sent[..3], 3);
-        assert_eq!(dev.stats().last_miss, MissReason::ReadTimeout);
+        assert_eq!(dev.stats().last_miss, Some(MissReason::ReadTimeout));
     }
 
     #[test]

@@ -5,7 +5,7 @@
 use super::kinematics::{jacobian, jacobian_dot, tip_position_mm, Geometry};
 use super::{Joint3, Mat3, GRAVITY};
 use crate::config_check::{self as check, ConfigError};
-use crate::fastmath::tanh;
+use crate::fast_tanh::tanh;
 use serde::{Deserialize, Serialize};
 use wide::f64x2;
 

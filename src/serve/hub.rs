@@ -8,12 +8,13 @@
 use super::access::{Access, Policy};
 use super::protocol::{Hello, Request, State, MAX_MESSAGE, PROTOCOL_VERSION};
 use super::socket::{Conn, Listener, Peer};
+use super::StaleFallback;
 use crate::control::{ControllerKind, Trajectory};
-use crate::ident::{Identifier, IdentifierConfig};
+use crate::identifier::{Identifier, IdentifierConfig};
 use crate::omni::kinematics::{tip_position_mm, Geometry};
-use crate::servo::{ServoCommand, ServoEvent, ServoReply, Snapshot, Wake};
+use crate::servo::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabels};
+use crate::servo::{Activity, ServoCommand, ServoEvent, ServoReply, Snapshot, Wake};
 use crate::telemetry::record::{LogSchema, Mode, TickRecord};
-use crate::telemetry::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabels};
 use crate::telemetry::writer::dump_rows;
 use crate::telemetry::{spawn_writer, LogError, LogFile, WriterReport};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
@@ -164,6 +165,8 @@ pub struct Hub {
     clients: Vec<Client>,
     next_id: u64,
     lease: Option<u64>,
+    /// The stream fallback the holder chose (`lease` with `fallback`), if it did.
+    lease_fallback: Option<Activity>,
     /// One snapshot box circulates: here when `Some`, at the servo otherwise.
     spare: Option<Box<Snapshot>>,
     waiting: Vec<Waiting>,
@@ -200,6 +203,7 @@ impl Hub {
             clients: Vec::new(),
             next_id: 1,
             lease: None,
+            lease_fallback: None,
             spare,
             waiting: Vec::new(),
             loads: VecDeque::new(),
@@ -426,8 +430,7 @@ impl Hub {
         c.dead = true;
         let id = c.id;
         if self.lease == Some(id) {
-            self.lease = None;
-            let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
+            self.end_lease();
             self.broadcast(json!({
                 "type": "event", "event": "lease", "holder": null,
                 "message": format!("client {id} left; the command lease is free"),
@@ -467,63 +470,14 @@ impl Hub {
         }
     }
 
+    /// One request from client `i`. Long only in its match: one arm per request op, each a
+    /// call or a few lines, so the whole protocol reads in one place.
     fn handle(&mut self, i: usize, request: Request) {
         let op = request.op();
         let id = request.id().cloned();
         let id = id.as_ref();
         if !self.clients[i].greeted {
-            match request {
-                Request::Hello { protocol, name, .. } if protocol == PROTOCOL_VERSION => {
-                    let c = &mut self.clients[i];
-                    c.greeted = true;
-                    c.name = name.unwrap_or_default().chars().take(64).collect();
-                    let hello = Hello {
-                        protocol: PROTOCOL_VERSION,
-                        server: format!("omnid {}", env!("CARGO_PKG_VERSION")),
-                        device: self.s.device.clone(),
-                        rate_hz: self.s.rate_hz,
-                        access: c.access.as_str().into(),
-                        client: c.id,
-                        stream_ttl_ms: self.s.serve.stream_ttl_ms,
-                        controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
-                        modes: ["idle", "hold", "track", "free", "servo_jp", "servo_jf"]
-                            .map(String::from)
-                            .into(),
-                        model: super::device_info::model(&self.s.device).into(),
-                        vendor: super::device_info::VENDOR.into(),
-                        serial: self.s.serial.clone(),
-                        firmware: None,
-                    };
-                    let mut v = serde_json::to_value(hello).unwrap_or_default();
-                    v["type"] = json!("hello");
-                    if let Some(id) = id {
-                        v["id"] = id.clone();
-                    }
-                    self.queue_msg(i, v);
-                }
-                Request::Hello { protocol, .. } => {
-                    self.fail(
-                        i,
-                        id,
-                        op,
-                        format!(
-                            "protocol {protocol} is not supported: this daemon speaks \
-                             {PROTOCOL_VERSION}"
-                        ),
-                    );
-                    self.clients[i].closing = true;
-                }
-                _ => {
-                    self.fail(
-                        i,
-                        id,
-                        op,
-                        "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
-                    );
-                    self.clients[i].closing = true;
-                }
-            }
-            return;
+            return self.greet(i, id, op, request);
         }
         if request.commands() {
             if self.clients[i].access != Access::Control {
@@ -536,23 +490,7 @@ impl Hub {
         }
         match request {
             Request::Hello { .. } => self.fail(i, id, op, "already greeted".into()),
-            Request::Stream { rate_hz, .. } => {
-                if !(rate_hz.is_finite() && rate_hz >= 0.0) {
-                    return self.fail(i, id, op, format!("rate_hz {rate_hz}: allowed ≥ 0"));
-                }
-                let every = if rate_hz == 0.0 {
-                    0
-                } else {
-                    (self.s.rate_hz / rate_hz).round().max(1.0) as u64
-                };
-                self.clients[i].every = every;
-                let actual = if every == 0 {
-                    0.0
-                } else {
-                    self.s.rate_hz / every as f64
-                };
-                self.reply(i, op, id, json!({ "rate_hz": actual, "every": every }));
-            }
+            Request::Stream { rate_hz, .. } => self.set_stream(i, id, op, rate_hz),
             Request::Status { .. } => {
                 let client = self.clients[i].id;
                 self.ask_snapshot(Waiting::Status {
@@ -560,20 +498,8 @@ impl Hub {
                     id: id.cloned(),
                 });
             }
-            Request::Lease { .. } => {
-                let client = self.clients[i].id;
-                self.reply(i, op, id, json!({ "holder": client }));
-            }
-            Request::Release { .. } => {
-                self.lease = None;
-                let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
-                self.reply(i, op, id, json!({}));
-                let client = self.clients[i].id;
-                self.broadcast(json!({
-                    "type": "event", "event": "lease", "holder": null,
-                    "message": format!("client {client} released the command lease"),
-                }));
-            }
+            Request::Lease { fallback, .. } => self.lease(i, id, op, fallback.as_deref()),
+            Request::Release { .. } => self.release(i, id, op),
             Request::Mode {
                 mode, trajectory, ..
             } => self.mode(i, id, &mode, trajectory.as_deref()),
@@ -591,6 +517,22 @@ impl Hub {
                     self.send_servo(i, id, op, ServoCommand::ServoJf { seq, tau, ttl_s }, None);
                 }
             }
+            Request::ServoCf {
+                seq, force, ttl_ms, ..
+            } => {
+                if let Some(ttl_s) = self.stream_check(i, id, op, &force, ttl_ms) {
+                    let cmd = ServoCommand::ServoCf { seq, force, ttl_s };
+                    self.send_servo(i, id, op, cmd, None);
+                }
+            }
+            Request::Effect { slot, effect, .. } => self.effect(i, id, op, slot, effect),
+            Request::Passivity { on, .. } => self.send_servo(
+                i,
+                id,
+                op,
+                ServoCommand::Passivity(on),
+                Some(json!({ "passivity": on })),
+            ),
             Request::Controller { controller, .. } => match ControllerKind::parse(&controller) {
                 Some(kind) => self.send_servo(
                     i,
@@ -624,29 +566,7 @@ impl Hub {
                     path: PathBuf::from(path),
                 });
             }
-            Request::WeightsLoad { path, .. } => {
-                // No stop flag: the hub never waits on a client's pipe (it is refused).
-                let mut loaded = match Identifier::from_weights_file(
-                    &self.s.identifier_cfg,
-                    std::path::Path::new(&path),
-                    None,
-                ) {
-                    Ok(id) => id,
-                    Err(e) => return self.fail(i, id, op, e.to_string()),
-                };
-                loaded.set_adapt(self.adapt);
-                let client = self.clients[i].id;
-                if self
-                    .s
-                    .commands
-                    .try_send(ServoCommand::LoadIdentifier(Box::new(loaded)))
-                    .is_ok()
-                {
-                    self.loads.push_back((client, id.cloned(), path));
-                } else {
-                    self.fail(i, id, op, "the servo is not taking commands".into());
-                }
-            }
+            Request::WeightsLoad { path, .. } => self.weights_load(i, id, op, path),
             Request::RecordStart { path, .. } => self.record_start(i, id, path),
             Request::RecordStop { .. } => match self.record_stop() {
                 Some((path, rows, error)) => {
@@ -660,6 +580,198 @@ impl Hub {
                 self.s.stop.store(true, Ordering::SeqCst);
                 self.reply(i, op, id, json!({}));
             }
+        }
+    }
+
+    /// A client's first message must be a hello in our protocol version; anything else
+    /// closes the connection after a reply saying why.
+    fn greet(&mut self, i: usize, id: Option<&Value>, op: &'static str, request: Request) {
+        match request {
+            Request::Hello { protocol, name, .. } if protocol == PROTOCOL_VERSION => {
+                let c = &mut self.clients[i];
+                c.greeted = true;
+                c.name = name.unwrap_or_default().chars().take(64).collect();
+                let hello = Hello {
+                    protocol: PROTOCOL_VERSION,
+                    server: format!("omnid {}", env!("CARGO_PKG_VERSION")),
+                    device: self.s.device.clone(),
+                    rate_hz: self.s.rate_hz,
+                    access: c.access.as_str().into(),
+                    client: c.id,
+                    stream_ttl_ms: self.s.serve.stream_ttl_ms,
+                    controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
+                    modes: [
+                        "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
+                    ]
+                    .map(String::from)
+                    .into(),
+                    model: super::device_info::model(&self.s.device).into(),
+                    vendor: super::device_info::VENDOR.into(),
+                    serial: self.s.serial.clone(),
+                    firmware: None,
+                };
+                let mut v = serde_json::to_value(hello).unwrap_or_default();
+                v["type"] = json!("hello");
+                if let Some(id) = id {
+                    v["id"] = id.clone();
+                }
+                self.queue_msg(i, v);
+            }
+            Request::Hello { protocol, .. } => {
+                self.fail(
+                    i,
+                    id,
+                    op,
+                    format!(
+                        "protocol {protocol} is not supported: this daemon speaks \
+                         {PROTOCOL_VERSION}"
+                    ),
+                );
+                self.clients[i].closing = true;
+            }
+            _ => {
+                self.fail(
+                    i,
+                    id,
+                    op,
+                    "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
+                );
+                self.clients[i].closing = true;
+            }
+        }
+    }
+
+    /// Start (every `rate / rate_hz`-th tick) or stop (0) this client's state stream.
+    fn set_stream(&mut self, i: usize, id: Option<&Value>, op: &'static str, rate_hz: f64) {
+        if !(rate_hz.is_finite() && rate_hz >= 0.0) {
+            return self.fail(i, id, op, format!("rate_hz {rate_hz}: allowed ≥ 0"));
+        }
+        let every = if rate_hz == 0.0 {
+            0
+        } else {
+            (self.s.rate_hz / rate_hz).round().max(1.0) as u64
+        };
+        self.clients[i].every = every;
+        let actual = if every == 0 {
+            0.0
+        } else {
+            self.s.rate_hz / every as f64
+        };
+        self.reply(i, op, id, json!({ "rate_hz": actual, "every": every }));
+    }
+
+    /// The lease (taken before any command runs), with this holder's stream fallback.
+    fn lease(&mut self, i: usize, id: Option<&Value>, op: &'static str, fallback: Option<&str>) {
+        let to = match fallback {
+            None => None,
+            Some("hold") => Some(Activity::Hold),
+            Some("idle") => Some(Activity::Idle),
+            Some("free") => Some(Activity::Free),
+            Some(other) => {
+                let why = format!("fallback `{other}`: expected hold, idle or free");
+                return self.fail(i, id, op, why);
+            }
+        };
+        if let Some(to) = to {
+            if self
+                .s
+                .commands
+                .try_send(ServoCommand::Fallback(to))
+                .is_err()
+            {
+                return self.fail(i, id, op, "the servo is not taking commands".into());
+            }
+            self.lease_fallback = Some(to);
+        }
+        let client = self.clients[i].id;
+        let fallback = self.current_fallback();
+        self.reply(i, op, id, json!({ "holder": client, "fallback": fallback }));
+    }
+
+    /// The fallback's name: the holder's choice, else the config's.
+    fn current_fallback(&self) -> &'static str {
+        match self.lease_fallback {
+            Some(a) => a.mode().as_str(),
+            None => match self.s.serve.stale_fallback {
+                StaleFallback::Hold => "hold",
+                StaleFallback::Idle => "idle",
+            },
+        }
+    }
+
+    /// The lease is free again: a stream falls back (the holder's choice), then the config's
+    /// fallback is back for the next holder.
+    fn end_lease(&mut self) {
+        self.lease = None;
+        let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
+        if self.lease_fallback.take().is_some() {
+            let to = match self.s.serve.stale_fallback {
+                StaleFallback::Hold => Activity::Hold,
+                StaleFallback::Idle => Activity::Idle,
+            };
+            let _ = self.s.commands.try_send(ServoCommand::Fallback(to));
+        }
+    }
+
+    /// Give the command lease back: a stream mode falls back as if its stream ended.
+    fn release(&mut self, i: usize, id: Option<&Value>, op: &'static str) {
+        self.end_lease();
+        self.reply(i, op, id, json!({}));
+        let client = self.clients[i].id;
+        self.broadcast(json!({
+            "type": "event", "event": "lease", "holder": null,
+            "message": format!("client {client} released the command lease"),
+        }));
+    }
+
+    /// Put `effect` in `slot` (None clears it), checked here so the servo gets only valid ones.
+    fn effect(
+        &mut self,
+        i: usize,
+        id: Option<&Value>,
+        op: &'static str,
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+    ) {
+        if slot >= crate::haptics::MAX_EFFECTS {
+            let max = crate::haptics::MAX_EFFECTS - 1;
+            return self.fail(i, id, op, format!("slot {slot}: allowed 0 ..= {max}"));
+        }
+        if let Some(Err(why)) = effect.map(|e| e.validate("effect.")) {
+            return self.fail(i, id, op, why);
+        }
+        let reply = json!({ "slot": slot, "effect": effect });
+        self.send_servo(
+            i,
+            id,
+            op,
+            ServoCommand::Effect { slot, effect },
+            Some(reply),
+        );
+    }
+
+    /// Read a weights file here, off the servo thread, and hand the servo a ready identifier.
+    fn weights_load(&mut self, i: usize, id: Option<&Value>, op: &'static str, path: String) {
+        // No stop flag: the hub never waits on a client's pipe (it is refused).
+        let mut loaded = match Identifier::from_weights_file(
+            &self.s.identifier_cfg,
+            std::path::Path::new(&path),
+            None,
+        ) {
+            Ok(id) => id,
+            Err(e) => return self.fail(i, id, op, e.to_string()),
+        };
+        loaded.set_adapt(self.adapt);
+        let client = self.clients[i].id;
+        if self
+            .s
+            .commands
+            .try_send(ServoCommand::LoadIdentifier(Box::new(loaded)))
+            .is_ok()
+        {
+            self.loads.push_back((client, id.cloned(), path));
+        } else {
+            self.fail(i, id, op, "the servo is not taking commands".into());
         }
     }
 
@@ -720,7 +832,7 @@ impl Hub {
                 };
                 ServoCommand::Track(t)
             }
-            "servo_jp" | "servo_jf" => {
+            "servo_jp" | "servo_jf" | "servo_cf" => {
                 return self.fail(
                     i,
                     id,
@@ -875,7 +987,7 @@ impl Hub {
                 Waiting::Save { client, id, path } => {
                     let result = match (&snap.weights, snap.weights_copied) {
                         (Some(w), true) => {
-                            crate::ident::weights::save(w, &path).map_err(|e| e.to_string())
+                            crate::identifier::weights::save(w, &path).map_err(|e| e.to_string())
                         }
                         _ => Err("the servo has no identifier of the configured sizes".into()),
                     };
@@ -1050,7 +1162,7 @@ impl Hub {
             ServoEvent::StreamStale { fallback } => (
                 "stream-stale",
                 format!(
-                    "no servo_jp/servo_jf command within its time to live (default {ttl} ms): \
+                    "no servo_jp/servo_jf/servo_cf command within its time to live (default {ttl} ms): \
                      now {}",
                     fallback.as_str()
                 ),

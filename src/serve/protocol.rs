@@ -36,6 +36,11 @@ pub enum Request {
     },
     /// Take the command lease (also taken by any command while it is free).
     Lease {
+        /// Where this holder's stream falls back when it goes stale or the holder leaves:
+        /// "hold", "idle" or "free" (default: the config's `serve.stale_fallback`). Haptic
+        /// programs ask for "idle" or "free", so a crash leaves no force of theirs.
+        #[serde(default)]
+        fallback: Option<String>,
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
@@ -77,6 +82,30 @@ pub enum Request {
         tau: [f64; 3],
         #[serde(default)]
         ttl_ms: Option<f64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Tip force stream (N, OpenHaptics frame) on top of the compensation, as τ = Jᵀ F; its
+    /// norm is clamped to `[haptics] max_force_n`. No reply unless refused.
+    ServoCf {
+        seq: u64,
+        force: [f64; 3],
+        #[serde(default)]
+        ttl_ms: Option<f64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Put a haptic effect in a slot of the scene (`effect: null` removes it); rendered in
+    /// free and servo_cf, faded in (docs/HAPTICS.md).
+    Effect {
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Turn the passivity controller on the effects on or off.
+    Passivity {
+        on: bool,
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
@@ -135,6 +164,9 @@ impl Request {
             Request::Free { .. } => "free",
             Request::ServoJp { .. } => "servo_jp",
             Request::ServoJf { .. } => "servo_jf",
+            Request::ServoCf { .. } => "servo_cf",
+            Request::Effect { .. } => "effect",
+            Request::Passivity { .. } => "passivity",
             Request::Controller { .. } => "controller",
             Request::Adapt { .. } => "adapt",
             Request::WeightsSave { .. } => "weights_save",
@@ -150,13 +182,16 @@ impl Request {
             Request::Hello { id, .. }
             | Request::Stream { id, .. }
             | Request::Status { id }
-            | Request::Lease { id }
+            | Request::Lease { id, .. }
             | Request::Release { id }
             | Request::Mode { id, .. }
             | Request::Hold { id }
             | Request::Free { id }
             | Request::ServoJp { id, .. }
             | Request::ServoJf { id, .. }
+            | Request::ServoCf { id, .. }
+            | Request::Effect { id, .. }
+            | Request::Passivity { id, .. }
             | Request::Controller { id, .. }
             | Request::Adapt { id, .. }
             | Request::WeightsSave { id, .. }
@@ -200,12 +235,12 @@ pub struct State {
     /// The identifier's prediction of the torque that acted, N·m.
     pub tau_hat: [f64; 3],
     pub controller: String,
-    /// idle, hold, blend, track, free, servo_jp, servo_jf, stop.
+    /// idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, stop.
     pub mode: String,
     pub amps: bool,
     /// Safety and status bits (README, Logs: `flags`).
     pub flags: u32,
-    /// Sequence number of the last servo_jp/servo_jf command applied.
+    /// Sequence number of the last servo_jp/servo_jf/servo_cf command applied.
     pub cmd_seq: u64,
 }
 
@@ -255,6 +290,20 @@ mod tests {
             }
         );
         assert!(r.commands());
+        let r: Request =
+            serde_json::from_str(r#"{"op":"servo_cf","seq":8,"force":[1.5,0,-0.5],"ttl_ms":20}"#)
+                .unwrap();
+        assert_eq!(
+            r,
+            Request::ServoCf {
+                seq: 8,
+                force: [1.5, 0.0, -0.5],
+                ttl_ms: Some(20.0),
+                id: None
+            }
+        );
+        assert!(r.commands());
+        assert_eq!(r.op(), "servo_cf");
         let r: Request = serde_json::from_str(r#"{"op":"status"}"#).unwrap();
         assert!(!r.commands());
         assert_eq!(r.op(), "status");

@@ -4,12 +4,11 @@
 //! fill) arrives pre-allocated in a `Box` and goes back the same way, so the loop never
 //! allocates or frees.
 
-use super::safety::SafetyTrip;
 use super::timing::TickTiming;
 use crate::control::{ControllerKind, Trajectory};
-use crate::ident::{Fault, Identifier};
+use crate::identifier::{Fault, Identifier};
+use crate::servo::summary::RunStats;
 use crate::telemetry::record::Mode;
-use crate::telemetry::summary::RunStats;
 use std::os::fd::{AsRawFd, OwnedFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -29,12 +28,26 @@ pub enum Activity {
     ServoJp,
     /// A client's joint torques on top of the compensation (stream with a time to live).
     ServoJf,
+    /// A client's tip force (N, OpenHaptics frame) on top of the compensation, as τ = Jᵀ F
+    /// (stream with a time to live).
+    ServoCf,
 }
 
 impl Activity {
     /// Modes that a client must keep feeding.
     pub fn is_stream(self) -> bool {
-        matches!(self, Activity::ServoJp | Activity::ServoJf)
+        matches!(
+            self,
+            Activity::ServoJp | Activity::ServoJf | Activity::ServoCf
+        )
+    }
+
+    /// Whether the identifier may learn in this mode: only where the torque it sees is all
+    /// that moves the arm. Amplifiers off, the arm rests on something; in the haptic modes
+    /// (free, servo_cf) a hand moves it with a force no sensor measures, and learning from
+    /// that teaches the model the hand (docs/HAPTICS.md §3).
+    pub fn learns(self) -> bool {
+        !matches!(self, Activity::Idle | Activity::Free | Activity::ServoCf)
     }
 
     pub fn mode(self) -> Mode {
@@ -45,6 +58,7 @@ impl Activity {
             Activity::Free => Mode::Free,
             Activity::ServoJp => Mode::ServoJp,
             Activity::ServoJf => Mode::ServoJf,
+            Activity::ServoCf => Mode::ServoCf,
         }
     }
 }
@@ -67,8 +81,24 @@ pub enum ServoCommand {
         tau: [f64; 3],
         ttl_s: f64,
     },
+    /// Tip force (N, OpenHaptics frame) added to the compensation as Jᵀ F, valid for
+    /// `ttl_s`; its norm is clamped to `[haptics] max_force_n` in the servo.
+    ServoCf {
+        seq: u64,
+        force: [f64; 3],
+        ttl_s: f64,
+    },
+    /// Put an effect in a slot of the scene (None removes it), faded in.
+    Effect {
+        slot: usize,
+        effect: Option<crate::haptics::Effect>,
+    },
+    /// Turn the passivity controller on or off.
+    Passivity(bool),
     /// The stream's owner is gone: leave a stream mode now.
     StreamEnded,
+    /// Where a stale or abandoned stream falls back to from now on (`Hold`, `Idle` or `Free`).
+    Fallback(Activity),
     /// Switch the control law (bumpless).
     Controller(ControllerKind),
     /// Resume (`true`) or freeze (`false`) online adaptation.
@@ -118,16 +148,7 @@ impl Snapshot {
     }
 }
 
-/// Something every client is told about, carried by the tick it happened at.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ServoEvent {
-    /// No stream command arrived within its time to live; the loop fell back to `fallback`.
-    StreamStale { fallback: Mode },
-    /// The stream's owner left; the loop fell back to `fallback`.
-    StreamEnded { fallback: Mode },
-    /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
-    SafetyTrip(SafetyTrip),
-}
+pub use crate::telemetry::record::ServoEvent;
 
 /// Wakes the thread that serves clients when a tick's record is wanted at once: one
 /// non-blocking `write` to an eventfd (no lock, no allocation), so a client can answer within

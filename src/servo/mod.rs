@@ -2,13 +2,14 @@
 //! per packet. Everything it touches is allocated before the first tick; telemetry leaves
 //! through a bounded channel with `try_send`.
 
-pub mod clock;
 pub mod command;
 pub mod realtime;
 pub mod safety;
+pub mod summary;
 pub mod thermal_store;
 pub mod timing;
 
+use crate::clock;
 use crate::control::ReferenceConfig;
 use crate::control::{ControlInput, ControllerSet, RefPoint, Reference};
 use crate::device::DeviceConfig;
@@ -16,13 +17,16 @@ use crate::device::{
     decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
     COMMAND_LEN,
 };
-use crate::estimate::kalman::KalmanConfig;
+use crate::estimate::kalman::{Estimate, KalmanConfig};
 use crate::estimate::KalmanBank;
-use crate::ident::Identifier;
-use crate::ident::IdentifierConfig;
+use crate::haptics::HapticsConfig;
+use crate::haptics::{limit_force, Effect, Force3, HapticLoop};
+use crate::identifier::Identifier;
+use crate::identifier::IdentifierConfig;
+use crate::omni::Geometry;
 use crate::omni::Joint3;
-use crate::telemetry::record::{flags, Live, Mode, TickRecord};
-use crate::telemetry::summary::{FaultEntry, RunStats};
+use crate::servo::summary::{FaultEntry, RunStats};
+use crate::telemetry::record::{flags, HapticRecord, Live, Mode, TickRecord};
 pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
 use crossbeam_channel::{Sender, TrySendError};
 use safety::SafetyConfig;
@@ -98,6 +102,31 @@ enum Target {
     Point(RefPoint),
 }
 
+/// One sample from the device: measured angles and counts, time since the first sample and
+/// device time, the stylus switches, and when the host woke with it.
+struct Sample {
+    q: Joint3,
+    enc: [i64; 3],
+    t: f64,
+    t_dev: f64,
+    buttons: [bool; 2],
+    inkwell: bool,
+    /// Gimbal potentiometer words (converted to angles by the hub).
+    gimbal: [u16; 3],
+    wake: u64,
+}
+
+/// What one tick computed, for its log row.
+struct Outcome {
+    reference: [f64; 3],
+    tau_cmd: [f64; 3],
+    tau_hat: [f64; 3],
+    tau_model: [f64; 3],
+    /// What the plant got.
+    tau_plant: [f64; 3],
+    flags: u32,
+}
+
 /// The servo loop's state. Build it, then call [`Servo::run`] (or [`Servo::tick`] by hand).
 pub struct Servo {
     device: Box<dyn Device>,
@@ -112,8 +141,13 @@ pub struct Servo {
     wall_upper: [f64; 3],
     /// `omnid serve`: commands in, replies and wake-ups out.
     link: Option<ServoLink>,
-    /// The client stream's torque (servo_jf), its last sequence number and its deadline.
+    /// The client stream's torque (servo_jf) or tip force (servo_cf, clamped to
+    /// `max_force_n`), its last sequence number and its deadline.
     stream_tau: crate::omni::Joint3,
+    stream_force: Force3,
+    max_force_n: f64,
+    /// Forces at the tip: effects, passivity, Jᵀ F (docs/HAPTICS.md).
+    haptics: HapticLoop,
     cmd_seq: u64,
     stream_deadline: f64,
     event: Option<ServoEvent>,
@@ -164,6 +198,8 @@ pub struct ServoSetup<'a> {
     pub kalman: &'a KalmanConfig,
     /// Seeds the trajectories a client asks for (`[sim] seed`).
     pub seed: u64,
+    pub haptics: &'a HapticsConfig,
+    pub geometry: &'a Geometry,
 }
 
 impl Servo {
@@ -192,6 +228,9 @@ impl Servo {
             wall_upper: cfg.safety.wall_upper,
             link: None,
             stream_tau: Joint3::zeros(),
+            stream_force: Force3::zeros(),
+            max_force_n: cfg.haptics.max_force_n,
+            haptics: HapticLoop::new(cfg.haptics, *cfg.geometry),
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
@@ -280,25 +319,67 @@ impl Servo {
         if self.max_ticks.is_some_and(|n| self.tick >= n) {
             return Some(EndReason::Completed);
         }
+        let s = match self.sense() {
+            Ok(s) => s,
+            Err(end) => return end,
+        };
+        // Estimate (the safety layer keeps what the encoders said, too).
+        let est = self.kalman.update(s.t_dev, &s.q);
+        self.safety.observe(s.t, &s.q);
+        // Clients' commands that arrived while the loop waited for this sample.
+        if self.link.is_some() {
+            self.take_commands(s.t, &est.q);
+            self.expire_stream(s.t, &est.q);
+        }
+        // Control, with the weights as they are; the update below then learns from this
+        // sample at the same point (one network pass serves both).
+        let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
+        let (tau_hat, ident_flag) = self.identify(s.t, &est);
+        let tau_model = self.oracle(&est);
+        let limited = match self.limit(&tau_cmd, &est, s.t, s.t_dev) {
+            Ok(l) => l,
+            Err(end) => return Some(end),
+        };
+        let tau_plant = self.actuate(&limited.tau);
+        let flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
+        self.held = false;
+        self.record(
+            &s,
+            &est,
+            Outcome {
+                reference: reference.q.into(),
+                tau_cmd: tau_cmd.into(),
+                tau_hat,
+                tau_model,
+                tau_plant,
+                flags,
+            },
+        );
+        None
+    }
+
+    /// Exchange one packet: send the command, decode the reply into joint angles and device
+    /// time. `Err` when there is no sample this tick (`Some`: the run ends; `None`: a missed
+    /// packet, survived).
+    fn sense(&mut self) -> Result<Sample, Option<EndReason>> {
         self.next_watchdog();
         let bytes = encode_command(&self.command);
         let result = self.device.exchange(&bytes);
         let wake = clock::now_ns();
         let raw = match result {
             Ok(raw) => raw,
-            Err(DeviceError::EndOfData) => return Some(EndReason::EndOfData),
+            Err(DeviceError::EndOfData) => return Err(Some(EndReason::EndOfData)),
             Err(DeviceError::Missed(_)) | Err(DeviceError::Malformed(_)) => {
-                return self.missed_packet();
+                return Err(self.missed_packet());
             }
-            Err(e) => return Some(self.fault_device(e)),
+            Err(e) => return Err(Some(self.fault_device(e))),
         };
         let packet = match decode_state(raw.packet()) {
             Ok(p) => p,
-            Err(_) => return self.missed_packet(),
+            Err(_) => return Err(self.missed_packet()),
         };
         self.consecutive_missed = 0;
         self.link_history <<= 1;
-
         // Decode: continuous counts → joint angles.
         let enc = self.unwrap.update(packet.encoder);
         let q = Joint3::new(
@@ -307,54 +388,59 @@ impl Servo {
             enc[2] as f64 * self.rad_per_count,
         );
         let t_dev = raw.device_time_s;
-        let t = t_dev - *self.t0.get_or_insert(t_dev);
+        Ok(Sample {
+            q,
+            enc,
+            t: t_dev - *self.t0.get_or_insert(t_dev),
+            t_dev,
+            buttons: packet.buttons,
+            inkwell: packet.inkwell,
+            gimbal: packet.gimbal,
+            wake,
+        })
+    }
 
-        // Estimate (the safety layer keeps what the encoders said, too).
-        let est = self.kalman.update(t_dev, &q);
-        self.safety.observe(t, &q);
-
-        // Clients' commands that arrived while the loop waited for this sample.
-        if self.link.is_some() {
-            self.take_commands(t, &est.q);
-            self.expire_stream(t, &est.q);
-        }
-
-        // Control, with the weights as they are; the update below then learns from this
-        // sample at the same point (one network pass serves both).
-        let (reference, tau_cmd) = self.control(t, &est);
-
-        // Identify: learn from the torque that acted up to this sample.
+    /// Identify: learn from the torque that acted up to this sample. The prediction, and the
+    /// flag when the identifier has stopped.
+    fn identify(&mut self, t: f64, est: &Estimate) -> ([f64; 3], u32) {
         let dt = if self.tick == 0 { 0.0 } else { t - self.last_t };
         let mut tau_hat = [0.0; 3];
         let mut ident_flag = 0;
-        if let Some(id) = self.identifier.as_mut() {
-            match self.acting_tau {
-                // Amplifiers off: whatever holds the arm (its rest, a hand) is not in the
-                // torque, so there is nothing true to learn from. Predict only.
-                Some(_) if self.activity == Activity::Idle => {
-                    tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
-                }
-                Some(acting) => {
-                    let predicted = id.update(&est.q, &est.qd, &est.qdd, &acting.into(), dt);
-                    if id.healthy() {
-                        tau_hat = predicted.into();
-                        self.stats.identifier.record(&acting, &tau_hat);
-                    } else {
-                        ident_flag = flags::IDENT_FAULT;
-                    }
-                }
-                // First sample: nothing has acted yet; log the prediction alone.
-                None => tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into(),
+        let Some(id) = self.identifier.as_mut() else {
+            return (tau_hat, ident_flag);
+        };
+        match self.acting_tau {
+            // Amplifiers off, or a hand moving the arm (free, servo_cf): whatever holds or
+            // moves it is not in the torque, so there is nothing true to learn from
+            // (docs/HAPTICS.md §3). Predict only.
+            Some(_) if !self.activity.learns() => {
+                tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
             }
-            if !id.healthy() {
-                // Stopped on a non-finite value: its last good weights still predict.
-                let p: [f64; 3] = id.predict(&est.q, &est.qd, &est.qdd).into();
-                if p.iter().all(|v| v.is_finite()) {
-                    tau_hat = p;
+            Some(acting) => {
+                let predicted = id.update(&est.q, &est.qd, &est.qdd, &acting.into(), dt);
+                if id.healthy() {
+                    tau_hat = predicted.into();
+                    self.stats.identifier.record(&acting, &tau_hat);
+                } else {
+                    ident_flag = flags::IDENT_FAULT;
                 }
+            }
+            // First sample: nothing has acted yet; log the prediction alone.
+            None => tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into(),
+        }
+        if !id.healthy() {
+            // Stopped on a non-finite value: its last good weights still predict.
+            let p: [f64; 3] = id.predict(&est.q, &est.qd, &est.qdd).into();
+            if p.iter().all(|v| v.is_finite()) {
+                tau_hat = p;
             }
         }
-        let tau_model = match self.device.plant_model() {
+        (tau_hat, ident_flag)
+    }
+
+    /// Simulator: the plant's exact inverse dynamics on the estimated states (NaN elsewhere).
+    fn oracle(&mut self, est: &Estimate) -> [f64; 3] {
+        match self.device.plant_model() {
             Some(m) => {
                 let tm: [f64; 3] = m.inverse_dynamics(&est.q, &est.qd, &est.qdd).into();
                 if let Some(acting) = self.acting_tau {
@@ -363,56 +449,64 @@ impl Servo {
                 tm
             }
             None => [f64::NAN; 3],
-        };
+        }
+    }
 
-        // Safety: every command passes through the limits; a trip ends the run (under
-        // `serve`: zero torque, amplifiers off, mode idle, every client told).
-        let limited = if self.activity == Activity::Idle {
-            self.safety.rest();
-            Ok(safety::Limited {
-                tau: Joint3::zeros(),
-                flags: 0,
-            })
-        } else {
-            self.safety.apply(&tau_cmd, &est.q, &est.qd)
+    /// Safety: every command passes through the limits; a trip ends the run (under `serve`:
+    /// zero torque, amplifiers off, mode idle, every client told).
+    fn limit(
+        &mut self,
+        tau_cmd: &Joint3,
+        est: &Estimate,
+        t: f64,
+        t_dev: f64,
+    ) -> Result<safety::Limited, EndReason> {
+        let rest = safety::Limited {
+            tau: Joint3::zeros(),
+            flags: 0,
         };
-        let limited = match limited {
-            Ok(l) => l,
+        if self.activity == Activity::Idle {
+            self.safety.rest();
+            return Ok(rest);
+        }
+        match self.safety.apply(tau_cmd, &est.q, &est.qd) {
+            Ok(l) => Ok(l),
             Err(trip) if self.link.is_some() => {
                 self.enter(Activity::Idle, &est.q);
                 self.safety.rest();
                 self.event = Some(ServoEvent::SafetyTrip(trip));
-                safety::Limited {
-                    tau: Joint3::zeros(),
-                    flags: 0,
-                }
+                Ok(rest)
             }
             Err(trip) => {
                 self.last_t = t;
-                return Some(EndReason::SafetyFault(self.explain(trip, t_dev)));
+                Err(EndReason::SafetyFault(self.explain(trip, t_dev)))
             }
-        };
-        let tau = limited.tau;
-        let tick_flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
-        self.held = false;
+        }
+    }
 
-        // Encode: the next exchange sends it, amplifiers on from now (unless idle).
-        let words = self.dac.to_words(&tau.into());
+    /// Encode: the next exchange sends it, amplifiers on from now (unless idle). Returns what
+    /// the plant got: the DAC's torque, or on a replay the recorded torque (ours cannot reach
+    /// it; it is still logged as `tau_cmd`).
+    fn actuate(&mut self, tau: &Joint3) -> [f64; 3] {
+        let words = self.dac.to_words(&(*tau).into());
         let tau_applied = self.dac.to_torque(&words);
         self.command.dac = words;
         self.command.amps_on = self.activity != Activity::Idle;
+        self.device.recorded_torque().unwrap_or(tau_applied)
+    }
 
-        // What the plant got: on a replay, the recorded torque (ours cannot reach it; it is
-        // still logged as `tau_cmd`).
-        let tau_plant = self.device.recorded_torque().unwrap_or(tau_applied);
-
+    /// Record: the mode and the statistics of this tick, its log row, and what the next tick
+    /// needs to remember.
+    fn record(&mut self, s: &Sample, est: &Estimate, o: Outcome) {
+        let t = s.t;
         let mode = match (self.activity, self.target) {
             (Activity::Track, Target::Trajectory { t0, .. }) => {
                 if t - t0 < self.blend_s {
                     Mode::Blend
                 } else {
                     if t - t0 >= self.settle_s {
-                        self.stats.record_tracking(&(reference.q - est.q).into());
+                        let e = Joint3::from(o.reference) - est.q;
+                        self.stats.record_tracking(&e.into());
                     }
                     Mode::Track
                 }
@@ -420,46 +514,68 @@ impl Servo {
             (activity, _) => activity.mode(),
         };
         self.stats.record_time(t);
-        self.stats.record_torque(&tau_plant);
+        self.stats.record_torque(&o.tau_plant);
         let event = self.event.take();
-        if tick_flags & flags::CLAMPED != 0 {
+        if o.flags & flags::CLAMPED != 0 {
             self.stats.clamped_ticks += 1;
         }
         self.emit(TickRecord {
             t,
-            q: q.into(),
-            tau: tau_plant,
+            q: s.q.into(),
+            tau: o.tau_plant,
             qf: est.q.into(),
             qd: est.qd.into(),
             qdd: est.qdd.into(),
-            reference: reference.q.into(),
-            tau_cmd: tau_cmd.into(),
-            tau_hat,
-            tau_model,
-            enc,
+            reference: o.reference,
+            tau_cmd: o.tau_cmd,
+            tau_hat: o.tau_hat,
+            tau_model: o.tau_model,
+            enc: s.enc,
             amps: self.command.amps_on,
             mode,
-            flags: tick_flags,
+            flags: o.flags,
+            haptic: self.haptic_record(),
             live: Live {
                 seq: self.tick,
-                buttons: packet.buttons,
-                inkwell: packet.inkwell,
-                gimbal: packet.gimbal,
+                buttons: s.buttons,
+                inkwell: s.inkwell,
+                gimbal: s.gimbal,
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
                 event,
             },
         });
         self.last_t = t;
-        self.last_q = q.into();
-        self.last_enc = enc;
-        self.last_reference = reference.q.into();
-        self.last_tau_model = tau_model;
-        self.acting_tau = Some(tau_plant);
-        self.last_tau_hat = tau_hat;
-        self.timing.record(wake, clock::now_ns(), t_dev, self.paced);
+        self.last_q = s.q.into();
+        self.last_enc = s.enc;
+        self.last_reference = o.reference;
+        self.last_tau_model = o.tau_model;
+        self.acting_tau = Some(o.tau_plant);
+        self.last_tau_hat = o.tau_hat;
+        self.timing
+            .record(s.wake, clock::now_ns(), s.t_dev, self.paced);
         self.tick += 1;
-        None
+    }
+
+    /// This tick's haptic columns: the tip, the force commanded there, the simulated hand's.
+    fn haptic_record(&self) -> HapticRecord {
+        HapticRecord {
+            tip_mm: self.haptics.tip_mm,
+            force: self.haptics.force,
+            hand: self.device.hand_force().unwrap_or([f64::NAN; 3]),
+        }
+    }
+
+    /// Run in free mode (the compensation and the scene's effects) instead of tracking.
+    pub fn start_free(&mut self) {
+        self.activity = Activity::Free;
+    }
+
+    /// Put `effects` in the scene's first slots (they fade in from the first tick).
+    pub fn set_effects(&mut self, effects: &[Effect]) {
+        for (slot, e) in effects.iter().enumerate() {
+            self.haptics.set_effect(slot, Some(*e), 0.0);
+        }
     }
 
     /// Hand a row to the writer. Paced: never wait (a full channel drops the row and counts
@@ -486,8 +602,9 @@ impl Servo {
         }
     }
 
-    /// The reference and the controller's torque for this tick, by activity.
-    fn control(&mut self, t: f64, est: &crate::estimate::kalman::Estimate) -> (RefPoint, Joint3) {
+    /// The reference and the controller's torque for this tick, by activity (`q`: the
+    /// measured pose, where a tip force is mapped to joint torque).
+    fn control(&mut self, t: f64, q: &Joint3, est: &Estimate) -> (RefPoint, Joint3) {
         let here = RefPoint {
             q: est.q,
             ..RefPoint::default()
@@ -502,12 +619,22 @@ impl Servo {
             reference: &reference,
         };
         let id = self.identifier.as_mut();
+        let dt = 1e-9 * self.period_ns as f64;
+        if !matches!(self.activity, Activity::Free | Activity::ServoCf) {
+            self.haptics.observe(q);
+        }
         match self.activity {
             Activity::Idle => (here, Joint3::zeros()),
             Activity::Track | Activity::Hold | Activity::ServoJp => {
                 (reference, self.controllers.torque(&input, id))
             }
-            Activity::Free => (here, self.controllers.compensation(t, est, id)),
+            // The haptic modes: the compensation plus the tip force (effects and a client's).
+            Activity::Free | Activity::ServoCf => {
+                let force = self
+                    .haptics
+                    .torque(t, dt, q, &est.qd, &self.stream_force, true);
+                (here, self.controllers.compensation(t, est, id) + force)
+            }
             Activity::ServoJf => (
                 here,
                 self.controllers.compensation(t, est, id) + self.stream_tau,
@@ -572,10 +699,25 @@ impl Servo {
                         self.stream_deadline = t + ttl_s;
                     }
                 }
+                ServoCommand::ServoCf { seq, force, ttl_s } => {
+                    if force.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
+                        self.enter(Activity::ServoCf, q);
+                        self.stream_force = limit_force(&force.into(), self.max_force_n);
+                        self.cmd_seq = seq;
+                        self.stream_deadline = t + ttl_s;
+                    }
+                }
+                ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
+                ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
                 ServoCommand::StreamEnded => {
                     if self.activity.is_stream() {
                         let fallback = self.stream_fallback(q);
                         self.event = Some(ServoEvent::StreamEnded { fallback });
+                    }
+                }
+                ServoCommand::Fallback(to) => {
+                    if let Some(link) = self.link.as_mut() {
+                        link.stale_fallback = to;
                     }
                 }
                 ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
@@ -605,6 +747,7 @@ impl Servo {
             .as_ref()
             .map_or(Activity::Hold, |l| l.stale_fallback);
         self.stream_tau = Joint3::zeros();
+        self.stream_force = Force3::zeros();
         self.enter(to, q);
         to.mode()
     }
@@ -723,6 +866,10 @@ impl Servo {
             amps: false,
             mode: Mode::Stop,
             flags: 0,
+            haptic: HapticRecord {
+                force: [0.0; 3],
+                ..self.haptic_record()
+            },
             live: Live {
                 seq: self.tick,
                 controller: Some(self.controllers.active()),
@@ -825,6 +972,182 @@ mod tests {
     fn unpaced_runs_wait_for_the_writer_instead_of_dropping() {
         // 200 ticks and the stop row through a channel of 16 that fills before anyone reads.
         assert_eq!(run_with_slow_writer(false, 200), (0, 201));
+    }
+
+    /// A servo on the simulator with `Off` (no compensation, so the commanded torque is the
+    /// stream's alone), attached to a link; its record channel and the command sender.
+    fn linked_servo() -> (
+        Servo,
+        crossbeam_channel::Receiver<TickRecord>,
+        crossbeam_channel::Sender<ServoCommand>,
+    ) {
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(SimOmni::new(&cfg, false)),
+            ControllerSet::new(&cfg, ControllerKind::Off, 0.0),
+            Reference::new(Trajectory::Hold, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        let (ctx, crx) = crossbeam_channel::bounded(8);
+        let (rtx, _rrx) = crossbeam_channel::bounded(8);
+        servo.attach(ServoLink {
+            commands: crx,
+            replies: rtx,
+            wake: Arc::new(Wake::new().unwrap()),
+            stale_fallback: Activity::Hold,
+        });
+        (servo, rx, ctx)
+    }
+
+    fn next(servo: &mut Servo, rx: &crossbeam_channel::Receiver<TickRecord>) -> TickRecord {
+        assert!(servo.tick().is_none());
+        rx.try_recv().unwrap()
+    }
+
+    /// τ = Jᵀ F with J by central differences of the forward kinematics (metres per rad).
+    fn jt_f_by_differences(q: &[f64; 3], f: &[f64; 3]) -> [f64; 3] {
+        let g = crate::omni::Geometry::default();
+        let f = Force3::from(*f);
+        std::array::from_fn(|j| {
+            let (mut qp, mut qm) = (Joint3::from(*q), Joint3::from(*q));
+            qp[j] += 1e-6;
+            qm[j] -= 1e-6;
+            let dp = (crate::omni::tip_position_mm(&g, &qp)
+                - crate::omni::tip_position_mm(&g, &qm))
+                * (1e-3 / 2e-6);
+            f.dot(&dp)
+        })
+    }
+
+    #[test]
+    fn servo_cf_maps_the_tip_force_through_jt_and_clamps_its_norm() {
+        let (mut servo, rx, cmd) = linked_servo();
+        next(&mut servo, &rx);
+        // Not finite: never passed on (the hub refuses it first; the servo ignores it too).
+        cmd.send(ServoCommand::ServoCf {
+            seq: 1,
+            force: [f64::NAN, 0.0, 0.0],
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        assert_eq!(
+            (r.mode, r.live.cmd_seq, r.tau_cmd),
+            (Mode::Idle, 0, [0.0; 3])
+        );
+        // Within the peak: τ = Jᵀ F at the measured pose.
+        let f = [0.4, -0.9, 0.3];
+        cmd.send(ServoCommand::ServoCf {
+            seq: 2,
+            force: f,
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        assert_eq!((r.mode, r.live.cmd_seq), (Mode::ServoCf, 2));
+        let want = jt_f_by_differences(&r.q, &f);
+        for j in 0..3 {
+            assert!(
+                (r.tau_cmd[j] - want[j]).abs() < 1e-8,
+                "{:?} {want:?}",
+                r.tau_cmd
+            );
+        }
+        // Huge: the same direction at the configured peak, 3.3 N.
+        let huge = [0.0, -1e300, 0.0];
+        cmd.send(ServoCommand::ServoCf {
+            seq: 3,
+            force: huge,
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        let want = jt_f_by_differences(&r.q, &[0.0, -3.3, 0.0]);
+        for j in 0..3 {
+            assert!(
+                (r.tau_cmd[j] - want[j]).abs() < 1e-8,
+                "{:?} {want:?}",
+                r.tau_cmd
+            );
+        }
+    }
+
+    #[test]
+    fn a_stale_servo_cf_falls_back_and_never_holds_the_force() {
+        let (mut servo, rx, cmd) = linked_servo();
+        next(&mut servo, &rx);
+        cmd.send(ServoCommand::ServoCf {
+            seq: 9,
+            force: [0.5, 0.0, 0.0],
+            ttl_s: 0.005,
+        })
+        .unwrap();
+        let first = next(&mut servo, &rx);
+        assert_eq!(first.mode, Mode::ServoCf);
+        let mut seen = Vec::new();
+        for _ in 0..10 {
+            seen.push(next(&mut servo, &rx));
+        }
+        // Applied at t0: in effect up to t0 + 5 ms, the hold fallback the tick after.
+        let k = seen.iter().position(|r| r.mode != Mode::ServoCf).unwrap();
+        assert!(
+            seen[k].t - first.t <= 0.006 + 1e-9,
+            "{}",
+            seen[k].t - first.t
+        );
+        assert_eq!(seen[k].mode, Mode::Hold);
+        assert_eq!(
+            seen[k].live.event,
+            Some(ServoEvent::StreamStale {
+                fallback: Mode::Hold
+            })
+        );
+        // Off holds with nothing: the force is gone, not held.
+        assert!(seen[k..].iter().all(|r| r.tau_cmd == [0.0; 3]));
+    }
+
+    /// The identifier's prediction at a fixed state.
+    fn prediction(servo: &Servo) -> Joint3 {
+        let mut id = servo.identifier().unwrap().clone();
+        let q = Joint3::new(0.1, 0.6, 0.3);
+        id.predict(
+            &q,
+            &Joint3::new(0.2, -0.1, 0.3),
+            &Joint3::new(1.0, 0.5, -0.5),
+        )
+    }
+
+    #[test]
+    fn the_identifier_learns_nothing_while_a_hand_moves_the_arm() {
+        // In hold the torque is all that moves the arm: the identifier learns. In free and
+        // servo_cf a hand may move it with a force nobody measures: it must not.
+        let mut learned = Vec::new();
+        for cmd in [
+            ServoCommand::Hold,
+            ServoCommand::Free,
+            ServoCommand::ServoCf {
+                seq: 1,
+                force: [0.0, 0.3, 0.0],
+                ttl_s: 10.0,
+            },
+        ] {
+            let (mut servo, rx, tx) = linked_servo();
+            tx.send(cmd).unwrap();
+            next(&mut servo, &rx);
+            let before = prediction(&servo);
+            for _ in 0..300 {
+                next(&mut servo, &rx);
+            }
+            learned.push((prediction(&servo) - before).norm());
+        }
+        assert!(learned[0] > 0.0, "hold: learned {}", learned[0]);
+        assert_eq!(&learned[1..], &[0.0, 0.0], "free, servo_cf");
     }
 
     #[test]

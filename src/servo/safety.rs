@@ -72,6 +72,8 @@ impl Default for SafetyConfig {
 }
 
 impl SafetyConfig {
+    /// Check every value; the first problem names its field (`safety.…`). Long on purpose:
+    /// one check per field in the fields' order.
     pub fn validate(&self) -> Result<(), ConfigError> {
         for j in 0..3 {
             let f = |name: &str| format!("safety.{name}[{j}]");
@@ -172,41 +174,7 @@ impl SafetyConfig {
     }
 }
 
-/// Why the safety layer stops a run.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum SafetyTrip {
-    /// The controller's output was NaN or infinite on this joint.
-    NonFinite { joint: usize },
-    /// A joint moved faster than its limit (by the estimate).
-    Velocity { joint: usize, speed: f64 },
-    /// A joint moved faster than its limit by its encoders (over the last few ticks, beyond
-    /// the quantisation margin), whatever the estimate says.
-    MeasuredVelocity { joint: usize, speed: f64 },
-}
-
-impl std::fmt::Display for SafetyTrip {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            SafetyTrip::NonFinite { joint } => {
-                write!(f, "controller output on joint {} is not finite", joint + 1)
-            }
-            SafetyTrip::Velocity { joint, speed } => {
-                write!(
-                    f,
-                    "joint {} speed {speed:.2} rad/s exceeds the limit",
-                    joint + 1
-                )
-            }
-            SafetyTrip::MeasuredVelocity { joint, speed } => {
-                write!(
-                    f,
-                    "joint {} moved at {speed:.2} rad/s by its encoders, beyond the limit",
-                    joint + 1
-                )
-            }
-        }
-    }
-}
+pub use crate::telemetry::record::SafetyTrip;
 
 /// The torque the layer let through and which limits acted.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -313,7 +281,9 @@ impl SafetyLayer {
         self.heat
     }
 
-    /// Pass one command through every limit. `q`, `qd`: the estimated joint state.
+    /// Pass one command through every limit. `q`, `qd`: the estimated joint state. Long on
+    /// purpose: the limits act in a fixed order (the order is part of the safety contract,
+    /// docs/DESIGN.md §4.7), and reading them top to bottom in one function shows it.
     pub fn apply(
         &mut self,
         tau_cmd: &Joint3,

@@ -2,15 +2,12 @@
 //! docs/DESIGN.md §2.2, the streaming reader that reads such logs back (for replay), and the
 //! run summary of docs/DESIGN.md §2.3.
 
-pub mod convert;
 pub mod reader;
 pub mod record;
-pub mod summary;
 pub mod writer;
 
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
-pub use summary::RunSummary;
 pub use writer::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
 
 use serde::{Deserialize, Serialize};

@@ -20,10 +20,12 @@ pub enum Mode {
     ServoJp,
     /// A client's joint torque stream on top of the compensation.
     ServoJf,
+    /// A client's tip force stream (Jᵀ F) on top of the compensation.
+    ServoCf,
 }
 
 impl Mode {
-    pub const ALL: [Mode; 8] = [
+    pub const ALL: [Mode; 9] = [
         Mode::Blend,
         Mode::Track,
         Mode::Stop,
@@ -32,6 +34,7 @@ impl Mode {
         Mode::Free,
         Mode::ServoJp,
         Mode::ServoJf,
+        Mode::ServoCf,
     ];
 
     pub fn as_str(self) -> &'static str {
@@ -44,6 +47,7 @@ impl Mode {
             Mode::Free => "free",
             Mode::ServoJp => "servo_jp",
             Mode::ServoJf => "servo_jf",
+            Mode::ServoCf => "servo_cf",
         }
     }
 
@@ -100,8 +104,22 @@ pub struct TickRecord {
     pub amps: bool,
     pub mode: Mode,
     pub flags: u32,
+    /// The tip and the forces there (docs/HAPTICS.md).
+    pub haptic: HapticRecord,
     /// What the daemon's clients see beyond the log's columns (not written to the log).
     pub live: Live,
+}
+
+/// The log's haptic columns.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct HapticRecord {
+    /// Stylus tip at the measured pose, mm, OpenHaptics frame (`tip1..3`).
+    pub tip_mm: [f64; 3],
+    /// The tip force commanded this tick (effects and a client's `servo_cf`, after the
+    /// passivity controller and the peak clamp), N (`fcmd1..3`).
+    pub force: [f64; 3],
+    /// Simulator: the force the simulated hand put on the tip, N (`fhand1..3`; NaN elsewhere).
+    pub hand: [f64; 3],
 }
 
 /// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
@@ -117,16 +135,16 @@ pub struct Live {
     pub gimbal: [u16; 3],
     /// The controller whose law is in effect (the new one during a bumpless switch).
     pub controller: Option<crate::control::ControllerKind>,
-    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`) applied.
+    /// Sequence number of the last stream command (`servo_jp`/`servo_jf`/`servo_cf`) applied.
     pub cmd_seq: u64,
     /// Something happened this tick that every client is told about.
-    pub event: Option<crate::servo::ServoEvent>,
+    pub event: Option<ServoEvent>,
 }
 
 /// Which optional column groups a log carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogSchema {
-    /// `tau_model1..3` (simulator runs).
+    /// `tau_model1..3` and `fhand1..3` (simulator runs).
     pub model: bool,
 }
 
@@ -142,8 +160,63 @@ impl LogSchema {
         if self.model {
             c.extend((1..=3).map(|j| format!("tau_model{j}")));
         }
+        for group in ["tip", "fcmd"] {
+            c.extend((1..=3).map(|j| format!("{group}{j}")));
+        }
+        if self.model {
+            c.extend((1..=3).map(|j| format!("fhand{j}")));
+        }
         c.extend((1..=3).map(|j| format!("enc{j}")));
         c.extend(["amps", "mode", "flags"].map(String::from));
         c
+    }
+}
+// What a tick can carry besides its numbers: the events the servo loop reports (in the log's
+// `fault` column and to `omnid serve`'s clients).
+
+/// Something every client is told about, carried by the tick it happened at.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ServoEvent {
+    /// No stream command arrived within its time to live; the loop fell back to `fallback`.
+    StreamStale { fallback: Mode },
+    /// The stream's owner left; the loop fell back to `fallback`.
+    StreamEnded { fallback: Mode },
+    /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
+    SafetyTrip(SafetyTrip),
+}
+
+/// Why the safety layer stops a run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SafetyTrip {
+    /// The controller's output was NaN or infinite on this joint.
+    NonFinite { joint: usize },
+    /// A joint moved faster than its limit (by the estimate).
+    Velocity { joint: usize, speed: f64 },
+    /// A joint moved faster than its limit by its encoders (over the last few ticks, beyond
+    /// the quantisation margin), whatever the estimate says.
+    MeasuredVelocity { joint: usize, speed: f64 },
+}
+
+impl std::fmt::Display for SafetyTrip {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SafetyTrip::NonFinite { joint } => {
+                write!(f, "controller output on joint {} is not finite", joint + 1)
+            }
+            SafetyTrip::Velocity { joint, speed } => {
+                write!(
+                    f,
+                    "joint {} speed {speed:.2} rad/s exceeds the limit",
+                    joint + 1
+                )
+            }
+            SafetyTrip::MeasuredVelocity { joint, speed } => {
+                write!(
+                    f,
+                    "joint {} moved at {speed:.2} rad/s by its encoders, beyond the limit",
+                    joint + 1
+                )
+            }
+        }
     }
 }

@@ -116,7 +116,13 @@ fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema) {
     } else {
         None
     };
-    for group in groups.into_iter().chain(model) {
+    let hand = if schema.model {
+        Some(&r.haptic.hand)
+    } else {
+        None
+    };
+    let haptic = [&r.haptic.tip_mm, &r.haptic.force];
+    for group in groups.into_iter().chain(model).chain(haptic).chain(hand) {
         for v in group {
             line.push(b',');
             line.extend_from_slice(f.format(*v).as_bytes());
@@ -553,6 +559,11 @@ mod tests {
             amps: true,
             mode: Mode::Track,
             flags: 1,
+            haptic: crate::telemetry::record::HapticRecord {
+                tip_mm: [1.5, -2.0, 3.0],
+                force: [0.25, 0.0, -1.0],
+                hand: [0.0, 0.75, 0.0],
+            },
             live: Default::default(),
         };
         tx.send(rec).unwrap();
@@ -574,6 +585,11 @@ mod tests {
             "70000"
         );
         assert_eq!(row[header.len() - 2], "track");
+        let col = |name: &str| row[header.iter().position(|h| *h == name).unwrap()];
+        assert_eq!(
+            (col("tip2"), col("fcmd3"), col("fhand2")),
+            ("-2.0", "-1.0", "0.75")
+        );
     }
 
     #[test]

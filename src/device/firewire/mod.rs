@@ -24,10 +24,9 @@ pub mod serial;
 
 use super::codec::{MotorCommand, STATE_LAYOUT};
 use super::stream::{
-    packet_counter, Byte7, CommandGate, CounterTracker, MissReason, StreamStats, Verdict,
-    WireFormat,
+    packet_counter, Byte7, CommandGate, CounterTracker, StreamStats, Verdict, WireFormat,
 };
-use super::{Device, DeviceError, RawSample, COMMAND_LEN, STATE_LEN};
+use super::{Device, DeviceError, MissReason, RawSample, COMMAND_LEN, STATE_LEN};
 use crate::config_check::{self as check, ConfigError};
 use rate::RateMeasurement;
 use serde::{Deserialize, Serialize};
@@ -896,9 +895,8 @@ impl<B: FireWireBus> FireWireOmni<B> {
 
     fn miss(&mut self, reason: MissReason) -> DeviceError {
         self.stats.misses += 1;
-        self.stats.last_miss = reason;
-        // No text: a miss must not allocate (the reason is in `stats().last_miss`).
-        DeviceError::Missed(String::new())
+        self.stats.last_miss = Some(reason);
+        DeviceError::Missed(reason)
     }
 
     /// A bus reset: forget the void channels, redo the start, and report this tick missed.
@@ -968,7 +966,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     fn tap_sent(&mut self, wire: &[u8; COMMAND_LEN]) {
         if let Some(tap) = self.tap.as_mut() {
             tap.push(Tapped {
-                host_ns: crate::servo::clock::now_ns(),
+                host_ns: crate::clock::now_ns(),
                 received: None,
                 bytes: wire.to_vec(),
             });
@@ -979,7 +977,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
         if let Some(tap) = self.tap.as_mut() {
             let n = info.len.min(ISO_PAYLOAD_MAX);
             tap.push(Tapped {
-                host_ns: crate::servo::clock::now_ns(),
+                host_ns: crate::clock::now_ns(),
                 received: Some(info),
                 bytes: self.buf[..n].to_vec(),
             });
@@ -1017,7 +1015,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
         }
         if let Some(e) = malformed {
             self.stats.misses += 1;
-            self.stats.last_miss = MissReason::MalformedCommand;
+            self.stats.last_miss = Some(MissReason::MalformedCommand);
             return Err(DeviceError::Malformed(e));
         }
         let start = Instant::now();

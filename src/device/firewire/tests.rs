@@ -500,7 +500,7 @@ fn restart_after_a_bus_reset() {
     let e = omni.exchange(&amps_on(5)).unwrap_err();
     assert!(matches!(e, DeviceError::Missed(_)), "{e}");
     assert_eq!(omni.stats().restarts, 1);
-    assert_eq!(omni.stats().last_miss, MissReason::BusReset);
+    assert_eq!(omni.stats().last_miss, Some(MissReason::BusReset));
     {
         let n = bus.node();
         let after = strip_sends(&n.ops[before..]);

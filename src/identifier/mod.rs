@@ -2,10 +2,10 @@
 //! the tanh MLP with hand-derived gradients, the online identifier with its robust update,
 //! the weights file and batch pre-tuning. See `docs/IDENTIFIER.md`.
 
-pub mod config;
-pub mod identifier;
+pub mod adaptive;
 pub mod mlp;
 pub mod pretune;
+pub mod settings;
 pub mod weights;
 
 #[cfg(test)]
@@ -13,10 +13,10 @@ mod gradcheck;
 #[cfg(test)]
 mod testdata;
 
-pub use config::IdentifierConfig;
-pub use identifier::{ErrorSnapshot, Fault, IdentError, Identifier, Net, Wae};
+pub use adaptive::{ErrorSnapshot, Fault, IdentError, Identifier, Net, Wae};
 pub use mlp::{Mlp, MlpError, NetScaling};
 pub use pretune::{
     nrmse, pretune, EpochReport, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
 };
+pub use settings::IdentifierConfig;
 pub use weights::{load, save, NetWeights, WeightsError, WeightsFile};

@@ -7,9 +7,9 @@
 //! scaling), so a loaded network keeps the scaling it was trained with, whatever the
 //! configuration's scaling keys say; those only shape fresh networks.
 
-use super::config::IdentifierConfig;
-use super::identifier::{Identifier, Net};
+use super::adaptive::{Identifier, Net};
 use super::mlp::{Mlp, NetScaling};
+use super::settings::IdentifierConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;

@@ -5,7 +5,7 @@
 
 use crate::config::Config;
 use crate::estimate::KalmanBank;
-use crate::ident::{
+use crate::identifier::{
     pretune, save, Identifier, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
     WeightsError,
 };

@@ -133,6 +133,8 @@ fn positive(field: &str, v: f64, hi: f64, allowed: &str) -> Result<(), ConfigErr
 
 impl IdentifierConfig {
     /// Check every value; the first problem is returned naming its field (`identifier.…`).
+    /// Long on purpose: one check per field in the fields' order, so a reader finds each
+    /// field's rule in one place; splitting it would only scatter them.
     pub fn validate(&self) -> Result<(), ConfigError> {
         positive(
             "identifier.alpha",

@@ -4,7 +4,7 @@
 //! random split would validate on the training data), per-joint NRMSE per epoch through a
 //! callback, and the best-validation weights kept at the end.
 
-use super::identifier::{Identifier, Net};
+use super::adaptive::{Identifier, Net};
 use nalgebra::Vector3;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -381,8 +381,8 @@ fn adam_step(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ident::testdata::{multisine_samples, random_samples};
-    use crate::ident::IdentifierConfig;
+    use crate::identifier::testdata::{multisine_samples, random_samples};
+    use crate::identifier::IdentifierConfig;
 
     #[test]
     fn split_holds_out_every_kth_block() {
@@ -473,7 +473,7 @@ mod tests {
     /// Relative error of Ĉ against the plant's C, and the symmetric part of Ṁ̂ − 2Ĉ relative
     /// to ‖C‖, over fresh random states.
     fn coriolis_errors(id: &mut Identifier) -> (f64, f64) {
-        let d = crate::ident::testdata::plant();
+        let d = crate::identifier::testdata::plant();
         let (mut ec, mut nc, mut sk) = (0.0, 0.0, 0.0);
         for s in random_samples(1000, 99) {
             let c = d.coriolis(&s.q, &s.qd);

@@ -1,7 +1,7 @@
 //! Every hand-derived gradient of the identifier against central finite differences: each
 //! error term (e1, e2, e3, e4) separately, each network, each layer, weights and biases.
 
-use super::identifier::{Identifier, Net, Wae};
+use super::adaptive::{Identifier, Net, Wae};
 use super::IdentifierConfig;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};

@@ -5,8 +5,8 @@
 //! Everything per tick works in preallocated buffers (the networks' own) and fixed-size
 //! nalgebra types; nothing allocates after `new`.
 
-use super::config::IdentifierConfig;
 use super::mlp::{Mlp, MlpError, NetScaling};
+use super::settings::IdentifierConfig;
 use crate::config_check::ConfigError;
 use nalgebra::{Matrix3, SVector, Vector3};
 use rand::SeedableRng;
@@ -836,7 +836,7 @@ pub(crate) fn scaling_for(cfg: &IdentifierConfig, net: Net) -> NetScaling {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ident::testdata::{multisine_samples, plant, random_samples};
+    use crate::identifier::testdata::{multisine_samples, plant, random_samples};
 
     fn state() -> (Vector3<f64>, Vector3<f64>, Vector3<f64>) {
         (
@@ -1121,7 +1121,7 @@ mod tests {
     }
 
     /// NRMSE per joint of the predictions made online over `samples`.
-    fn online_nrmse(id: &mut Identifier, samples: &[crate::ident::Sample]) -> [f64; 3] {
+    fn online_nrmse(id: &mut Identifier, samples: &[crate::identifier::Sample]) -> [f64; 3] {
         let (mut e2, mut t2) = (Vector3::zeros(), Vector3::zeros());
         for s in samples {
             let e = s.tau - id.update(&s.q, &s.qd, &s.qdd, &s.tau, 1e-3);
@@ -1148,7 +1148,7 @@ mod tests {
 
     #[test]
     fn pretuned_identifier_adapts_to_a_payload() {
-        use crate::ident::pretune::{pretune, PretuneConfig};
+        use crate::identifier::pretune::{pretune, PretuneConfig};
         let mut id = Identifier::new(&IdentifierConfig::default()).unwrap();
         let pcfg = PretuneConfig {
             epochs: 8,
@@ -1164,7 +1164,7 @@ mod tests {
             x.tau = heavy.inverse_dynamics(&x.q, &x.qd, &x.qdd);
         }
         let mut frozen = id.clone();
-        let before = crate::ident::nrmse(&mut frozen, &s[25000..], None);
+        let before = crate::identifier::nrmse(&mut frozen, &s[25000..], None);
         let first = online_nrmse(&mut id, &s[..5000]);
         online_nrmse(&mut id, &s[5000..25000]);
         let last = online_nrmse(&mut id, &s[25000..]);

@@ -1,7 +1,7 @@
 //! The run summary (docs/DESIGN.md §2.3): accumulated in the loop without allocation (`RunStats`),
 //! turned into JSON and a human printout at the end.
 
-use crate::servo::timing::{Percentiles, TickTiming};
+use super::timing::{Percentiles, TickTiming};
 use serde::{Deserialize, Serialize};
 
 /// Running sums for the summary, updated every tick.
@@ -349,7 +349,7 @@ pub struct SummaryLabels<'a> {
 /// The identifier's state at the time of the summary.
 pub struct IdentifierState {
     pub adapt: bool,
-    pub fault: Option<crate::ident::Fault>,
+    pub fault: Option<crate::identifier::Fault>,
 }
 
 impl RunSummary {
@@ -405,7 +405,8 @@ impl RunSummary {
         }
     }
 
-    /// The printout at the end of a run.
+    /// The printout at the end of a run. Long on purpose: one line per figure, in the order
+    /// they are printed.
     pub fn human(&self) -> String {
         // A daemon's session follows whatever its clients asked for.
         let what = match self.trajectory.as_str() {
@@ -419,6 +420,7 @@ impl RunSummary {
             self.controller,
             match self.trajectory.as_str() {
                 "serve" => " at start, as clients asked".to_string(),
+                "free" => " in free mode (compensation and effects)".to_string(),
                 t => format!(" following {t}"),
             },
             if self.fast { " (--fast)" } else { "" },
@@ -519,7 +521,7 @@ mod tests {
             &TickTiming::new(1_000_000),
             IdentifierState {
                 adapt: true,
-                fault: Some(crate::ident::Fault::NonFiniteUpdate),
+                fault: Some(crate::identifier::Fault::NonFiniteUpdate),
             },
             0,
             0,

@@ -12,7 +12,7 @@
 //! Parameters live in one flat vector `[W1 (H×P, row-major) | b1 (H) | W2 (O×H) | b2 (O)]`, so
 //! leakage, projection, norms, saving and Adam all work on plain slices.
 
-use crate::fastmath::tanh;
+use crate::fast_tanh::tanh;
 use nalgebra::{Const, Dim, Dyn};
 use rand::Rng;
 use serde::{Deserialize, Serialize};

@@ -10,10 +10,12 @@
 //! `--quick` shortens every run and the pre-tuning so the whole experiment takes seconds (for
 //! tests and smoke checks); its numbers are not the paper's.
 
+mod haptics;
+
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
-use crate::ident::{Identifier, PretuneConfig, Progress, WeightsFile};
-use crate::identify::{identify, samples_from_log, IdentifyError};
+use crate::identifier::{Identifier, PretuneConfig, Progress, WeightsFile};
+use crate::log_pretune::{identify, samples_from_log, IdentifyError};
 use crate::output::OutputError;
 use crate::plot::figures::{Role, FIGURES};
 use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
@@ -21,7 +23,8 @@ use crate::plot::{plot_log, PlotError};
 use crate::run::{
     execute, DeviceSpec, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
 };
-use crate::telemetry::summary::RunSummary;
+use crate::servo::summary::RunSummary;
+use crate::telemetry::reader::ColumnReader;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -35,6 +38,8 @@ pub enum Experiment {
     Validation,
     Alpha,
     Payload,
+    /// Haptics: transparency, walls, force accuracy (`haptics`).
+    Haptics,
 }
 
 impl FromStr for Experiment {
@@ -44,8 +49,9 @@ impl FromStr for Experiment {
             "validation" => Ok(Experiment::Validation),
             "alpha" => Ok(Experiment::Alpha),
             "payload" => Ok(Experiment::Payload),
+            "haptics" => Ok(Experiment::Haptics),
             _ => Err(format!(
-                "unknown experiment `{s}`: expected validation, alpha or payload"
+                "unknown experiment `{s}`: expected validation, alpha, payload or haptics"
             )),
         }
     }
@@ -57,6 +63,7 @@ impl Experiment {
             Experiment::Validation => "validation",
             Experiment::Alpha => "alpha",
             Experiment::Payload => "payload",
+            Experiment::Haptics => "haptics",
         }
     }
 }
@@ -133,6 +140,8 @@ pub fn run_experiment(
         Experiment::Validation => validation(out, quick, &mut figures)?,
         Experiment::Alpha => alpha(out, quick, &mut figures)?,
         Experiment::Payload => payload(out, quick, &mut figures)?,
+        // Writes its own report and results.json.
+        Experiment::Haptics => return haptics::run_haptics(out, quick),
     };
     let report = out.join("report.md");
     crate::output::write_bytes(&report, markdown.as_bytes())?;
@@ -178,6 +187,8 @@ fn check_outputs(experiment: Experiment, out: &Path, quick: bool) -> Result<(), 
                 run_dir(out.join(name));
             }
         }
+        // Checks its own outputs.
+        Experiment::Haptics => {}
     }
     for dir in &dirs {
         crate::output::check_dir(dir)?;
@@ -222,6 +233,7 @@ fn sim_run(
         inject: Vec::new(),
         weights,
         no_adapt,
+        haptics: Default::default(),
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).map_err(|source| {
         ExperimentError::Run {
@@ -621,29 +633,35 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
 /// Tracking RMS per joint over `from..to` s of a log: reference against the filtered angle,
 /// control ticks only.
 pub fn window_rms(log: &Path, from: f64, to: f64) -> Result<[f64; 3], ExperimentError> {
+    const COLUMNS: [&str; 8] = ["t", "mode", "ref1", "ref2", "ref3", "qf1", "qf2", "qf3"];
     let bad = |why: String| ExperimentError::ReadLog {
         path: log.to_path_buf(),
         why,
     };
-    let mut r = csv::Reader::from_path(log).map_err(|e| bad(e.to_string()))?;
-    let h = r.headers().map_err(|e| bad(e.to_string()))?.clone();
-    let col = |n: &str| {
-        h.iter()
-            .position(|x| x == n)
-            .ok_or_else(|| bad(format!("no column `{n}`")))
-    };
-    let (t, mode) = (col("t")?, col("mode")?);
+    // The one log reader (as replay, plot's input checks and identify use): named columns,
+    // every field checked, errors naming the line and the column.
+    let mut r = ColumnReader::open(log, &COLUMNS, false, None).map_err(|e| bad(e.to_string()))?;
+    let col = |n: &str| r.require(n, &COLUMNS).map_err(|e| bad(e.to_string()));
+    let mode = col("mode")?;
     let refs = [col("ref1")?, col("ref2")?, col("ref3")?];
     let qf = [col("qf1")?, col("qf2")?, col("qf3")?];
     let (mut s, mut n) = ([0.0; 3], 0.0);
-    let parse = |v: &str| v.parse::<f64>().map_err(|e| bad(format!("`{v}`: {e}")));
-    for rec in r.records() {
-        let rec = rec.map_err(|e| bad(e.to_string()))?;
-        let tt = parse(&rec[t])?;
-        if tt >= from && tt < to && &rec[mode] != "stop" {
+    while let Some(errors) = r
+        .next_with(|row| {
+            if row.t < from || row.t >= to || row.field(mode) == b"stop" {
+                return Ok(None);
+            }
+            let mut e = [0.0; 3];
             for j in 0..3 {
-                let e = parse(&rec[refs[j]])? - parse(&rec[qf[j]])?;
-                s[j] += e * e;
+                e[j] = row.f64(refs[j])? - row.f64(qf[j])?;
+            }
+            Ok(Some(e))
+        })
+        .map_err(|e| bad(e.to_string()))?
+    {
+        if let Some(e) = errors {
+            for j in 0..3 {
+                s[j] += e[j] * e[j];
             }
             n += 1.0;
         }
@@ -719,4 +737,35 @@ fn payload(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, 
     md.push_str("\n## Figures\n\n");
     md.push_str(&figs_md);
     Ok(md)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn window_rms_reads_through_the_log_reader_and_names_a_bad_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let log = dir.path().join("log.csv");
+        let head = "t,mode,ref1,ref2,ref3,qf1,qf2,qf3\n";
+        std::fs::write(
+            &log,
+            format!(
+                "{head}0.0,track,1,1,1,0,0,0\n0.001,track,3,1,1,0,0,0\n0.002,stop,9,9,9,0,0,0\n"
+            ),
+        )
+        .unwrap();
+        let rms = window_rms(&log, 0.0, 1.0).unwrap();
+        assert!(
+            (rms[0] - 5f64.sqrt()).abs() < 1e-12 && rms[1] == 1.0,
+            "{rms:?}"
+        );
+        std::fs::write(
+            &log,
+            format!("{head}0.0,track,1,1,1,0,0,0\n0.001,track,1,x,1,0,0,0\n"),
+        )
+        .unwrap();
+        let e = window_rms(&log, 0.0, 1.0).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("ref2"), "{e}");
+    }
 }

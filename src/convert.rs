@@ -22,9 +22,9 @@
 //! failed conversion never leaves a half-written log that would replay, nor a temporary file,
 //! and only a regular file or a new path is written.
 
-use super::reader::{ColumnReader, LogReader, ReadError, SkipReport, REQUIRED_COLUMNS};
 use crate::omni::kinematics::from_ros;
 use crate::output::OutputError;
+use crate::telemetry::reader::{ColumnReader, LogReader, ReadError, SkipReport, REQUIRED_COLUMNS};
 use std::io::{self, Write};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;

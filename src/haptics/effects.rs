@@ -1,0 +1,407 @@
+//! Haptic effects rendered in the 1 kHz loop (docs/HAPTICS.md §5): each maps the tip's
+//! position and velocity to a force. Plain `Copy` data in fixed slots, so a scene is set up
+//! before the loop or changed by a command without allocating. A change of an effect's
+//! parameters fades in over `fade_s`, so the force never jumps.
+
+use super::Force3;
+use serde::{Deserialize, Serialize};
+
+/// Most effects in a scene at once.
+pub const MAX_EFFECTS: usize = 8;
+
+/// One effect. Positions in mm (OpenHaptics frame, as `tip_mm`), stiffness in N/mm (as the
+/// vendor quotes it), damping in N·s/m, forces in N.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Effect {
+    /// Pulls the tip towards `center_mm`.
+    Spring {
+        center_mm: [f64; 3],
+        stiffness_n_per_mm: f64,
+        #[serde(default)]
+        damping_n_s_per_m: f64,
+    },
+    /// Resists the tip's velocity everywhere (viscous field).
+    Damper { damping_n_s_per_m: f64 },
+    /// A one-sided wall through `point_mm`; `normal` points out of the wall (where the tip is
+    /// free). Pushes only, never pulls.
+    Plane {
+        point_mm: [f64; 3],
+        normal: [f64; 3],
+        stiffness_n_per_mm: f64,
+        #[serde(default)]
+        damping_n_s_per_m: f64,
+    },
+    /// Keeps the tip inside the box between `min_mm` and `max_mm` (six one-sided walls).
+    Box {
+        min_mm: [f64; 3],
+        max_mm: [f64; 3],
+        stiffness_n_per_mm: f64,
+        #[serde(default)]
+        damping_n_s_per_m: f64,
+    },
+    /// A constant force, N.
+    Constant { force_n: [f64; 3] },
+}
+
+/// A one-sided spring-damper along one direction: `depth` m into the wall (> 0 inside),
+/// `speed` m/s into the wall. Never pulls the tip back in (no sticky walls).
+fn wall(depth: f64, speed: f64, k: f64, b: f64) -> f64 {
+    if depth <= 0.0 {
+        0.0
+    } else {
+        (k * depth + b * speed).max(0.0)
+    }
+}
+
+impl Effect {
+    /// The force on the tip at `p` (m) moving at `v` (m/s).
+    pub fn force(&self, p: &Force3, v: &Force3) -> Force3 {
+        match *self {
+            Effect::Spring {
+                center_mm,
+                stiffness_n_per_mm: k,
+                damping_n_s_per_m: b,
+            } => (Force3::from(center_mm) * 1e-3 - p) * (k * 1e3) - v * b,
+            Effect::Damper {
+                damping_n_s_per_m: b,
+            } => -v * b,
+            Effect::Plane {
+                point_mm,
+                normal,
+                stiffness_n_per_mm: k,
+                damping_n_s_per_m: b,
+            } => {
+                let n = Force3::from(normal).normalize();
+                let depth = (Force3::from(point_mm) * 1e-3 - p).dot(&n);
+                n * wall(depth, -v.dot(&n), k * 1e3, b)
+            }
+            Effect::Box {
+                min_mm,
+                max_mm,
+                stiffness_n_per_mm: k,
+                damping_n_s_per_m: b,
+            } => Force3::from_fn(|i, _| {
+                let (lo, hi) = (min_mm[i] * 1e-3, max_mm[i] * 1e-3);
+                wall(lo - p[i], -v[i], k * 1e3, b) - wall(p[i] - hi, v[i], k * 1e3, b)
+            }),
+            Effect::Constant { force_n } => force_n.into(),
+        }
+    }
+
+    /// Check every parameter; the error names the field (`prefix` says which effect).
+    pub fn validate(&self, prefix: &str) -> Result<(), String> {
+        let finite = |name: &str, v: &[f64]| -> Result<(), String> {
+            match v.iter().find(|x| !x.is_finite()) {
+                Some(x) => Err(format!("{prefix}{name} = {x}: must be a finite number")),
+                None => Ok(()),
+            }
+        };
+        let range = |name: &str, v: f64, hi: f64, unit: &str| -> Result<(), String> {
+            finite(name, &[v])?;
+            if (0.0..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!(
+                    "{prefix}{name} = {v} is out of range: allowed 0 ..= {hi} {unit}"
+                ))
+            }
+        };
+        const K_MAX: f64 = 100.0;
+        const B_MAX: f64 = 200.0;
+        match self {
+            Effect::Spring {
+                center_mm,
+                stiffness_n_per_mm,
+                damping_n_s_per_m,
+            } => {
+                finite("center_mm", center_mm)?;
+                range("stiffness_n_per_mm", *stiffness_n_per_mm, K_MAX, "N/mm")?;
+                range("damping_n_s_per_m", *damping_n_s_per_m, B_MAX, "N·s/m")
+            }
+            Effect::Damper { damping_n_s_per_m } => {
+                range("damping_n_s_per_m", *damping_n_s_per_m, B_MAX, "N·s/m")
+            }
+            Effect::Plane {
+                point_mm,
+                normal,
+                stiffness_n_per_mm,
+                damping_n_s_per_m,
+            } => {
+                finite("point_mm", point_mm)?;
+                finite("normal", normal)?;
+                let n = Force3::from(*normal).norm();
+                if !(n > 1e-9 && n.is_finite()) {
+                    return Err(format!("{prefix}normal = {normal:?}: must not be zero"));
+                }
+                range("stiffness_n_per_mm", *stiffness_n_per_mm, K_MAX, "N/mm")?;
+                range("damping_n_s_per_m", *damping_n_s_per_m, B_MAX, "N·s/m")
+            }
+            Effect::Box {
+                min_mm,
+                max_mm,
+                stiffness_n_per_mm,
+                damping_n_s_per_m,
+            } => {
+                finite("min_mm", min_mm)?;
+                finite("max_mm", max_mm)?;
+                if let Some(i) = (0..3).find(|&i| min_mm[i] >= max_mm[i]) {
+                    return Err(format!(
+                        "{prefix}min_mm[{i}] = {} must be below max_mm[{i}] = {}",
+                        min_mm[i], max_mm[i]
+                    ));
+                }
+                range("stiffness_n_per_mm", *stiffness_n_per_mm, K_MAX, "N/mm")?;
+                range("damping_n_s_per_m", *damping_n_s_per_m, B_MAX, "N·s/m")
+            }
+            Effect::Constant { force_n } => {
+                finite("force_n", force_n)?;
+                let n = Force3::from(*force_n).norm();
+                if n > 20.0 {
+                    return Err(format!(
+                        "{prefix}force_n has norm {n} N: allowed ≤ 20 N (the servo clamps to \
+                         haptics.max_force_n)"
+                    ));
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// One slot: its effect and the fade from what the slot rendered before the last change.
+#[derive(Debug, Clone, Copy, Default)]
+struct Slot {
+    effect: Option<Effect>,
+    /// Old output minus new output at the change, faded out over `fade_s`.
+    offset: Force3,
+    since: f64,
+    /// This slot's output at the last tick.
+    last: Force3,
+    /// Changed since the last tick: the fade starts from the tip where it is next.
+    pending: bool,
+}
+
+/// The effects in force, in fixed slots.
+#[derive(Debug, Clone, Copy)]
+pub struct Scene {
+    slots: [Slot; MAX_EFFECTS],
+    fade_s: f64,
+}
+
+impl Scene {
+    pub fn new(fade_s: f64) -> Scene {
+        Scene {
+            slots: [Slot::default(); MAX_EFFECTS],
+            fade_s,
+        }
+    }
+
+    /// Put `effect` in `slot` (None: remove it) at time `t`. The slot's force moves from what
+    /// it was to the new effect's over `fade_s` instead of stepping. Slots beyond
+    /// [`MAX_EFFECTS`] are ignored (the callers check).
+    pub fn set(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
+        let Some(s) = self.slots.get_mut(slot) else {
+            return;
+        };
+        s.since = t;
+        s.effect = effect;
+        s.pending = true;
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.slots
+            .iter()
+            .all(|s| s.effect.is_none() && s.offset == Force3::zeros() && !s.pending)
+    }
+
+    /// The sum of every slot's force at `t` with the tip at `p` (m) moving at `v` (m/s).
+    pub fn force(&mut self, t: f64, p: &Force3, v: &Force3) -> Force3 {
+        let mut total = Force3::zeros();
+        for s in &mut self.slots {
+            let mut f = s.effect.map_or(Force3::zeros(), |e| e.force(p, v));
+            if s.pending {
+                // Start from what the slot rendered at the last tick.
+                s.offset = s.last - f;
+                s.pending = false;
+            }
+            if s.offset != Force3::zeros() {
+                let w = if self.fade_s > 0.0 {
+                    crate::control::reference::quintic((t - s.since) / self.fade_s).0
+                } else {
+                    1.0
+                };
+                if w >= 1.0 {
+                    s.offset = Force3::zeros();
+                } else {
+                    f += s.offset * (1.0 - w);
+                }
+            }
+            s.last = f;
+            total += f;
+        }
+        total
+    }
+
+    /// The scene's force split into what the passivity controller watches and the constant
+    /// forces it leaves alone: a constant force is a potential field (what it gives as the tip
+    /// moves along it, it takes back when the tip returns), and weakening it would only bend
+    /// a force the client asked for (docs/HAPTICS.md §6). Fades stay with the watched part.
+    pub fn split(&mut self, t: f64, p: &Force3, v: &Force3) -> (Force3, Force3) {
+        let total = self.force(t, p, v);
+        let constant: Force3 = self
+            .slots
+            .iter()
+            .filter(|s| s.offset == Force3::zeros())
+            .filter_map(|s| match s.effect {
+                Some(Effect::Constant { force_n }) => Some(Force3::from(force_n)),
+                _ => None,
+            })
+            .sum();
+        (total - constant, constant)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn v3(x: f64, y: f64, z: f64) -> Force3 {
+        Force3::new(x, y, z)
+    }
+
+    #[test]
+    fn a_spring_pulls_to_its_centre_in_proportion() {
+        let e = Effect::Spring {
+            center_mm: [10.0, 0.0, 0.0],
+            stiffness_n_per_mm: 0.5,
+            damping_n_s_per_m: 0.0,
+        };
+        // 4 mm short of the centre along x at 0.5 N/mm: 2 N towards it.
+        let f = e.force(&v3(0.006, 0.0, 0.0), &Force3::zeros());
+        assert!((f - v3(2.0, 0.0, 0.0)).norm() < 1e-12, "{f}");
+    }
+
+    #[test]
+    fn a_damper_opposes_the_velocity() {
+        let e = Effect::Damper {
+            damping_n_s_per_m: 3.0,
+        };
+        let f = e.force(&Force3::zeros(), &v3(0.1, -0.2, 0.0));
+        assert!((f - v3(-0.3, 0.6, 0.0)).norm() < 1e-12, "{f}");
+    }
+
+    #[test]
+    fn a_plane_pushes_out_only_when_penetrated_and_never_pulls() {
+        // A floor at y = −20 mm, normal up (unnormalised on purpose).
+        let e = Effect::Plane {
+            point_mm: [0.0, -20.0, 0.0],
+            normal: [0.0, 2.0, 0.0],
+            stiffness_n_per_mm: 1.0,
+            damping_n_s_per_m: 10.0,
+        };
+        let still = Force3::zeros();
+        assert_eq!(e.force(&v3(0.0, -0.019, 0.0), &still), Force3::zeros());
+        // 1.5 mm deep: 1.5 N up.
+        let f = e.force(&v3(0.03, -0.0215, 0.0), &still);
+        assert!((f - v3(0.0, 1.5, 0.0)).norm() < 1e-9, "{f}");
+        // Moving in adds damping; moving out fast enough removes the push but never pulls.
+        let f = e.force(&v3(0.0, -0.0215, 0.0), &v3(0.0, -0.1, 0.0));
+        assert!((f[1] - 2.5).abs() < 1e-9, "{f}");
+        let f = e.force(&v3(0.0, -0.0215, 0.0), &v3(0.0, 0.5, 0.0));
+        assert_eq!(f, Force3::zeros());
+    }
+
+    #[test]
+    fn a_box_pushes_back_from_each_face() {
+        let e = Effect::Box {
+            min_mm: [-50.0, -40.0, -30.0],
+            max_mm: [50.0, 40.0, 30.0],
+            stiffness_n_per_mm: 0.2,
+            damping_n_s_per_m: 0.0,
+        };
+        let still = Force3::zeros();
+        assert_eq!(e.force(&Force3::zeros(), &still), Force3::zeros());
+        let f = e.force(&v3(0.055, -0.045, 0.0), &still);
+        assert!((f - v3(-1.0, 1.0, 0.0)).norm() < 1e-9, "{f}");
+        let f = e.force(&v3(0.0, 0.0, 0.035), &still);
+        assert!((f - v3(0.0, 0.0, -1.0)).norm() < 1e-9, "{f}");
+    }
+
+    #[test]
+    fn a_constant_force_is_constant() {
+        let e = Effect::Constant {
+            force_n: [0.1, 0.2, -0.3],
+        };
+        assert_eq!(
+            e.force(&v3(1.0, 2.0, 3.0), &v3(4.0, 5.0, 6.0)),
+            v3(0.1, 0.2, -0.3)
+        );
+    }
+
+    #[test]
+    fn several_effects_add_and_changes_fade_without_a_jump() {
+        let mut scene = Scene::new(0.1);
+        let p = v3(0.0, 0.0, 0.002);
+        let still = Force3::zeros();
+        scene.set(
+            0,
+            Some(Effect::Constant {
+                force_n: [0.5, 0.0, 0.0],
+            }),
+            0.0,
+        );
+        let spring = |k: f64| Effect::Spring {
+            center_mm: [0.0; 3],
+            stiffness_n_per_mm: k,
+            damping_n_s_per_m: 0.0,
+        };
+        scene.set(1, Some(spring(0.5)), 0.0);
+        // Both fade in from nothing: no step at the change...
+        assert!(scene.force(0.0, &p, &still).norm() < 1e-12);
+        // ... and both are in full once the fade is over: the sum.
+        let f = scene.force(0.2, &p, &still);
+        assert!((f - v3(0.5, 0.0, -1.0)).norm() < 1e-12, "{f}");
+        // A stiffness change mid-contact: the force moves from −1 N to −2 N in small steps.
+        scene.set(1, Some(spring(1.0)), 0.2);
+        let mut last = f;
+        let mut biggest = 0.0f64;
+        for k in 0..=150 {
+            let f = scene.force(0.2 + k as f64 * 1e-3, &p, &still);
+            biggest = biggest.max((f - last).norm());
+            last = f;
+        }
+        assert!((last - v3(0.5, 0.0, -2.0)).norm() < 1e-12, "{last}");
+        // A 1 N change over 100 ms with the quintic's steepest slope: under 20 mN a tick.
+        assert!(biggest < 0.02, "largest step {biggest} N");
+        // Removing fades out too.
+        scene.set(0, None, 1.0);
+        assert!((scene.force(1.0, &p, &still) - last).norm() < 1e-12);
+        assert!((scene.force(1.2, &p, &still) - v3(0.0, 0.0, -2.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn bad_parameters_are_refused_by_name() {
+        let e = Effect::Plane {
+            point_mm: [0.0; 3],
+            normal: [0.0; 3],
+            stiffness_n_per_mm: 1.0,
+            damping_n_s_per_m: 0.0,
+        };
+        assert!(e
+            .validate("effect[0].")
+            .unwrap_err()
+            .contains("effect[0].normal"));
+        let e = Effect::Damper {
+            damping_n_s_per_m: f64::NAN,
+        };
+        assert!(e.validate("").unwrap_err().contains("damping_n_s_per_m"));
+        let e = Effect::Box {
+            min_mm: [0.0; 3],
+            max_mm: [1.0, -1.0, 1.0],
+            stiffness_n_per_mm: 1.0,
+            damping_n_s_per_m: 0.0,
+        };
+        assert!(e.validate("").unwrap_err().contains("min_mm[1]"));
+    }
+}

@@ -1,0 +1,130 @@
+//! Haptics on the simulator (issue 17, docs/HAPTICS.md): the experiment's acceptance floors
+//! (transparency, walls at the vendor's stiffness, static force accuracy), and `omnid run`'s
+//! free mode with a scene and a simulated hand.
+
+mod common;
+
+use common::{omnid, run_ok, Log};
+use serde_json::Value;
+
+#[test]
+fn the_haptics_experiment_meets_the_acceptance_floors() {
+    let dir = tempfile::tempdir().unwrap();
+    // Its runs never carry motor heat over (persist_heat = false): no state directory.
+    let out = dir.path().join("haptics");
+    let rep =
+        omnid::experiment::run_experiment(omnid::experiment::Experiment::Haptics, &out, false)
+            .unwrap();
+    assert!(rep.markdown.contains("## Walls"));
+    let r: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let rms = |name: &str| {
+        r["transparency"][name]["hand_force_rms_n"]
+            .as_f64()
+            .unwrap()
+    };
+    let (none, ct, nnidc, exact) = (rms("none"), rms("ct"), rms("nnidc"), rms("exact"));
+    // The learned model: at most half of no compensation, and no worse than the lab's model.
+    assert!(nnidc <= 0.5 * none, "nnidc {nnidc} N vs none {none} N");
+    assert!(nnidc <= ct, "nnidc {nnidc} N vs ct {ct} N");
+    assert!(exact < ct && exact.is_finite(), "exact {exact} N");
+    // A wall at the vendor's stiffness on every axis holds under a 1 N push, with and without
+    // the passivity controller.
+    let walls = r["walls"].as_array().unwrap();
+    for (axis, k) in [("x", 1.26), ("y", 2.31), ("z", 1.02)] {
+        for pc in [false, true] {
+            let w = walls
+                .iter()
+                .find(|w| {
+                    w["axis"] == axis
+                        && w["stiffness_n_per_mm"].as_f64() == Some(k)
+                        && w["passivity_control"] == pc
+                })
+                .unwrap_or_else(|| panic!("no wall {axis} {k} {pc}"));
+            assert_eq!(w["stable"], true, "{w}");
+            let pen = w["max_penetration_mm"].as_f64().unwrap();
+            // 1 N into k N/mm, plus the approach's overshoot: about 1/k mm.
+            assert!(pen > 0.3 / k && pen < 2.0 / k, "{w}");
+        }
+    }
+    // The static force at the tip is the commanded one within the DAC's quantisation.
+    let acc = &r["force_accuracy"];
+    let (err, bound) = (
+        acc["max_error_n"].as_f64().unwrap(),
+        acc["dac_bound_n"].as_f64().unwrap(),
+    );
+    assert!(err <= bound, "force error {err} N, DAC bound {bound} N");
+    for f in ["transparency", "walls"] {
+        assert!(out.join(format!("{f}.png")).exists());
+    }
+}
+
+#[test]
+fn run_free_with_a_scene_and_a_hand_logs_the_tip_and_the_forces() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("floor.toml");
+    // A floor 10 mm under the centre of the workspace; the hand pushes down onto it.
+    std::fs::write(
+        &scene,
+        "[[effect]]\ntype = \"plane\"\npoint_mm = [0, -33.3, 0]\nnormal = [0, 1, 0]\n\
+         stiffness_n_per_mm = 2.31\n",
+    )
+    .unwrap();
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(&cfg, "[sim]\nstart_pose = [0.0, 0.65, 0.3]\n").unwrap();
+    let log = dir.path().join("run.csv");
+    let p = |p: &std::path::Path| p.display().to_string();
+    let out = run_ok(&[
+        "run",
+        "--fast",
+        "--mode",
+        "free",
+        "--hand",
+        "push-y",
+        "--duration",
+        "3",
+        "--scene",
+        &p(&scene),
+        "--config",
+        &p(&cfg),
+        "--log",
+        &p(&log),
+    ]);
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("in free mode"), "{said}");
+    let l = Log::read(&log);
+    let modes: Vec<&str> = l.rows.iter().map(|r| r[l.col("mode")].as_str()).collect();
+    assert!(modes[..modes.len() - 1].iter().all(|m| *m == "free"));
+    let (tip, fcmd, fhand) = (l.f64s("tip2"), l.f64s("fcmd2"), l.f64s("fhand2"));
+    let end = l.rows.len() - 2;
+    // Resting on the floor: the hand pushes down with 1 N and the floor pushes back with 1 N
+    // from about 1/2.31 mm under its surface.
+    assert!((fhand[end] + 1.0).abs() < 0.05, "hand {}", fhand[end]);
+    assert!((fcmd[end] - 1.0).abs() < 0.15, "floor {}", fcmd[end]);
+    assert!(tip[end] < -33.3 && tip[end] > -34.0, "tip {}", tip[end]);
+}
+
+#[test]
+fn bad_haptic_options_are_refused_naming_the_problem() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("s.toml");
+    std::fs::write(
+        &scene,
+        "[[effect]]\ntype = \"damper\"\ndamping_n_s_per_m = -2\n",
+    )
+    .unwrap();
+    let s = scene.display().to_string();
+    for (args, want) in [
+        (vec!["run", "--fast", "--hand", "walk"], "walk"),
+        (
+            vec!["run", "--fast", "--mode", "free", "--scene", &s],
+            "effect[0].damping_n_s_per_m",
+        ),
+        (vec!["run", "--fast", "--scene", &s], "damping_n_s_per_m"),
+    ] {
+        let out = omnid().args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+}
