@@ -352,12 +352,9 @@ fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
 #[test]
 fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     let hd = HD::get();
-    // No compensation: the motors' torque is exactly the program's (Jᵀ F). A stream that
-    // ends falls back to idle, as docs/HDAPI.md advises for OpenHaptics programs.
-    let daemon = Daemon::start_with_config(
-        &["--controller", "off"],
-        "[serve]\nstale_fallback = \"idle\"\n",
-    );
+    // No compensation: the motors' torque is exactly the program's (Jᵀ F). The daemon's
+    // config keeps its default fallback (hold): libHD's lease asks for idle.
+    let daemon = Daemon::start(&["--controller", "off"]);
     let mut watch = daemon.client("watch");
     watch
         .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))

@@ -317,7 +317,8 @@ impl Device {
 
     /// Take the command lease (the scheduler starts).
     pub fn take_lease(&self) -> Result<(), DeviceError> {
-        self.request(json!({"op": "lease"}))?;
+        // A program that dies leaves the arm idle: zero force (docs/HDAPI.md, Safety).
+        self.request(json!({"op": "lease", "fallback": "idle"}))?;
         self.commanding.store(true, Ordering::Relaxed);
         Ok(())
     }
