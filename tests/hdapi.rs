@@ -443,3 +443,21 @@ fn a_daemon_that_stops_is_a_communication_error_in_the_servo_callback() {
     assert!(status.success(), "{status}: {rest:?}");
     assert_eq!(rest, ["servo-error 0x302"]);
 }
+
+/// A test that fails while its C program runs must not leave the program behind (one outlived
+/// a failed run by an hour before the watchdog killed children on a panic).
+#[test]
+fn a_failing_test_does_not_leave_its_program_running() {
+    use std::os::unix::process::ExitStatusExt;
+    let mut child = std::process::Command::new("sleep")
+        .arg("30")
+        .spawn()
+        .expect("sleep runs");
+    let failed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let _watchdog = hd::Watchdog::new(&child, Duration::from_secs(60));
+        panic!("a test failing while its program runs");
+    }));
+    assert!(failed.is_err());
+    let status = child.wait().unwrap();
+    assert_eq!(status.signal(), Some(libc::SIGKILL), "{status:?}");
+}

@@ -134,10 +134,24 @@ pub fn run(exe: PathBuf, args: &[&str], env: &[(&str, &str)]) -> String {
 }
 
 /// Kills a child that outlives `limit` (a hang fails the test instead of stalling CI);
-/// disarmed when dropped.
+/// disarmed when dropped, except that a test failing while the child still runs kills it
+/// (else the program would outlive the test run).
 pub struct Watchdog {
+    pid: u32,
     done: std::sync::Arc<std::sync::atomic::AtomicBool>,
     thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// `pid` is still a child of this process (running, or exited and not yet reaped).
+fn is_our_child(pid: u32) -> bool {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return false;
+    };
+    // Fields after the command name (which may hold spaces) start after its last ')'.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
+        return false;
+    };
+    rest.split_whitespace().nth(1) == Some(std::process::id().to_string().as_str())
 }
 
 impl Watchdog {
@@ -160,6 +174,7 @@ impl Watchdog {
             })
         };
         Watchdog {
+            pid,
             done,
             thread: Some(thread),
         }
@@ -168,6 +183,10 @@ impl Watchdog {
 
 impl Drop for Watchdog {
     fn drop(&mut self) {
+        if std::thread::panicking() && is_our_child(self.pid) {
+            // SAFETY: a signal to our own child (checked just above through /proc).
+            unsafe { libc::kill(self.pid as i32, libc::SIGKILL) };
+        }
         self.done.store(true, std::sync::atomic::Ordering::SeqCst);
         if let Some(t) = self.thread.take() {
             let _ = t.join();
