@@ -255,7 +255,6 @@ fn capture<W: Write>(
 ) -> Result<ConvertReport, ConvertError> {
     use crate::device::capture::{CaptureError, CaptureReader};
     use crate::device::codec::{decode_command, decode_state, STATE_LAYOUT, STATE_LEN};
-    use crate::device::firewire::rate::cycles_between;
     use crate::device::EncoderUnwrap;
     let path = input.display().to_string();
     let file = std::fs::File::open(input).map_err(|source| CaptureError::Io {
@@ -280,10 +279,7 @@ fn capture<W: Write>(
     let mut num = NumBuf::new();
     let mut unwrap = EncoderUnwrap::new();
     let mut last_cmd = None;
-    // Time: the receive timestamps' cycles, unwrapped; else the host's clock.
-    let mut first_ns: Option<u64> = None;
-    let mut last_ts: Option<u16> = None;
-    let mut cycles: u64 = 0;
+    let mut clock = CaptureClock::default();
     let mut last_t: Option<f64> = None;
     let mut rows = 0u64;
     while let Some(p) = reader.next_packet()? {
@@ -297,19 +293,7 @@ fn capture<W: Write>(
         let Ok(state) = decode_state(&p.bytes[..STATE_LEN]) else {
             continue;
         };
-        let t = match info {
-            Some(info) => {
-                if let Some(prev) = last_ts {
-                    cycles += u64::from(cycles_between(prev, info.timestamp).unwrap_or(0));
-                }
-                last_ts = Some(info.timestamp);
-                cycles as f64 / f64::from(crate::device::firewire::rate::CYCLES_PER_S)
-            }
-            None => {
-                let first = *first_ns.get_or_insert(p.host_ns);
-                p.host_ns.saturating_sub(first) as f64 * 1e-9
-            }
-        };
+        let t = clock.time(info.map(|i| i.timestamp), p.host_ns);
         if last_t.is_some_and(|l| t <= l) {
             // Two packets in one bus cycle cannot both be the device's: keep the first.
             continue;
@@ -322,32 +306,87 @@ fn capture<W: Write>(
             }
         }
         let enc = unwrap.update(raw);
-        w.write_field(num.f64(t)).map_err(&werr)?;
-        for c in enc {
-            w.write_field(num.f64(c as f64 * rad)).map_err(&werr)?;
-        }
-        for _ in 0..3 {
-            w.write_field(num.f64(0.0)).map_err(&werr)?;
-        }
-        for c in enc {
-            w.write_field(num.i64(c)).map_err(&werr)?;
-        }
-        w.write_field(num.i64(i64::from(state.counter)))
-            .map_err(&werr)?;
-        w.write_field(num.i64(i64::from(p.bytes[STATE_LAYOUT.status])))
-            .map_err(&werr)?;
         let (dac, amps) = last_cmd
             .map_or(([0x07FFu16; 3], false), |c: crate::device::MotorCommand| {
                 (c.dac, c.amps_on)
             });
-        for d in dac {
-            w.write_field(num.i64(i64::from(d))).map_err(&werr)?;
-        }
-        w.write_field(num.i64(i64::from(amps))).map_err(&werr)?;
-        w.write_record(None::<&[u8]>).map_err(&werr)?;
+        let row = CaptureRow {
+            t,
+            enc,
+            rad,
+            counter: state.counter,
+            switches: p.bytes[STATE_LAYOUT.status],
+            dac,
+            amps,
+        };
+        row.write(w, &mut num).map_err(&werr)?;
         rows += 1;
     }
     finish(rows, columns, SkipReport::default(), &path)
+}
+
+/// A capture's time base: the receive timestamps' bus cycles, unwrapped, when the capture has
+/// them; else the host's clock from the first packet.
+#[derive(Default)]
+struct CaptureClock {
+    first_ns: Option<u64>,
+    last_ts: Option<u16>,
+    cycles: u64,
+}
+
+impl CaptureClock {
+    /// Seconds since the capture's start of a packet with bus timestamp `ts` (if any),
+    /// received at `host_ns`.
+    fn time(&mut self, ts: Option<u16>, host_ns: u64) -> f64 {
+        use crate::device::firewire::rate::{cycles_between, CYCLES_PER_S};
+        match ts {
+            Some(ts) => {
+                if let Some(prev) = self.last_ts {
+                    self.cycles += u64::from(cycles_between(prev, ts).unwrap_or(0));
+                }
+                self.last_ts = Some(ts);
+                self.cycles as f64 / f64::from(CYCLES_PER_S)
+            }
+            None => {
+                let first = *self.first_ns.get_or_insert(host_ns);
+                host_ns.saturating_sub(first) as f64 * 1e-9
+            }
+        }
+    }
+}
+
+/// One converted capture row: `t, q1..3, tau1..3 (zero), enc1..3, counter, switches,
+/// dac1..3, amps`.
+struct CaptureRow {
+    t: f64,
+    enc: [i64; 3],
+    rad: f64,
+    counter: u32,
+    switches: u8,
+    dac: [u16; 3],
+    amps: bool,
+}
+
+impl CaptureRow {
+    fn write<W: Write>(&self, w: &mut csv::Writer<W>, num: &mut NumBuf) -> csv::Result<()> {
+        w.write_field(num.f64(self.t))?;
+        for c in self.enc {
+            w.write_field(num.f64(c as f64 * self.rad))?;
+        }
+        for _ in 0..3 {
+            w.write_field(num.f64(0.0))?;
+        }
+        for c in self.enc {
+            w.write_field(num.i64(c))?;
+        }
+        w.write_field(num.i64(i64::from(self.counter)))?;
+        w.write_field(num.i64(i64::from(self.switches)))?;
+        for d in self.dac {
+            w.write_field(num.i64(i64::from(d)))?;
+        }
+        w.write_field(num.i64(i64::from(self.amps)))?;
+        w.write_record(None::<&[u8]>)
+    }
 }
 
 fn finish(
