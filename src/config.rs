@@ -1,5 +1,6 @@
-//! Run configuration: TOML, every field optional with the defaults of docs/DESIGN.md §2.4, unknown keys
-//! refused, every value validated with an error that names the field and the allowed range.
+//! Run configuration: TOML, every field optional with the defaults of docs/DESIGN.md §2.4,
+//! unknown keys refused, every value validated with an error that names the field and the
+//! allowed range.
 //! Each section is defined and validated beside the component it configures; this module only
 //! gathers them into the file's layout and hands each component the sections it needs.
 
