@@ -2,8 +2,8 @@
 //! telemetry drops. `cargo bench --bench soak -- SECONDS [CONTROLLER]` (default 600 s, nnidc).
 
 use omnid::config::Config;
-use omnid::control::{ControllerKind, Trajectory};
-use omnid::run::{execute, DeviceSpec, RunOptions};
+use omnid::control::ControllerKind;
+use omnid::run::{execute, RunOptions};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -36,18 +36,10 @@ fn main() {
     };
     let dir = tempfile::tempdir().expect("temp dir");
     let opts = RunOptions {
-        device: DeviceSpec::Sim,
         controller,
-        trajectory: Trajectory::Sine,
         duration_s: secs,
         log: Some(dir.path().join("soak.csv")),
-        summary_json: None,
-        fast: false,
-        lenient: false,
-        inject: Vec::new(),
-        weights: None,
-        no_adapt: false,
-        haptics: Default::default(),
+        ..RunOptions::default()
     };
     let stop = Arc::new(AtomicBool::new(false));
     let sampler_stop = stop.clone();

@@ -7,8 +7,8 @@ use crate::config::Config;
 use crate::run::{assemble, check_device_options, join_servo, DeviceSpec, RunError, RunOptions};
 use crate::serve::access::Policy;
 use crate::serve::socket::{self, DeviceLock, Listener, PathLock};
-use crate::serve::{default_socket, hub, StaleFallback};
-use crate::servo::{Activity, EndReason, ServoLink, Wake};
+use crate::serve::{default_socket, hub};
+use crate::servo::{EndReason, ServoLink, Wake};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -97,16 +97,12 @@ pub fn prepare(
     let run_opts = RunOptions {
         device: opts.device.clone(),
         controller: opts.controller,
-        trajectory: crate::control::Trajectory::Sine,
         duration_s: f64::INFINITY,
-        log: None,
-        summary_json: None,
-        fast: false,
         lenient: opts.lenient,
         inject: opts.inject.clone(),
         weights: opts.weights.clone(),
         no_adapt: opts.no_adapt,
-        haptics: Default::default(),
+        ..RunOptions::default()
     };
     let faults = check_device_options(&run_opts, cfg)?;
     let policy = Policy {
@@ -138,10 +134,7 @@ pub fn prepare(
         commands: command_rx,
         replies: reply_tx,
         wake: wake.clone(),
-        stale_fallback: match cfg.serve.stale_fallback {
-            StaleFallback::Hold => Activity::Hold,
-            StaleFallback::Idle => Activity::Idle,
-        },
+        stale_fallback: cfg.serve.stale_fallback.activity(),
     });
     let state_dir = if cfg.serve.dump_dir.is_empty() {
         crate::servo::thermal_store::state_dir().unwrap_or_else(std::env::temp_dir)

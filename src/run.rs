@@ -89,6 +89,26 @@ pub struct RunOptions {
     pub haptics: crate::haptics::HapticRun,
 }
 
+impl Default for RunOptions {
+    /// `omnid run` with no flags: NNIDC following the sine on the simulator for 10 s, paced.
+    fn default() -> Self {
+        RunOptions {
+            device: DeviceSpec::Sim,
+            controller: ControllerKind::Nnidc,
+            trajectory: Trajectory::Sine,
+            duration_s: 10.0,
+            log: None,
+            summary_json: None,
+            fast: false,
+            lenient: false,
+            inject: Vec::new(),
+            weights: None,
+            no_adapt: false,
+            haptics: Default::default(),
+        }
+    }
+}
+
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
 /// box (see mock/README.md for how they were made).
 pub const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");

@@ -211,18 +211,12 @@ fn replay_allocates_nothing_per_tick() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("sim.csv");
     let opts = omnid::run::RunOptions {
-        device: omnid::run::DeviceSpec::Sim,
         controller: ControllerKind::Pd,
         trajectory: Trajectory::Multisine,
         duration_s: 8.0,
         log: Some(log.clone()),
-        summary_json: None,
         fast: true,
-        lenient: false,
-        inject: Vec::new(),
-        weights: None,
-        no_adapt: false,
-        haptics: Default::default(),
+        ..omnid::run::RunOptions::default()
     };
     let mut sim_cfg = cfg.clone();
     sim_cfg.safety.persist_heat = false;

@@ -26,13 +26,9 @@ fn run(
         trajectory,
         duration_s: secs,
         log: Some(log.to_path_buf()),
-        summary_json: None,
         fast: true,
-        lenient: false,
-        inject: Vec::new(),
         weights,
-        no_adapt: false,
-        haptics: Default::default(),
+        ..RunOptions::default()
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
     assert!(out.summary.faults.is_empty(), "{:?}", out.summary.faults);

@@ -9,7 +9,7 @@ use omnid::control::{ControllerKind, Trajectory};
 use omnid::identifier::{pretune, Identifier, IdentifierConfig, PretuneConfig, Sample};
 use omnid::log_pretune::samples_from_log;
 use omnid::omni::{Dynamics, Geometry, ModelParams};
-use omnid::run::{execute, DeviceSpec, RunOptions, RunOutcome};
+use omnid::run::{execute, RunOptions, RunOutcome};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -25,18 +25,13 @@ fn run(
     let mut cfg = cfg.clone();
     cfg.safety.persist_heat = false;
     let opts = RunOptions {
-        device: DeviceSpec::Sim,
         controller,
         trajectory,
         duration_s: secs,
         log: Some(log.to_path_buf()),
-        summary_json: None,
         fast: true,
-        lenient: false,
-        inject: Vec::new(),
         weights,
-        no_adapt: false,
-        haptics: Default::default(),
+        ..RunOptions::default()
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).expect("run starts");
     assert!(out.summary.faults.is_empty(), "{:?}", out.summary.faults);

@@ -25,13 +25,8 @@ fn run(
         trajectory,
         duration_s,
         log: Some(log.to_path_buf()),
-        summary_json: None,
         fast: true,
-        lenient: false,
-        inject: Vec::new(),
-        weights: None,
-        no_adapt: false,
-        haptics: Default::default(),
+        ..RunOptions::default()
     };
     // Motors start cold: no heat carried over from other runs, so every run is reproducible.
     let mut cfg = cfg.clone();
@@ -145,16 +140,10 @@ fn paced_and_fast_replays_agree() {
         let opts = RunOptions {
             device: DeviceSpec::Replay(sim_log.clone()),
             controller: ControllerKind::Pd,
-            trajectory: Trajectory::Sine,
             duration_s: f64::INFINITY,
             log: Some(log.clone()),
-            summary_json: None,
             fast,
-            lenient: false,
-            inject: Vec::new(),
-            weights: None,
-            no_adapt: false,
-            haptics: Default::default(),
+            ..RunOptions::default()
         };
         let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
         assert_eq!(out.end, EndReason::EndOfData);

@@ -1123,13 +1123,8 @@ mod tests {
             trajectory: crate::control::Trajectory::Hold,
             duration_s: f64::INFINITY,
             log: Some(out.clone()),
-            summary_json: None,
             fast: true,
-            lenient: false,
-            inject: Vec::new(),
-            weights: None,
-            no_adapt: false,
-            haptics: Default::default(),
+            ..crate::run::RunOptions::default()
         };
         let outcome = crate::run::execute(
             &run,

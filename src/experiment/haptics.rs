@@ -14,7 +14,7 @@ use crate::omni::{jacobian, tip_position_mm, Joint3};
 use crate::plot::figures::Role;
 use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
 use crate::plot::PlotError;
-use crate::run::{execute, DeviceSpec, RunOptions};
+use crate::run::{execute, RunOptions};
 use serde_json::{json, Value};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -113,18 +113,13 @@ fn run(
     })?;
     let log = dir.join("log.csv");
     let opts = RunOptions {
-        device: DeviceSpec::Sim,
         controller,
         trajectory: Trajectory::Hold,
         duration_s: secs,
         log: Some(log.clone()),
-        summary_json: None,
         fast: true,
-        lenient: false,
-        inject: Vec::new(),
-        weights: None,
-        no_adapt: false,
         haptics,
+        ..RunOptions::default()
     };
     let out = execute(&opts, cfg, Arc::new(AtomicBool::new(false))).map_err(|source| {
         ExperimentError::Run {

@@ -20,9 +20,7 @@ use crate::output::OutputError;
 use crate::plot::figures::{Role, FIGURES};
 use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
 use crate::plot::{plot_log, PlotError};
-use crate::run::{
-    execute, DeviceSpec, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
-};
+use crate::run::{execute, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 use crate::servo::summary::RunSummary;
 use crate::telemetry::reader::ColumnReader;
 use std::fmt::Write as _;
@@ -222,18 +220,14 @@ fn sim_run(
         })?;
     }
     let opts = RunOptions {
-        device: DeviceSpec::Sim,
         controller,
         trajectory,
         duration_s: secs,
         log: Some(log.to_path_buf()),
-        summary_json: None,
         fast: true,
-        lenient: false,
-        inject: Vec::new(),
         weights,
         no_adapt,
-        haptics: Default::default(),
+        ..RunOptions::default()
     };
     let out = execute(&opts, &cfg, Arc::new(AtomicBool::new(false))).map_err(|source| {
         ExperimentError::Run {

@@ -11,6 +11,16 @@ pub enum StaleFallback {
     Idle,
 }
 
+impl StaleFallback {
+    /// The servo activity it falls back to.
+    pub fn activity(self) -> crate::servo::Activity {
+        match self {
+            StaleFallback::Hold => crate::servo::Activity::Hold,
+            StaleFallback::Idle => crate::servo::Activity::Idle,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ServeConfig {

@@ -8,7 +8,6 @@
 use super::access::{Access, Policy};
 use super::protocol::{Hello, Request, State, MAX_MESSAGE, PROTOCOL_VERSION};
 use super::socket::{Conn, Listener, Peer};
-use super::StaleFallback;
 use crate::control::{ControllerKind, Trajectory};
 use crate::identifier::{Identifier, IdentifierConfig};
 use crate::omni::kinematics::{tip_position_mm, Geometry};
@@ -690,13 +689,10 @@ impl Hub {
 
     /// The fallback's name: the holder's choice, else the config's.
     fn current_fallback(&self) -> &'static str {
-        match self.lease_fallback {
-            Some(a) => a.mode().as_str(),
-            None => match self.s.serve.stale_fallback {
-                StaleFallback::Hold => "hold",
-                StaleFallback::Idle => "idle",
-            },
-        }
+        let to = self.lease_fallback;
+        to.unwrap_or(self.s.serve.stale_fallback.activity())
+            .mode()
+            .as_str()
     }
 
     /// The lease is free again: a stream falls back (the holder's choice), then the config's
@@ -705,10 +701,7 @@ impl Hub {
         self.lease = None;
         let _ = self.s.commands.try_send(ServoCommand::StreamEnded);
         if self.lease_fallback.take().is_some() {
-            let to = match self.s.serve.stale_fallback {
-                StaleFallback::Hold => Activity::Hold,
-                StaleFallback::Idle => Activity::Idle,
-            };
+            let to = self.s.serve.stale_fallback.activity();
             let _ = self.s.commands.try_send(ServoCommand::Fallback(to));
         }
     }
