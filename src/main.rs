@@ -456,6 +456,7 @@ fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
 fn haptic_options(
     args: &RunArgs,
     cfg: &mut omnid::config::Config,
+    stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
 ) -> Result<omnid::haptics::HapticRun, String> {
     if let Some(name) = &args.hand {
         if args.device != DeviceSpec::Sim {
@@ -465,7 +466,7 @@ fn haptic_options(
             .map_err(|e| format!("--hand: {e}"))?;
     }
     let effects = match &args.scene {
-        Some(path) => omnid::haptics::scene::read_scene(path)?,
+        Some(path) => omnid::haptics::scene::read_scene(path, Some(stop))?,
         None => Vec::new(),
     };
     if !effects.is_empty() && args.mode != RunMode::Free {
@@ -484,7 +485,7 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         Err(code) => return Ok(code),
     };
     let replay = matches!(args.device, DeviceSpec::Replay(_));
-    let haptics = match haptic_options(&args, &mut cfg) {
+    let haptics = match haptic_options(&args, &mut cfg, &stop) {
         Ok(h) => h,
         Err(e) => {
             omnid::errln!("omnid: {e}");

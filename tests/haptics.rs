@@ -121,6 +121,11 @@ fn bad_haptic_options_are_refused_naming_the_problem() {
             "effect[0].damping_n_s_per_m",
         ),
         (vec!["run", "--fast", "--scene", &s], "damping_n_s_per_m"),
+        // A special file that reports no size is still read capped (it used to be read whole).
+        (
+            vec!["run", "--fast", "--mode", "free", "--scene", "/dev/zero"],
+            "larger than 1 MiB",
+        ),
     ] {
         let out = omnid().args(&args).output().unwrap();
         let err = String::from_utf8_lossy(&out.stderr);

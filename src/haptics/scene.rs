@@ -38,16 +38,20 @@ pub fn parse_scene(text: &str, name: &str) -> Result<Vec<Effect>, String> {
 }
 
 /// Read and check a scene file (at most 1 MiB).
-pub fn read_scene(path: &Path) -> Result<Vec<Effect>, String> {
+pub fn read_scene(
+    path: &Path,
+    stop: Option<&std::sync::Arc<std::sync::atomic::AtomicBool>>,
+) -> Result<Vec<Effect>, String> {
     let name = path.display().to_string();
-    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read scene {name}: {e}"))?;
-    if meta.len() > 1 << 20 {
-        return Err(format!("scene {name}: {} bytes; at most 1 MiB", meta.len()));
-    }
-    let text =
-        std::fs::read_to_string(path).map_err(|e| format!("cannot read scene {name}: {e}"))?;
+    // Capped however the file reports its size (a FIFO or /dev/zero says 0), and a pipe is
+    // waited on only with the operator's stop flag (crate::input).
+    let text = crate::input::read_capped(path, MAX_SCENE_BYTES, stop)
+        .map_err(|e| format!("cannot read scene {name}: {e}"))?;
     parse_scene(&text, &name)
 }
+
+/// The largest scene file read.
+const MAX_SCENE_BYTES: u64 = 1 << 20;
 
 #[cfg(test)]
 mod tests {
