@@ -2,7 +2,8 @@
 //! force the servo applies at the next tick (the frame on state k is on time when state k + 1
 //! carries `cmd_seq = k`), beside the same fraction for a plain client of the socket that
 //! answers every state with a `servo_jf` (serve's own round trip, as `benches/serve.rs`
-//! measures it).
+//! measures it). Both are judged by the same watching client, so the daemon streams to two
+//! clients in both phases.
 //!
 //! `cargo bench --bench hdapi -- SECONDS` (each phase, default 10 s). Prints a table and
 //! writes `target/hdapi-bench.json`. Timing on a shared machine is noisy: this prints, it
@@ -16,7 +17,6 @@ use omnid::serve::client::{Client, Message};
 use serde_json::json;
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
 
 /// On-time transitions k → k + 1 among consecutive streamed states in a stream mode.
 #[derive(Default, Debug, Clone, Copy)]
@@ -94,31 +94,38 @@ fn libhd(hd: &HD, daemon: &Daemon, secs: f64) -> (OnTime, String) {
     (r, frames)
 }
 
-/// A plain client answering every state k with `servo_jf` seq = k (zero torque).
+/// A plain client answering every state k with `servo_jf` seq = k (zero torque), judged by
+/// a watching client as libHD's frames are (so the daemon streams to two clients in both).
 fn plain(daemon: &Daemon, secs: f64) -> OnTime {
-    let mut c = daemon.client("bench-plain");
-    c.request(json!({"op": "lease"})).unwrap();
-    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
-    let mut r = OnTime::default();
-    let mut prev = None;
-    let until = Instant::now() + Duration::from_secs_f64(secs + 0.5);
-    let measure_from = Instant::now() + Duration::from_millis(500);
-    while Instant::now() < until {
-        let s = match c.recv(2000) {
-            Ok(Message::State(s)) => s,
-            Ok(_) => continue,
-            Err(e) => panic!("plain client: {e}"),
-        };
-        c.send(&json!({"op": "servo_jf", "seq": s.seq, "tau": [0.0, 0.0, 0.0], "ttl_ms": 10}))
-            .unwrap();
-        let streaming = s.mode.starts_with("servo_");
-        if Instant::now() >= measure_from {
-            r.add(prev, s.seq, s.cmd_seq, streaming);
-        }
-        prev = Some((s.seq, streaming));
-    }
-    let _ = c.request(json!({"op": "mode", "mode": "idle"}));
-    let _ = c.request(json!({"op": "release"}));
+    let mut watch = daemon.client("bench-watch");
+    watch
+        .request(json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let answering = {
+        let mut c = daemon.client("bench-plain");
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            c.request(json!({"op": "lease"})).unwrap();
+            c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                let s = match c.recv(2000) {
+                    Ok(Message::State(s)) => s,
+                    Ok(_) => continue,
+                    Err(e) => panic!("plain client: {e}"),
+                };
+                c.send(
+                    &json!({"op": "servo_jf", "seq": s.seq, "tau": [0.0, 0.0, 0.0], "ttl_ms": 10}),
+                )
+                .unwrap();
+            }
+            let _ = c.request(json!({"op": "mode", "mode": "idle"}));
+            let _ = c.request(json!({"op": "release"}));
+        })
+    };
+    let r = observe(&mut watch, secs);
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    answering.join().expect("plain client");
     r
 }
 

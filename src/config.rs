@@ -112,7 +112,7 @@ impl Config {
         self.safety.validate()?;
         self.identifier.validate()?;
         self.realtime.validate()?;
-        self.serve.validate()?;
+        self.serve.validate(self.realtime.fifo_priority)?;
         self.usb.validate()?;
         self.firewire.validate()?;
         self.inject.validate()?;

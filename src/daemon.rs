@@ -198,7 +198,7 @@ pub fn serve(
     }
     let (handle, ending) = pipeline.spawn()?;
     let dump_dir = setup.state_dir.clone();
-    let hub_report = hub::Hub::new(setup).run();
+    let hub_report = serve_clients(setup, cfg.serve.hub_fifo_priority);
     let (report, realtime) = join_servo(handle)?;
     ending.save_heat(&report);
     let mut summary = crate::servo::summary::RunSummary::from_results(
@@ -247,4 +247,19 @@ pub fn serve(
         recording_error: hub_report.recording_error,
         socket: socket_path,
     })
+}
+
+/// Run the hub on this thread until the servo ends, at the configured realtime priority (the
+/// hub is on every stream client's round trip) and back on the normal scheduler afterwards.
+fn serve_clients(setup: hub::HubSetup, fifo_priority: i32) -> hub::HubReport {
+    if fifo_priority > 0 {
+        if let Err(w) = crate::servo::realtime::set_fifo_priority(fifo_priority) {
+            crate::errln!("omnid: warning: the client hub: {w}");
+        }
+    }
+    let report = hub::Hub::new(setup).run();
+    if fifo_priority > 0 {
+        let _ = crate::servo::realtime::set_fifo_priority(0);
+    }
+    report
 }

@@ -334,6 +334,8 @@ fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
         "{vrpn}"
     );
     consistent(&sample(&vrpn, "sync"), "vrpn sync");
+    // Requests answered while the scheduler's thread reads the socket: no error, no hang.
+    assert_eq!(field(&vrpn, "rate"), "0 0", "{vrpn}");
     assert_eq!(field(&vrpn, "errors"), "0x104 0x100 0x401 0");
     assert!(field(&vrpn, "string").contains("omnid"), "{vrpn}");
 
@@ -379,6 +381,14 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     }
     consistent(&sample(&printed, "sample"), "chai");
     assert!(printed.contains("force-set 0.500000 0 0"), "{printed}");
+
+    // Where realtime priorities are permitted, the frame's round trip runs on them: the
+    // program's scheduler thread below the daemon's client hub (its main thread), both below
+    // the servo (docs/HDAPI.md, Scheduler).
+    if hd::may_use_fifo(70) {
+        assert_eq!(hd::thread_sched(chai.id(), "omnid-hd-servo"), Some((1, 60)));
+        assert_eq!(hd::thread_sched(daemon.pid(), "omnid"), Some((1, 70)));
+    }
 
     // The servo applies Jᵀ F (within a DAC step of 2.2e-4 N·m and the tick's motion) once
     // its start-up ramp is over, and the arm turns about its base towards +x.

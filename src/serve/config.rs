@@ -45,6 +45,11 @@ pub struct ServeConfig {
     pub ring_s: f64,
     /// Directory for fault dumps; empty: $OMNID_STATE_DIR or ~/.local/state/omnid.
     pub dump_dir: String,
+    /// SCHED_FIFO priority of the thread that serves clients (1..=98, below
+    /// `realtime.fifo_priority`); 0 leaves the normal scheduler. The hub is on every stream
+    /// client's round trip (state out, command in, within one tick), so a busy machine must
+    /// not preempt it.
+    pub hub_fifo_priority: i32,
 }
 
 impl Default for ServeConfig {
@@ -60,12 +65,14 @@ impl Default for ServeConfig {
             client_queue: 1024,
             ring_s: 10.0,
             dump_dir: String::new(),
+            hub_fifo_priority: 70,
         }
     }
 }
 
 impl ServeConfig {
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    /// `servo_fifo_priority` is `realtime.fifo_priority`: the hub must stay below the servo.
+    pub fn validate(&self, servo_fifo_priority: i32) -> Result<(), ConfigError> {
         check::in_range(
             "serve.stream_ttl_ms",
             self.stream_ttl_ms,
@@ -80,6 +87,23 @@ impl ServeConfig {
             10.0,
             "0 ..= 10 s",
         )?;
+        if !(0..=98).contains(&self.hub_fifo_priority) {
+            return Err(check::invalid(
+                "serve.hub_fifo_priority",
+                self.hub_fifo_priority.to_string(),
+                "0 ..= 98",
+            ));
+        }
+        if self.hub_fifo_priority > 0
+            && servo_fifo_priority > 0
+            && self.hub_fifo_priority >= servo_fifo_priority
+        {
+            return Err(check::invalid(
+                "serve.hub_fifo_priority",
+                self.hub_fifo_priority.to_string(),
+                format!("below realtime.fifo_priority ({servo_fifo_priority}), so the hub never delays a tick"),
+            ));
+        }
         check::in_range("serve.ring_s", self.ring_s, 0.0, 600.0, "0 ..= 600 s")?;
         if !(1..=1024).contains(&self.max_clients) {
             return Err(check::invalid(
@@ -128,13 +152,13 @@ mod tests {
 
     #[test]
     fn defaults_are_valid_and_bad_values_name_the_field() {
-        ServeConfig::default().validate().unwrap();
+        ServeConfig::default().validate(80).unwrap();
         let bad = ServeConfig {
             stream_ttl_ms: 0.0,
             ..Default::default()
         };
         assert!(bad
-            .validate()
+            .validate(80)
             .unwrap_err()
             .to_string()
             .contains("serve.stream_ttl_ms"));
@@ -143,9 +167,20 @@ mod tests {
             ..Default::default()
         };
         assert!(bad
-            .validate()
+            .validate(80)
             .unwrap_err()
             .to_string()
             .contains("serve.control_group"));
+        let above_servo = ServeConfig {
+            hub_fifo_priority: 80,
+            ..Default::default()
+        };
+        let e = above_servo.validate(80).unwrap_err().to_string();
+        assert!(
+            e.contains("serve.hub_fifo_priority") && e.contains("below"),
+            "{e}"
+        );
+        // With the servo on the normal scheduler, any hub priority is allowed.
+        above_servo.validate(0).unwrap();
     }
 }

@@ -145,22 +145,36 @@ pub fn apply(cfg: &RealtimeConfig) -> RealtimeReport {
 
     // Priority last, once everything that may block or allocate is done.
     if cfg.fifo_priority > 0 {
-        let param = libc::sched_param {
-            sched_priority: cfg.fifo_priority,
-        };
-        // SAFETY: param is a valid sched_param; 0 means the calling thread.
-        let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
-        if rc == 0 {
-            r.fifo_priority = Some(cfg.fifo_priority);
-        } else {
-            r.warnings.push(format!(
-                "SCHED_FIFO priority {} not permitted ({}): {LIMITS_HINT}",
-                cfg.fifo_priority,
-                std::io::Error::last_os_error()
-            ));
+        match set_fifo_priority(cfg.fifo_priority) {
+            Ok(()) => r.fifo_priority = Some(cfg.fifo_priority),
+            Err(w) => r.warnings.push(w),
         }
     }
     r
+}
+
+/// Put the calling thread on SCHED_FIFO at `priority` (1..=99), or 0: back on the normal
+/// scheduler. Not permitted: the warning to print, naming the fix.
+pub fn set_fifo_priority(priority: i32) -> Result<(), String> {
+    let (policy, param) = if priority > 0 {
+        (
+            libc::SCHED_FIFO,
+            libc::sched_param {
+                sched_priority: priority,
+            },
+        )
+    } else {
+        (libc::SCHED_OTHER, libc::sched_param { sched_priority: 0 })
+    };
+    // SAFETY: param is a valid sched_param; 0 means the calling thread.
+    if unsafe { libc::sched_setscheduler(0, policy, &param) } == 0 {
+        Ok(())
+    } else {
+        Err(format!(
+            "SCHED_FIFO priority {priority} not permitted ({}): {LIMITS_HINT}",
+            std::io::Error::last_os_error()
+        ))
+    }
 }
 
 #[cfg(test)]

@@ -244,6 +244,11 @@ impl Daemon {
         d
     }
 
+    /// The daemon's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, |c| c.id())
+    }
+
     /// Stop the daemon (SIGTERM: zero torque, goodbye to every client) and wait for it.
     pub fn stop(&mut self) {
         if let Some(mut c) = self.child.take() {
@@ -264,5 +269,39 @@ impl Drop for Daemon {
             let _ = c.kill();
             let _ = c.wait();
         }
+    }
+}
+
+/// The scheduling policy and realtime priority of process `pid`'s thread named `name`
+/// (`/proc/PID/task/TID/stat`, fields 41 and 40; policy 1 is SCHED_FIFO), if it has one.
+pub fn thread_sched(pid: u32, name: &str) -> Option<(u32, u32)> {
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))
+        .ok()?
+        .flatten()
+    {
+        let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
+        if comm.trim_end() != name {
+            continue;
+        }
+        let stat = std::fs::read_to_string(task.path().join("stat")).ok()?;
+        // Fields after the command name (which may hold spaces) start at field 3.
+        let rest: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+        let field = |n: usize| rest.get(n - 3).and_then(|v| v.parse().ok());
+        return Some((field(41)?, field(40)?));
+    }
+    None
+}
+
+/// This process may take SCHED_FIFO at `priority` (root, or an `rtprio` limit that allows it).
+pub fn may_use_fifo(priority: u32) -> bool {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: plain libc calls; `lim` is a valid rlimit to fill.
+    unsafe {
+        libc::geteuid() == 0
+            || (libc::getrlimit(libc::RLIMIT_RTPRIO, &mut lim) == 0
+                && lim.rlim_cur >= priority as libc::rlim_t)
     }
 }

@@ -1,17 +1,17 @@
-//! One device: a connection to `omnid serve` with a receiving thread that keeps the latest
-//! state sample (so reads outside a frame and before the scheduler starts are fresh), answers
-//! to our requests, and the frame (snapshot in, force out). docs/HDAPI.md, Devices and Frames.
+//! One device: a connection to `omnid serve` (its [`Link`] keeps the latest state sample, so
+//! reads outside a frame and before the scheduler starts are fresh, and our requests'
+//! answers) and the frame (snapshot in, force out). docs/HDAPI.md, Devices and Frames.
 
 use crate::kin;
+use crate::link::{Link, WaitEnd};
 use omnid::serve::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
 use omnid::serve::socket::Conn;
 use serde_json::{json, Value};
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use thiserror::Error;
 
 /// How long a stream command stays in effect at the daemon: a client that stops sending
@@ -31,20 +31,6 @@ pub enum DeviceError {
     Timeout,
     #[error("the connection to the daemon is closed")]
     Closed,
-}
-
-/// What the receiving thread shares.
-#[derive(Default)]
-struct Inbox {
-    latest: Option<State>,
-    /// Samples received (the scheduler runs one frame per sample).
-    samples: u64,
-    /// Receipt time of the latest sample and the device time between the last two.
-    dt: f64,
-    /// The stylus has been seen in its inkwell since the device was opened.
-    inkwell_seen: bool,
-    replies: HashMap<u64, Value>,
-    closed: bool,
 }
 
 /// The frame in progress and what the last one committed.
@@ -70,11 +56,9 @@ pub struct Frame {
 
 pub struct Device {
     pub hhd: u32,
-    conn: Arc<Conn>,
+    link: Arc<Link>,
     pub hello: Hello,
     pub socket: PathBuf,
-    inbox: Arc<(Mutex<Inbox>, Condvar)>,
-    closing: Arc<AtomicBool>,
     rx: Mutex<Option<JoinHandle<()>>>,
     next_id: AtomicU64,
     pub frame: Mutex<Frame>,
@@ -127,24 +111,16 @@ impl Device {
         let conn = Conn::connect(socket)
             .map_err(|e| DeviceError::NoDaemon(format!("{}: {e}", socket.display())))?;
         let hello = greet(&conn)?;
-        let conn = Arc::new(conn);
-        let inbox = Arc::new((Mutex::new(Inbox::default()), Condvar::new()));
-        let closing = Arc::new(AtomicBool::new(false));
-        let rx = {
-            let (conn, inbox, closing) = (conn.clone(), inbox.clone(), closing.clone());
-            std::thread::Builder::new()
-                .name("omnid-hd-rx".into())
-                .spawn(move || receive(&conn, &inbox, &closing))
-                .map_err(|e| DeviceError::Refused(format!("cannot start a thread: {e}")))?
-        };
+        let link = Arc::new(Link::new(conn));
+        let rx = link
+            .spawn_receiver()
+            .map_err(|e| DeviceError::Refused(format!("cannot start a thread: {e}")))?;
         let servo_cf = hello.modes.iter().any(|m| m == "servo_cf");
         let d = Device {
             hhd,
-            conn,
+            link,
             hello,
             socket: socket.to_path_buf(),
-            inbox,
-            closing,
             rx: Mutex::new(Some(rx)),
             next_id: AtomicU64::new(1),
             frame: Mutex::new(Frame::default()),
@@ -164,60 +140,49 @@ impl Device {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         req["id"] = json!(id);
         self.send(&req)?;
-        let (m, cv) = &*self.inbox;
-        let until = Instant::now() + ANSWER_TIMEOUT;
-        let mut inbox = lock(m);
-        loop {
-            if let Some(v) = inbox.replies.remove(&id) {
-                return if v["type"] == "error" {
-                    Err(DeviceError::Refused(
-                        v["message"].as_str().unwrap_or("refused").to_string(),
-                    ))
-                } else {
-                    Ok(v)
-                };
-            }
-            if inbox.closed {
-                return Err(DeviceError::Closed);
-            }
-            let left = until.saturating_duration_since(Instant::now());
-            if left.is_zero() {
-                return Err(DeviceError::Timeout);
-            }
-            inbox = cv
-                .wait_timeout(inbox, left)
-                .unwrap_or_else(|e| e.into_inner())
-                .0;
+        let v = self
+            .link
+            .wait_for(ANSWER_TIMEOUT, |i| i.replies.remove(&id))
+            .map_err(|e| match e {
+                WaitEnd::Closed => DeviceError::Closed,
+                WaitEnd::Timeout => DeviceError::Timeout,
+            })?;
+        if v["type"] == "error" {
+            Err(DeviceError::Refused(
+                v["message"].as_str().unwrap_or("refused").to_string(),
+            ))
+        } else {
+            Ok(v)
         }
     }
 
     pub fn send(&self, msg: &Value) -> Result<(), DeviceError> {
         let bytes = serde_json::to_vec(msg).map_err(|_| DeviceError::Closed)?;
-        self.conn.send(&bytes).map_err(|_| DeviceError::Closed)
+        self.link.conn.send(&bytes).map_err(|_| DeviceError::Closed)
     }
 
     /// The latest sample (None before the first).
     pub fn latest(&self) -> Option<State> {
-        lock(&self.inbox.0).latest.clone()
+        self.link.inbox().latest.clone()
     }
 
     /// Samples received so far.
     pub fn samples(&self) -> u64 {
-        lock(&self.inbox.0).samples
+        self.link.inbox().samples
     }
 
     pub fn inkwell_seen(&self) -> bool {
-        lock(&self.inbox.0).inkwell_seen
+        self.link.inbox().inkwell_seen
     }
 
     /// The daemon closed the connection (or said goodbye).
     pub fn is_closed(&self) -> bool {
-        lock(&self.inbox.0).closed
+        self.link.inbox().closed
     }
 
     /// The device's rate as measured over the last two samples, Hz.
     pub fn instantaneous_rate(&self) -> f64 {
-        let dt = lock(&self.inbox.0).dt;
+        let dt = self.link.inbox().dt;
         if dt > 0.0 {
             1.0 / dt
         } else {
@@ -228,22 +193,19 @@ impl Device {
     /// Wait until more than `seen` samples have arrived: the new count, or None on time-out
     /// or when the connection closed.
     pub fn wait_sample(&self, seen: u64, timeout: Duration) -> Option<u64> {
-        let (m, cv) = &*self.inbox;
-        let until = Instant::now() + timeout;
-        let mut inbox = lock(m);
-        loop {
-            if inbox.samples > seen {
-                return Some(inbox.samples);
-            }
-            let left = until.saturating_duration_since(Instant::now());
-            if inbox.closed || left.is_zero() {
-                return None;
-            }
-            inbox = cv
-                .wait_timeout(inbox, left)
-                .unwrap_or_else(|e| e.into_inner())
-                .0;
-        }
+        self.link
+            .wait_for(timeout, |i| (i.samples > seen).then_some(i.samples))
+            .ok()
+    }
+
+    /// The calling thread (the scheduler's) reads this device's socket from now on, so a
+    /// sample wakes it directly; [`Device::give_back_reading`] ends that.
+    pub fn take_reading(&self) {
+        self.link.take_reading();
+    }
+
+    pub fn give_back_reading(&self) {
+        self.link.give_back_reading();
     }
 
     /// The scheduler begins a tick (`Some`: its sample) or stopped (`None`).
@@ -336,9 +298,7 @@ impl Device {
     /// Close the connection and join the receiving thread.
     pub fn close(&self) {
         self.stand_down();
-        self.closing.store(true, Ordering::Relaxed);
-        // SAFETY: shutdown on a descriptor we own; it wakes the receiver's poll.
-        unsafe { libc::shutdown(self.conn.raw(), libc::SHUT_RDWR) };
+        self.link.shut();
         if let Some(h) = lock(&self.rx).take() {
             let _ = h.join();
         }
@@ -373,50 +333,4 @@ fn greet(conn: &Conn) -> Result<Hello, DeviceError> {
             _ => {}
         }
     }
-}
-
-/// The receiving thread: samples into the inbox (waking the scheduler), replies by id.
-fn receive(conn: &Conn, inbox: &(Mutex<Inbox>, Condvar), closing: &AtomicBool) {
-    let (m, cv) = inbox;
-    let mut buf = vec![0u8; MAX_MESSAGE + 1];
-    while !closing.load(Ordering::Relaxed) {
-        match conn.wait_readable(100) {
-            Ok(true) => {}
-            Ok(false) => continue,
-            Err(_) => break,
-        }
-        let n = match conn.recv(&mut buf) {
-            Ok(0) | Err(_) => break,
-            Ok(n) => n.min(buf.len()),
-        };
-        let Ok(v) = serde_json::from_slice::<Value>(&buf[..n]) else {
-            continue;
-        };
-        let mut i = lock(m);
-        match v["type"].as_str() {
-            Some("state") => {
-                if let Ok(s) = serde_json::from_value::<State>(v) {
-                    if let Some(prev) = &i.latest {
-                        let dt = s.t - prev.t;
-                        if dt > 0.0 {
-                            i.dt = dt;
-                        }
-                    }
-                    i.inkwell_seen |= s.inkwell;
-                    i.latest = Some(s);
-                    i.samples += 1;
-                }
-            }
-            Some("bye") => break,
-            _ => {
-                if let Some(id) = v.get("id").and_then(Value::as_u64) {
-                    i.replies.insert(id, v);
-                }
-            }
-        }
-        drop(i);
-        cv.notify_all();
-    }
-    lock(m).closed = true;
-    cv.notify_all();
 }

@@ -7,6 +7,7 @@ pub mod consts;
 mod device;
 mod error;
 mod kin;
+mod link;
 mod params;
 mod registry;
 mod scheduler;

@@ -87,6 +87,9 @@ impl Ticker for Registry {
                 Some(seen + 1)
             }
             Some(d) => {
+                // The scheduler reads this device's socket itself: the sample wakes it, and
+                // the frame's force leaves on the same wake-up (docs/HDAPI.md, Scheduler).
+                d.take_reading();
                 let seen = seen.min(d.samples());
                 d.wait_sample(seen, Duration::from_millis(100))
             }
@@ -100,6 +103,9 @@ impl Ticker for Registry {
     fn tick_sample(&self, ticking: bool) {
         for d in self.all() {
             d.set_tick(ticking);
+            if !ticking {
+                d.give_back_reading();
+            }
         }
     }
 

@@ -52,6 +52,29 @@ pub struct Scheduler {
     cv: Condvar,
 }
 
+/// The scheduler thread's SCHED_FIFO priority unless `$OMNID_HD_FIFO_PRIORITY` says otherwise
+/// (0: the normal scheduler): below the daemon's servo (80) and client hub (70), above
+/// everything else, as the vendor's servo thread runs (docs/HDAPI.md, Scheduler).
+const DEFAULT_FIFO_PRIORITY: i32 = 60;
+
+/// Raise the calling thread (the scheduler's) to its realtime priority where permitted: a
+/// frame answers its sample within the same device tick only if a busy machine cannot
+/// preempt it. Not permitted (no `rtprio` limit), it runs on the normal scheduler, silently.
+fn raise_priority() {
+    let priority = std::env::var("OMNID_HD_FIFO_PRIORITY")
+        .ok()
+        .and_then(|v| v.trim().parse::<i32>().ok())
+        .unwrap_or(DEFAULT_FIFO_PRIORITY)
+        .clamp(0, 99);
+    if priority > 0 {
+        let param = libc::sched_param {
+            sched_priority: priority,
+        };
+        // SAFETY: a valid sched_param; 0 is the calling thread.
+        let _ = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+    }
+}
+
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -182,6 +205,7 @@ impl Scheduler {
     }
 
     fn run(&self, ticker: &dyn Ticker) {
+        raise_priority();
         let mut seen = 0;
         loop {
             if lock(&self.inner).stop {

@@ -1,6 +1,7 @@
 /* VRPN's call order (docs/HDAPI.md, Testing): synchronous callbacks that read state without
- * a frame, and a read on the main thread outside the scheduler. Also the errors a program
- * sees for calls it gets wrong. */
+ * a frame, and a read on the main thread outside the scheduler. Also requests to the daemon
+ * while the scheduler's thread reads the socket (from the main thread and from a callback on
+ * that thread), and the errors a program sees for calls it gets wrong. */
 #include "hdtest.h"
 
 static Sample in_sync;
@@ -9,6 +10,15 @@ static HDCallbackCode HDCALLBACK read_state(void *data)
 {
     (void)data;
     read_sample(&in_sync);
+    return HD_CALLBACK_DONE;
+}
+
+static HDerror rate_error_in_callback = 0x7fff;
+
+static HDCallbackCode HDCALLBACK set_rate(void *data)
+{
+    hdSetSchedulerRate(*(HDulong *)data);
+    rate_error_in_callback = hdGetError().errorCode;
     return HD_CALLBACK_DONE;
 }
 
@@ -27,6 +37,15 @@ int main(void)
         check("hdScheduleSynchronous");
     }
     print_sample("sync", &in_sync);
+
+    /* Each of these waits for the daemon's answer, which the scheduler's thread reads. */
+    hdSetSchedulerRate(500);
+    HDerror rate_error_on_main = hdGetError().errorCode;
+    HDulong rate = 1000;
+    hdScheduleSynchronous(set_rate, &rate, HD_DEFAULT_SCHEDULER_PRIORITY);
+    hdScheduleSynchronous(read_state, NULL, HD_DEFAULT_SCHEDULER_PRIORITY);
+    check("a tick after the requests");
+    printf("rate %#x %#x\n", rate_error_on_main, rate_error_in_callback);
 
     /* Usage errors: each pushes its code, most recent first. */
     hdEndFrame(hhd);                      /* no frame begun */
