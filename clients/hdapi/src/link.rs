@@ -32,6 +32,8 @@ pub struct Inbox {
     pub inkwell_seen: bool,
     pub replies: HashMap<u64, Value>,
     pub closed: bool,
+    /// The thread that filed the last message (which thread reads is the point of [`Link`]).
+    pub filed_by: Option<ThreadId>,
 }
 
 /// Why a wait on the inbox ended without what it waited for.
@@ -171,6 +173,11 @@ impl Link {
             Ok(false) => return,
             Err(_) => return self.close_inbox(),
         }
+        if !self.reads_here() {
+            // Taken over while we waited: the new reader is waiting for this message.
+            return;
+        }
+        lock(&self.inbox).filed_by = Some(std::thread::current().id());
         for _ in 0..MAX_BATCH {
             let n = match self.conn.recv(&mut buf) {
                 Ok(0) | Err(_) => return self.close_inbox(),
@@ -227,5 +234,103 @@ impl Link {
         // SAFETY: shutdown on a descriptor we own; it wakes a reader's poll.
         unsafe { libc::shutdown(self.conn.raw(), libc::SHUT_RDWR) };
         self.reader_back.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use omnid::serve::socket::Listener;
+    use serde_json::json;
+
+    fn state(seq: u64) -> Vec<u8> {
+        let zero = [0.0; 3];
+        json!({"type": "state", "seq": seq, "t": seq as f64 * 1e-3, "q": zero, "qd": zero,
+               "tip_mm": zero, "buttons": [false, false], "inkwell": false, "tau": zero,
+               "tau_hat": zero, "controller": "pd", "mode": "idle", "amps": false,
+               "flags": 0, "cmd_seq": 0})
+        .to_string()
+        .into_bytes()
+    }
+
+    /// A connected pair: (the library's link, the daemon's end).
+    fn pair() -> (Arc<Link>, Conn) {
+        let dir = std::env::temp_dir().join(format!("omnid-hd-link-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("t.sock");
+        let _ = std::fs::remove_file(&path);
+        let listener = Listener::bind(&path, None).unwrap();
+        let client = Conn::connect(&path).unwrap();
+        let until = Instant::now() + Duration::from_secs(5);
+        let server = loop {
+            if let Some(c) = listener.accept().unwrap() {
+                break c;
+            }
+            assert!(Instant::now() < until, "no connection");
+            std::thread::yield_now();
+        };
+        let _ = std::fs::remove_dir_all(&dir);
+        (Arc::new(Link::new(client)), server)
+    }
+
+    const WAIT: Duration = Duration::from_secs(5);
+
+    #[test]
+    fn the_thread_that_takes_over_reads_files_replies_for_others_and_hands_back() {
+        let (link, daemon) = pair();
+        let rx = link.spawn_receiver().unwrap();
+        let rx_id = rx.thread().id();
+
+        // Nobody took over: the receiving thread files, another thread is woken.
+        daemon.send(&state(1)).unwrap();
+        link.wait_for(WAIT, |i| (i.samples >= 1).then_some(()))
+            .unwrap();
+        assert_eq!(link.inbox().filed_by, Some(rx_id));
+
+        // A "scheduler" takes over: it reads its samples itself, and a reply another thread
+        // waits for is filed for that thread on the way.
+        let (took_over, go) = (
+            Arc::new(std::sync::Barrier::new(2)),
+            Arc::new(std::sync::Barrier::new(2)),
+        );
+        let scheduler = {
+            let (link, took_over, go) = (link.clone(), took_over.clone(), go.clone());
+            std::thread::spawn(move || {
+                link.take_reading();
+                took_over.wait();
+                go.wait();
+                let n = link.wait_for(WAIT, |i| (i.samples >= 3).then_some(i.samples));
+                let by = link.inbox().filed_by;
+                link.give_back_reading();
+                (n, by, std::thread::current().id())
+            })
+        };
+        took_over.wait();
+        let requester = {
+            let link = link.clone();
+            std::thread::spawn(move || link.wait_for(WAIT, |i| i.replies.remove(&7)))
+        };
+        go.wait();
+        daemon
+            .send(&json!({"type": "ok", "id": 7}).to_string().into_bytes())
+            .unwrap();
+        daemon.send(&state(2)).unwrap();
+        daemon.send(&state(3)).unwrap();
+        let (n, by, scheduler_id) = scheduler.join().unwrap();
+        assert_eq!(n, Ok(3));
+        assert_eq!(by, Some(scheduler_id), "the scheduler read its own samples");
+        assert_eq!(requester.join().unwrap().unwrap()["id"], 7);
+
+        // Handed back: the receiving thread reads again (a waiter that is not the reader).
+        daemon.send(&state(4)).unwrap();
+        link.wait_for(WAIT, |i| (i.samples >= 4).then_some(()))
+            .unwrap();
+        assert_eq!(link.inbox().filed_by, Some(rx_id));
+
+        // The daemon's goodbye closes the link for every waiter.
+        daemon.send(br#"{"type":"bye"}"#).unwrap();
+        assert_eq!(link.wait_for(WAIT, |_| None::<()>), Err(WaitEnd::Closed));
+        link.shut();
+        rx.join().unwrap();
     }
 }
