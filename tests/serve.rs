@@ -881,3 +881,71 @@ fn effects_render_in_free_mode_and_bad_ones_are_refused() {
     let e = refused(c.request(json!({"op": "effect", "slot": 0, "effect": {"type": "vortex"}})));
     assert!(e.contains("vortex"), "{e}");
 }
+
+/// Out of file descriptors, the daemon tells each new client why at once (it neither leaves
+/// them waiting nor spins on its listener), says so once on stderr, and serves again when
+/// clients leave.
+#[test]
+fn a_daemon_out_of_descriptors_refuses_with_the_reason_and_recovers() {
+    let dir = tempfile::tempdir().unwrap();
+    let socket = dir.path().join("sim.sock");
+    let mut cmd = omnid();
+    cmd.args(["serve", "--device", "sim", "--socket"])
+        .arg(&socket)
+        .env("OMNID_STATE_DIR", dir.path().join("state"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    // SAFETY: setrlimit is async-signal-safe; it runs in the child before exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            let lim = libc::rlimit {
+                rlim_cur: 40,
+                rlim_max: 40,
+            };
+            if libc::setrlimit(libc::RLIMIT_NOFILE, &lim) == 0 {
+                Ok(())
+            } else {
+                Err(std::io::Error::last_os_error())
+            }
+        });
+    }
+    let mut d = Daemon {
+        child: Some(cmd.spawn().expect("omnid serve starts")),
+        dir,
+        socket,
+    };
+    d.wait_for_socket();
+
+    let mut held = Vec::new();
+    let refusal = loop {
+        assert!(held.len() < 100, "40 descriptors never ran out");
+        match Client::connect(&d.socket, "many") {
+            Ok(c) => held.push(c),
+            Err(e) => break e.to_string(),
+        }
+    };
+    assert!(refusal.contains("Too many open files"), "{refusal}");
+    for _ in 0..20 {
+        let e = Client::connect(&d.socket, "more").err().expect("refused");
+        assert!(e.to_string().contains("Too many open files"), "{e}");
+    }
+
+    // The clients leave; a new one is served (the listener rests at most 100 ms).
+    held.clear();
+    let until = Instant::now() + Duration::from_secs(20);
+    loop {
+        if let Ok(mut c) = Client::connect(&d.socket, "after") {
+            c.request(json!({"op": "status"})).unwrap();
+            break;
+        }
+        assert!(Instant::now() < until, "the daemon did not serve again");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+
+    // SAFETY: kill with a live child's pid.
+    assert_eq!(unsafe { libc::kill(d.pid(), libc::SIGTERM) }, 0);
+    let (code, err) = d.wait();
+    assert_eq!(code, Some(130), "{err}");
+    let said = err.matches("omnid serve: accept:").count();
+    assert!((1..=3).contains(&said), "said {said} times:\n{err}");
+}

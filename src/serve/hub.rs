@@ -180,6 +180,23 @@ pub struct Hub {
     dumps: Vec<PathBuf>,
     shutdown_requested: bool,
     buf: Vec<u8>,
+    /// Accepting fails (said once per episode, not once per wake-up).
+    accept_failing: bool,
+    /// After an accept error nothing could answer, the listener rests until then.
+    accept_paused_until: Option<std::time::Instant>,
+}
+
+/// How long the listener rests after an accept error that could not be answered.
+const ACCEPT_PAUSE: std::time::Duration = std::time::Duration::from_millis(100);
+
+/// Say why to a client that will not be served, and take what it sent: closing with its hello
+/// unread would reset the connection and could discard the reason before the client reads it.
+fn refuse(conn: &Conn, message: String) {
+    let _ = conn.send(&encode(&json!({
+        "type": "error", "op": "connect", "message": message
+    })));
+    let mut sink = [0u8; 512];
+    while conn.recv(&mut sink).is_ok_and(|n| n > 0) {}
 }
 
 fn encode(v: &Value) -> Vec<u8> {
@@ -215,6 +232,8 @@ impl Hub {
             dumps: Vec::new(),
             shutdown_requested: false,
             buf: vec![0; MAX_MESSAGE + 1],
+            accept_failing: false,
+            accept_paused_until: None,
             s,
         }
     }
@@ -261,8 +280,12 @@ impl Hub {
             events: libc::POLLIN,
             revents: 0,
         });
+        let resting = self
+            .accept_paused_until
+            .is_some_and(|t| std::time::Instant::now() < t);
         fds.push(libc::pollfd {
-            fd: self.s.listener.raw(),
+            // A negative descriptor is skipped by poll: the listener rests.
+            fd: if resting { -1 } else { self.s.listener.raw() },
             events: libc::POLLIN,
             revents: 0,
         });
@@ -304,25 +327,36 @@ impl Hub {
     fn accept_all(&mut self) {
         loop {
             let conn = match self.s.listener.accept() {
-                Ok(Some(c)) => c,
+                Ok(Some(c)) => {
+                    self.accept_failing = false;
+                    c
+                }
                 Ok(None) => return,
                 Err(e) => {
-                    crate::errln!("omnid serve: accept: {e}");
+                    if !self.accept_failing {
+                        crate::errln!(
+                            "omnid serve: accept: {e} ({} clients connected); new clients are \
+                             refused until it clears",
+                            self.clients.len()
+                        );
+                        self.accept_failing = true;
+                    }
+                    let out_of_descriptors =
+                        matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE));
+                    let message = format!(
+                        "the daemon cannot take a connection now ({e}; {} clients connected)",
+                        self.clients.len()
+                    );
+                    if out_of_descriptors && self.s.listener.shed_one(|c| refuse(c, message)) {
+                        continue;
+                    }
+                    self.accept_paused_until = Some(std::time::Instant::now() + ACCEPT_PAUSE);
                     return;
                 }
             };
             let peer = match conn.peer() {
                 Ok(p) => p,
                 Err(_) => continue,
-            };
-            let refuse = |conn: &Conn, message: String| {
-                let _ = conn.send(&encode(&json!({
-                    "type": "error", "op": "connect", "message": message
-                })));
-                // Closing with the client's hello unread would reset the connection and could
-                // discard the reason before the client reads it: take what has arrived.
-                let mut sink = [0u8; 512];
-                while conn.recv(&mut sink).is_ok_and(|n| n > 0) {}
             };
             let access = match self.s.policy.decide(&peer) {
                 Ok(a) => a,

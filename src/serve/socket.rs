@@ -209,6 +209,13 @@ impl Peer {
 pub struct Listener {
     fd: OwnedFd,
     path: PathBuf,
+    /// A descriptor held in reserve (on /dev/null) for [`Listener::shed_one`].
+    reserve: std::sync::Mutex<Option<OwnedFd>>,
+}
+
+/// A descriptor on /dev/null to hold in reserve.
+fn reserve_fd() -> Option<OwnedFd> {
+    std::fs::File::open("/dev/null").ok().map(OwnedFd::from)
 }
 
 impl Listener {
@@ -241,6 +248,7 @@ impl Listener {
         let listener = Listener {
             fd,
             path: path.to_path_buf(),
+            reserve: std::sync::Mutex::new(reserve_fd()),
         };
         // Before listen(): nobody can connect yet, so nobody ever sees wider permissions.
         let c = CString::new(bytes).map_err(|_| io::ErrorKind::InvalidInput)?;
@@ -276,6 +284,28 @@ impl Listener {
         }
         // SAFETY: `fd` is new and owned by nothing else.
         Ok(Some(Conn(unsafe { OwnedFd::from_raw_fd(fd) })))
+    }
+
+    /// The process is out of descriptors (accept failed with EMFILE/ENFILE) and a client
+    /// waits: give up the reserve descriptor, accept that client so `tell` can say why, close
+    /// it, and take the reserve again. Else the connection would wait unanswered and the
+    /// listener stay readable, so the daemon's poll would spin. False when there was no
+    /// reserve to give up or nobody waited.
+    pub fn shed_one(&self, tell: impl FnOnce(&Conn)) -> bool {
+        let mut reserve = self.reserve.lock().unwrap_or_else(|e| e.into_inner());
+        if reserve.take().is_none() {
+            *reserve = reserve_fd();
+            return false;
+        }
+        let shed = match self.accept() {
+            Ok(Some(conn)) => {
+                tell(&conn);
+                true
+            }
+            _ => false,
+        };
+        *reserve = reserve_fd();
+        shed
     }
 
     pub fn raw(&self) -> RawFd {
