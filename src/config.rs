@@ -28,7 +28,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// The largest config file read (the full default config is about 12 kB).
-pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+pub(crate) const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 /// The whole configuration file.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, schemars::JsonSchema)]
@@ -94,7 +94,7 @@ impl Config {
 
     /// What the simulated Omni needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
-    pub fn check_sim(&self) -> Result<(), ConfigError> {
+    pub(crate) fn check_sim(&self) -> Result<(), ConfigError> {
         self.sim
             .check_plant(&self.device, &self.model, self.geometry)
     }

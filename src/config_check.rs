@@ -31,7 +31,7 @@ impl ConfigError {
 }
 
 /// `field` = `value` is not allowed; `allowed` says what is.
-pub fn invalid(
+pub(crate) fn invalid(
     field: impl Into<String>,
     value: impl Display,
     allowed: impl Into<String>,
@@ -44,7 +44,13 @@ pub fn invalid(
 }
 
 /// A finite `v` in `lo ..= hi`.
-pub fn in_range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+pub(crate) fn in_range(
+    field: &str,
+    v: f64,
+    lo: f64,
+    hi: f64,
+    allowed: &str,
+) -> Result<(), ConfigError> {
     if v.is_finite() && v >= lo && v <= hi {
         Ok(())
     } else {
@@ -53,7 +59,7 @@ pub fn in_range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<
 }
 
 /// A finite `v` > 0.
-pub fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
+pub(crate) fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
@@ -62,7 +68,7 @@ pub fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
 }
 
 /// An integer (or any ordered value) in `lo ..= hi`.
-pub fn int_in<T: PartialOrd + Display>(
+pub(crate) fn int_in<T: PartialOrd + Display>(
     field: &str,
     v: T,
     lo: T,

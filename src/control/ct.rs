@@ -11,9 +11,9 @@ use crate::omni::{Dynamics, Joint3};
 
 /// Outer-loop gains of the inverse-dynamics laws: K_p = ω², K_d = 2ζω (per unit inertia).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct OuterLoop {
-    pub kp: f64,
-    pub kd: f64,
+pub(crate) struct OuterLoop {
+    pub(crate) kp: f64,
+    pub(crate) kd: f64,
 }
 
 impl OuterLoop {
@@ -27,12 +27,12 @@ impl OuterLoop {
     }
 
     /// The commanded acceleration v = q̈_d + K_d(q̇_d − q̇) + K_p(q_d − q).
-    pub fn acceleration(&self, x: &Estimate, r: &RefPoint) -> Joint3 {
+    pub(crate) fn acceleration(&self, x: &Estimate, r: &RefPoint) -> Joint3 {
         r.qdd + (r.qd - x.qd) * self.kd + (r.q - x.q) * self.kp
     }
 }
 
-pub struct ComputedTorque {
+pub(crate) struct ComputedTorque {
     model: Dynamics,
     gains: OuterLoop,
 }

@@ -2,14 +2,14 @@
 //! joint torque. Every controller is behind one trait and chosen by flag.
 
 pub mod ct;
-pub mod nan_after;
+pub(crate) mod nan_after;
 pub mod nnidc;
 pub mod pd;
 pub mod reference;
 pub mod set;
 
-pub use ct::{ComputedTorque, OuterLoop};
-pub use nan_after::NanAfter;
+pub(crate) use ct::ComputedTorque;
+pub(crate) use nan_after::NanAfter;
 pub use nnidc::Nnidc;
 pub use pd::{Off, Pd};
 pub use reference::{RefPoint, Reference, ReferenceConfig, Trajectory};

@@ -6,7 +6,7 @@ use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
 /// A controller whose output turns non-finite from time T on (`nan@T`).
-pub struct NanAfter {
+pub(crate) struct NanAfter {
     pub inner: Box<dyn Controller>,
     pub at_s: f64,
 }

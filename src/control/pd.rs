@@ -26,7 +26,9 @@ impl Pd {
         Pd::new(m0 * (w * w), m0 * (2.0 * cfg.control.zeta * w))
     }
 
-    pub fn gains(&self) -> (Joint3, Joint3) {
+    /// (K_p, K_d) per joint.
+    #[cfg(test)]
+    fn gains(&self) -> (Joint3, Joint3) {
         (self.kp, self.kd)
     }
 }

@@ -128,7 +128,7 @@ pub enum Trajectory {
 }
 
 /// Most multisine components per joint (fixed storage, no allocation).
-pub const MAX_COMPONENTS: usize = 32;
+pub(crate) const MAX_COMPONENTS: usize = 32;
 
 #[derive(Debug, Clone, Copy)]
 struct Sines {

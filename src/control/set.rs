@@ -63,7 +63,8 @@ impl ControllerSet {
     }
 
     /// True while a switch is still crossfading.
-    pub fn switching(&self) -> bool {
+    #[cfg(test)]
+    pub(crate) fn switching(&self) -> bool {
         self.fading.is_some()
     }
 

@@ -27,9 +27,9 @@ impl Default for KalmanConfig {
 }
 
 /// The Kalman filter must follow a sinusoidal motion of this frequency (a fast hand motion)...
-pub const KALMAN_CHECK_HZ: f64 = 5.0;
+pub(crate) const KALMAN_CHECK_HZ: f64 = 5.0;
 /// ... with a position error of at most this fraction of the motion (the default: 1 %).
-pub const KALMAN_MAX_LAG: f64 = 0.2;
+pub(crate) const KALMAN_MAX_LAG: f64 = 0.2;
 
 impl KalmanConfig {
     /// Check every value at the servo rate `rate_hz`; the first problem names its field.
@@ -70,7 +70,7 @@ const INITIAL_ACC_VAR: f64 = 100.0;
 
 /// Kalman filter of one joint: state [q, q̇, q̈].
 #[derive(Debug, Clone, Copy)]
-pub struct JointKalman {
+pub(crate) struct JointKalman {
     x: Vector3<f64>,
     p: Matrix3<f64>,
     jerk_psd: f64,
@@ -95,7 +95,7 @@ impl JointKalman {
     }
 
     /// Start from one measurement, at rest.
-    pub fn reset(&mut self, z: f64) {
+    pub(crate) fn reset(&mut self, z: f64) {
         self.x = Vector3::new(z, 0.0, 0.0);
         self.p = Matrix3::from_diagonal(&Vector3::new(self.r, INITIAL_VEL_VAR, INITIAL_ACC_VAR));
     }
@@ -144,10 +144,6 @@ impl JointKalman {
     pub fn state(&self) -> Vector3<f64> {
         self.x
     }
-
-    pub fn covariance(&self) -> Matrix3<f64> {
-        self.p
-    }
 }
 
 /// How far the filter's position estimate falls behind a sinusoidal motion of `freq_hz`
@@ -195,7 +191,7 @@ pub fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64
 /// measurement at rest instead of extrapolating its motion through the gap (a hand changes
 /// direction within 50 ms; a prediction over longer gaps is a guess that can trip the speed
 /// limit on an arm at rest).
-pub const RESTART_GAP_S: f64 = 0.05;
+pub(crate) const RESTART_GAP_S: f64 = 0.05;
 
 /// One filter per joint, driven by the device time stamps.
 #[derive(Debug, Clone, Copy)]
@@ -261,12 +257,12 @@ impl KalmanBank {
     }
 
     /// The latest gap restarted across: (device time after it, its length), s.
-    pub fn last_gap(&self) -> Option<(f64, f64)> {
+    pub(crate) fn last_gap(&self) -> Option<(f64, f64)> {
         self.last_gap
     }
 
     /// The longest gap restarted across, s (0 if none).
-    pub fn longest_gap_s(&self) -> f64 {
+    pub(crate) fn longest_gap_s(&self) -> f64 {
         self.longest_gap_s
     }
 

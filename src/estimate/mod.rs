@@ -2,4 +2,4 @@
 
 pub mod kalman;
 
-pub use kalman::{JointKalman, KalmanBank};
+pub use kalman::KalmanBank;

@@ -7,7 +7,7 @@ use super::Force3;
 use serde::{Deserialize, Serialize};
 
 /// Most effects in a scene at once.
-pub const MAX_EFFECTS: usize = 8;
+pub(crate) const MAX_EFFECTS: usize = 8;
 
 /// One effect. Positions in mm (OpenHaptics frame, as `tip_mm`), stiffness in N/mm (as the
 /// vendor quotes it), damping in N·s/m, forces in N.
@@ -184,7 +184,7 @@ struct Slot {
 
 /// The effects in force, in fixed slots.
 #[derive(Debug, Clone, Copy)]
-pub struct Scene {
+pub(crate) struct Scene {
     slots: [Slot; MAX_EFFECTS],
     fade_s: f64,
 }
@@ -207,12 +207,6 @@ impl Scene {
         s.since = t;
         s.effect = effect;
         s.pending = true;
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.slots
-            .iter()
-            .all(|s| s.effect.is_none() && s.offset == Force3::zeros() && !s.pending)
     }
 
     /// The sum of every slot's force at `t` with the tip at `p` (m) moving at `v` (m/s).

@@ -23,7 +23,7 @@ pub enum HandPattern {
 }
 
 impl HandPattern {
-    pub const NAMES: &'static str =
+    pub(crate) const NAMES: &'static str =
         "none, hold, path, push+x, push-x, push+y, push-y, push+z, push-z";
 
     pub fn parse(s: &str) -> Option<HandPattern> {
@@ -120,14 +120,14 @@ const PUSH_TAU_S: f64 = 0.1;
 
 /// The hand as it moves: where it is (m, OpenHaptics frame) and how fast.
 #[derive(Debug, Clone, Copy)]
-pub struct Hand {
+pub(crate) struct Hand {
     cfg: HandParams,
     /// Where it grasped the stylus and the workspace centre, m.
     grasp: Force3,
     centre: Force3,
     /// The hand's own position and velocity now.
     pub pos: Force3,
-    pub vel: Force3,
+    pub(crate) vel: Force3,
     /// Pushing: the hand's offset along its direction beyond the centre, m.
     push_depth: f64,
     /// Path: the phase travelled, rad.
@@ -195,7 +195,7 @@ impl Hand {
     }
 
     /// Move the hand on to time `t + dt`; `felt` is the force the hand put on the tip last.
-    pub fn advance(&mut self, t: f64, dt: f64, felt: &Force3) {
+    pub(crate) fn advance(&mut self, t: f64, dt: f64, felt: &Force3) {
         let before = self.pos;
         let t1 = t + dt;
         // First the approach to the centre, then the pattern.

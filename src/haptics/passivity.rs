@@ -9,9 +9,9 @@
 use super::Force3;
 
 #[derive(Debug, Clone, Copy)]
-pub struct Passivity {
+pub(crate) struct Passivity {
     /// The controller acts (the observer always observes).
-    pub enabled: bool,
+    pub(crate) enabled: bool,
     /// Largest damping the controller adds, N·s/m.
     max_damping: f64,
     /// Most energy the observer keeps in hand, J.
@@ -39,7 +39,8 @@ impl Passivity {
     }
 
     /// Observed energy, J (≥ 0 while the rendering has been passive).
-    pub fn energy(&self) -> f64 {
+    #[cfg(test)]
+    pub(crate) fn energy(&self) -> f64 {
         self.energy
     }
 
@@ -79,7 +80,7 @@ impl Passivity {
     }
 
     /// Forget the history (a new contact, a mode change).
-    pub fn reset(&mut self) {
+    pub(crate) fn reset(&mut self) {
         self.energy = 0.0;
         self.last_p = None;
         self.last_force = Force3::zeros();

@@ -40,7 +40,7 @@ impl Continuous {
 }
 
 #[derive(Debug, Clone, Copy)]
-pub struct HapticLoop {
+pub(crate) struct HapticLoop {
     geometry: Geometry,
     max_force_n: f64,
     scene: Scene,
@@ -74,18 +74,13 @@ impl HapticLoop {
     }
 
     /// Put `effect` in `slot` (None removes it), faded in from time `t`.
-    pub fn set_effect(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
+    pub(crate) fn set_effect(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
         self.scene.set(slot, effect, t);
     }
 
     /// Turn the passivity controller on or off (the observer keeps observing).
-    pub fn set_passivity(&mut self, on: bool) {
+    pub(crate) fn set_passivity(&mut self, on: bool) {
         self.passivity.enabled = on;
-    }
-
-    /// Observed energy of the effects, J, and the damping the controller added last, N·s/m.
-    pub fn passivity_state(&self) -> (f64, f64) {
-        (self.passivity.energy(), self.passivity.damping)
     }
 
     /// A tick without haptics (another mode): note where the tip is, for the log, and start

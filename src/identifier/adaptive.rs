@@ -16,7 +16,7 @@ use thiserror::Error;
 use wide::f64x2;
 
 /// Weighted augmented error ε = [e1; λ1·e2; λ2·e3; λ3·e4] (dimensionless, see `torque_scale`).
-pub type Wae = SVector<f64, 12>;
+pub(crate) type Wae = SVector<f64, 12>;
 
 /// Longest step the update integrates over: a stalled loop must not turn into one huge step.
 const MAX_DT: f64 = 0.01;
@@ -105,16 +105,16 @@ pub struct ErrorSnapshot {
     /// e1 = τ − τ̂, N·m.
     pub e1: Vector3<f64>,
     /// ‖ε‖ (dimensionless).
-    pub wae_norm: f64,
+    pub(crate) wae_norm: f64,
     /// The modified error at the scale of ε (α·‖e‖, or ‖e‖ with a unit-gain filter) in N·m:
     /// the dead zone's measure.
     pub modified_norm: f64,
     /// An eigenvalue of M̂ was outside [eig_min, eig_max].
-    pub e4_active: bool,
+    pub(crate) e4_active: bool,
     /// The weights were changed this tick.
-    pub updated: bool,
+    pub(crate) updated: bool,
     /// ‖Δθ‖ over all networks this tick.
-    pub step_norm: f64,
+    pub(crate) step_norm: f64,
 }
 
 /// The adaptive neural-network identifier.
@@ -236,7 +236,7 @@ impl Identifier {
     }
 
     /// The network `net` (None for F when `friction_net` is off).
-    pub fn net(&self, net: Net) -> Option<&Mlp> {
+    pub(crate) fn net(&self, net: Net) -> Option<&Mlp> {
         match net {
             Net::M => Some(&self.m),
             Net::C => Some(&self.c),
@@ -245,7 +245,7 @@ impl Identifier {
         }
     }
 
-    pub fn net_mut(&mut self, net: Net) -> Option<&mut Mlp> {
+    pub(crate) fn net_mut(&mut self, net: Net) -> Option<&mut Mlp> {
         self.forward_at = None;
         match net {
             Net::M => Some(&mut self.m),
@@ -306,7 +306,8 @@ impl Identifier {
     }
 
     /// All parameters, networks in the order M, C, G, F, appended to `out` (cleared first).
-    pub fn parameter_vector(&self, out: &mut Vec<f64>) {
+    #[cfg(test)]
+    pub(crate) fn parameter_vector(&self, out: &mut Vec<f64>) {
         out.clear();
         for n in Net::ALL {
             if let Some(m) = self.net(n) {
@@ -326,14 +327,14 @@ impl Identifier {
     }
 
     /// Freeze (`false`) or resume (`true`) online adaptation.
-    pub fn set_adapt(&mut self, on: bool) {
+    pub(crate) fn set_adapt(&mut self, on: bool) {
         self.cfg.adapt = on;
     }
 
     /// Copy `other`'s network weights into this identifier without allocating (the servo
     /// loop uses this to hand its weights out). False, and nothing changed, when the networks
     /// differ in size.
-    pub fn copy_weights_from(&mut self, other: &Identifier) -> bool {
+    pub(crate) fn copy_weights_from(&mut self, other: &Identifier) -> bool {
         let nets = [Net::M, Net::C, Net::G, Net::F];
         let fits = nets.iter().all(|&n| match (self.net(n), other.net(n)) {
             (Some(a), Some(b)) => a.params().len() == b.params().len(),
@@ -352,7 +353,8 @@ impl Identifier {
     }
 
     /// Operator reset: adapt again from the current (last good) weights.
-    pub fn reset_fault(&mut self) {
+    #[cfg(test)]
+    pub(crate) fn reset_fault(&mut self) {
         self.fault = None;
         self.e = Wae::zeros();
     }
@@ -363,7 +365,8 @@ impl Identifier {
     }
 
     /// The modified error e.
-    pub fn modified_error(&self) -> &Wae {
+    #[cfg(test)]
+    pub(crate) fn modified_error(&self) -> &Wae {
         &self.e
     }
 
@@ -381,7 +384,8 @@ impl Identifier {
     }
 
     /// Ṁ̂ = Σ_k ∂M̂/∂q_k q̇_k, exact through the M-net, kg·m²/s.
-    pub fn mass_derivative(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Matrix3<f64> {
+    #[cfg(test)]
+    pub(crate) fn mass_derivative(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Matrix3<f64> {
         self.forward_at = None;
         self.m.forward(q.as_slice());
         sym_from6(self.m.tangent(qd.as_slice()))
@@ -464,7 +468,7 @@ impl Identifier {
 
     /// ε at one sample with the current weights. The activations stay for
     /// `accumulate_gradient`, which must follow before any other evaluation.
-    pub fn evaluate_wae(
+    pub(crate) fn evaluate_wae(
         &mut self,
         q: &Vector3<f64>,
         qd: &Vector3<f64>,
@@ -521,7 +525,7 @@ impl Identifier {
     /// Add (∂ε/∂θ)ᵀw to every network's gradient buffer, at the point of the last
     /// `evaluate_wae`. Reverse mode: w is the cotangent of ε; it becomes cotangents on the
     /// network outputs M̂ (6), Ṁ̂ (6), Ĉ (9), Ĝ (3), F̂ (3), which each network back-propagates.
-    pub fn accumulate_gradient(&mut self, w: &Wae) {
+    pub(crate) fn accumulate_gradient(&mut self, w: &Wae) {
         let ts = 1.0 / self.cfg.torque_scale;
         let (l1, l2, l3) = (self.cfg.lambda1, self.cfg.lambda2, self.cfg.lambda3);
         // e1 = τ − M̂q̈ − Ĉq̇ − Ĝ − F̂, scaled by ts.
@@ -580,7 +584,7 @@ impl Identifier {
     }
 
     /// Zero every network's gradient buffer.
-    pub fn zero_grads(&mut self) {
+    pub(crate) fn zero_grads(&mut self) {
         for m in self.nets_mut().into_iter().flatten() {
             m.zero_grad();
         }

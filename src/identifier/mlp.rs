@@ -46,13 +46,13 @@ pub enum MlpError {
 /// Input offset/scale and output scale of one network (physical units ↔ O(1) net units).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct NetScaling {
+pub(crate) struct NetScaling {
     /// Subtracted from each input (the workspace centre).
-    pub in_center: Vec<f64>,
+    pub(crate) in_center: Vec<f64>,
     /// Each centred input is divided by this.
-    pub in_scale: Vec<f64>,
+    pub(crate) in_scale: Vec<f64>,
     /// Each raw net output is multiplied by this (the physical unit of that output).
-    pub out_scale: Vec<f64>,
+    pub(crate) out_scale: Vec<f64>,
 }
 
 impl NetScaling {
@@ -99,7 +99,7 @@ impl NetScaling {
 
 /// Tanh MLP with preallocated work buffers.
 #[derive(Debug, Clone)]
-pub struct Mlp {
+pub(crate) struct Mlp {
     inputs: usize,
     hidden: usize,
     outputs: usize,
@@ -215,7 +215,7 @@ impl Mlp {
         })
     }
 
-    pub fn inputs(&self) -> usize {
+    pub(crate) fn inputs(&self) -> usize {
         self.inputs
     }
     pub fn hidden(&self) -> usize {
@@ -224,24 +224,24 @@ impl Mlp {
     pub fn outputs(&self) -> usize {
         self.outputs
     }
-    pub fn scaling(&self) -> &NetScaling {
+    pub(crate) fn scaling(&self) -> &NetScaling {
         &self.scaling
     }
 
     /// Number of parameters of the hidden layer (W1, b1); they come first in `params`.
-    pub fn hidden_len(&self) -> usize {
+    pub(crate) fn hidden_len(&self) -> usize {
         self.hidden * (self.inputs + 1)
     }
 
     pub fn params(&self) -> &[f64] {
         &self.params
     }
-    pub fn params_mut(&mut self) -> &mut [f64] {
+    pub(crate) fn params_mut(&mut self) -> &mut [f64] {
         &mut self.params
     }
 
     /// Replace all parameters (length must match).
-    pub fn set_params(&mut self, p: &[f64]) -> Result<(), MlpError> {
+    pub(crate) fn set_params(&mut self, p: &[f64]) -> Result<(), MlpError> {
         if p.len() != self.params.len() {
             return Err(MlpError::Length {
                 what: "parameter vector",
@@ -254,34 +254,32 @@ impl Mlp {
     }
 
     /// Accumulated gradient (same layout as `params`).
-    pub fn grad(&self) -> &[f64] {
+    #[cfg(test)]
+    pub(crate) fn grad(&self) -> &[f64] {
         &self.grad
     }
-    pub fn grad_mut(&mut self) -> &mut [f64] {
-        &mut self.grad
-    }
-    pub fn zero_grad(&mut self) {
+    pub(crate) fn zero_grad(&mut self) {
         self.grad.fill(0.0);
     }
     /// Parameters and gradient together (the update reads one and writes the other).
-    pub fn params_and_grad_mut(&mut self) -> (&mut [f64], &mut [f64]) {
+    pub(crate) fn params_and_grad_mut(&mut self) -> (&mut [f64], &mut [f64]) {
         (&mut self.params, &mut self.grad)
     }
     /// The online update's buffers: the parameters, the gradient (the update turns it into
     /// the step) and the stepped parameters, written in the same pass and taken by
     /// `commit_step` once every network's step has been checked.
-    pub fn step_buffers(&mut self) -> (&[f64], &mut [f64], &mut [f64]) {
+    pub(crate) fn step_buffers(&mut self) -> (&[f64], &mut [f64], &mut [f64]) {
         (&self.params, &mut self.grad, &mut self.next)
     }
     /// Make the parameters written by the update through `step_buffers` the current ones.
-    pub fn commit_step(&mut self) {
+    pub(crate) fn commit_step(&mut self) {
         std::mem::swap(&mut self.params, &mut self.next);
     }
 
     /// Small random weights: hidden layer uniform with standard deviation
     /// `std_hidden/√inputs` (so the tanh units see O(1) arguments on O(1) inputs, i.e. the
     /// features are diverse but not saturated), output layer uniform with `std_output`.
-    pub fn init_random<R: Rng>(&mut self, rng: &mut R, std_hidden: f64, std_output: f64) {
+    pub(crate) fn init_random<R: Rng>(&mut self, rng: &mut R, std_hidden: f64, std_output: f64) {
         let hl = self.hidden_len();
         let sh = std_hidden / (self.inputs as f64).sqrt();
         // Uniform on [−√3σ, √3σ] has standard deviation σ.
@@ -293,7 +291,7 @@ impl Mlp {
     }
 
     /// Frobenius norm of all parameters.
-    pub fn params_norm(&self) -> f64 {
+    pub(crate) fn params_norm(&self) -> f64 {
         self.params.iter().map(|p| p * p).sum::<f64>().sqrt()
     }
 
@@ -344,13 +342,14 @@ impl Mlp {
     }
 
     /// Output of the last forward pass.
+    #[cfg(test)]
     pub fn output(&self) -> &[f64] {
         &self.y
     }
 
     /// Directional derivative ẏ = (∂y/∂x)·u at the last forward point, for a physical-unit
     /// direction `u`. `backward` then also accepts a cotangent on ẏ.
-    pub fn tangent(&mut self, u: &[f64]) -> &[f64] {
+    pub(crate) fn tangent(&mut self, u: &[f64]) -> &[f64] {
         debug_assert_eq!(u.len(), self.inputs);
         with_dims!(self, tangent_dims(u));
         self.has_tangent = true;
@@ -389,7 +388,8 @@ impl Mlp {
     }
 
     /// Tangent of the last `tangent` call.
-    pub fn tangent_output(&self) -> &[f64] {
+    #[cfg(test)]
+    pub(crate) fn tangent_output(&self) -> &[f64] {
         &self.ydot
     }
 
@@ -401,7 +401,7 @@ impl Mlp {
     ///   h̄ = W2ᵀr − 2h ⊙ (W2ᵀṙ) ⊙ ȧ   (the second term: ḣ depends on h through d),
     ///   ā = d ⊙ h̄,  ǡ = d ⊙ (W2ᵀṙ),
     ///   ∂L/∂b1 = ā,  ∂L/∂W1 = ā x̃ᵀ + ǡ ũᵀ.
-    pub fn backward(&mut self, y_bar: &[f64], ydot_bar: Option<&[f64]>) {
+    pub(crate) fn backward(&mut self, y_bar: &[f64], ydot_bar: Option<&[f64]>) {
         debug_assert_eq!(y_bar.len(), self.outputs);
         let tangent = match ydot_bar {
             Some(v) if self.has_tangent => {
@@ -473,7 +473,8 @@ impl Mlp {
     }
 
     /// ∂(ȳᵀy)/∂x in physical input units at the last forward point, written to `x_bar`.
-    pub fn input_gradient(&mut self, y_bar: &[f64], x_bar: &mut [f64]) {
+    #[cfg(test)]
+    pub(crate) fn input_gradient(&mut self, y_bar: &[f64], x_bar: &mut [f64]) {
         debug_assert_eq!(y_bar.len(), self.outputs);
         debug_assert_eq!(x_bar.len(), self.inputs);
         let (hid, inp) = (self.hidden, self.inputs);

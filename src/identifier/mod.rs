@@ -3,9 +3,9 @@
 //! the weights file and batch pre-tuning. See `docs/IDENTIFIER.md`.
 
 pub mod adaptive;
-pub mod mlp;
+pub(crate) mod mlp;
 pub mod pretune;
-pub mod settings;
+pub(crate) mod settings;
 pub mod weights;
 
 #[cfg(test)]
@@ -13,8 +13,8 @@ mod gradcheck;
 #[cfg(test)]
 mod testdata;
 
-pub use adaptive::{ErrorSnapshot, Fault, IdentError, Identifier, Net, Wae};
-pub use mlp::{Mlp, MlpError, NetScaling};
+pub use adaptive::{ErrorSnapshot, Fault, IdentError, Identifier, Net};
+pub use mlp::MlpError;
 pub use pretune::{
     nrmse, pretune, EpochReport, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
 };

@@ -18,12 +18,12 @@ use thiserror::Error;
 
 /// The largest weights file read: 16 MiB, far above the biggest networks the configuration
 /// allows (4 × 256 hidden units, under 1 MiB of JSON).
-pub const MAX_WEIGHTS_BYTES: u64 = 16 << 20;
+pub(crate) const MAX_WEIGHTS_BYTES: u64 = 16 << 20;
 
 /// Value of the `format` field.
-pub const FORMAT: &str = "omnid-identifier-weights";
+pub(crate) const FORMAT: &str = "omnid-identifier-weights";
 /// Current `version`.
-pub const VERSION: u32 = 1;
+pub(crate) const VERSION: u32 = 1;
 
 #[derive(Debug, Error)]
 pub enum WeightsError {
@@ -62,10 +62,10 @@ impl WeightsError {
 #[serde(deny_unknown_fields)]
 pub struct NetWeights {
     pub net: Net,
-    pub inputs: usize,
+    pub(crate) inputs: usize,
     pub hidden: usize,
     pub outputs: usize,
-    pub scaling: NetScaling,
+    pub(crate) scaling: NetScaling,
     pub params: Vec<f64>,
 }
 
@@ -82,7 +82,7 @@ pub struct WeightsFile {
 
 impl WeightsFile {
     /// Snapshot of an identifier's networks.
-    pub fn from_identifier(id: &Identifier) -> Self {
+    pub(crate) fn from_identifier(id: &Identifier) -> Self {
         let nets = Net::ALL
             .iter()
             .filter_map(|&n| id.net(n).map(|m| (n, m)))
@@ -170,7 +170,11 @@ impl WeightsFile {
     }
 
     /// Refuse, naming both sides, weights that do not fit the configured networks.
-    pub fn check_fits(&self, cfg: &IdentifierConfig, origin: &str) -> Result<(), WeightsError> {
+    pub(crate) fn check_fits(
+        &self,
+        cfg: &IdentifierConfig,
+        origin: &str,
+    ) -> Result<(), WeightsError> {
         if self.hidden != cfg.hidden {
             return Err(WeightsError::Mismatch {
                 path: origin.to_string(),
@@ -232,7 +236,11 @@ pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<WeightsFile, 
 impl Identifier {
     /// Take over the networks of `w` (which must fit this identifier's configuration); they
     /// become the σ-modification's anchor θ0.
-    pub fn apply_weights(&mut self, w: &WeightsFile, origin: &str) -> Result<(), WeightsError> {
+    pub(crate) fn apply_weights(
+        &mut self,
+        w: &WeightsFile,
+        origin: &str,
+    ) -> Result<(), WeightsError> {
         w.check_fits(self.config(), origin)?;
         w.check_consistent(origin)?;
         let mut nets = Vec::with_capacity(w.nets.len());

@@ -78,7 +78,7 @@ impl Default for ModelParams {
 impl ModelParams {
     /// M(q) of this model on a 5×5 grid of (q2, q3) spanning the joint limits (M does not
     /// depend on q1), with the grid point.
-    pub fn mass_over_joint_range(
+    pub(crate) fn mass_over_joint_range(
         &self,
         geometry: Geometry,
     ) -> impl Iterator<Item = ((f64, f64), Mat3)> {
@@ -297,7 +297,7 @@ impl Dynamics {
     }
 
     /// Potential energy V(q), J (up to a constant).
-    pub fn potential(&self, q: &Joint3) -> f64 {
+    pub(crate) fn potential(&self, q: &Joint3) -> f64 {
         let p = &self.params;
         let mut v = p.k8 * q[1].sin() - p.k9 * q[2].cos();
         if self.payload_kg != 0.0 {
@@ -307,12 +307,12 @@ impl Dynamics {
     }
 
     /// Kinetic energy ½ q̇ᵀ M q̇, J.
-    pub fn kinetic(&self, q: &Joint3, qd: &Joint3) -> f64 {
+    pub(crate) fn kinetic(&self, q: &Joint3, qd: &Joint3) -> f64 {
         0.5 * qd.dot(&(self.mass(q) * qd))
     }
 
     /// Friction torque (opposing motion), N·m: viscous plus tanh-smoothed Coulomb.
-    pub fn friction_torque(&self, qd: &Joint3) -> Joint3 {
+    pub(crate) fn friction_torque(&self, qd: &Joint3) -> Joint3 {
         if !self.friction {
             return Joint3::zeros();
         }
@@ -323,7 +323,7 @@ impl Dynamics {
     }
 
     /// Torque the joint-limit springs apply (zero inside the limits), N·m.
-    pub fn limit_torque(&self, q: &Joint3, qd: &Joint3) -> Joint3 {
+    pub(crate) fn limit_torque(&self, q: &Joint3, qd: &Joint3) -> Joint3 {
         let p = &self.params;
         Joint3::from_fn(|i, _| {
             let over = if q[i] < p.limit_lower[i] {
@@ -347,7 +347,7 @@ impl Dynamics {
     }
 
     /// Acceleration under applied torque `tau`, including joint-limit springs.
-    pub fn forward_dynamics(&self, q: &Joint3, qd: &Joint3, tau: &Joint3) -> Joint3 {
+    pub(crate) fn forward_dynamics(&self, q: &Joint3, qd: &Joint3, tau: &Joint3) -> Joint3 {
         let t = Trig::new(q);
         let rhs = tau + self.limit_torque(q, qd)
             - self.coriolis_with(q, qd, &t) * qd

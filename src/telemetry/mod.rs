@@ -8,7 +8,8 @@ pub mod writer;
 
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
-pub use writer::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
+pub use writer::LogError;
+pub(crate) use writer::{dump_path, spawn_writer, write_dump, LogFile, WriterReport};
 
 use serde::{Deserialize, Serialize};
 

@@ -98,7 +98,7 @@ pub struct TickRecord {
     /// The identifier's prediction of the torque that acted (NaN when it has none).
     pub tau_hat: [f64; 3],
     /// The plant's exact model on the estimated states (simulator only, else NaN).
-    pub tau_model: [f64; 3],
+    pub(crate) tau_model: [f64; 3],
     /// Continuous encoder counts.
     pub enc: [i64; 3],
     pub amps: bool,

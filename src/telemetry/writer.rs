@@ -19,11 +19,11 @@ use std::thread::JoinHandle;
 use thiserror::Error;
 
 /// Ticks kept for the fault dump.
-pub const DUMP_TICKS: usize = 500;
+pub(crate) const DUMP_TICKS: usize = 500;
 
 /// How long the writer sleeps when the channel is empty. At 1 kHz this leaves about one row
 /// per wake-up; the channel (8192 rows by default) has seconds of slack.
-pub const POLL: std::time::Duration = std::time::Duration::from_millis(1);
+pub(crate) const POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
 /// Hand every item to `each` until the senders are gone, sleeping [`POLL`] whenever the
 /// channel is empty (never parked in `recv`, so a send never has to wake this thread).
@@ -38,9 +38,9 @@ pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
 }
 
 #[derive(Debug)]
-pub struct WriterReport {
+pub(crate) struct WriterReport {
     pub path: PathBuf,
-    pub schema: LogSchema,
+    pub(crate) schema: LogSchema,
     /// Rows that reached the file (whole rows: a row cut by a failed write is taken back).
     pub rows: u64,
     /// Rows the writer was given.
@@ -55,7 +55,7 @@ pub struct WriterReport {
 }
 
 /// `run.csv` → `run-fault.csv`, beside the log.
-pub fn dump_path(log: &Path) -> PathBuf {
+pub(crate) fn dump_path(log: &Path) -> PathBuf {
     let stem = log
         .file_stem()
         .map(|s| s.to_string_lossy())
@@ -69,7 +69,7 @@ pub fn dump_path(log: &Path) -> PathBuf {
 
 /// The header and rows of a fault dump: the same columns as the log, the last ticks before
 /// the fault.
-pub fn dump_rows(
+pub(crate) fn dump_rows(
     out: &mut impl Write,
     schema: &LogSchema,
     rows: &VecDeque<TickRecord>,
@@ -82,7 +82,7 @@ pub fn dump_rows(
 }
 
 /// Write the fault dump at `path` (whole, through [`crate::output`]).
-pub fn write_dump(
+pub(crate) fn write_dump(
     path: &Path,
     schema: &LogSchema,
     rows: &VecDeque<TickRecord>,
@@ -193,7 +193,7 @@ fn suitable(path: &Path) -> Result<Option<bool>, LogError> {
 
 /// A run's log, open for writing and locked (`flock`) against every other omnid while open.
 #[derive(Debug)]
-pub struct LogFile {
+pub(crate) struct LogFile {
     pub path: PathBuf,
     file: File,
 }
@@ -326,7 +326,7 @@ impl LogFile {
 
     /// A new log under a default name in `dir`: `stem.csv`, else `stem-2.csv`, … (never
     /// another run's file, even for runs started in the same second).
-    pub fn create_unique(dir: &Path, stem: &str) -> Result<LogFile, LogError> {
+    pub(crate) fn create_unique(dir: &Path, stem: &str) -> Result<LogFile, LogError> {
         let (path, file) = crate::output::create_unique(dir, stem, "csv").map_err(|e| match e {
             OutputError::Unwritable { path, source } | OutputError::Write { path, source } => {
                 LogError::Io { path, source }
@@ -393,7 +393,7 @@ impl RowSink {
 
 /// Write the header now (so an unwritable log fails before torque is enabled) and start the
 /// thread that fills the log.
-pub fn spawn_writer(
+pub(crate) fn spawn_writer(
     log: LogFile,
     schema: LogSchema,
     rx: Receiver<TickRecord>,

@@ -31,7 +31,7 @@ pub fn name(quadlet: u32) -> String {
 
 /// Why a configured serial cannot be an Omni's.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct SerialFormatError(pub String);
+pub(crate) struct SerialFormatError(pub String);
 
 /// The quadlet a configured serial stands for: the 11-digit label form, or `0x` and eight hex
 /// digits (the raw quadlet, as [`name`] prints a unit whose quadlet does not decode).
