@@ -83,7 +83,7 @@ pub(crate) fn int_in<T: PartialOrd + Display>(
 }
 
 /// `check` on every element, each named `field[i]`.
-pub fn each<const N: usize>(
+pub(crate) fn each<const N: usize>(
     field: &str,
     v: &[f64; N],
     check: impl Fn(&str, f64) -> Result<(), ConfigError>,
@@ -98,7 +98,7 @@ pub fn each<const N: usize>(
 /// looking further, so with `toml` a longer array was silently cut to its first N; every
 /// fixed-length field of a config or stored-state file takes its values through this
 /// (`#[serde(deserialize_with = "crate::config_check::exact")]`).
-pub fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+pub(crate) fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
 where
     D: serde::Deserializer<'de>,
     T: Deserialize<'de>,

@@ -17,7 +17,7 @@ pub(crate) struct OuterLoop {
 }
 
 impl OuterLoop {
-    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+    pub(crate) fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
         let cfg = cfg.into();
         let w = cfg.control.omega_n;
         OuterLoop {
@@ -38,13 +38,13 @@ pub(crate) struct ComputedTorque {
 }
 
 impl ComputedTorque {
-    pub fn new(model: Dynamics, gains: OuterLoop) -> Self {
+    pub(crate) fn new(model: Dynamics, gains: OuterLoop) -> Self {
         ComputedTorque { model, gains }
     }
 
     /// CT with the configured model: the plant's parameters scaled by `ct_model_scale`,
     /// friction compensation as configured.
-    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+    pub(crate) fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
         let cfg = cfg.into();
         let mut model = Dynamics::new(cfg.model.scaled(cfg.control.ct_model_scale), *cfg.geometry);
         model.friction = cfg.control.ct_friction;

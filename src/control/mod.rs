@@ -10,8 +10,9 @@ pub mod set;
 
 pub(crate) use ct::ComputedTorque;
 pub(crate) use nan_after::NanAfter;
-pub use nnidc::Nnidc;
-pub use pd::{Off, Pd};
+pub(crate) use nnidc::Nnidc;
+pub(crate) use pd::Off;
+pub use pd::Pd;
 pub use reference::{RefPoint, Reference, ReferenceConfig, Trajectory};
 pub use set::ControllerSet;
 
@@ -47,7 +48,7 @@ impl Default for ControlConfig {
 
 impl ControlConfig {
     /// Check every value; the first problem names its field (`control.…`).
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         check::in_range(
             "control.omega_n",
             self.omega_n,
@@ -70,11 +71,11 @@ impl ControlConfig {
 /// them).
 #[derive(Debug, Clone, Copy)]
 pub struct ControlSetup<'a> {
-    pub control: &'a ControlConfig,
-    pub model: &'a ModelParams,
-    pub geometry: &'a Geometry,
+    pub(crate) control: &'a ControlConfig,
+    pub(crate) model: &'a ModelParams,
+    pub(crate) geometry: &'a Geometry,
     /// PD's nominal inertia is taken at the reference's centre.
-    pub reference: &'a ReferenceConfig,
+    pub(crate) reference: &'a ReferenceConfig,
 }
 
 /// What a controller sees each tick.
@@ -128,14 +129,14 @@ pub enum ControllerKind {
 }
 
 impl ControllerKind {
-    pub const ALL: [ControllerKind; 4] = [
+    pub(crate) const ALL: [ControllerKind; 4] = [
         ControllerKind::Pd,
         ControllerKind::Nnidc,
         ControllerKind::Ct,
         ControllerKind::Off,
     ];
 
-    pub fn parse(s: &str) -> Option<ControllerKind> {
+    pub(crate) fn parse(s: &str) -> Option<ControllerKind> {
         ControllerKind::ALL.into_iter().find(|k| k.as_str() == s)
     }
 

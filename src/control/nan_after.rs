@@ -7,8 +7,8 @@ use crate::omni::Joint3;
 
 /// A controller whose output turns non-finite from time T on (`nan@T`).
 pub(crate) struct NanAfter {
-    pub inner: Box<dyn Controller>,
-    pub at_s: f64,
+    pub(crate) inner: Box<dyn Controller>,
+    pub(crate) at_s: f64,
 }
 
 impl Controller for NanAfter {

@@ -10,7 +10,7 @@ use super::{ControlInput, Controller};
 use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
-pub struct Nnidc {
+pub(crate) struct Nnidc {
     gains: OuterLoop,
     fallback: Pd,
     /// Set once the law has fallen back to PD (read by the tests only).
@@ -19,7 +19,7 @@ pub struct Nnidc {
 }
 
 impl Nnidc {
-    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+    pub(crate) fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
         let cfg = cfg.into();
         Nnidc {
             gains: OuterLoop::from_config(cfg),

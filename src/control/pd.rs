@@ -13,7 +13,7 @@ pub struct Pd {
 }
 
 impl Pd {
-    pub fn new(kp: Joint3, kd: Joint3) -> Self {
+    pub(crate) fn new(kp: Joint3, kd: Joint3) -> Self {
         Pd { kp, kd }
     }
 
@@ -46,7 +46,7 @@ impl Controller for Pd {
 }
 
 /// No torque: the arm hangs free (identification passes, replays).
-pub struct Off;
+pub(crate) struct Off;
 
 impl Controller for Off {
     fn name(&self) -> &'static str {

@@ -50,7 +50,7 @@ impl Default for ReferenceConfig {
 
 impl ReferenceConfig {
     /// Check every value; the centre must lie inside the joint limits `lower ..= upper`.
-    pub fn validate(&self, lower: &[f64; 3], upper: &[f64; 3]) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self, lower: &[f64; 3], upper: &[f64; 3]) -> Result<(), ConfigError> {
         for i in 0..3 {
             check::in_range(
                 &format!("reference.center[{i}]"),
@@ -111,9 +111,9 @@ impl ReferenceConfig {
 /// Desired position, velocity and acceleration.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct RefPoint {
-    pub q: Joint3,
-    pub qd: Joint3,
-    pub qdd: Joint3,
+    pub(crate) q: Joint3,
+    pub(crate) qd: Joint3,
+    pub(crate) qdd: Joint3,
 }
 
 /// Trajectories selectable with `--trajectory`.

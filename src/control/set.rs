@@ -49,16 +49,16 @@ impl ControllerSet {
     }
 
     /// Put `law` in `kind`'s place (fault injection wraps a law this way).
-    pub fn replace(&mut self, kind: ControllerKind, law: Box<dyn Controller>) {
+    pub(crate) fn replace(&mut self, kind: ControllerKind, law: Box<dyn Controller>) {
         self.laws[slot(kind)] = law;
     }
 
     /// Take `kind`'s law out, leaving `Off` in its place.
-    pub fn take(&mut self, kind: ControllerKind) -> Box<dyn Controller> {
+    pub(crate) fn take(&mut self, kind: ControllerKind) -> Box<dyn Controller> {
         std::mem::replace(&mut self.laws[slot(kind)], Box::new(super::Off))
     }
 
-    pub fn active(&self) -> ControllerKind {
+    pub(crate) fn active(&self) -> ControllerKind {
         self.active
     }
 
@@ -69,7 +69,7 @@ impl ControllerSet {
     }
 
     /// Make `kind` the active law from time `t` on (s, the loop's clock).
-    pub fn switch(&mut self, kind: ControllerKind, t: f64) {
+    pub(crate) fn switch(&mut self, kind: ControllerKind, t: f64) {
         if kind == self.active {
             return;
         }
@@ -91,7 +91,11 @@ impl ControllerSet {
     }
 
     /// The active law's torque (crossfaded during a switch).
-    pub fn torque(&mut self, input: &ControlInput, mut learned: Option<&mut Identifier>) -> Joint3 {
+    pub(crate) fn torque(
+        &mut self,
+        input: &ControlInput,
+        mut learned: Option<&mut Identifier>,
+    ) -> Joint3 {
         let new = self.laws[slot(self.active)].torque(input, learned.as_deref_mut());
         match self.weight(input.t) {
             None => new,
@@ -103,7 +107,7 @@ impl ControllerSet {
     }
 
     /// The active law's compensation (free mode), crossfaded like [`torque`](Self::torque).
-    pub fn compensation(
+    pub(crate) fn compensation(
         &mut self,
         t: f64,
         estimate: &Estimate,

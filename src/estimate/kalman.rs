@@ -33,7 +33,7 @@ pub(crate) const KALMAN_MAX_LAG: f64 = 0.2;
 
 impl KalmanConfig {
     /// Check every value at the servo rate `rate_hz`; the first problem names its field.
-    pub fn validate(&self, rate_hz: f64) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self, rate_hz: f64) -> Result<(), ConfigError> {
         check::positive("kalman.jerk_psd", self.jerk_psd)?;
         check::positive("kalman.measurement_var", self.measurement_var)?;
         // The safety limits also watch the encoders, but control acts on the estimate: one
@@ -82,7 +82,7 @@ pub(crate) struct JointKalman {
 }
 
 impl JointKalman {
-    pub fn new(jerk_psd: f64, measurement_var: f64) -> Self {
+    pub(crate) fn new(jerk_psd: f64, measurement_var: f64) -> Self {
         JointKalman {
             x: Vector3::zeros(),
             p: Matrix3::zeros(),
@@ -123,7 +123,7 @@ impl JointKalman {
     }
 
     /// Predict over `dt` seconds, then correct with measurement `z`.
-    pub fn step(&mut self, dt: f64, z: f64) {
+    pub(crate) fn step(&mut self, dt: f64, z: f64) {
         if dt > 0.0 {
             self.model(dt);
             self.x = self.f * self.x;
@@ -141,7 +141,7 @@ impl JointKalman {
     }
 
     /// [q, q̇, q̈].
-    pub fn state(&self) -> Vector3<f64> {
+    pub(crate) fn state(&self) -> Vector3<f64> {
         self.x
     }
 }
@@ -151,7 +151,7 @@ impl JointKalman {
 /// transfer from measurement to estimate (0: tracks exactly; 1: as large as the motion
 /// itself). A config can then be refused before torque is sent when the estimate could not
 /// follow a hand-speed motion, instead of letting the safety limits act on a lagging estimate.
-pub fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
+pub(crate) fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
     use nalgebra::Complex;
     let mut kf = JointKalman::new(jerk_psd, measurement_var);
     kf.reset(0.0);
@@ -252,7 +252,7 @@ impl KalmanBank {
     }
 
     /// Restarts across gaps longer than [`RESTART_GAP_S`] so far.
-    pub fn restarts(&self) -> u64 {
+    pub(crate) fn restarts(&self) -> u64 {
         self.restarts
     }
 
@@ -266,7 +266,7 @@ impl KalmanBank {
         self.longest_gap_s
     }
 
-    pub fn estimate(&self) -> Estimate {
+    pub(crate) fn estimate(&self) -> Estimate {
         let s = |j: usize| self.joints[j].state();
         Estimate {
             q: Joint3::new(s(0)[0], s(1)[0], s(2)[0]),

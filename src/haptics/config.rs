@@ -44,7 +44,7 @@ impl Default for HapticsConfig {
 }
 
 impl HapticsConfig {
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         check::in_range(
             "haptics.max_force_n",
             self.max_force_n,

@@ -56,7 +56,7 @@ fn wall(depth: f64, speed: f64, k: f64, b: f64) -> f64 {
 
 impl Effect {
     /// The force on the tip at `p` (m) moving at `v` (m/s).
-    pub fn force(&self, p: &Force3, v: &Force3) -> Force3 {
+    pub(crate) fn force(&self, p: &Force3, v: &Force3) -> Force3 {
         match *self {
             Effect::Spring {
                 center_mm,
@@ -90,7 +90,7 @@ impl Effect {
     }
 
     /// Check every parameter; the error names the field (`prefix` says which effect).
-    pub fn validate(&self, prefix: &str) -> Result<(), String> {
+    pub(crate) fn validate(&self, prefix: &str) -> Result<(), String> {
         let finite = |name: &str, v: &[f64]| -> Result<(), String> {
             match v.iter().find(|x| !x.is_finite()) {
                 Some(x) => Err(format!("{prefix}{name} = {x}: must be a finite number")),
@@ -190,7 +190,7 @@ pub(crate) struct Scene {
 }
 
 impl Scene {
-    pub fn new(fade_s: f64) -> Scene {
+    pub(crate) fn new(fade_s: f64) -> Scene {
         Scene {
             slots: [Slot::default(); MAX_EFFECTS],
             fade_s,
@@ -200,7 +200,7 @@ impl Scene {
     /// Put `effect` in `slot` (None: remove it) at time `t`. The slot's force moves from what
     /// it was to the new effect's over `fade_s` instead of stepping. Slots beyond
     /// [`MAX_EFFECTS`] are ignored (the callers check).
-    pub fn set(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
+    pub(crate) fn set(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
         let Some(s) = self.slots.get_mut(slot) else {
             return;
         };
@@ -210,7 +210,7 @@ impl Scene {
     }
 
     /// The sum of every slot's force at `t` with the tip at `p` (m) moving at `v` (m/s).
-    pub fn force(&mut self, t: f64, p: &Force3, v: &Force3) -> Force3 {
+    pub(crate) fn force(&mut self, t: f64, p: &Force3, v: &Force3) -> Force3 {
         let mut total = Force3::zeros();
         for s in &mut self.slots {
             let mut f = s.effect.map_or(Force3::zeros(), |e| e.force(p, v));
@@ -241,7 +241,7 @@ impl Scene {
     /// forces it leaves alone: a constant force is a potential field (what it gives as the tip
     /// moves along it, it takes back when the tip returns), and weakening it would only bend
     /// a force the client asked for (docs/HAPTICS.md §6). Fades stay with the watched part.
-    pub fn split(&mut self, t: f64, p: &Force3, v: &Force3) -> (Force3, Force3) {
+    pub(crate) fn split(&mut self, t: f64, p: &Force3, v: &Force3) -> (Force3, Force3) {
         let total = self.force(t, p, v);
         let constant: Force3 = self
             .slots

@@ -26,7 +26,7 @@ impl HandPattern {
     pub(crate) const NAMES: &'static str =
         "none, hold, path, push+x, push-x, push+y, push-y, push+z, push-z";
 
-    pub fn parse(s: &str) -> Option<HandPattern> {
+    pub(crate) fn parse(s: &str) -> Option<HandPattern> {
         Some(match s {
             "none" => HandPattern::None,
             "hold" => HandPattern::Hold,
@@ -49,7 +49,7 @@ impl HandPattern {
         })
     }
 
-    pub fn name(self) -> String {
+    pub(crate) fn name(self) -> String {
         match self {
             HandPattern::None => "none".into(),
             HandPattern::Hold => "hold".into(),
@@ -126,7 +126,7 @@ pub(crate) struct Hand {
     grasp: Force3,
     centre: Force3,
     /// The hand's own position and velocity now.
-    pub pos: Force3,
+    pub(crate) pos: Force3,
     pub(crate) vel: Force3,
     /// Pushing: the hand's offset along its direction beyond the centre, m.
     push_depth: f64,
@@ -149,7 +149,7 @@ struct HandParams {
 
 impl Hand {
     /// A hand that grasps the stylus at `grasp` (m) and works around `centre` (m).
-    pub fn new(cfg: &HandConfig, grasp: Force3, centre: Force3) -> Hand {
+    pub(crate) fn new(cfg: &HandConfig, grasp: Force3, centre: Force3) -> Hand {
         Hand {
             cfg: HandParams {
                 pattern: cfg.pattern,
@@ -171,14 +171,14 @@ impl Hand {
     }
 
     /// On the stylus at time `t`.
-    pub fn holding(&self, t: f64) -> bool {
+    pub(crate) fn holding(&self, t: f64) -> bool {
         self.cfg.pattern != HandPattern::None
             && (self.cfg.release_s <= 0.0 || t < self.cfg.release_s)
     }
 
     /// The force the hand puts on the tip at `tip` (m) moving at `tip_vel` (m/s), `tau` s
     /// after the hand's state was last advanced (it moves on at its velocity meanwhile).
-    pub fn force(&self, t: f64, tip: &Force3, tip_vel: &Force3, tau: f64) -> Force3 {
+    pub(crate) fn force(&self, t: f64, tip: &Force3, tip_vel: &Force3, tau: f64) -> Force3 {
         if !self.holding(t) {
             return Force3::zeros();
         }

@@ -22,11 +22,11 @@ pub(crate) struct Passivity {
     last_force: Force3,
     last_p: Option<Force3>,
     /// The damping the controller added at the last tick, N·s/m.
-    pub damping: f64,
+    pub(crate) damping: f64,
 }
 
 impl Passivity {
-    pub fn new(enabled: bool, max_damping: f64, reserve_j: f64) -> Passivity {
+    pub(crate) fn new(enabled: bool, max_damping: f64, reserve_j: f64) -> Passivity {
         Passivity {
             enabled,
             max_damping,
@@ -49,7 +49,7 @@ impl Passivity {
     /// The damping acts on the velocity the observer saw over that tick (the same flow it
     /// integrates), and never removes more than the effects' own force: the controller only
     /// weakens a rendering, it never pushes by itself.
-    pub fn step(&mut self, p: &Force3, f: &Force3, dt: f64) -> Force3 {
+    pub(crate) fn step(&mut self, p: &Force3, f: &Force3, dt: f64) -> Force3 {
         let mut v = Force3::zeros();
         if let Some(before) = self.last_p {
             let dp = p - before;

@@ -47,12 +47,12 @@ pub(crate) struct HapticLoop {
     passivity: Passivity,
     continuous: Continuous,
     /// The tip at the last tick, mm (OpenHaptics frame), and the force commanded there, N.
-    pub tip_mm: [f64; 3],
-    pub force: [f64; 3],
+    pub(crate) tip_mm: [f64; 3],
+    pub(crate) force: [f64; 3],
 }
 
 impl HapticLoop {
-    pub fn new(cfg: &HapticsConfig, geometry: Geometry) -> HapticLoop {
+    pub(crate) fn new(cfg: &HapticsConfig, geometry: Geometry) -> HapticLoop {
         HapticLoop {
             geometry,
             max_force_n: cfg.max_force_n,
@@ -85,7 +85,7 @@ impl HapticLoop {
 
     /// A tick without haptics (another mode): note where the tip is, for the log, and start
     /// the passivity observer afresh when haptics resume.
-    pub fn observe(&mut self, q: &Joint3) {
+    pub(crate) fn observe(&mut self, q: &Joint3) {
         self.tip_mm = tip_position_mm(&self.geometry, q).into();
         self.force = [0.0; 3];
         self.passivity.reset();
@@ -94,7 +94,7 @@ impl HapticLoop {
     /// The joint torque of this tick's tip force: the effects (`effects`: rendered in this
     /// mode) at the measured pose `q` with the estimated joint velocity `qd`, through the
     /// passivity controller, plus a client's force `stream`, clamped to the peak.
-    pub fn torque(
+    pub(crate) fn torque(
         &mut self,
         t: f64,
         dt: f64,

@@ -50,9 +50,9 @@ pub enum Net {
 }
 
 impl Net {
-    pub const ALL: [Net; 4] = [Net::M, Net::C, Net::G, Net::F];
+    pub(crate) const ALL: [Net; 4] = [Net::M, Net::C, Net::G, Net::F];
 
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Net::M => "M",
             Net::C => "C",
@@ -62,7 +62,7 @@ impl Net {
     }
 
     /// (inputs, outputs) of this network.
-    pub fn io(self) -> (usize, usize) {
+    pub(crate) fn io(self) -> (usize, usize) {
         match self {
             Net::M => (3, 6),
             Net::C => (6, 9),
@@ -105,16 +105,16 @@ pub struct ErrorSnapshot {
     /// e1 = τ − τ̂, N·m.
     pub e1: Vector3<f64>,
     /// ‖ε‖ (dimensionless).
-    pub(crate) wae_norm: f64,
+    pub wae_norm: f64,
     /// The modified error at the scale of ε (α·‖e‖, or ‖e‖ with a unit-gain filter) in N·m:
     /// the dead zone's measure.
     pub modified_norm: f64,
     /// An eigenvalue of M̂ was outside [eig_min, eig_max].
-    pub(crate) e4_active: bool,
+    pub e4_active: bool,
     /// The weights were changed this tick.
-    pub(crate) updated: bool,
+    pub updated: bool,
     /// ‖Δθ‖ over all networks this tick.
-    pub(crate) step_norm: f64,
+    pub step_norm: f64,
 }
 
 /// The adaptive neural-network identifier.
@@ -231,7 +231,7 @@ impl Identifier {
         Ok(id)
     }
 
-    pub fn config(&self) -> &IdentifierConfig {
+    pub(crate) fn config(&self) -> &IdentifierConfig {
         &self.cfg
     }
 
@@ -322,7 +322,7 @@ impl Identifier {
         self.fault.is_none()
     }
 
-    pub fn fault(&self) -> Option<Fault> {
+    pub(crate) fn fault(&self) -> Option<Fault> {
         self.fault
     }
 

@@ -175,7 +175,7 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
 
 impl Mlp {
     /// A network with all parameters zero; see `init_random` and `set_params`.
-    pub fn new(
+    pub(crate) fn new(
         inputs: usize,
         hidden: usize,
         outputs: usize,
@@ -218,10 +218,10 @@ impl Mlp {
     pub(crate) fn inputs(&self) -> usize {
         self.inputs
     }
-    pub fn hidden(&self) -> usize {
+    pub(crate) fn hidden(&self) -> usize {
         self.hidden
     }
-    pub fn outputs(&self) -> usize {
+    pub(crate) fn outputs(&self) -> usize {
         self.outputs
     }
     pub(crate) fn scaling(&self) -> &NetScaling {
@@ -233,7 +233,7 @@ impl Mlp {
         self.hidden * (self.inputs + 1)
     }
 
-    pub fn params(&self) -> &[f64] {
+    pub(crate) fn params(&self) -> &[f64] {
         &self.params
     }
     pub(crate) fn params_mut(&mut self) -> &mut [f64] {
@@ -307,7 +307,7 @@ impl Mlp {
     }
 
     /// Forward pass on physical inputs `x`; the activations stay for `tangent`/`backward`.
-    pub fn forward(&mut self, x: &[f64]) -> &[f64] {
+    pub(crate) fn forward(&mut self, x: &[f64]) -> &[f64] {
         debug_assert_eq!(x.len(), self.inputs);
         with_dims!(self, forward_dims(x));
         self.has_tangent = false;
@@ -343,7 +343,7 @@ impl Mlp {
 
     /// Output of the last forward pass.
     #[cfg(test)]
-    pub fn output(&self) -> &[f64] {
+    pub(crate) fn output(&self) -> &[f64] {
         &self.y
     }
 

@@ -19,4 +19,5 @@ pub use pretune::{
     nrmse, pretune, EpochReport, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
 };
 pub use settings::IdentifierConfig;
-pub use weights::{load, save, NetWeights, WeightsError, WeightsFile};
+pub(crate) use weights::save;
+pub use weights::{NetWeights, WeightsError, WeightsFile};

@@ -135,7 +135,7 @@ impl IdentifierConfig {
     /// Check every value; the first problem is returned naming its field (`identifier.…`).
     /// Long on purpose: one check per field in the fields' order, so a reader finds each
     /// field's rule in one place; splitting it would only scatter them.
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         positive(
             "identifier.alpha",
             self.alpha,

@@ -52,7 +52,7 @@ pub enum WeightsError {
 
 impl WeightsError {
     /// Reading the file was stopped by the operator.
-    pub fn is_stopped(&self) -> bool {
+    pub(crate) fn is_stopped(&self) -> bool {
         matches!(self, WeightsError::Read { source, .. } if crate::input::is_stopped(source))
     }
 }
@@ -61,23 +61,23 @@ impl WeightsError {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NetWeights {
-    pub net: Net,
+    pub(crate) net: Net,
     pub(crate) inputs: usize,
-    pub hidden: usize,
-    pub outputs: usize,
+    pub(crate) hidden: usize,
+    pub(crate) outputs: usize,
     pub(crate) scaling: NetScaling,
-    pub params: Vec<f64>,
+    pub(crate) params: Vec<f64>,
 }
 
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WeightsFile {
-    pub format: String,
-    pub version: u32,
-    pub hidden: usize,
-    pub friction_net: bool,
-    pub nets: Vec<NetWeights>,
+    pub(crate) format: String,
+    pub(crate) version: u32,
+    pub(crate) hidden: usize,
+    pub(crate) friction_net: bool,
+    pub(crate) nets: Vec<NetWeights>,
 }
 
 impl WeightsFile {
@@ -204,7 +204,7 @@ impl WeightsFile {
 
 /// Write the identifier's weights to `path`, whole (see [`crate::output`]: a failed write
 /// leaves the old file; only a regular file or a new path is written).
-pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
+pub(crate) fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
     let w = WeightsFile::from_identifier(id);
     for nw in &w.nets {
         if let Some(i) = nw.params.iter().position(|p| !p.is_finite()) {
@@ -222,7 +222,10 @@ pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
 /// Read and check a weights file (without comparing it to a configuration): at most
 /// [`MAX_WEIGHTS_BYTES`]; `stop` (the operator's) ends a wait on a pipe, without it only a
 /// regular file is read (see [`crate::input::open`]).
-pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<WeightsFile, WeightsError> {
+pub(crate) fn load(
+    path: &Path,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<WeightsFile, WeightsError> {
     let origin = path.display().to_string();
     let text = crate::input::read_capped(path, MAX_WEIGHTS_BYTES, stop).map_err(|source| {
         WeightsError::Read {

@@ -96,7 +96,7 @@ impl ModelParams {
 
     /// Check every value, and that the inertia is positive definite over the whole joint
     /// range of this arm (`geometry`); the first problem names its field (`model.…`).
-    pub fn validate(&self, geometry: Geometry) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self, geometry: Geometry) -> Result<(), ConfigError> {
         for (name, v) in [("k1", self.k1), ("k5", self.k5), ("k7", self.k7)] {
             check::positive(&format!("model.{name}"), v)?;
         }
@@ -166,7 +166,7 @@ impl ModelParams {
 impl ModelParams {
     /// The same plant with every inertial and gravity parameter scaled by `factor` (a model
     /// error for computed torque experiments).
-    pub fn scaled(&self, factor: f64) -> Self {
+    pub(crate) fn scaled(&self, factor: f64) -> Self {
         let mut p = *self;
         for k in [
             &mut p.k1, &mut p.k2, &mut p.k3, &mut p.k4, &mut p.k5, &mut p.k7, &mut p.k8, &mut p.k9,
@@ -201,11 +201,11 @@ impl Trig {
 /// The model evaluated on joint states. `payload_kg` is a point mass at the tip.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Dynamics {
-    pub params: ModelParams,
-    pub geometry: Geometry,
-    pub payload_kg: f64,
+    pub(crate) params: ModelParams,
+    pub(crate) geometry: Geometry,
+    pub(crate) payload_kg: f64,
     /// Include viscous and Coulomb friction.
-    pub friction: bool,
+    pub(crate) friction: bool,
 }
 
 impl Dynamics {
@@ -338,7 +338,7 @@ impl Dynamics {
     }
 
     /// Torque needed for acceleration `qdd`: M q̈ + C q̇ + G (+ friction).
-    pub fn inverse_dynamics(&self, q: &Joint3, qd: &Joint3, qdd: &Joint3) -> Joint3 {
+    pub(crate) fn inverse_dynamics(&self, q: &Joint3, qd: &Joint3, qdd: &Joint3) -> Joint3 {
         let t = Trig::new(q);
         self.mass_with(q, &t) * qdd
             + self.coriolis_with(q, qd, &t) * qd

@@ -33,7 +33,7 @@ impl Default for Geometry {
 
 impl Geometry {
     /// Check every value; the first problem names its field (`geometry.…`).
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         check::in_range("geometry.l1_mm", self.l1_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
         check::in_range("geometry.l2_mm", self.l2_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
         for (field, v) in [

@@ -30,7 +30,7 @@ impl Default for TelemetryConfig {
 
 impl TelemetryConfig {
     /// Check every value; the first problem names its field (`telemetry.…`).
-    pub fn validate(&self) -> Result<(), crate::config_check::ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), crate::config_check::ConfigError> {
         crate::config_check::int_in(
             "telemetry.channel_capacity",
             self.channel_capacity,

@@ -81,78 +81,78 @@ pub mod flags {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TickRecord {
     /// Device time since start, s.
-    pub t: f64,
+    pub(crate) t: f64,
     /// Measured joint angles (from the encoders), rad.
-    pub q: [f64; 3],
+    pub(crate) q: [f64; 3],
     /// Torque actually commanded to the motors after limits and DAC quantisation, N·m (on a
     /// replay: the recorded torque, what the recorded plant got).
-    pub tau: [f64; 3],
+    pub(crate) tau: [f64; 3],
     /// Kalman estimates.
-    pub qf: [f64; 3],
-    pub qd: [f64; 3],
-    pub qdd: [f64; 3],
+    pub(crate) qf: [f64; 3],
+    pub(crate) qd: [f64; 3],
+    pub(crate) qdd: [f64; 3],
     /// Reference position, rad.
-    pub reference: [f64; 3],
+    pub(crate) reference: [f64; 3],
     /// Controller output before the safety layer, N·m.
-    pub tau_cmd: [f64; 3],
+    pub(crate) tau_cmd: [f64; 3],
     /// The identifier's prediction of the torque that acted (NaN when it has none).
-    pub tau_hat: [f64; 3],
+    pub(crate) tau_hat: [f64; 3],
     /// The plant's exact model on the estimated states (simulator only, else NaN).
     pub(crate) tau_model: [f64; 3],
     /// Continuous encoder counts.
-    pub enc: [i64; 3],
-    pub amps: bool,
-    pub mode: Mode,
-    pub flags: u32,
+    pub(crate) enc: [i64; 3],
+    pub(crate) amps: bool,
+    pub(crate) mode: Mode,
+    pub(crate) flags: u32,
     /// The tip and the forces there (docs/HAPTICS.md).
-    pub haptic: HapticRecord,
+    pub(crate) haptic: HapticRecord,
     /// What the daemon's clients see beyond the log's columns (not written to the log).
-    pub live: Live,
+    pub(crate) live: Live,
 }
 
 /// The log's haptic columns.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct HapticRecord {
     /// Stylus tip at the measured pose, mm, OpenHaptics frame (`tip1..3`).
-    pub tip_mm: [f64; 3],
+    pub(crate) tip_mm: [f64; 3],
     /// The tip force commanded this tick (effects and a client's `servo_cf`, after the
     /// passivity controller and the peak clamp), N (`fcmd1..3`).
-    pub force: [f64; 3],
+    pub(crate) force: [f64; 3],
     /// Simulator: the force the simulated hand put on the tip, N (`fhand1..3`; NaN elsewhere).
-    pub hand: [f64; 3],
+    pub(crate) hand: [f64; 3],
 }
 
 /// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Live {
+pub(crate) struct Live {
     /// Tick number since the servo started (the state stream's sequence number).
-    pub seq: u64,
+    pub(crate) seq: u64,
     /// Stylus buttons pressed, and the stylus in its inkwell.
-    pub buttons: [bool; 2],
-    pub inkwell: bool,
+    pub(crate) buttons: [bool; 2],
+    pub(crate) inkwell: bool,
     /// Gimbal potentiometer words as the device sent them (the hub converts them to angles,
     /// `serve::device_info`).
-    pub gimbal: [u16; 3],
+    pub(crate) gimbal: [u16; 3],
     /// The controller whose law is in effect (the new one during a bumpless switch).
-    pub controller: Option<crate::control::ControllerKind>,
+    pub(crate) controller: Option<crate::control::ControllerKind>,
     /// Sequence number of the last stream command (`servo_jp`/`servo_jf`/`servo_cf`) applied.
-    pub cmd_seq: u64,
+    pub(crate) cmd_seq: u64,
     /// Something happened this tick that every client is told about.
-    pub event: Option<ServoEvent>,
+    pub(crate) event: Option<ServoEvent>,
 }
 
 /// Which optional column groups a log carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogSchema {
     /// `tau_model1..3` and `fhand1..3` (simulator runs).
-    pub model: bool,
+    pub(crate) model: bool,
 }
 
 /// The seven columns every log starts with, and every replayable file must have.
 pub const REQUIRED_COLUMNS: [&str; 7] = ["t", "q1", "q2", "q3", "tau1", "tau2", "tau3"];
 
 impl LogSchema {
-    pub fn columns(&self) -> Vec<String> {
+    pub(crate) fn columns(&self) -> Vec<String> {
         let mut c: Vec<String> = REQUIRED_COLUMNS.iter().map(|s| s.to_string()).collect();
         for group in ["qf", "qd", "qdd", "ref", "tau_cmd", "tau_hat"] {
             c.extend((1..=3).map(|j| format!("{group}{j}")));

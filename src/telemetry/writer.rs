@@ -39,19 +39,19 @@ pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
 
 #[derive(Debug)]
 pub(crate) struct WriterReport {
-    pub path: PathBuf,
+    pub(crate) path: PathBuf,
     pub(crate) schema: LogSchema,
     /// Rows that reached the file (whole rows: a row cut by a failed write is taken back).
-    pub rows: u64,
+    pub(crate) rows: u64,
     /// Rows the writer was given.
-    pub received: u64,
+    pub(crate) received: u64,
     /// The first write error, if any; rows after it are lost.
-    pub error: Option<io::Error>,
+    pub(crate) error: Option<io::Error>,
     /// The last [`DUMP_TICKS`] records received, oldest first (for the fault dump).
-    pub tail: VecDeque<TickRecord>,
+    pub(crate) tail: VecDeque<TickRecord>,
     /// The log, still open: its lock holds until the report is dropped, so no other omnid
     /// takes the log (or its fault dump) while the run finishes.
-    pub file: File,
+    pub(crate) file: File,
 }
 
 /// `run.csv` → `run-fault.csv`, beside the log.
@@ -194,7 +194,7 @@ fn suitable(path: &Path) -> Result<Option<bool>, LogError> {
 /// A run's log, open for writing and locked (`flock`) against every other omnid while open.
 #[derive(Debug)]
 pub(crate) struct LogFile {
-    pub path: PathBuf,
+    pub(crate) path: PathBuf,
     file: File,
 }
 
@@ -228,7 +228,7 @@ fn open_special(path: &Path) -> io::Result<File> {
 impl LogFile {
     /// Check `path` as a log before the work starts: a suitable kind, its directory made, a
     /// file can be created there, and no other omnid writes it.
-    pub fn check(path: &Path) -> Result<(), LogError> {
+    pub(crate) fn check(path: &Path) -> Result<(), LogError> {
         let io_err = |source| LogError::Io {
             path: path.to_path_buf(),
             source,
@@ -261,7 +261,7 @@ impl LogFile {
     /// ext4 flushes a file that was truncated and rewritten when it is closed, and the next
     /// file created then waits for those tens of MB to reach the disk (~25 ms at the end of a
     /// 60 s `--fast` run). What a symlink names is truncated, a device written as it is.
-    pub fn create(path: &Path) -> Result<LogFile, LogError> {
+    pub(crate) fn create(path: &Path) -> Result<LogFile, LogError> {
         let io_err = |source| LogError::Io {
             path: path.to_path_buf(),
             source,

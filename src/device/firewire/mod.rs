@@ -134,7 +134,7 @@ pub(crate) const OPENHAPTICS_ENCODER_SIGN: [i8; 3] = [-1, -1, 1];
 
 impl FirewireConfig {
     /// Check every value; the first problem names its field (`firewire.timeout_ms`, ...).
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         let node_ok = self
             .device
             .strip_prefix("/dev/fw")
@@ -269,20 +269,20 @@ impl FirewireConfig {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct FireWireOptions {
     /// How long one exchange waits for the next packet.
-    pub timeout: Duration,
+    pub(crate) timeout: Duration,
     /// The configured packet rate (device time is counter / rate; checked at open).
-    pub rate_hz: f64,
+    pub(crate) rate_hz: f64,
     pub(crate) vendor_init: bool,
     pub(crate) scratch_test: bool,
     pub(crate) busy_retries: u32,
     pub(crate) busy_retry: Duration,
     pub(crate) encoder_sign: [i8; 3],
-    pub format: WireFormat,
+    pub(crate) format: WireFormat,
 }
 
 impl FireWireOptions {
     /// The defaults of `[firewire]` at `rate_hz`, with `timeout`.
-    pub fn new(timeout: Duration, rate_hz: f64) -> Self {
+    pub(crate) fn new(timeout: Duration, rate_hz: f64) -> Self {
         FireWireOptions {
             timeout,
             ..FirewireConfig::default().options(rate_hz)
@@ -339,11 +339,11 @@ pub enum BusError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PacketInfo {
     /// Payload bytes in the buffer.
-    pub len: usize,
+    pub(crate) len: usize,
     /// The 1394 iso packet header (data_length, tag, channel, tcode, sy), as a number.
     pub(crate) iso_header: u32,
     /// Receive timestamp: 3 bits cycleSeconds, 13 bits cycleCount.
-    pub timestamp: u16,
+    pub(crate) timestamp: u16,
 }
 
 /// What waiting for the next packet brought.
@@ -436,8 +436,8 @@ pub struct Tapped {
     /// Host monotonic time, ns.
     pub(crate) host_ns: u64,
     /// `None` for a command the host sent.
-    pub received: Option<PacketInfo>,
-    pub bytes: Vec<u8>,
+    pub(crate) received: Option<PacketInfo>,
+    pub(crate) bytes: Vec<u8>,
 }
 
 /// One register as `omnid probe` reads it.
@@ -445,9 +445,9 @@ pub struct Tapped {
 pub(crate) struct RegisterReading {
     pub(crate) offset: u64,
     /// 1 (byte register) or 4 (quadlet).
-    pub width: u8,
-    pub name: &'static str,
-    pub value: Result<u32, BusError>,
+    pub(crate) width: u8,
+    pub(crate) name: &'static str,
+    pub(crate) value: Result<u32, BusError>,
 }
 
 /// The registers `omnid probe` reads (reads only: nothing here is written).
@@ -490,7 +490,7 @@ pub struct FireWireOmni<B: FireWireBus> {
 impl<B: FireWireBus> FireWireOmni<B> {
     /// No bus traffic yet; default `[firewire]` options with this timeout and rate. See
     /// [`identify`](Self::identify) and [`start`](Self::start).
-    pub fn new(bus: B, name: String, timeout: Duration, rate_hz: f64) -> Self {
+    pub(crate) fn new(bus: B, name: String, timeout: Duration, rate_hz: f64) -> Self {
         Self::with_options(bus, name, FireWireOptions::new(timeout, rate_hz))
     }
 
@@ -519,7 +519,8 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// Identify, then start streaming (no rate check: see [`check_rate`](Self::check_rate)).
-    pub fn open(
+    #[cfg(test)]
+    pub(crate) fn open(
         bus: B,
         name: String,
         timeout: Duration,
@@ -529,6 +530,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// Identify, then start streaming with these options.
+    #[cfg(test)]
     pub(crate) fn open_with(
         bus: B,
         name: String,
@@ -541,7 +543,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// The name messages use (`/dev/fw1`).
-    pub fn name(&self) -> &str {
+    pub(crate) fn name(&self) -> &str {
         &self.name
     }
 
@@ -558,7 +560,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
 
     /// Check the vendor register says SensAble and read the serial number (no writes).
     /// Returns the serial in the 11-digit form of the unit's label.
-    pub fn identify(&mut self) -> Result<String, DeviceError> {
+    pub(crate) fn identify(&mut self) -> Result<String, DeviceError> {
         let vendor = self
             .read_quadlet(reg::VENDOR)
             .map_err(|e| self.bus_failure("reading the vendor register 0x1006000c", e))?;
@@ -603,7 +605,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// The start sequence (docs/FIREWIRE.md §2), redone after every bus reset.
-    pub fn start(&mut self) -> Result<(), DeviceError> {
+    pub(crate) fn start(&mut self) -> Result<(), DeviceError> {
         match self.start_sequence() {
             Ok(()) => Ok(()),
             Err(e) => {
@@ -699,7 +701,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// Everything unusual seen on the stream so far.
-    pub fn stats(&self) -> StreamStats {
+    pub(crate) fn stats(&self) -> StreamStats {
         self.stats
     }
 
@@ -1155,16 +1157,16 @@ impl<B: FireWireBus> Drop for FireWireOmni<B> {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct NodeInfo {
     /// `/dev/fw1`.
-    pub path: PathBuf,
+    pub(crate) path: PathBuf,
     /// Config-ROM vendor id (from sysfs, else from the ROM through the node), when known.
-    pub vendor: Option<u32>,
+    pub(crate) vendor: Option<u32>,
     /// GUID from sysfs, when known.
     pub(crate) guid: Option<String>,
     /// Vendor and model names from sysfs, when known.
     pub(crate) vendor_name: Option<String>,
     pub(crate) model_name: Option<String>,
     /// Whether this user may open the node.
-    pub access: NodeAccess,
+    pub(crate) access: NodeAccess,
 }
 
 /// Whether a node can be opened read-write.

@@ -33,9 +33,9 @@ pub(crate) fn cycles_between(a: u16, b: u16) -> Option<u32> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RateMeasurement {
     /// Packets looked at.
-    pub packets: usize,
+    pub(crate) packets: usize,
     /// Consecutive pairs whose counter stepped by exactly one (the period is theirs).
-    pub pairs: usize,
+    pub(crate) pairs: usize,
     /// Period between packets, s: the mean of the middle 80 % of the pairs (0 when none).
     pub(crate) period_s: f64,
     /// Median step of the per-packet counter (bytes 32..35) between consecutive packets.
@@ -43,7 +43,7 @@ pub struct RateMeasurement {
 }
 
 impl RateMeasurement {
-    pub fn rate_hz(&self) -> f64 {
+    pub(crate) fn rate_hz(&self) -> f64 {
         if self.period_s > 0.0 {
             1.0 / self.period_s
         } else {
