@@ -6,19 +6,35 @@ use serde::Deserialize;
 use std::fmt::Display;
 use thiserror::Error;
 
+/// Why a configuration was refused: the file could not be read, was not valid TOML for the
+/// schema, or a value is out of its range.
 #[derive(Debug, Error)]
 pub enum ConfigError {
+    /// The file could not be read (or the operator stopped the read: see
+    /// [`is_stopped`](Self::is_stopped)).
     #[error("cannot read config {path}: {source}")]
     Read {
+        /// The file, as given.
         path: String,
+        /// What the read reported.
         source: std::io::Error,
     },
+    /// Not TOML, or a key, type or table the schema does not have.
     #[error("config {path}: {message}")]
-    Parse { path: String, message: String },
+    Parse {
+        /// The file, as given (or the origin named by the caller).
+        path: String,
+        /// The parser's message, with the line and column when it has them.
+        message: String,
+    },
+    /// A value outside what its field allows.
     #[error("config: `{field}` = {} is out of range: allowed {allowed}", crate::text::cut(.value))]
     Invalid {
+        /// Dotted key of the field, `section.key` (`control.omega_n`).
         field: String,
+        /// The value as it was given.
         value: String,
+        /// The allowed range or values, in words (`0.1 ..= 200 rad/s`).
         allowed: String,
     },
 }

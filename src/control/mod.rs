@@ -22,6 +22,7 @@ use crate::identifier::Identifier;
 use crate::omni::{Geometry, Joint3, ModelParams};
 use serde::{Deserialize, Serialize};
 
+/// `[control]`: the gains of the closed loop, shared by PD, CT and NNIDC.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ControlConfig {
@@ -83,7 +84,9 @@ pub struct ControlSetup<'a> {
 pub struct ControlInput<'a> {
     /// Seconds since the run started.
     pub t: f64,
+    /// The Kalman estimate of the joint state at this tick.
     pub estimate: &'a Estimate,
+    /// Where the reference wants the joints at this tick.
     pub reference: &'a RefPoint,
 }
 
@@ -91,7 +94,9 @@ pub struct ControlInput<'a> {
 /// allocate, lock, log or block. `learned` is the online identifier (after this tick's
 /// update), for the laws that use the learned model.
 pub trait Controller: Send {
+    /// The law's name as the log and the summary spell it (`pd`, `nnidc`, `ct`, `off`).
     fn name(&self) -> &'static str;
+    /// The joint torque to command this tick, N·m.
     fn torque(&mut self, input: &ControlInput, learned: Option<&mut Identifier>) -> Joint3;
 
     /// The law's own model of what holds the arm up and drags on it (gravity, Coriolis and
@@ -121,6 +126,9 @@ pub fn make_controller<'a>(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
 )]
 #[serde(rename_all = "lowercase")]
+// The variants are described in the enum's doc: a doc comment on each would become clap's
+// help text for `--controller` and change `omnid run --help`.
+#[allow(missing_docs)]
 pub enum ControllerKind {
     Pd,
     Nnidc,
@@ -140,6 +148,7 @@ impl ControllerKind {
         ControllerKind::ALL.into_iter().find(|k| k.as_str() == s)
     }
 
+    /// The name on the command line, in the log header and in the summary.
     pub fn as_str(self) -> &'static str {
         match self {
             ControllerKind::Pd => "pd",

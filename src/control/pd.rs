@@ -7,6 +7,7 @@ use super::{ControlInput, Controller};
 use crate::identifier::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
+/// Independent joint PD, τ = K_p (q_r − q) + K_d (q̇_r − q̇), gains per joint.
 pub struct Pd {
     kp: Joint3,
     kd: Joint3,

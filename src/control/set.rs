@@ -10,6 +10,8 @@ use crate::estimate::kalman::Estimate;
 use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
+/// The four control laws, all built before the first tick, one of them active; a switch
+/// crossfades from the old law to the new one.
 pub struct ControllerSet {
     /// Indexed by `slot(kind)`.
     laws: [Box<dyn Controller>; 4],

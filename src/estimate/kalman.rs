@@ -7,6 +7,7 @@ use crate::omni::Joint3;
 use nalgebra::{Matrix3, RowVector3, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// `[kalman]`: the noise model of the per-joint filter.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct KalmanConfig {
@@ -207,12 +208,16 @@ pub struct KalmanBank {
 /// Joint-space estimate.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Estimate {
+    /// Joint angles q1..q3, rad.
     pub q: Joint3,
+    /// Joint velocities, rad/s.
     pub qd: Joint3,
+    /// Joint accelerations, rad/s².
     pub qdd: Joint3,
 }
 
 impl KalmanBank {
+    /// Three filters with the noise model of `cfg`, started by the first measurement.
     pub fn new(cfg: &KalmanConfig) -> Self {
         KalmanBank {
             joints: [JointKalman::new(cfg.jerk_psd, cfg.measurement_var); 3],

@@ -16,32 +16,49 @@ pub(crate) const MAX_EFFECTS: usize = 8;
 pub enum Effect {
     /// Pulls the tip towards `center_mm`.
     Spring {
+        /// Rest point, mm.
         center_mm: [f64; 3],
+        /// Stiffness, N/mm.
         stiffness_n_per_mm: f64,
+        /// Damping of the tip's velocity, N·s/m (0 if left out).
         #[serde(default)]
         damping_n_s_per_m: f64,
     },
     /// Resists the tip's velocity everywhere (viscous field).
-    Damper { damping_n_s_per_m: f64 },
+    Damper {
+        /// Damping, N·s/m.
+        damping_n_s_per_m: f64,
+    },
     /// A one-sided wall through `point_mm`; `normal` points out of the wall (where the tip is
     /// free). Pushes only, never pulls.
     Plane {
+        /// A point of the wall's surface, mm.
         point_mm: [f64; 3],
+        /// Outward normal (any non-zero length).
         normal: [f64; 3],
+        /// Stiffness against penetration, N/mm.
         stiffness_n_per_mm: f64,
+        /// Damping of the velocity into the wall while inside it, N·s/m (0 if left out).
         #[serde(default)]
         damping_n_s_per_m: f64,
     },
     /// Keeps the tip inside the box between `min_mm` and `max_mm` (six one-sided walls).
     Box {
+        /// Lowest corner, mm.
         min_mm: [f64; 3],
+        /// Highest corner, mm.
         max_mm: [f64; 3],
+        /// Stiffness of each wall, N/mm.
         stiffness_n_per_mm: f64,
+        /// Damping of the velocity into a wall while beyond it, N·s/m (0 if left out).
         #[serde(default)]
         damping_n_s_per_m: f64,
     },
     /// A constant force, N.
-    Constant { force_n: [f64; 3] },
+    Constant {
+        /// The force, N (OpenHaptics frame).
+        force_n: [f64; 3],
+    },
 }
 
 /// A one-sided spring-damper along one direction: `depth` m into the wall (> 0 inside),

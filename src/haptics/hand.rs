@@ -19,7 +19,12 @@ pub enum HandPattern {
     Path,
     /// Move from the centre along `dir` (an axis, ±) at `speed_m_s` until pushing with
     /// `push_force_n`, then keep pushing with that force.
-    Push { axis: usize, sign: f64 },
+    Push {
+        /// The axis, 0..=2 for x, y, z.
+        axis: usize,
+        /// Its direction, +1.0 or −1.0.
+        sign: f64,
+    },
 }
 
 impl HandPattern {

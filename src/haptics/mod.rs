@@ -24,6 +24,7 @@ use crate::omni::{jacobian, Geometry, Joint3};
 pub struct HapticRun {
     /// Free mode: only the controller's compensation and the effects (no trajectory).
     pub free: bool,
+    /// The scene's effects, from `--scene`.
     pub effects: Vec<Effect>,
 }
 

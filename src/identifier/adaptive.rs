@@ -28,13 +28,18 @@ const PAIRS: [(usize, usize, usize); 3] = [(1, 0, 1), (2, 0, 2), (2, 1, 4)];
 /// M-net output index of each diagonal entry.
 const DIAG: [usize; 3] = [0, 3, 5];
 
+/// Why an identifier could not be built.
 #[derive(Debug, Error)]
 pub enum IdentError {
+    /// The `[identifier]` section is out of range.
     #[error(transparent)]
     Config(#[from] ConfigError),
+    /// A network could not be built with these sizes or scalings.
     #[error("{net}-net: {source}")]
     Net {
+        /// Which network (`M`, `C`, `G`, `F`).
         net: &'static str,
+        /// What was wrong with it.
         #[source]
         source: MlpError,
     },
@@ -43,9 +48,13 @@ pub enum IdentError {
 /// The networks of the identifier.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Net {
+    /// The inertia matrix M̂(q) (six outputs: its distinct entries).
     M,
+    /// The Coriolis matrix Ĉ(q, q̇).
     C,
+    /// The gravity torque Ĝ(q).
     G,
+    /// The friction torque F̂(q̇) (only with `identifier.friction_net`).
     F,
 }
 

@@ -18,27 +18,41 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+/// Why a network could not be built or loaded.
 #[derive(Debug, Error, PartialEq)]
 pub enum MlpError {
+    /// A layer with no neurons.
     #[error(
         "network sizes must be at least 1 (inputs {inputs}, hidden {hidden}, outputs {outputs})"
     )]
     Size {
+        /// Inputs asked for.
         inputs: usize,
+        /// Hidden neurons asked for.
         hidden: usize,
+        /// Outputs asked for.
         outputs: usize,
     },
+    /// A vector (parameters, scaling) of the wrong length for the sizes.
     #[error("{what} has {got} entries, expected {expected}")]
     Length {
+        /// Which vector.
         what: &'static str,
+        /// Its length.
         got: usize,
+        /// The length the sizes call for.
         expected: usize,
     },
+    /// A value that is not finite, or not positive where it must be.
     #[error("{what}[{index}] = {value} must be finite{positive}")]
     Value {
+        /// Which vector.
         what: &'static str,
+        /// The entry's index.
         index: usize,
+        /// The entry.
         value: f64,
+        /// `" and > 0"` where the value must be positive too, else empty.
         positive: &'static str,
     },
 }

@@ -5,6 +5,7 @@
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
+/// `[identifier]`: the networks' sizes and the learning law's gains and guards.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct IdentifierConfig {

@@ -25,29 +25,61 @@ pub(crate) const FORMAT: &str = "omnid-identifier-weights";
 /// Current `version`.
 pub(crate) const VERSION: u32 = 1;
 
+/// Why a weights file could not be read, used or written.
 #[derive(Debug, Error)]
 pub enum WeightsError {
+    /// The file could not be read (or the operator stopped the read).
     #[error("cannot read weights file {path}: {source}")]
     Read {
+        /// The file, as given.
         path: String,
+        /// What the read reported.
         source: std::io::Error,
     },
+    /// The file could not be written.
     #[error("weights file: {0}")]
     Write(#[from] crate::output::OutputError),
+    /// Not JSON, or not the weights file's fields.
     #[error("weights file {path} is not valid weights JSON: {message}")]
-    Parse { path: String, message: String },
+    Parse {
+        /// The file (or origin) named in the message.
+        path: String,
+        /// The parser's message.
+        message: String,
+    },
+    /// Another format name or version than this build writes.
     #[error("weights file {path} has format \"{format}\" version {version}; expected \"{FORMAT}\" version {VERSION}")]
     Format {
+        /// The file (or origin) named in the message.
         path: String,
+        /// The file's `format`.
         format: String,
+        /// The file's `version`.
         version: u32,
     },
+    /// The networks do not match the configuration (hidden size, friction network).
     #[error("weights file {path} does not fit the configuration: {message}")]
-    Mismatch { path: String, message: String },
+    Mismatch {
+        /// The file (or origin) named in the message.
+        path: String,
+        /// What differs.
+        message: String,
+    },
+    /// The file contradicts itself or holds a network that cannot be built (sizes against
+    /// parameter counts, scalings, …).
     #[error("weights file {path} is inconsistent: {message}")]
-    Invalid { path: String, message: String },
+    Invalid {
+        /// The file (or origin) named in the message.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A weight is NaN or infinite: such weights are never saved.
     #[error("refusing to save weights: {message}")]
-    NotFinite { message: String },
+    NotFinite {
+        /// Which network and entry.
+        message: String,
+    },
 }
 
 impl WeightsError {
@@ -196,6 +228,7 @@ impl WeightsFile {
         Ok(())
     }
 
+    /// The file's JSON text (what `save` writes, without the final newline).
     pub fn to_json(&self) -> String {
         // Plain data with string keys: serialisation cannot fail.
         serde_json::to_string_pretty(self).unwrap_or_default()

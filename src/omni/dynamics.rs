@@ -209,6 +209,7 @@ pub struct Dynamics {
 }
 
 impl Dynamics {
+    /// The model with these parameters and this geometry: no payload, friction included.
     pub fn new(params: ModelParams, geometry: Geometry) -> Self {
         Dynamics {
             params,

@@ -13,6 +13,7 @@ pub(crate) use writer::{dump_path, spawn_writer, write_dump, LogFile, WriterRepo
 
 use serde::{Deserialize, Serialize};
 
+/// `[telemetry]`: how the ticks travel from the servo loop to the log writer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct TelemetryConfig {

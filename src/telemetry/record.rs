@@ -25,6 +25,7 @@ pub enum Mode {
 }
 
 impl Mode {
+    /// Every mode, in the order of the enum.
     pub const ALL: [Mode; 9] = [
         Mode::Blend,
         Mode::Track,
@@ -37,6 +38,7 @@ impl Mode {
         Mode::ServoCf,
     ];
 
+    /// The name in the log's `mode` column (`servo_jp`, …).
     pub fn as_str(self) -> &'static str {
         match self {
             Mode::Blend => "blend",
@@ -51,6 +53,7 @@ impl Mode {
         }
     }
 
+    /// The mode a `mode` column names, if any.
     pub fn parse(s: &str) -> Option<Mode> {
         Mode::ALL.into_iter().find(|m| m.as_str() == s)
     }
@@ -78,6 +81,8 @@ pub mod flags {
     pub const IDENT_FAULT: u32 = 1 << 8;
 }
 
+/// Everything the loop knows at one tick: one row of the log, what `omnid serve` streams and
+/// what a fault dump keeps.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TickRecord {
     /// Device time since start, s.
@@ -178,9 +183,15 @@ impl LogSchema {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ServoEvent {
     /// No stream command arrived within its time to live; the loop fell back to `fallback`.
-    StreamStale { fallback: Mode },
+    StreamStale {
+        /// The mode the loop is in now.
+        fallback: Mode,
+    },
     /// The stream's owner left; the loop fell back to `fallback`.
-    StreamEnded { fallback: Mode },
+    StreamEnded {
+        /// The mode the loop is in now.
+        fallback: Mode,
+    },
     /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
     SafetyTrip(SafetyTrip),
 }
@@ -189,12 +200,25 @@ pub enum ServoEvent {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum SafetyTrip {
     /// The controller's output was NaN or infinite on this joint.
-    NonFinite { joint: usize },
+    NonFinite {
+        /// The joint, 0..=2.
+        joint: usize,
+    },
     /// A joint moved faster than its limit (by the estimate).
-    Velocity { joint: usize, speed: f64 },
+    Velocity {
+        /// The joint, 0..=2.
+        joint: usize,
+        /// Its speed, rad/s.
+        speed: f64,
+    },
     /// A joint moved faster than its limit by its encoders (over the last few ticks, beyond
     /// the quantisation margin), whatever the estimate says.
-    MeasuredVelocity { joint: usize, speed: f64 },
+    MeasuredVelocity {
+        /// The joint, 0..=2.
+        joint: usize,
+        /// Its speed from the encoders, rad/s.
+        speed: f64,
+    },
 }
 
 impl std::fmt::Display for SafetyTrip {

@@ -147,14 +147,31 @@ fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Resu
     w.write_all(&line)
 }
 
+/// Why a log could not be opened.
 #[derive(Debug, Error)]
 pub enum LogError {
+    /// Creating or opening the file failed.
     #[error("cannot create log {}: {source}", path.display())]
-    Io { path: PathBuf, source: io::Error },
+    Io {
+        /// The log's path.
+        path: PathBuf,
+        /// What the system reported.
+        source: io::Error,
+    },
+    /// The path is something a log cannot be written to (a directory, a socket, …).
     #[error("cannot create log {}: it is {what}; a log is a file, a character device such as /dev/null, or a FIFO", path.display())]
-    Unsuitable { path: PathBuf, what: &'static str },
+    Unsuitable {
+        /// The log's path.
+        path: PathBuf,
+        /// What it is instead, in words.
+        what: &'static str,
+    },
+    /// Another omnid process holds the log's lock.
     #[error("log {} is in use: another omnid writes it", path.display())]
-    InUse { path: PathBuf },
+    InUse {
+        /// The log's path.
+        path: PathBuf,
+    },
 }
 
 /// Take an exclusive `flock` without waiting: false when another process holds one. A file

@@ -311,28 +311,42 @@ fn os_text(errno: &i32) -> String {
 /// What the bus reports. Copy and allocation-free: it travels through the 1 kHz path.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
 pub enum BusError {
+    /// The bus was reset (a node joined or left): node ids and channels must be set up again.
     #[error("bus reset")]
     BusReset,
+    /// The node disappeared.
     #[error("the node is gone (unplugged or powered off)")]
     Gone,
+    /// No answer or packet within the wait.
     #[error("timed out")]
     Timeout,
+    /// The node's device file may not be opened by this user (the udev rule is missing).
     #[error("permission denied")]
     Permission,
+    /// Every isochronous channel is taken.
     #[error("no free isochronous channel at the isochronous resource manager")]
     NoChannel,
+    /// Our transmit context stopped taking packets.
     #[error("the isochronous transmit queue is full (the controller stopped sending)")]
     TxStalled,
     /// The node answered busy (RCODE_BUSY) or conflict (RCODE_CONFLICT_ERROR): try again, as
     /// the Twente driver does on EAGAIN (rev-eng/easy-com.c:34-37).
     #[error("the node answered busy (response code {0:#04x})")]
     Busy(u32),
+    /// Any other IEEE 1394 response code (address or type error, …).
     #[error("the node answered with response code {0:#04x}")]
     Rcode(u32),
+    /// A packet was sent or awaited before the stream was started.
     #[error("isochronous streaming is not running")]
     NotStreaming,
+    /// A system call failed.
     #[error("{op}: {}", os_text(.errno))]
-    Os { op: &'static str, errno: i32 },
+    Os {
+        /// The call (`FW_CDEV_IOC_QUEUE_ISO`, …).
+        op: &'static str,
+        /// Its `errno`.
+        errno: i32,
+    },
 }
 
 /// One received iso packet: its length and what the kernel reports beside it.
@@ -1172,8 +1186,11 @@ pub struct NodeInfo {
 /// Whether a node can be opened read-write.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum NodeAccess {
+    /// It opens read-write.
     Ok,
+    /// Permission denied (the udev rule is missing or the user is not in its group).
     Denied,
+    /// Another error, its message.
     Error(String),
 }
 
