@@ -79,7 +79,7 @@ impl Config {
         Ok(cfg)
     }
 
-    /// Read and validate a config file (at most [`MAX_CONFIG_BYTES`]; `stop`, the operator's,
+    /// Read and validate a config file (at most 1 MiB, `MAX_CONFIG_BYTES`; `stop`, the operator's,
     /// ends a wait on a pipe, without it only a regular file is read: see
     /// [`crate::input::open`]).
     pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<Self, ConfigError> {

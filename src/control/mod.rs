@@ -1,12 +1,12 @@
 //! Control: reference trajectories and the controllers that turn (estimate, reference) into
 //! joint torque. Every controller is behind one trait and chosen by flag.
 
-pub mod ct;
+pub(crate) mod ct;
 pub(crate) mod nan_after;
-pub mod nnidc;
-pub mod pd;
-pub mod reference;
-pub mod set;
+pub(crate) mod nnidc;
+pub(crate) mod pd;
+pub(crate) mod reference;
+pub(crate) mod set;
 
 pub(crate) use ct::ComputedTorque;
 pub(crate) use nan_after::NanAfter;
@@ -121,7 +121,9 @@ pub fn make_controller<'a>(
     }
 }
 
-/// Controllers selectable with `--controller`.
+/// Controllers selectable with `--controller`: `Pd` the PD baseline ([`Pd`]), `Nnidc` inverse
+/// dynamics with the identifier's learned model (PD while the identifier is stopped), `Ct`
+/// computed torque with the parametric rigid-body model, `Off` no torque (the arm hangs free).
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
 )]

@@ -3,11 +3,11 @@
 //! with J the Jacobian of the tip position in metres; that torque then goes through the safety
 //! layer like every other.
 
-pub mod config;
-pub mod effects;
-pub mod hand;
-pub mod passivity;
-pub mod render;
+pub(crate) mod config;
+pub(crate) mod effects;
+pub(crate) mod hand;
+pub(crate) mod passivity;
+pub(crate) mod render;
 pub mod scene;
 
 pub use config::HapticsConfig;

@@ -47,7 +47,7 @@ pub enum IdentError {
 
 /// The networks of the identifier.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub enum Net {
+pub(crate) enum Net {
     /// The inertia matrix M̂(q) (six outputs: its distinct entries).
     M,
     /// The Coriolis matrix Ĉ(q, q̇).

@@ -92,7 +92,7 @@ impl WeightsError {
 /// One network's sizes, scaling and parameters (layout of `Mlp::params`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct NetWeights {
+pub(crate) struct NetWeights {
     pub(crate) net: Net,
     pub(crate) inputs: usize,
     pub(crate) hidden: usize,
@@ -303,7 +303,7 @@ impl Identifier {
         Ok(())
     }
 
-    /// An identifier for `cfg` with the weights of the file at `path` (`stop`: see [`load`]).
+    /// An identifier for `cfg` with the weights of the file at `path` (`stop`: see `load`).
     pub fn from_weights_file(
         cfg: &IdentifierConfig,
         path: &Path,

@@ -117,7 +117,7 @@ pub struct TickRecord {
 
 /// The log's haptic columns.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct HapticRecord {
+pub(crate) struct HapticRecord {
     /// Stylus tip at the measured pose, mm, OpenHaptics frame (`tip1..3`).
     pub(crate) tip_mm: [f64; 3],
     /// The tip force commanded this tick (effects and a client's `servo_cf`, after the

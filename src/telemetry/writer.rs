@@ -2,7 +2,7 @@
 //! write error (disk full) is remembered and reported, but the thread keeps draining so the
 //! servo loop never notices.
 //!
-//! The thread polls the channel (drain, then sleep [`POLL`]) instead of blocking in `recv`:
+//! The thread polls the channel (drain, then sleep `POLL`, 1 ms) instead of blocking in `recv`:
 //! a receiver parked in `recv` must be woken by the sender, which would put a futex
 //! syscall into every servo tick.
 
@@ -25,7 +25,7 @@ pub(crate) const DUMP_TICKS: usize = 500;
 /// per wake-up; the channel (8192 rows by default) has seconds of slack.
 pub(crate) const POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
-/// Hand every item to `each` until the senders are gone, sleeping [`POLL`] whenever the
+/// Hand every item to `each` until the senders are gone, sleeping `POLL` (1 ms) whenever the
 /// channel is empty (never parked in `recv`, so a send never has to wake this thread).
 pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
     loop {

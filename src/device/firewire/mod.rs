@@ -8,7 +8,7 @@
 //!   restart after every bus reset, and the stop sequence on close (safe packet, clear bit 3
 //!   of 0x1087, stop iso, free channels).
 //! - [`FireWireBus`] does the bus work: asynchronous register reads and writes, channel
-//!   allocation, iso contexts, packets and bus-reset events. [`cdev::CdevBus`] is the real
+//!   allocation, iso contexts, packets and bus-reset events. `cdev::CdevBus` is the real
 //!   one (ioctls on `/dev/fwN`); tests drive the protocol over a fake bus.
 //!
 //! The registers at 0x1000..0x1087 are single bytes at byte addresses (0x1087 is not
@@ -1185,7 +1185,7 @@ pub struct NodeInfo {
 
 /// Whether a node can be opened read-write.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum NodeAccess {
+pub(crate) enum NodeAccess {
     /// It opens read-write.
     Ok,
     /// Permission denied (the udev rule is missing or the user is not in its group).
