@@ -6,11 +6,13 @@
 
 pub use crate::config_check::ConfigError;
 pub use crate::control::reference::ReferenceConfig;
-pub use crate::control::{ControlConfig, ControlSetup};
+pub use crate::control::ControlConfig;
+pub(crate) use crate::control::ControlSetup;
 pub use crate::device::firewire::FirewireConfig;
 pub use crate::device::inject::InjectConfig;
-pub use crate::device::probe::ProbeSetup;
-pub use crate::device::sim::{SimConfig, SimSetup};
+pub(crate) use crate::device::probe::ProbeSetup;
+pub use crate::device::sim::SimConfig;
+pub(crate) use crate::device::sim::SimSetup;
 pub use crate::device::usb::UsbConfig;
 pub use crate::device::DeviceConfig;
 pub use crate::estimate::kalman::KalmanConfig;
@@ -20,7 +22,7 @@ use crate::omni::{Geometry, ModelParams};
 pub use crate::serve::ServeConfig;
 pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
-pub use crate::servo::ServoSetup;
+pub(crate) use crate::servo::ServoSetup;
 pub use crate::telemetry::TelemetryConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
