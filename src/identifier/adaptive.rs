@@ -325,8 +325,9 @@ impl Identifier {
         }
     }
 
-    /// False once a non-finite value was seen; adaptation has stopped and NNIDC should fall
-    /// back to PD until `reset_fault`.
+    /// False once a non-finite value was seen; adaptation has stopped and NNIDC falls back to
+    /// PD for as long as this identifier is in use (a new run, or a weights load in
+    /// `omnid serve`, brings a new one).
     pub fn healthy(&self) -> bool {
         self.fault.is_none()
     }
@@ -361,7 +362,8 @@ impl Identifier {
         true
     }
 
-    /// Operator reset: adapt again from the current (last good) weights.
+    /// Clear the fault: adapt again from the current (last good) weights. Only the tests
+    /// need it; a run never resumes a stopped identifier.
     #[cfg(test)]
     pub(crate) fn reset_fault(&mut self) {
         self.fault = None;
