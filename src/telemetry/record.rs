@@ -63,7 +63,9 @@ impl Mode {
 pub mod flags {
     /// The torque clamp limited at least one joint.
     pub const CLAMPED: u32 = 1 << 0;
-    /// The controller's output was not finite; zero torque was sent instead.
+    /// The controller's output was not finite; zero torque was sent instead. Kept for the
+    /// log format (docs/DESIGN.md's `flags` row) but never set: a non-finite command trips
+    /// the safety layer instead ([`SafetyTrip::NonFinite`](super::SafetyTrip::NonFinite)).
     pub const NON_FINITE: u32 = 1 << 1;
     /// The previous tick's packet was missed and its torque held.
     pub const HELD: u32 = 1 << 2;
