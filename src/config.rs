@@ -6,11 +6,13 @@
 
 pub use crate::config_check::ConfigError;
 pub use crate::control::reference::ReferenceConfig;
-pub use crate::control::{ControlConfig, ControlSetup};
+pub use crate::control::ControlConfig;
+pub(crate) use crate::control::ControlSetup;
 pub use crate::device::firewire::FirewireConfig;
 pub use crate::device::inject::InjectConfig;
-pub use crate::device::probe::ProbeSetup;
-pub use crate::device::sim::{SimConfig, SimSetup};
+pub(crate) use crate::device::probe::ProbeSetup;
+pub use crate::device::sim::SimConfig;
+pub(crate) use crate::device::sim::SimSetup;
 pub use crate::device::usb::UsbConfig;
 pub use crate::device::DeviceConfig;
 pub use crate::estimate::kalman::KalmanConfig;
@@ -20,7 +22,7 @@ use crate::omni::{Geometry, ModelParams};
 pub use crate::serve::ServeConfig;
 pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
-pub use crate::servo::ServoSetup;
+pub(crate) use crate::servo::ServoSetup;
 pub use crate::telemetry::TelemetryConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -28,7 +30,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// The largest config file read (the full default config is about 12 kB).
-pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+pub(crate) const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
 /// The whole configuration file.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, schemars::JsonSchema)]
@@ -79,7 +81,7 @@ impl Config {
         Ok(cfg)
     }
 
-    /// Read and validate a config file (at most [`MAX_CONFIG_BYTES`]; `stop`, the operator's,
+    /// Read and validate a config file (at most 1 MiB, `MAX_CONFIG_BYTES`; `stop`, the operator's,
     /// ends a wait on a pipe, without it only a regular file is read: see
     /// [`crate::input::open`]).
     pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<Self, ConfigError> {
@@ -94,7 +96,7 @@ impl Config {
 
     /// What the simulated Omni needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
-    pub fn check_sim(&self) -> Result<(), ConfigError> {
+    pub(crate) fn check_sim(&self) -> Result<(), ConfigError> {
         self.sim
             .check_plant(&self.device, &self.model, self.geometry)
     }

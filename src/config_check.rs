@@ -6,19 +6,35 @@ use serde::Deserialize;
 use std::fmt::Display;
 use thiserror::Error;
 
+/// Why a configuration was refused: the file could not be read, was not valid TOML for the
+/// schema, or a value is out of its range.
 #[derive(Debug, Error)]
 pub enum ConfigError {
+    /// The file could not be read (or the operator stopped the read: see
+    /// [`is_stopped`](Self::is_stopped)).
     #[error("cannot read config {path}: {source}")]
     Read {
+        /// The file, as given.
         path: String,
+        /// What the read reported.
         source: std::io::Error,
     },
+    /// Not TOML, or a key, type or table the schema does not have.
     #[error("config {path}: {message}")]
-    Parse { path: String, message: String },
+    Parse {
+        /// The file, as given (or the origin named by the caller).
+        path: String,
+        /// The parser's message, with the line and column when it has them.
+        message: String,
+    },
+    /// A value outside what its field allows.
     #[error("config: `{field}` = {} is out of range: allowed {allowed}", crate::text::cut(.value))]
     Invalid {
+        /// Dotted key of the field, `section.key` (`control.omega_n`).
         field: String,
+        /// The value as it was given.
         value: String,
+        /// The allowed range or values, in words (`0.1 ..= 200 rad/s`).
         allowed: String,
     },
 }
@@ -31,7 +47,7 @@ impl ConfigError {
 }
 
 /// `field` = `value` is not allowed; `allowed` says what is.
-pub fn invalid(
+pub(crate) fn invalid(
     field: impl Into<String>,
     value: impl Display,
     allowed: impl Into<String>,
@@ -44,7 +60,13 @@ pub fn invalid(
 }
 
 /// A finite `v` in `lo ..= hi`.
-pub fn in_range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<(), ConfigError> {
+pub(crate) fn in_range(
+    field: &str,
+    v: f64,
+    lo: f64,
+    hi: f64,
+    allowed: &str,
+) -> Result<(), ConfigError> {
     if v.is_finite() && v >= lo && v <= hi {
         Ok(())
     } else {
@@ -53,7 +75,7 @@ pub fn in_range(field: &str, v: f64, lo: f64, hi: f64, allowed: &str) -> Result<
 }
 
 /// A finite `v` > 0.
-pub fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
+pub(crate) fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
@@ -62,7 +84,7 @@ pub fn positive(field: &str, v: f64) -> Result<(), ConfigError> {
 }
 
 /// An integer (or any ordered value) in `lo ..= hi`.
-pub fn int_in<T: PartialOrd + Display>(
+pub(crate) fn int_in<T: PartialOrd + Display>(
     field: &str,
     v: T,
     lo: T,
@@ -77,7 +99,7 @@ pub fn int_in<T: PartialOrd + Display>(
 }
 
 /// `check` on every element, each named `field[i]`.
-pub fn each<const N: usize>(
+pub(crate) fn each<const N: usize>(
     field: &str,
     v: &[f64; N],
     check: impl Fn(&str, f64) -> Result<(), ConfigError>,
@@ -92,7 +114,7 @@ pub fn each<const N: usize>(
 /// looking further, so with `toml` a longer array was silently cut to its first N; every
 /// fixed-length field of a config or stored-state file takes its values through this
 /// (`#[serde(deserialize_with = "crate::config_check::exact")]`).
-pub fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+pub(crate) fn exact<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
 where
     D: serde::Deserializer<'de>,
     T: Deserialize<'de>,

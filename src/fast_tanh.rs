@@ -5,7 +5,7 @@
 /// 1e-16 absolute (what a hidden unit or a friction curve needs) at about half the cost:
 /// libm's tanh goes through `expm1`. Saturates cleanly (e^{2a} = ∞ gives 1, 0 gives −1).
 #[inline]
-pub fn tanh(a: f64) -> f64 {
+pub(crate) fn tanh(a: f64) -> f64 {
     // Beyond |a| = 19.1 the formula rounds to exactly ±1 (2/(e^{2a}+1) < 2⁻⁵⁴ above, e^{2a} <
     // 2⁻⁵³ below), so skip the exp: the simulator's friction curve (a = q̇ / 0.01 rad/s) is
     // out there whenever a joint moves faster than 0.2 rad/s.

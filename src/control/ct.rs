@@ -11,13 +11,13 @@ use crate::omni::{Dynamics, Joint3};
 
 /// Outer-loop gains of the inverse-dynamics laws: K_p = ω², K_d = 2ζω (per unit inertia).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct OuterLoop {
-    pub kp: f64,
-    pub kd: f64,
+pub(crate) struct OuterLoop {
+    pub(crate) kp: f64,
+    pub(crate) kd: f64,
 }
 
 impl OuterLoop {
-    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+    pub(crate) fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
         let cfg = cfg.into();
         let w = cfg.control.omega_n;
         OuterLoop {
@@ -27,24 +27,24 @@ impl OuterLoop {
     }
 
     /// The commanded acceleration v = q̈_d + K_d(q̇_d − q̇) + K_p(q_d − q).
-    pub fn acceleration(&self, x: &Estimate, r: &RefPoint) -> Joint3 {
+    pub(crate) fn acceleration(&self, x: &Estimate, r: &RefPoint) -> Joint3 {
         r.qdd + (r.qd - x.qd) * self.kd + (r.q - x.q) * self.kp
     }
 }
 
-pub struct ComputedTorque {
+pub(crate) struct ComputedTorque {
     model: Dynamics,
     gains: OuterLoop,
 }
 
 impl ComputedTorque {
-    pub fn new(model: Dynamics, gains: OuterLoop) -> Self {
+    pub(crate) fn new(model: Dynamics, gains: OuterLoop) -> Self {
         ComputedTorque { model, gains }
     }
 
     /// CT with the configured model: the plant's parameters scaled by `ct_model_scale`,
     /// friction compensation as configured.
-    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+    pub(crate) fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
         let cfg = cfg.into();
         let mut model = Dynamics::new(cfg.model.scaled(cfg.control.ct_model_scale), *cfg.geometry);
         model.friction = cfg.control.ct_friction;

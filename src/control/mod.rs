@@ -1,17 +1,18 @@
 //! Control: reference trajectories and the controllers that turn (estimate, reference) into
 //! joint torque. Every controller is behind one trait and chosen by flag.
 
-pub mod ct;
-pub mod nan_after;
-pub mod nnidc;
-pub mod pd;
-pub mod reference;
-pub mod set;
+pub(crate) mod ct;
+pub(crate) mod nan_after;
+pub(crate) mod nnidc;
+pub(crate) mod pd;
+pub(crate) mod reference;
+pub(crate) mod set;
 
-pub use ct::{ComputedTorque, OuterLoop};
-pub use nan_after::NanAfter;
-pub use nnidc::Nnidc;
-pub use pd::{Off, Pd};
+pub(crate) use ct::ComputedTorque;
+pub(crate) use nan_after::NanAfter;
+pub(crate) use nnidc::Nnidc;
+pub(crate) use pd::Off;
+pub use pd::Pd;
 pub use reference::{RefPoint, Reference, ReferenceConfig, Trajectory};
 pub use set::ControllerSet;
 
@@ -21,6 +22,7 @@ use crate::identifier::Identifier;
 use crate::omni::{Geometry, Joint3, ModelParams};
 use serde::{Deserialize, Serialize};
 
+/// `[control]`: the gains of the closed loop, shared by PD, CT and NNIDC.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ControlConfig {
@@ -47,7 +49,7 @@ impl Default for ControlConfig {
 
 impl ControlConfig {
     /// Check every value; the first problem names its field (`control.…`).
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         check::in_range(
             "control.omega_n",
             self.omega_n,
@@ -70,11 +72,11 @@ impl ControlConfig {
 /// them).
 #[derive(Debug, Clone, Copy)]
 pub struct ControlSetup<'a> {
-    pub control: &'a ControlConfig,
-    pub model: &'a ModelParams,
-    pub geometry: &'a Geometry,
+    pub(crate) control: &'a ControlConfig,
+    pub(crate) model: &'a ModelParams,
+    pub(crate) geometry: &'a Geometry,
     /// PD's nominal inertia is taken at the reference's centre.
-    pub reference: &'a ReferenceConfig,
+    pub(crate) reference: &'a ReferenceConfig,
 }
 
 /// What a controller sees each tick.
@@ -82,7 +84,9 @@ pub struct ControlSetup<'a> {
 pub struct ControlInput<'a> {
     /// Seconds since the run started.
     pub t: f64,
+    /// The Kalman estimate of the joint state at this tick.
     pub estimate: &'a Estimate,
+    /// Where the reference wants the joints at this tick.
     pub reference: &'a RefPoint,
 }
 
@@ -90,7 +94,9 @@ pub struct ControlInput<'a> {
 /// allocate, lock, log or block. `learned` is the online identifier (after this tick's
 /// update), for the laws that use the learned model.
 pub trait Controller: Send {
+    /// The law's name as the log and the summary spell it (`pd`, `nnidc`, `ct`, `off`).
     fn name(&self) -> &'static str;
+    /// The joint torque to command this tick, N·m.
     fn torque(&mut self, input: &ControlInput, learned: Option<&mut Identifier>) -> Joint3;
 
     /// The law's own model of what holds the arm up and drags on it (gravity, Coriolis and
@@ -115,11 +121,16 @@ pub fn make_controller<'a>(
     }
 }
 
-/// Controllers selectable with `--controller`.
+/// Controllers selectable with `--controller`: `Pd` the PD baseline ([`Pd`]), `Nnidc` inverse
+/// dynamics with the identifier's learned model (PD while the identifier is stopped), `Ct`
+/// computed torque with the parametric rigid-body model, `Off` no torque (the arm hangs free).
 #[derive(
     Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
 )]
 #[serde(rename_all = "lowercase")]
+// The variants are described in the enum's doc: a doc comment on each would become clap's
+// help text for `--controller` and change `omnid run --help`.
+#[allow(missing_docs)]
 pub enum ControllerKind {
     Pd,
     Nnidc,
@@ -128,17 +139,18 @@ pub enum ControllerKind {
 }
 
 impl ControllerKind {
-    pub const ALL: [ControllerKind; 4] = [
+    pub(crate) const ALL: [ControllerKind; 4] = [
         ControllerKind::Pd,
         ControllerKind::Nnidc,
         ControllerKind::Ct,
         ControllerKind::Off,
     ];
 
-    pub fn parse(s: &str) -> Option<ControllerKind> {
+    pub(crate) fn parse(s: &str) -> Option<ControllerKind> {
         ControllerKind::ALL.into_iter().find(|k| k.as_str() == s)
     }
 
+    /// The name on the command line, in the log header and in the summary.
     pub fn as_str(self) -> &'static str {
         match self {
             ControllerKind::Pd => "pd",

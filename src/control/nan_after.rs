@@ -6,9 +6,9 @@ use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
 /// A controller whose output turns non-finite from time T on (`nan@T`).
-pub struct NanAfter {
-    pub inner: Box<dyn Controller>,
-    pub at_s: f64,
+pub(crate) struct NanAfter {
+    pub(crate) inner: Box<dyn Controller>,
+    pub(crate) at_s: f64,
 }
 
 impl Controller for NanAfter {

@@ -10,24 +10,28 @@ use super::{ControlInput, Controller};
 use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
-pub struct Nnidc {
+pub(crate) struct Nnidc {
     gains: OuterLoop,
     fallback: Pd,
+    /// Set once the law has fallen back to PD (read by the tests only).
+    #[cfg(test)]
     fell_back: bool,
 }
 
 impl Nnidc {
-    pub fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
+    pub(crate) fn from_config<'a>(cfg: impl Into<ControlSetup<'a>>) -> Self {
         let cfg = cfg.into();
         Nnidc {
             gains: OuterLoop::from_config(cfg),
             fallback: Pd::from_config(cfg),
+            #[cfg(test)]
             fell_back: false,
         }
     }
 
     /// True once the law has had to fall back to PD in this run.
-    pub fn fell_back(&self) -> bool {
+    #[cfg(test)]
+    pub(crate) fn fell_back(&self) -> bool {
         self.fell_back
     }
 }
@@ -45,7 +49,10 @@ impl Controller for Nnidc {
                 id.inverse_dynamics(&x.q, &x.qd, &v)
             }
             _ => {
-                self.fell_back = true;
+                #[cfg(test)]
+                {
+                    self.fell_back = true;
+                }
                 self.fallback.torque(input, None)
             }
         }

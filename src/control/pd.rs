@@ -7,13 +7,14 @@ use super::{ControlInput, Controller};
 use crate::identifier::Identifier;
 use crate::omni::{Dynamics, Joint3};
 
+/// Independent joint PD, τ = K_p (q_r − q) + K_d (q̇_r − q̇), gains per joint.
 pub struct Pd {
     kp: Joint3,
     kd: Joint3,
 }
 
 impl Pd {
-    pub fn new(kp: Joint3, kd: Joint3) -> Self {
+    pub(crate) fn new(kp: Joint3, kd: Joint3) -> Self {
         Pd { kp, kd }
     }
 
@@ -26,7 +27,9 @@ impl Pd {
         Pd::new(m0 * (w * w), m0 * (2.0 * cfg.control.zeta * w))
     }
 
-    pub fn gains(&self) -> (Joint3, Joint3) {
+    /// (K_p, K_d) per joint.
+    #[cfg(test)]
+    fn gains(&self) -> (Joint3, Joint3) {
         (self.kp, self.kd)
     }
 }
@@ -44,7 +47,7 @@ impl Controller for Pd {
 }
 
 /// No torque: the arm hangs free (identification passes, replays).
-pub struct Off;
+pub(crate) struct Off;
 
 impl Controller for Off {
     fn name(&self) -> &'static str {

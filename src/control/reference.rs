@@ -8,6 +8,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::TAU;
 
+/// `[reference]`: where the trajectories are centred and how they move.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ReferenceConfig {
@@ -50,7 +51,7 @@ impl Default for ReferenceConfig {
 
 impl ReferenceConfig {
     /// Check every value; the centre must lie inside the joint limits `lower ..= upper`.
-    pub fn validate(&self, lower: &[f64; 3], upper: &[f64; 3]) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self, lower: &[f64; 3], upper: &[f64; 3]) -> Result<(), ConfigError> {
         for i in 0..3 {
             check::in_range(
                 &format!("reference.center[{i}]"),
@@ -111,9 +112,9 @@ impl ReferenceConfig {
 /// Desired position, velocity and acceleration.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct RefPoint {
-    pub q: Joint3,
-    pub qd: Joint3,
-    pub qdd: Joint3,
+    pub(crate) q: Joint3,
+    pub(crate) qd: Joint3,
+    pub(crate) qdd: Joint3,
 }
 
 /// Trajectories selectable with `--trajectory`.
@@ -128,7 +129,7 @@ pub enum Trajectory {
 }
 
 /// Most multisine components per joint (fixed storage, no allocation).
-pub const MAX_COMPONENTS: usize = 32;
+pub(crate) const MAX_COMPONENTS: usize = 32;
 
 #[derive(Debug, Clone, Copy)]
 struct Sines {

@@ -10,6 +10,8 @@ use crate::estimate::kalman::Estimate;
 use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
+/// The four control laws, all built before the first tick, one of them active; a switch
+/// crossfades from the old law to the new one.
 pub struct ControllerSet {
     /// Indexed by `slot(kind)`.
     laws: [Box<dyn Controller>; 4],
@@ -49,26 +51,27 @@ impl ControllerSet {
     }
 
     /// Put `law` in `kind`'s place (fault injection wraps a law this way).
-    pub fn replace(&mut self, kind: ControllerKind, law: Box<dyn Controller>) {
+    pub(crate) fn replace(&mut self, kind: ControllerKind, law: Box<dyn Controller>) {
         self.laws[slot(kind)] = law;
     }
 
     /// Take `kind`'s law out, leaving `Off` in its place.
-    pub fn take(&mut self, kind: ControllerKind) -> Box<dyn Controller> {
+    pub(crate) fn take(&mut self, kind: ControllerKind) -> Box<dyn Controller> {
         std::mem::replace(&mut self.laws[slot(kind)], Box::new(super::Off))
     }
 
-    pub fn active(&self) -> ControllerKind {
+    pub(crate) fn active(&self) -> ControllerKind {
         self.active
     }
 
     /// True while a switch is still crossfading.
-    pub fn switching(&self) -> bool {
+    #[cfg(test)]
+    pub(crate) fn switching(&self) -> bool {
         self.fading.is_some()
     }
 
     /// Make `kind` the active law from time `t` on (s, the loop's clock).
-    pub fn switch(&mut self, kind: ControllerKind, t: f64) {
+    pub(crate) fn switch(&mut self, kind: ControllerKind, t: f64) {
         if kind == self.active {
             return;
         }
@@ -90,7 +93,11 @@ impl ControllerSet {
     }
 
     /// The active law's torque (crossfaded during a switch).
-    pub fn torque(&mut self, input: &ControlInput, mut learned: Option<&mut Identifier>) -> Joint3 {
+    pub(crate) fn torque(
+        &mut self,
+        input: &ControlInput,
+        mut learned: Option<&mut Identifier>,
+    ) -> Joint3 {
         let new = self.laws[slot(self.active)].torque(input, learned.as_deref_mut());
         match self.weight(input.t) {
             None => new,
@@ -102,7 +109,7 @@ impl ControllerSet {
     }
 
     /// The active law's compensation (free mode), crossfaded like [`torque`](Self::torque).
-    pub fn compensation(
+    pub(crate) fn compensation(
         &mut self,
         t: f64,
         estimate: &Estimate,

@@ -7,6 +7,7 @@ use crate::omni::Joint3;
 use nalgebra::{Matrix3, RowVector3, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// `[kalman]`: the noise model of the per-joint filter.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct KalmanConfig {
@@ -27,13 +28,13 @@ impl Default for KalmanConfig {
 }
 
 /// The Kalman filter must follow a sinusoidal motion of this frequency (a fast hand motion)...
-pub const KALMAN_CHECK_HZ: f64 = 5.0;
+pub(crate) const KALMAN_CHECK_HZ: f64 = 5.0;
 /// ... with a position error of at most this fraction of the motion (the default: 1 %).
-pub const KALMAN_MAX_LAG: f64 = 0.2;
+pub(crate) const KALMAN_MAX_LAG: f64 = 0.2;
 
 impl KalmanConfig {
     /// Check every value at the servo rate `rate_hz`; the first problem names its field.
-    pub fn validate(&self, rate_hz: f64) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self, rate_hz: f64) -> Result<(), ConfigError> {
         check::positive("kalman.jerk_psd", self.jerk_psd)?;
         check::positive("kalman.measurement_var", self.measurement_var)?;
         // The safety limits also watch the encoders, but control acts on the estimate: one
@@ -70,7 +71,7 @@ const INITIAL_ACC_VAR: f64 = 100.0;
 
 /// Kalman filter of one joint: state [q, q̇, q̈].
 #[derive(Debug, Clone, Copy)]
-pub struct JointKalman {
+pub(crate) struct JointKalman {
     x: Vector3<f64>,
     p: Matrix3<f64>,
     jerk_psd: f64,
@@ -82,7 +83,7 @@ pub struct JointKalman {
 }
 
 impl JointKalman {
-    pub fn new(jerk_psd: f64, measurement_var: f64) -> Self {
+    pub(crate) fn new(jerk_psd: f64, measurement_var: f64) -> Self {
         JointKalman {
             x: Vector3::zeros(),
             p: Matrix3::zeros(),
@@ -95,7 +96,7 @@ impl JointKalman {
     }
 
     /// Start from one measurement, at rest.
-    pub fn reset(&mut self, z: f64) {
+    pub(crate) fn reset(&mut self, z: f64) {
         self.x = Vector3::new(z, 0.0, 0.0);
         self.p = Matrix3::from_diagonal(&Vector3::new(self.r, INITIAL_VEL_VAR, INITIAL_ACC_VAR));
     }
@@ -123,7 +124,7 @@ impl JointKalman {
     }
 
     /// Predict over `dt` seconds, then correct with measurement `z`.
-    pub fn step(&mut self, dt: f64, z: f64) {
+    pub(crate) fn step(&mut self, dt: f64, z: f64) {
         if dt > 0.0 {
             self.model(dt);
             self.x = self.f * self.x;
@@ -141,12 +142,8 @@ impl JointKalman {
     }
 
     /// [q, q̇, q̈].
-    pub fn state(&self) -> Vector3<f64> {
+    pub(crate) fn state(&self) -> Vector3<f64> {
         self.x
-    }
-
-    pub fn covariance(&self) -> Matrix3<f64> {
-        self.p
     }
 }
 
@@ -155,7 +152,7 @@ impl JointKalman {
 /// transfer from measurement to estimate (0: tracks exactly; 1: as large as the motion
 /// itself). A config can then be refused before torque is sent when the estimate could not
 /// follow a hand-speed motion, instead of letting the safety limits act on a lagging estimate.
-pub fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
+pub(crate) fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
     use nalgebra::Complex;
     let mut kf = JointKalman::new(jerk_psd, measurement_var);
     kf.reset(0.0);
@@ -195,7 +192,7 @@ pub fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64
 /// measurement at rest instead of extrapolating its motion through the gap (a hand changes
 /// direction within 50 ms; a prediction over longer gaps is a guess that can trip the speed
 /// limit on an arm at rest).
-pub const RESTART_GAP_S: f64 = 0.05;
+pub(crate) const RESTART_GAP_S: f64 = 0.05;
 
 /// One filter per joint, driven by the device time stamps.
 #[derive(Debug, Clone, Copy)]
@@ -211,12 +208,16 @@ pub struct KalmanBank {
 /// Joint-space estimate.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Estimate {
+    /// Joint angles q1..q3, rad.
     pub q: Joint3,
+    /// Joint velocities, rad/s.
     pub qd: Joint3,
+    /// Joint accelerations, rad/s².
     pub qdd: Joint3,
 }
 
 impl KalmanBank {
+    /// Three filters with the noise model of `cfg`, started by the first measurement.
     pub fn new(cfg: &KalmanConfig) -> Self {
         KalmanBank {
             joints: [JointKalman::new(cfg.jerk_psd, cfg.measurement_var); 3],
@@ -256,21 +257,21 @@ impl KalmanBank {
     }
 
     /// Restarts across gaps longer than [`RESTART_GAP_S`] so far.
-    pub fn restarts(&self) -> u64 {
+    pub(crate) fn restarts(&self) -> u64 {
         self.restarts
     }
 
     /// The latest gap restarted across: (device time after it, its length), s.
-    pub fn last_gap(&self) -> Option<(f64, f64)> {
+    pub(crate) fn last_gap(&self) -> Option<(f64, f64)> {
         self.last_gap
     }
 
     /// The longest gap restarted across, s (0 if none).
-    pub fn longest_gap_s(&self) -> f64 {
+    pub(crate) fn longest_gap_s(&self) -> f64 {
         self.longest_gap_s
     }
 
-    pub fn estimate(&self) -> Estimate {
+    pub(crate) fn estimate(&self) -> Estimate {
         let s = |j: usize| self.joints[j].state();
         Estimate {
             q: Joint3::new(s(0)[0], s(1)[0], s(2)[0]),

@@ -1,5 +1,5 @@
 //! State estimation: encoder angles → (q, q̇, q̈) per joint.
 
-pub mod kalman;
+pub(crate) mod kalman;
 
-pub use kalman::{JointKalman, KalmanBank};
+pub use kalman::{Estimate, KalmanBank, KalmanConfig};

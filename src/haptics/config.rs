@@ -4,6 +4,7 @@ use super::hand::HandConfig;
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
+/// `[haptics]`: the force limits, the passivity controller and the simulated hand.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct HapticsConfig {
@@ -44,7 +45,7 @@ impl Default for HapticsConfig {
 }
 
 impl HapticsConfig {
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         check::in_range(
             "haptics.max_force_n",
             self.max_force_n,

@@ -7,7 +7,7 @@ use super::Force3;
 use serde::{Deserialize, Serialize};
 
 /// Most effects in a scene at once.
-pub const MAX_EFFECTS: usize = 8;
+pub(crate) const MAX_EFFECTS: usize = 8;
 
 /// One effect. Positions in mm (OpenHaptics frame, as `tip_mm`), stiffness in N/mm (as the
 /// vendor quotes it), damping in N·s/m, forces in N.
@@ -16,32 +16,49 @@ pub const MAX_EFFECTS: usize = 8;
 pub enum Effect {
     /// Pulls the tip towards `center_mm`.
     Spring {
+        /// Rest point, mm.
         center_mm: [f64; 3],
+        /// Stiffness, N/mm.
         stiffness_n_per_mm: f64,
+        /// Damping of the tip's velocity, N·s/m (0 if left out).
         #[serde(default)]
         damping_n_s_per_m: f64,
     },
     /// Resists the tip's velocity everywhere (viscous field).
-    Damper { damping_n_s_per_m: f64 },
+    Damper {
+        /// Damping, N·s/m.
+        damping_n_s_per_m: f64,
+    },
     /// A one-sided wall through `point_mm`; `normal` points out of the wall (where the tip is
     /// free). Pushes only, never pulls.
     Plane {
+        /// A point of the wall's surface, mm.
         point_mm: [f64; 3],
+        /// Outward normal (any non-zero length).
         normal: [f64; 3],
+        /// Stiffness against penetration, N/mm.
         stiffness_n_per_mm: f64,
+        /// Damping of the velocity into the wall while inside it, N·s/m (0 if left out).
         #[serde(default)]
         damping_n_s_per_m: f64,
     },
     /// Keeps the tip inside the box between `min_mm` and `max_mm` (six one-sided walls).
     Box {
+        /// Lowest corner, mm.
         min_mm: [f64; 3],
+        /// Highest corner, mm.
         max_mm: [f64; 3],
+        /// Stiffness of each wall, N/mm.
         stiffness_n_per_mm: f64,
+        /// Damping of the velocity into a wall while beyond it, N·s/m (0 if left out).
         #[serde(default)]
         damping_n_s_per_m: f64,
     },
     /// A constant force, N.
-    Constant { force_n: [f64; 3] },
+    Constant {
+        /// The force, N (OpenHaptics frame).
+        force_n: [f64; 3],
+    },
 }
 
 /// A one-sided spring-damper along one direction: `depth` m into the wall (> 0 inside),
@@ -56,7 +73,7 @@ fn wall(depth: f64, speed: f64, k: f64, b: f64) -> f64 {
 
 impl Effect {
     /// The force on the tip at `p` (m) moving at `v` (m/s).
-    pub fn force(&self, p: &Force3, v: &Force3) -> Force3 {
+    pub(crate) fn force(&self, p: &Force3, v: &Force3) -> Force3 {
         match *self {
             Effect::Spring {
                 center_mm,
@@ -90,7 +107,7 @@ impl Effect {
     }
 
     /// Check every parameter; the error names the field (`prefix` says which effect).
-    pub fn validate(&self, prefix: &str) -> Result<(), String> {
+    pub(crate) fn validate(&self, prefix: &str) -> Result<(), String> {
         let finite = |name: &str, v: &[f64]| -> Result<(), String> {
             match v.iter().find(|x| !x.is_finite()) {
                 Some(x) => Err(format!("{prefix}{name} = {x}: must be a finite number")),
@@ -184,13 +201,13 @@ struct Slot {
 
 /// The effects in force, in fixed slots.
 #[derive(Debug, Clone, Copy)]
-pub struct Scene {
+pub(crate) struct Scene {
     slots: [Slot; MAX_EFFECTS],
     fade_s: f64,
 }
 
 impl Scene {
-    pub fn new(fade_s: f64) -> Scene {
+    pub(crate) fn new(fade_s: f64) -> Scene {
         Scene {
             slots: [Slot::default(); MAX_EFFECTS],
             fade_s,
@@ -200,7 +217,7 @@ impl Scene {
     /// Put `effect` in `slot` (None: remove it) at time `t`. The slot's force moves from what
     /// it was to the new effect's over `fade_s` instead of stepping. Slots beyond
     /// [`MAX_EFFECTS`] are ignored (the callers check).
-    pub fn set(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
+    pub(crate) fn set(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
         let Some(s) = self.slots.get_mut(slot) else {
             return;
         };
@@ -209,14 +226,8 @@ impl Scene {
         s.pending = true;
     }
 
-    pub fn is_empty(&self) -> bool {
-        self.slots
-            .iter()
-            .all(|s| s.effect.is_none() && s.offset == Force3::zeros() && !s.pending)
-    }
-
     /// The sum of every slot's force at `t` with the tip at `p` (m) moving at `v` (m/s).
-    pub fn force(&mut self, t: f64, p: &Force3, v: &Force3) -> Force3 {
+    pub(crate) fn force(&mut self, t: f64, p: &Force3, v: &Force3) -> Force3 {
         let mut total = Force3::zeros();
         for s in &mut self.slots {
             let mut f = s.effect.map_or(Force3::zeros(), |e| e.force(p, v));
@@ -247,7 +258,7 @@ impl Scene {
     /// forces it leaves alone: a constant force is a potential field (what it gives as the tip
     /// moves along it, it takes back when the tip returns), and weakening it would only bend
     /// a force the client asked for (docs/HAPTICS.md §6). Fades stay with the watched part.
-    pub fn split(&mut self, t: f64, p: &Force3, v: &Force3) -> (Force3, Force3) {
+    pub(crate) fn split(&mut self, t: f64, p: &Force3, v: &Force3) -> (Force3, Force3) {
         let total = self.force(t, p, v);
         let constant: Force3 = self
             .slots

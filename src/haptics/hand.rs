@@ -19,14 +19,19 @@ pub enum HandPattern {
     Path,
     /// Move from the centre along `dir` (an axis, ±) at `speed_m_s` until pushing with
     /// `push_force_n`, then keep pushing with that force.
-    Push { axis: usize, sign: f64 },
+    Push {
+        /// The axis, 0..=2 for x, y, z.
+        axis: usize,
+        /// Its direction, +1.0 or −1.0.
+        sign: f64,
+    },
 }
 
 impl HandPattern {
-    pub const NAMES: &'static str =
+    pub(crate) const NAMES: &'static str =
         "none, hold, path, push+x, push-x, push+y, push-y, push+z, push-z";
 
-    pub fn parse(s: &str) -> Option<HandPattern> {
+    pub(crate) fn parse(s: &str) -> Option<HandPattern> {
         Some(match s {
             "none" => HandPattern::None,
             "hold" => HandPattern::Hold,
@@ -49,7 +54,7 @@ impl HandPattern {
         })
     }
 
-    pub fn name(self) -> String {
+    pub(crate) fn name(self) -> String {
         match self {
             HandPattern::None => "none".into(),
             HandPattern::Hold => "hold".into(),
@@ -120,14 +125,14 @@ const PUSH_TAU_S: f64 = 0.1;
 
 /// The hand as it moves: where it is (m, OpenHaptics frame) and how fast.
 #[derive(Debug, Clone, Copy)]
-pub struct Hand {
+pub(crate) struct Hand {
     cfg: HandParams,
     /// Where it grasped the stylus and the workspace centre, m.
     grasp: Force3,
     centre: Force3,
     /// The hand's own position and velocity now.
-    pub pos: Force3,
-    pub vel: Force3,
+    pub(crate) pos: Force3,
+    pub(crate) vel: Force3,
     /// Pushing: the hand's offset along its direction beyond the centre, m.
     push_depth: f64,
     /// Path: the phase travelled, rad.
@@ -149,7 +154,7 @@ struct HandParams {
 
 impl Hand {
     /// A hand that grasps the stylus at `grasp` (m) and works around `centre` (m).
-    pub fn new(cfg: &HandConfig, grasp: Force3, centre: Force3) -> Hand {
+    pub(crate) fn new(cfg: &HandConfig, grasp: Force3, centre: Force3) -> Hand {
         Hand {
             cfg: HandParams {
                 pattern: cfg.pattern,
@@ -171,14 +176,14 @@ impl Hand {
     }
 
     /// On the stylus at time `t`.
-    pub fn holding(&self, t: f64) -> bool {
+    pub(crate) fn holding(&self, t: f64) -> bool {
         self.cfg.pattern != HandPattern::None
             && (self.cfg.release_s <= 0.0 || t < self.cfg.release_s)
     }
 
     /// The force the hand puts on the tip at `tip` (m) moving at `tip_vel` (m/s), `tau` s
     /// after the hand's state was last advanced (it moves on at its velocity meanwhile).
-    pub fn force(&self, t: f64, tip: &Force3, tip_vel: &Force3, tau: f64) -> Force3 {
+    pub(crate) fn force(&self, t: f64, tip: &Force3, tip_vel: &Force3, tau: f64) -> Force3 {
         if !self.holding(t) {
             return Force3::zeros();
         }
@@ -195,7 +200,7 @@ impl Hand {
     }
 
     /// Move the hand on to time `t + dt`; `felt` is the force the hand put on the tip last.
-    pub fn advance(&mut self, t: f64, dt: f64, felt: &Force3) {
+    pub(crate) fn advance(&mut self, t: f64, dt: f64, felt: &Force3) {
         let before = self.pos;
         let t1 = t + dt;
         // First the approach to the centre, then the pattern.

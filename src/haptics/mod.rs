@@ -3,17 +3,19 @@
 //! with J the Jacobian of the tip position in metres; that torque then goes through the safety
 //! layer like every other.
 
-pub mod config;
-pub mod effects;
-pub mod hand;
-pub mod passivity;
-pub mod render;
+pub(crate) mod config;
+pub(crate) mod effects;
+pub(crate) mod hand;
+pub(crate) mod passivity;
+pub(crate) mod render;
 pub mod scene;
 
 pub use config::HapticsConfig;
-pub use effects::{Effect, Scene, MAX_EFFECTS};
-pub use hand::{Hand, HandConfig, HandPattern};
-pub use render::HapticLoop;
+pub use effects::Effect;
+pub(crate) use effects::MAX_EFFECTS;
+pub(crate) use hand::Hand;
+pub use hand::{HandConfig, HandPattern};
+pub(crate) use render::HapticLoop;
 
 use crate::omni::{jacobian, Geometry, Joint3};
 
@@ -22,22 +24,23 @@ use crate::omni::{jacobian, Geometry, Joint3};
 pub struct HapticRun {
     /// Free mode: only the controller's compensation and the effects (no trajectory).
     pub free: bool,
+    /// The scene's effects, from `--scene`.
     pub effects: Vec<Effect>,
 }
 
 /// A tip force, N, OpenHaptics frame.
-pub type Force3 = nalgebra::Vector3<f64>;
+pub(crate) type Force3 = nalgebra::Vector3<f64>;
 
 /// Joint torque (N·m) that puts the force `f` (N) on the tip at pose `q` (τ = Jᵀ F: the
 /// virtual work of F along a tip displacement J δq is τ·δq).
-pub fn tip_force_torque(g: &Geometry, q: &Joint3, f: &Force3) -> Joint3 {
+pub(crate) fn tip_force_torque(g: &Geometry, q: &Joint3, f: &Force3) -> Joint3 {
     jacobian(g, q).transpose() * f
 }
 
 /// `f` with its norm clamped to `max` N, direction kept. Any finite input, however large,
 /// gives a finite result (the norm is taken on the scaled vector so it cannot overflow); a
 /// non-finite input gives zero (callers refuse those earlier; this is the last line).
-pub fn limit_force(f: &Force3, max: f64) -> Force3 {
+pub(crate) fn limit_force(f: &Force3, max: f64) -> Force3 {
     if !f.iter().all(|v| v.is_finite()) {
         return Force3::zeros();
     }

@@ -9,9 +9,9 @@
 use super::Force3;
 
 #[derive(Debug, Clone, Copy)]
-pub struct Passivity {
+pub(crate) struct Passivity {
     /// The controller acts (the observer always observes).
-    pub enabled: bool,
+    pub(crate) enabled: bool,
     /// Largest damping the controller adds, N·s/m.
     max_damping: f64,
     /// Most energy the observer keeps in hand, J.
@@ -22,11 +22,11 @@ pub struct Passivity {
     last_force: Force3,
     last_p: Option<Force3>,
     /// The damping the controller added at the last tick, N·s/m.
-    pub damping: f64,
+    pub(crate) damping: f64,
 }
 
 impl Passivity {
-    pub fn new(enabled: bool, max_damping: f64, reserve_j: f64) -> Passivity {
+    pub(crate) fn new(enabled: bool, max_damping: f64, reserve_j: f64) -> Passivity {
         Passivity {
             enabled,
             max_damping,
@@ -39,7 +39,8 @@ impl Passivity {
     }
 
     /// Observed energy, J (≥ 0 while the rendering has been passive).
-    pub fn energy(&self) -> f64 {
+    #[cfg(test)]
+    pub(crate) fn energy(&self) -> f64 {
         self.energy
     }
 
@@ -48,7 +49,7 @@ impl Passivity {
     /// The damping acts on the velocity the observer saw over that tick (the same flow it
     /// integrates), and never removes more than the effects' own force: the controller only
     /// weakens a rendering, it never pushes by itself.
-    pub fn step(&mut self, p: &Force3, f: &Force3, dt: f64) -> Force3 {
+    pub(crate) fn step(&mut self, p: &Force3, f: &Force3, dt: f64) -> Force3 {
         let mut v = Force3::zeros();
         if let Some(before) = self.last_p {
             let dp = p - before;
@@ -79,7 +80,7 @@ impl Passivity {
     }
 
     /// Forget the history (a new contact, a mode change).
-    pub fn reset(&mut self) {
+    pub(crate) fn reset(&mut self) {
         self.energy = 0.0;
         self.last_p = None;
         self.last_force = Force3::zeros();

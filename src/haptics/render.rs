@@ -40,19 +40,19 @@ impl Continuous {
 }
 
 #[derive(Debug, Clone, Copy)]
-pub struct HapticLoop {
+pub(crate) struct HapticLoop {
     geometry: Geometry,
     max_force_n: f64,
     scene: Scene,
     passivity: Passivity,
     continuous: Continuous,
     /// The tip at the last tick, mm (OpenHaptics frame), and the force commanded there, N.
-    pub tip_mm: [f64; 3],
-    pub force: [f64; 3],
+    pub(crate) tip_mm: [f64; 3],
+    pub(crate) force: [f64; 3],
 }
 
 impl HapticLoop {
-    pub fn new(cfg: &HapticsConfig, geometry: Geometry) -> HapticLoop {
+    pub(crate) fn new(cfg: &HapticsConfig, geometry: Geometry) -> HapticLoop {
         HapticLoop {
             geometry,
             max_force_n: cfg.max_force_n,
@@ -74,23 +74,18 @@ impl HapticLoop {
     }
 
     /// Put `effect` in `slot` (None removes it), faded in from time `t`.
-    pub fn set_effect(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
+    pub(crate) fn set_effect(&mut self, slot: usize, effect: Option<Effect>, t: f64) {
         self.scene.set(slot, effect, t);
     }
 
     /// Turn the passivity controller on or off (the observer keeps observing).
-    pub fn set_passivity(&mut self, on: bool) {
+    pub(crate) fn set_passivity(&mut self, on: bool) {
         self.passivity.enabled = on;
-    }
-
-    /// Observed energy of the effects, J, and the damping the controller added last, N·s/m.
-    pub fn passivity_state(&self) -> (f64, f64) {
-        (self.passivity.energy(), self.passivity.damping)
     }
 
     /// A tick without haptics (another mode): note where the tip is, for the log, and start
     /// the passivity observer afresh when haptics resume.
-    pub fn observe(&mut self, q: &Joint3) {
+    pub(crate) fn observe(&mut self, q: &Joint3) {
         self.tip_mm = tip_position_mm(&self.geometry, q).into();
         self.force = [0.0; 3];
         self.passivity.reset();
@@ -99,7 +94,7 @@ impl HapticLoop {
     /// The joint torque of this tick's tip force: the effects (`effects`: rendered in this
     /// mode) at the measured pose `q` with the estimated joint velocity `qd`, through the
     /// passivity controller, plus a client's force `stream`, clamped to the peak.
-    pub fn torque(
+    pub(crate) fn torque(
         &mut self,
         t: f64,
         dt: f64,

@@ -13,7 +13,7 @@ struct SceneFile {
 }
 
 /// The effects of the scene in `text` (`name` for messages).
-pub fn parse_scene(text: &str, name: &str) -> Result<Vec<Effect>, String> {
+pub(crate) fn parse_scene(text: &str, name: &str) -> Result<Vec<Effect>, String> {
     let file: SceneFile = toml::from_str(text).map_err(|e| {
         let line = e
             .span()

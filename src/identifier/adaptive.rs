@@ -16,7 +16,7 @@ use thiserror::Error;
 use wide::f64x2;
 
 /// Weighted augmented error ε = [e1; λ1·e2; λ2·e3; λ3·e4] (dimensionless, see `torque_scale`).
-pub type Wae = SVector<f64, 12>;
+pub(crate) type Wae = SVector<f64, 12>;
 
 /// Longest step the update integrates over: a stalled loop must not turn into one huge step.
 const MAX_DT: f64 = 0.01;
@@ -28,13 +28,18 @@ const PAIRS: [(usize, usize, usize); 3] = [(1, 0, 1), (2, 0, 2), (2, 1, 4)];
 /// M-net output index of each diagonal entry.
 const DIAG: [usize; 3] = [0, 3, 5];
 
+/// Why an identifier could not be built.
 #[derive(Debug, Error)]
 pub enum IdentError {
+    /// The `[identifier]` section is out of range.
     #[error(transparent)]
     Config(#[from] ConfigError),
+    /// A network could not be built with these sizes or scalings.
     #[error("{net}-net: {source}")]
     Net {
+        /// Which network (`M`, `C`, `G`, `F`).
         net: &'static str,
+        /// What was wrong with it.
         #[source]
         source: MlpError,
     },
@@ -42,17 +47,21 @@ pub enum IdentError {
 
 /// The networks of the identifier.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub enum Net {
+pub(crate) enum Net {
+    /// The inertia matrix M̂(q) (six outputs: its distinct entries).
     M,
+    /// The Coriolis matrix Ĉ(q, q̇).
     C,
+    /// The gravity torque Ĝ(q).
     G,
+    /// The friction torque F̂(q̇) (only with `identifier.friction_net`).
     F,
 }
 
 impl Net {
-    pub const ALL: [Net; 4] = [Net::M, Net::C, Net::G, Net::F];
+    pub(crate) const ALL: [Net; 4] = [Net::M, Net::C, Net::G, Net::F];
 
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Net::M => "M",
             Net::C => "C",
@@ -62,7 +71,7 @@ impl Net {
     }
 
     /// (inputs, outputs) of this network.
-    pub fn io(self) -> (usize, usize) {
+    pub(crate) fn io(self) -> (usize, usize) {
         match self {
             Net::M => (3, 6),
             Net::C => (6, 9),
@@ -231,12 +240,12 @@ impl Identifier {
         Ok(id)
     }
 
-    pub fn config(&self) -> &IdentifierConfig {
+    pub(crate) fn config(&self) -> &IdentifierConfig {
         &self.cfg
     }
 
     /// The network `net` (None for F when `friction_net` is off).
-    pub fn net(&self, net: Net) -> Option<&Mlp> {
+    pub(crate) fn net(&self, net: Net) -> Option<&Mlp> {
         match net {
             Net::M => Some(&self.m),
             Net::C => Some(&self.c),
@@ -245,7 +254,7 @@ impl Identifier {
         }
     }
 
-    pub fn net_mut(&mut self, net: Net) -> Option<&mut Mlp> {
+    pub(crate) fn net_mut(&mut self, net: Net) -> Option<&mut Mlp> {
         self.forward_at = None;
         match net {
             Net::M => Some(&mut self.m),
@@ -306,7 +315,8 @@ impl Identifier {
     }
 
     /// All parameters, networks in the order M, C, G, F, appended to `out` (cleared first).
-    pub fn parameter_vector(&self, out: &mut Vec<f64>) {
+    #[cfg(test)]
+    pub(crate) fn parameter_vector(&self, out: &mut Vec<f64>) {
         out.clear();
         for n in Net::ALL {
             if let Some(m) = self.net(n) {
@@ -315,25 +325,26 @@ impl Identifier {
         }
     }
 
-    /// False once a non-finite value was seen; adaptation has stopped and NNIDC should fall
-    /// back to PD until `reset_fault`.
+    /// False once a non-finite value was seen; adaptation has stopped and NNIDC falls back to
+    /// PD for as long as this identifier is in use (a new run, or a weights load in
+    /// `omnid serve`, brings a new one).
     pub fn healthy(&self) -> bool {
         self.fault.is_none()
     }
 
-    pub fn fault(&self) -> Option<Fault> {
+    pub(crate) fn fault(&self) -> Option<Fault> {
         self.fault
     }
 
     /// Freeze (`false`) or resume (`true`) online adaptation.
-    pub fn set_adapt(&mut self, on: bool) {
+    pub(crate) fn set_adapt(&mut self, on: bool) {
         self.cfg.adapt = on;
     }
 
     /// Copy `other`'s network weights into this identifier without allocating (the servo
     /// loop uses this to hand its weights out). False, and nothing changed, when the networks
     /// differ in size.
-    pub fn copy_weights_from(&mut self, other: &Identifier) -> bool {
+    pub(crate) fn copy_weights_from(&mut self, other: &Identifier) -> bool {
         let nets = [Net::M, Net::C, Net::G, Net::F];
         let fits = nets.iter().all(|&n| match (self.net(n), other.net(n)) {
             (Some(a), Some(b)) => a.params().len() == b.params().len(),
@@ -351,8 +362,10 @@ impl Identifier {
         true
     }
 
-    /// Operator reset: adapt again from the current (last good) weights.
-    pub fn reset_fault(&mut self) {
+    /// Clear the fault: adapt again from the current (last good) weights. Only the tests
+    /// need it; a run never resumes a stopped identifier.
+    #[cfg(test)]
+    pub(crate) fn reset_fault(&mut self) {
         self.fault = None;
         self.e = Wae::zeros();
     }
@@ -363,7 +376,8 @@ impl Identifier {
     }
 
     /// The modified error e.
-    pub fn modified_error(&self) -> &Wae {
+    #[cfg(test)]
+    pub(crate) fn modified_error(&self) -> &Wae {
         &self.e
     }
 
@@ -381,7 +395,8 @@ impl Identifier {
     }
 
     /// Ṁ̂ = Σ_k ∂M̂/∂q_k q̇_k, exact through the M-net, kg·m²/s.
-    pub fn mass_derivative(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Matrix3<f64> {
+    #[cfg(test)]
+    pub(crate) fn mass_derivative(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Matrix3<f64> {
         self.forward_at = None;
         self.m.forward(q.as_slice());
         sym_from6(self.m.tangent(qd.as_slice()))
@@ -464,7 +479,7 @@ impl Identifier {
 
     /// ε at one sample with the current weights. The activations stay for
     /// `accumulate_gradient`, which must follow before any other evaluation.
-    pub fn evaluate_wae(
+    pub(crate) fn evaluate_wae(
         &mut self,
         q: &Vector3<f64>,
         qd: &Vector3<f64>,
@@ -521,7 +536,7 @@ impl Identifier {
     /// Add (∂ε/∂θ)ᵀw to every network's gradient buffer, at the point of the last
     /// `evaluate_wae`. Reverse mode: w is the cotangent of ε; it becomes cotangents on the
     /// network outputs M̂ (6), Ṁ̂ (6), Ĉ (9), Ĝ (3), F̂ (3), which each network back-propagates.
-    pub fn accumulate_gradient(&mut self, w: &Wae) {
+    pub(crate) fn accumulate_gradient(&mut self, w: &Wae) {
         let ts = 1.0 / self.cfg.torque_scale;
         let (l1, l2, l3) = (self.cfg.lambda1, self.cfg.lambda2, self.cfg.lambda3);
         // e1 = τ − M̂q̈ − Ĉq̇ − Ĝ − F̂, scaled by ts.
@@ -580,7 +595,7 @@ impl Identifier {
     }
 
     /// Zero every network's gradient buffer.
-    pub fn zero_grads(&mut self) {
+    pub(crate) fn zero_grads(&mut self) {
         for m in self.nets_mut().into_iter().flatten() {
             m.zero_grad();
         }

@@ -18,27 +18,41 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+/// Why a network could not be built or loaded.
 #[derive(Debug, Error, PartialEq)]
 pub enum MlpError {
+    /// A layer with no neurons.
     #[error(
         "network sizes must be at least 1 (inputs {inputs}, hidden {hidden}, outputs {outputs})"
     )]
     Size {
+        /// Inputs asked for.
         inputs: usize,
+        /// Hidden neurons asked for.
         hidden: usize,
+        /// Outputs asked for.
         outputs: usize,
     },
+    /// A vector (parameters, scaling) of the wrong length for the sizes.
     #[error("{what} has {got} entries, expected {expected}")]
     Length {
+        /// Which vector.
         what: &'static str,
+        /// Its length.
         got: usize,
+        /// The length the sizes call for.
         expected: usize,
     },
+    /// A value that is not finite, or not positive where it must be.
     #[error("{what}[{index}] = {value} must be finite{positive}")]
     Value {
+        /// Which vector.
         what: &'static str,
+        /// The entry's index.
         index: usize,
+        /// The entry.
         value: f64,
+        /// `" and > 0"` where the value must be positive too, else empty.
         positive: &'static str,
     },
 }
@@ -46,13 +60,13 @@ pub enum MlpError {
 /// Input offset/scale and output scale of one network (physical units ↔ O(1) net units).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct NetScaling {
+pub(crate) struct NetScaling {
     /// Subtracted from each input (the workspace centre).
-    pub in_center: Vec<f64>,
+    pub(crate) in_center: Vec<f64>,
     /// Each centred input is divided by this.
-    pub in_scale: Vec<f64>,
+    pub(crate) in_scale: Vec<f64>,
     /// Each raw net output is multiplied by this (the physical unit of that output).
-    pub out_scale: Vec<f64>,
+    pub(crate) out_scale: Vec<f64>,
 }
 
 impl NetScaling {
@@ -99,7 +113,7 @@ impl NetScaling {
 
 /// Tanh MLP with preallocated work buffers.
 #[derive(Debug, Clone)]
-pub struct Mlp {
+pub(crate) struct Mlp {
     inputs: usize,
     hidden: usize,
     outputs: usize,
@@ -175,7 +189,7 @@ fn axpy(alpha: f64, x: &[f64], y: &mut [f64]) {
 
 impl Mlp {
     /// A network with all parameters zero; see `init_random` and `set_params`.
-    pub fn new(
+    pub(crate) fn new(
         inputs: usize,
         hidden: usize,
         outputs: usize,
@@ -215,33 +229,33 @@ impl Mlp {
         })
     }
 
-    pub fn inputs(&self) -> usize {
+    pub(crate) fn inputs(&self) -> usize {
         self.inputs
     }
-    pub fn hidden(&self) -> usize {
+    pub(crate) fn hidden(&self) -> usize {
         self.hidden
     }
-    pub fn outputs(&self) -> usize {
+    pub(crate) fn outputs(&self) -> usize {
         self.outputs
     }
-    pub fn scaling(&self) -> &NetScaling {
+    pub(crate) fn scaling(&self) -> &NetScaling {
         &self.scaling
     }
 
     /// Number of parameters of the hidden layer (W1, b1); they come first in `params`.
-    pub fn hidden_len(&self) -> usize {
+    pub(crate) fn hidden_len(&self) -> usize {
         self.hidden * (self.inputs + 1)
     }
 
-    pub fn params(&self) -> &[f64] {
+    pub(crate) fn params(&self) -> &[f64] {
         &self.params
     }
-    pub fn params_mut(&mut self) -> &mut [f64] {
+    pub(crate) fn params_mut(&mut self) -> &mut [f64] {
         &mut self.params
     }
 
     /// Replace all parameters (length must match).
-    pub fn set_params(&mut self, p: &[f64]) -> Result<(), MlpError> {
+    pub(crate) fn set_params(&mut self, p: &[f64]) -> Result<(), MlpError> {
         if p.len() != self.params.len() {
             return Err(MlpError::Length {
                 what: "parameter vector",
@@ -254,34 +268,32 @@ impl Mlp {
     }
 
     /// Accumulated gradient (same layout as `params`).
-    pub fn grad(&self) -> &[f64] {
+    #[cfg(test)]
+    pub(crate) fn grad(&self) -> &[f64] {
         &self.grad
     }
-    pub fn grad_mut(&mut self) -> &mut [f64] {
-        &mut self.grad
-    }
-    pub fn zero_grad(&mut self) {
+    pub(crate) fn zero_grad(&mut self) {
         self.grad.fill(0.0);
     }
     /// Parameters and gradient together (the update reads one and writes the other).
-    pub fn params_and_grad_mut(&mut self) -> (&mut [f64], &mut [f64]) {
+    pub(crate) fn params_and_grad_mut(&mut self) -> (&mut [f64], &mut [f64]) {
         (&mut self.params, &mut self.grad)
     }
     /// The online update's buffers: the parameters, the gradient (the update turns it into
     /// the step) and the stepped parameters, written in the same pass and taken by
     /// `commit_step` once every network's step has been checked.
-    pub fn step_buffers(&mut self) -> (&[f64], &mut [f64], &mut [f64]) {
+    pub(crate) fn step_buffers(&mut self) -> (&[f64], &mut [f64], &mut [f64]) {
         (&self.params, &mut self.grad, &mut self.next)
     }
     /// Make the parameters written by the update through `step_buffers` the current ones.
-    pub fn commit_step(&mut self) {
+    pub(crate) fn commit_step(&mut self) {
         std::mem::swap(&mut self.params, &mut self.next);
     }
 
     /// Small random weights: hidden layer uniform with standard deviation
     /// `std_hidden/√inputs` (so the tanh units see O(1) arguments on O(1) inputs, i.e. the
     /// features are diverse but not saturated), output layer uniform with `std_output`.
-    pub fn init_random<R: Rng>(&mut self, rng: &mut R, std_hidden: f64, std_output: f64) {
+    pub(crate) fn init_random<R: Rng>(&mut self, rng: &mut R, std_hidden: f64, std_output: f64) {
         let hl = self.hidden_len();
         let sh = std_hidden / (self.inputs as f64).sqrt();
         // Uniform on [−√3σ, √3σ] has standard deviation σ.
@@ -293,7 +305,7 @@ impl Mlp {
     }
 
     /// Frobenius norm of all parameters.
-    pub fn params_norm(&self) -> f64 {
+    pub(crate) fn params_norm(&self) -> f64 {
         self.params.iter().map(|p| p * p).sum::<f64>().sqrt()
     }
 
@@ -309,7 +321,7 @@ impl Mlp {
     }
 
     /// Forward pass on physical inputs `x`; the activations stay for `tangent`/`backward`.
-    pub fn forward(&mut self, x: &[f64]) -> &[f64] {
+    pub(crate) fn forward(&mut self, x: &[f64]) -> &[f64] {
         debug_assert_eq!(x.len(), self.inputs);
         with_dims!(self, forward_dims(x));
         self.has_tangent = false;
@@ -344,13 +356,14 @@ impl Mlp {
     }
 
     /// Output of the last forward pass.
-    pub fn output(&self) -> &[f64] {
+    #[cfg(test)]
+    pub(crate) fn output(&self) -> &[f64] {
         &self.y
     }
 
     /// Directional derivative ẏ = (∂y/∂x)·u at the last forward point, for a physical-unit
     /// direction `u`. `backward` then also accepts a cotangent on ẏ.
-    pub fn tangent(&mut self, u: &[f64]) -> &[f64] {
+    pub(crate) fn tangent(&mut self, u: &[f64]) -> &[f64] {
         debug_assert_eq!(u.len(), self.inputs);
         with_dims!(self, tangent_dims(u));
         self.has_tangent = true;
@@ -389,7 +402,8 @@ impl Mlp {
     }
 
     /// Tangent of the last `tangent` call.
-    pub fn tangent_output(&self) -> &[f64] {
+    #[cfg(test)]
+    pub(crate) fn tangent_output(&self) -> &[f64] {
         &self.ydot
     }
 
@@ -401,7 +415,7 @@ impl Mlp {
     ///   h̄ = W2ᵀr − 2h ⊙ (W2ᵀṙ) ⊙ ȧ   (the second term: ḣ depends on h through d),
     ///   ā = d ⊙ h̄,  ǡ = d ⊙ (W2ᵀṙ),
     ///   ∂L/∂b1 = ā,  ∂L/∂W1 = ā x̃ᵀ + ǡ ũᵀ.
-    pub fn backward(&mut self, y_bar: &[f64], ydot_bar: Option<&[f64]>) {
+    pub(crate) fn backward(&mut self, y_bar: &[f64], ydot_bar: Option<&[f64]>) {
         debug_assert_eq!(y_bar.len(), self.outputs);
         let tangent = match ydot_bar {
             Some(v) if self.has_tangent => {
@@ -473,7 +487,8 @@ impl Mlp {
     }
 
     /// ∂(ȳᵀy)/∂x in physical input units at the last forward point, written to `x_bar`.
-    pub fn input_gradient(&mut self, y_bar: &[f64], x_bar: &mut [f64]) {
+    #[cfg(test)]
+    pub(crate) fn input_gradient(&mut self, y_bar: &[f64], x_bar: &mut [f64]) {
         debug_assert_eq!(y_bar.len(), self.outputs);
         debug_assert_eq!(x_bar.len(), self.inputs);
         let (hid, inp) = (self.hidden, self.inputs);

@@ -2,21 +2,22 @@
 //! the tanh MLP with hand-derived gradients, the online identifier with its robust update,
 //! the weights file and batch pre-tuning. See `docs/IDENTIFIER.md`.
 
-pub mod adaptive;
-pub mod mlp;
+pub(crate) mod adaptive;
+pub(crate) mod mlp;
 pub mod pretune;
-pub mod settings;
-pub mod weights;
+pub(crate) mod settings;
+pub(crate) mod weights;
 
 #[cfg(test)]
 mod gradcheck;
 #[cfg(test)]
 mod testdata;
 
-pub use adaptive::{ErrorSnapshot, Fault, IdentError, Identifier, Net, Wae};
-pub use mlp::{Mlp, MlpError, NetScaling};
+pub use adaptive::{ErrorSnapshot, Fault, IdentError, Identifier};
+pub use mlp::MlpError;
 pub use pretune::{
     nrmse, pretune, EpochReport, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
 };
 pub use settings::IdentifierConfig;
-pub use weights::{load, save, NetWeights, WeightsError, WeightsFile};
+pub(crate) use weights::save;
+pub use weights::{WeightsError, WeightsFile};

@@ -5,6 +5,7 @@
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
+/// `[identifier]`: the networks' sizes and the learning law's gains and guards.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct IdentifierConfig {
@@ -135,7 +136,7 @@ impl IdentifierConfig {
     /// Check every value; the first problem is returned naming its field (`identifier.…`).
     /// Long on purpose: one check per field in the fields' order, so a reader finds each
     /// field's rule in one place; splitting it would only scatter them.
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         positive(
             "identifier.alpha",
             self.alpha,

@@ -18,41 +18,73 @@ use thiserror::Error;
 
 /// The largest weights file read: 16 MiB, far above the biggest networks the configuration
 /// allows (4 × 256 hidden units, under 1 MiB of JSON).
-pub const MAX_WEIGHTS_BYTES: u64 = 16 << 20;
+pub(crate) const MAX_WEIGHTS_BYTES: u64 = 16 << 20;
 
 /// Value of the `format` field.
-pub const FORMAT: &str = "omnid-identifier-weights";
+pub(crate) const FORMAT: &str = "omnid-identifier-weights";
 /// Current `version`.
-pub const VERSION: u32 = 1;
+pub(crate) const VERSION: u32 = 1;
 
+/// Why a weights file could not be read, used or written.
 #[derive(Debug, Error)]
 pub enum WeightsError {
+    /// The file could not be read (or the operator stopped the read).
     #[error("cannot read weights file {path}: {source}")]
     Read {
+        /// The file, as given.
         path: String,
+        /// What the read reported.
         source: std::io::Error,
     },
+    /// The file could not be written.
     #[error("weights file: {0}")]
     Write(#[from] crate::output::OutputError),
+    /// Not JSON, or not the weights file's fields.
     #[error("weights file {path} is not valid weights JSON: {message}")]
-    Parse { path: String, message: String },
+    Parse {
+        /// The file (or origin) named in the message.
+        path: String,
+        /// The parser's message.
+        message: String,
+    },
+    /// Another format name or version than this build writes.
     #[error("weights file {path} has format \"{format}\" version {version}; expected \"{FORMAT}\" version {VERSION}")]
     Format {
+        /// The file (or origin) named in the message.
         path: String,
+        /// The file's `format`.
         format: String,
+        /// The file's `version`.
         version: u32,
     },
+    /// The networks do not match the configuration (hidden size, friction network).
     #[error("weights file {path} does not fit the configuration: {message}")]
-    Mismatch { path: String, message: String },
+    Mismatch {
+        /// The file (or origin) named in the message.
+        path: String,
+        /// What differs.
+        message: String,
+    },
+    /// The file contradicts itself or holds a network that cannot be built (sizes against
+    /// parameter counts, scalings, …).
     #[error("weights file {path} is inconsistent: {message}")]
-    Invalid { path: String, message: String },
+    Invalid {
+        /// The file (or origin) named in the message.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A weight is NaN or infinite: such weights are never saved.
     #[error("refusing to save weights: {message}")]
-    NotFinite { message: String },
+    NotFinite {
+        /// Which network and entry.
+        message: String,
+    },
 }
 
 impl WeightsError {
     /// Reading the file was stopped by the operator.
-    pub fn is_stopped(&self) -> bool {
+    pub(crate) fn is_stopped(&self) -> bool {
         matches!(self, WeightsError::Read { source, .. } if crate::input::is_stopped(source))
     }
 }
@@ -60,29 +92,29 @@ impl WeightsError {
 /// One network's sizes, scaling and parameters (layout of `Mlp::params`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct NetWeights {
-    pub net: Net,
-    pub inputs: usize,
-    pub hidden: usize,
-    pub outputs: usize,
-    pub scaling: NetScaling,
-    pub params: Vec<f64>,
+pub(crate) struct NetWeights {
+    pub(crate) net: Net,
+    pub(crate) inputs: usize,
+    pub(crate) hidden: usize,
+    pub(crate) outputs: usize,
+    pub(crate) scaling: NetScaling,
+    pub(crate) params: Vec<f64>,
 }
 
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WeightsFile {
-    pub format: String,
-    pub version: u32,
-    pub hidden: usize,
-    pub friction_net: bool,
-    pub nets: Vec<NetWeights>,
+    pub(crate) format: String,
+    pub(crate) version: u32,
+    pub(crate) hidden: usize,
+    pub(crate) friction_net: bool,
+    pub(crate) nets: Vec<NetWeights>,
 }
 
 impl WeightsFile {
     /// Snapshot of an identifier's networks.
-    pub fn from_identifier(id: &Identifier) -> Self {
+    pub(crate) fn from_identifier(id: &Identifier) -> Self {
         let nets = Net::ALL
             .iter()
             .filter_map(|&n| id.net(n).map(|m| (n, m)))
@@ -170,7 +202,11 @@ impl WeightsFile {
     }
 
     /// Refuse, naming both sides, weights that do not fit the configured networks.
-    pub fn check_fits(&self, cfg: &IdentifierConfig, origin: &str) -> Result<(), WeightsError> {
+    pub(crate) fn check_fits(
+        &self,
+        cfg: &IdentifierConfig,
+        origin: &str,
+    ) -> Result<(), WeightsError> {
         if self.hidden != cfg.hidden {
             return Err(WeightsError::Mismatch {
                 path: origin.to_string(),
@@ -192,6 +228,7 @@ impl WeightsFile {
         Ok(())
     }
 
+    /// The file's JSON text (what `save` writes, without the final newline).
     pub fn to_json(&self) -> String {
         // Plain data with string keys: serialisation cannot fail.
         serde_json::to_string_pretty(self).unwrap_or_default()
@@ -200,7 +237,7 @@ impl WeightsFile {
 
 /// Write the identifier's weights to `path`, whole (see [`crate::output`]: a failed write
 /// leaves the old file; only a regular file or a new path is written).
-pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
+pub(crate) fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
     let w = WeightsFile::from_identifier(id);
     for nw in &w.nets {
         if let Some(i) = nw.params.iter().position(|p| !p.is_finite()) {
@@ -218,7 +255,10 @@ pub fn save(id: &Identifier, path: &Path) -> Result<(), WeightsError> {
 /// Read and check a weights file (without comparing it to a configuration): at most
 /// [`MAX_WEIGHTS_BYTES`]; `stop` (the operator's) ends a wait on a pipe, without it only a
 /// regular file is read (see [`crate::input::open`]).
-pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<WeightsFile, WeightsError> {
+pub(crate) fn load(
+    path: &Path,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<WeightsFile, WeightsError> {
     let origin = path.display().to_string();
     let text = crate::input::read_capped(path, MAX_WEIGHTS_BYTES, stop).map_err(|source| {
         WeightsError::Read {
@@ -232,7 +272,11 @@ pub fn load(path: &Path, stop: Option<&Arc<AtomicBool>>) -> Result<WeightsFile, 
 impl Identifier {
     /// Take over the networks of `w` (which must fit this identifier's configuration); they
     /// become the σ-modification's anchor θ0.
-    pub fn apply_weights(&mut self, w: &WeightsFile, origin: &str) -> Result<(), WeightsError> {
+    pub(crate) fn apply_weights(
+        &mut self,
+        w: &WeightsFile,
+        origin: &str,
+    ) -> Result<(), WeightsError> {
         w.check_fits(self.config(), origin)?;
         w.check_consistent(origin)?;
         let mut nets = Vec::with_capacity(w.nets.len());
@@ -259,7 +303,7 @@ impl Identifier {
         Ok(())
     }
 
-    /// An identifier for `cfg` with the weights of the file at `path` (`stop`: see [`load`]).
+    /// An identifier for `cfg` with the weights of the file at `path` (`stop`: see `load`).
     pub fn from_weights_file(
         cfg: &IdentifierConfig,
         path: &Path,

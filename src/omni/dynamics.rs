@@ -78,7 +78,7 @@ impl Default for ModelParams {
 impl ModelParams {
     /// M(q) of this model on a 5×5 grid of (q2, q3) spanning the joint limits (M does not
     /// depend on q1), with the grid point.
-    pub fn mass_over_joint_range(
+    pub(crate) fn mass_over_joint_range(
         &self,
         geometry: Geometry,
     ) -> impl Iterator<Item = ((f64, f64), Mat3)> {
@@ -96,7 +96,7 @@ impl ModelParams {
 
     /// Check every value, and that the inertia is positive definite over the whole joint
     /// range of this arm (`geometry`); the first problem names its field (`model.…`).
-    pub fn validate(&self, geometry: Geometry) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self, geometry: Geometry) -> Result<(), ConfigError> {
         for (name, v) in [("k1", self.k1), ("k5", self.k5), ("k7", self.k7)] {
             check::positive(&format!("model.{name}"), v)?;
         }
@@ -166,7 +166,7 @@ impl ModelParams {
 impl ModelParams {
     /// The same plant with every inertial and gravity parameter scaled by `factor` (a model
     /// error for computed torque experiments).
-    pub fn scaled(&self, factor: f64) -> Self {
+    pub(crate) fn scaled(&self, factor: f64) -> Self {
         let mut p = *self;
         for k in [
             &mut p.k1, &mut p.k2, &mut p.k3, &mut p.k4, &mut p.k5, &mut p.k7, &mut p.k8, &mut p.k9,
@@ -201,14 +201,15 @@ impl Trig {
 /// The model evaluated on joint states. `payload_kg` is a point mass at the tip.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Dynamics {
-    pub params: ModelParams,
-    pub geometry: Geometry,
-    pub payload_kg: f64,
+    pub(crate) params: ModelParams,
+    pub(crate) geometry: Geometry,
+    pub(crate) payload_kg: f64,
     /// Include viscous and Coulomb friction.
-    pub friction: bool,
+    pub(crate) friction: bool,
 }
 
 impl Dynamics {
+    /// The model with these parameters and this geometry: no payload, friction included.
     pub fn new(params: ModelParams, geometry: Geometry) -> Self {
         Dynamics {
             params,
@@ -297,7 +298,7 @@ impl Dynamics {
     }
 
     /// Potential energy V(q), J (up to a constant).
-    pub fn potential(&self, q: &Joint3) -> f64 {
+    pub(crate) fn potential(&self, q: &Joint3) -> f64 {
         let p = &self.params;
         let mut v = p.k8 * q[1].sin() - p.k9 * q[2].cos();
         if self.payload_kg != 0.0 {
@@ -307,12 +308,12 @@ impl Dynamics {
     }
 
     /// Kinetic energy ½ q̇ᵀ M q̇, J.
-    pub fn kinetic(&self, q: &Joint3, qd: &Joint3) -> f64 {
+    pub(crate) fn kinetic(&self, q: &Joint3, qd: &Joint3) -> f64 {
         0.5 * qd.dot(&(self.mass(q) * qd))
     }
 
     /// Friction torque (opposing motion), N·m: viscous plus tanh-smoothed Coulomb.
-    pub fn friction_torque(&self, qd: &Joint3) -> Joint3 {
+    pub(crate) fn friction_torque(&self, qd: &Joint3) -> Joint3 {
         if !self.friction {
             return Joint3::zeros();
         }
@@ -323,7 +324,7 @@ impl Dynamics {
     }
 
     /// Torque the joint-limit springs apply (zero inside the limits), N·m.
-    pub fn limit_torque(&self, q: &Joint3, qd: &Joint3) -> Joint3 {
+    pub(crate) fn limit_torque(&self, q: &Joint3, qd: &Joint3) -> Joint3 {
         let p = &self.params;
         Joint3::from_fn(|i, _| {
             let over = if q[i] < p.limit_lower[i] {
@@ -338,7 +339,7 @@ impl Dynamics {
     }
 
     /// Torque needed for acceleration `qdd`: M q̈ + C q̇ + G (+ friction).
-    pub fn inverse_dynamics(&self, q: &Joint3, qd: &Joint3, qdd: &Joint3) -> Joint3 {
+    pub(crate) fn inverse_dynamics(&self, q: &Joint3, qd: &Joint3, qdd: &Joint3) -> Joint3 {
         let t = Trig::new(q);
         self.mass_with(q, &t) * qdd
             + self.coriolis_with(q, qd, &t) * qd
@@ -347,7 +348,7 @@ impl Dynamics {
     }
 
     /// Acceleration under applied torque `tau`, including joint-limit springs.
-    pub fn forward_dynamics(&self, q: &Joint3, qd: &Joint3, tau: &Joint3) -> Joint3 {
+    pub(crate) fn forward_dynamics(&self, q: &Joint3, qd: &Joint3, tau: &Joint3) -> Joint3 {
         let t = Trig::new(q);
         let rhs = tau + self.limit_torque(q, qd)
             - self.coriolis_with(q, qd, &t) * qd

@@ -33,7 +33,7 @@ impl Default for Geometry {
 
 impl Geometry {
     /// Check every value; the first problem names its field (`geometry.…`).
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         check::in_range("geometry.l1_mm", self.l1_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
         check::in_range("geometry.l2_mm", self.l2_mm, 1.0, 1000.0, "1 ..= 1000 mm")?;
         for (field, v) in [
@@ -80,7 +80,7 @@ pub fn jacobian(g: &Geometry, q: &Joint3) -> Mat3 {
 }
 
 /// Time derivative of the Jacobian along the joint velocity `qd`, m/(rad·s).
-pub fn jacobian_dot(g: &Geometry, q: &Joint3, qd: &Joint3) -> Mat3 {
+pub(crate) fn jacobian_dot(g: &Geometry, q: &Joint3, qd: &Joint3) -> Mat3 {
     let (l1, l2) = (g.l1_mm * 1e-3, g.l2_mm * 1e-3);
     let (s1, c1) = q[0].sin_cos();
     let (s2, c2) = q[1].sin_cos();

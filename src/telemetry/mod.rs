@@ -8,10 +8,12 @@ pub mod writer;
 
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
-pub use writer::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
+pub use writer::LogError;
+pub(crate) use writer::{dump_path, spawn_writer, write_dump, LogFile, WriterReport};
 
 use serde::{Deserialize, Serialize};
 
+/// `[telemetry]`: how the ticks travel from the servo loop to the log writer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct TelemetryConfig {
@@ -29,7 +31,7 @@ impl Default for TelemetryConfig {
 
 impl TelemetryConfig {
     /// Check every value; the first problem names its field (`telemetry.…`).
-    pub fn validate(&self) -> Result<(), crate::config_check::ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), crate::config_check::ConfigError> {
         crate::config_check::int_in(
             "telemetry.channel_capacity",
             self.channel_capacity,

@@ -25,6 +25,7 @@ pub enum Mode {
 }
 
 impl Mode {
+    /// Every mode, in the order of the enum.
     pub const ALL: [Mode; 9] = [
         Mode::Blend,
         Mode::Track,
@@ -37,6 +38,7 @@ impl Mode {
         Mode::ServoCf,
     ];
 
+    /// The name in the log's `mode` column (`servo_jp`, …).
     pub fn as_str(self) -> &'static str {
         match self {
             Mode::Blend => "blend",
@@ -51,6 +53,7 @@ impl Mode {
         }
     }
 
+    /// The mode a `mode` column names, if any.
     pub fn parse(s: &str) -> Option<Mode> {
         Mode::ALL.into_iter().find(|m| m.as_str() == s)
     }
@@ -60,7 +63,9 @@ impl Mode {
 pub mod flags {
     /// The torque clamp limited at least one joint.
     pub const CLAMPED: u32 = 1 << 0;
-    /// The controller's output was not finite; zero torque was sent instead.
+    /// The controller's output was not finite; zero torque was sent instead. Kept for the
+    /// log format (docs/DESIGN.md's `flags` row) but never set: a non-finite command trips
+    /// the safety layer instead ([`SafetyTrip::NonFinite`](super::SafetyTrip::NonFinite)).
     pub const NON_FINITE: u32 = 1 << 1;
     /// The previous tick's packet was missed and its torque held.
     pub const HELD: u32 = 1 << 2;
@@ -78,81 +83,83 @@ pub mod flags {
     pub const IDENT_FAULT: u32 = 1 << 8;
 }
 
+/// Everything the loop knows at one tick: one row of the log, what `omnid serve` streams and
+/// what a fault dump keeps.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TickRecord {
     /// Device time since start, s.
-    pub t: f64,
+    pub(crate) t: f64,
     /// Measured joint angles (from the encoders), rad.
-    pub q: [f64; 3],
+    pub(crate) q: [f64; 3],
     /// Torque actually commanded to the motors after limits and DAC quantisation, N·m (on a
     /// replay: the recorded torque, what the recorded plant got).
-    pub tau: [f64; 3],
+    pub(crate) tau: [f64; 3],
     /// Kalman estimates.
-    pub qf: [f64; 3],
-    pub qd: [f64; 3],
-    pub qdd: [f64; 3],
+    pub(crate) qf: [f64; 3],
+    pub(crate) qd: [f64; 3],
+    pub(crate) qdd: [f64; 3],
     /// Reference position, rad.
-    pub reference: [f64; 3],
+    pub(crate) reference: [f64; 3],
     /// Controller output before the safety layer, N·m.
-    pub tau_cmd: [f64; 3],
+    pub(crate) tau_cmd: [f64; 3],
     /// The identifier's prediction of the torque that acted (NaN when it has none).
-    pub tau_hat: [f64; 3],
+    pub(crate) tau_hat: [f64; 3],
     /// The plant's exact model on the estimated states (simulator only, else NaN).
-    pub tau_model: [f64; 3],
+    pub(crate) tau_model: [f64; 3],
     /// Continuous encoder counts.
-    pub enc: [i64; 3],
-    pub amps: bool,
-    pub mode: Mode,
-    pub flags: u32,
+    pub(crate) enc: [i64; 3],
+    pub(crate) amps: bool,
+    pub(crate) mode: Mode,
+    pub(crate) flags: u32,
     /// The tip and the forces there (docs/HAPTICS.md).
-    pub haptic: HapticRecord,
+    pub(crate) haptic: HapticRecord,
     /// What the daemon's clients see beyond the log's columns (not written to the log).
-    pub live: Live,
+    pub(crate) live: Live,
 }
 
 /// The log's haptic columns.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct HapticRecord {
+pub(crate) struct HapticRecord {
     /// Stylus tip at the measured pose, mm, OpenHaptics frame (`tip1..3`).
-    pub tip_mm: [f64; 3],
+    pub(crate) tip_mm: [f64; 3],
     /// The tip force commanded this tick (effects and a client's `servo_cf`, after the
     /// passivity controller and the peak clamp), N (`fcmd1..3`).
-    pub force: [f64; 3],
+    pub(crate) force: [f64; 3],
     /// Simulator: the force the simulated hand put on the tip, N (`fhand1..3`; NaN elsewhere).
-    pub hand: [f64; 3],
+    pub(crate) hand: [f64; 3],
 }
 
 /// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Live {
+pub(crate) struct Live {
     /// Tick number since the servo started (the state stream's sequence number).
-    pub seq: u64,
+    pub(crate) seq: u64,
     /// Stylus buttons pressed, and the stylus in its inkwell.
-    pub buttons: [bool; 2],
-    pub inkwell: bool,
+    pub(crate) buttons: [bool; 2],
+    pub(crate) inkwell: bool,
     /// Gimbal potentiometer words as the device sent them (the hub converts them to angles,
     /// `serve::device_info`).
-    pub gimbal: [u16; 3],
+    pub(crate) gimbal: [u16; 3],
     /// The controller whose law is in effect (the new one during a bumpless switch).
-    pub controller: Option<crate::control::ControllerKind>,
+    pub(crate) controller: Option<crate::control::ControllerKind>,
     /// Sequence number of the last stream command (`servo_jp`/`servo_jf`/`servo_cf`) applied.
-    pub cmd_seq: u64,
+    pub(crate) cmd_seq: u64,
     /// Something happened this tick that every client is told about.
-    pub event: Option<ServoEvent>,
+    pub(crate) event: Option<ServoEvent>,
 }
 
 /// Which optional column groups a log carries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogSchema {
     /// `tau_model1..3` and `fhand1..3` (simulator runs).
-    pub model: bool,
+    pub(crate) model: bool,
 }
 
 /// The seven columns every log starts with, and every replayable file must have.
 pub const REQUIRED_COLUMNS: [&str; 7] = ["t", "q1", "q2", "q3", "tau1", "tau2", "tau3"];
 
 impl LogSchema {
-    pub fn columns(&self) -> Vec<String> {
+    pub(crate) fn columns(&self) -> Vec<String> {
         let mut c: Vec<String> = REQUIRED_COLUMNS.iter().map(|s| s.to_string()).collect();
         for group in ["qf", "qd", "qdd", "ref", "tau_cmd", "tau_hat"] {
             c.extend((1..=3).map(|j| format!("{group}{j}")));
@@ -178,9 +185,15 @@ impl LogSchema {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ServoEvent {
     /// No stream command arrived within its time to live; the loop fell back to `fallback`.
-    StreamStale { fallback: Mode },
+    StreamStale {
+        /// The mode the loop is in now.
+        fallback: Mode,
+    },
     /// The stream's owner left; the loop fell back to `fallback`.
-    StreamEnded { fallback: Mode },
+    StreamEnded {
+        /// The mode the loop is in now.
+        fallback: Mode,
+    },
     /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
     SafetyTrip(SafetyTrip),
 }
@@ -189,12 +202,25 @@ pub enum ServoEvent {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum SafetyTrip {
     /// The controller's output was NaN or infinite on this joint.
-    NonFinite { joint: usize },
+    NonFinite {
+        /// The joint, 0..=2.
+        joint: usize,
+    },
     /// A joint moved faster than its limit (by the estimate).
-    Velocity { joint: usize, speed: f64 },
+    Velocity {
+        /// The joint, 0..=2.
+        joint: usize,
+        /// Its speed, rad/s.
+        speed: f64,
+    },
     /// A joint moved faster than its limit by its encoders (over the last few ticks, beyond
     /// the quantisation margin), whatever the estimate says.
-    MeasuredVelocity { joint: usize, speed: f64 },
+    MeasuredVelocity {
+        /// The joint, 0..=2.
+        joint: usize,
+        /// Its speed from the encoders, rad/s.
+        speed: f64,
+    },
 }
 
 impl std::fmt::Display for SafetyTrip {

@@ -2,7 +2,7 @@
 //! write error (disk full) is remembered and reported, but the thread keeps draining so the
 //! servo loop never notices.
 //!
-//! The thread polls the channel (drain, then sleep [`POLL`]) instead of blocking in `recv`:
+//! The thread polls the channel (drain, then sleep `POLL`, 1 ms) instead of blocking in `recv`:
 //! a receiver parked in `recv` must be woken by the sender, which would put a futex
 //! syscall into every servo tick.
 
@@ -19,13 +19,13 @@ use std::thread::JoinHandle;
 use thiserror::Error;
 
 /// Ticks kept for the fault dump.
-pub const DUMP_TICKS: usize = 500;
+pub(crate) const DUMP_TICKS: usize = 500;
 
 /// How long the writer sleeps when the channel is empty. At 1 kHz this leaves about one row
 /// per wake-up; the channel (8192 rows by default) has seconds of slack.
-pub const POLL: std::time::Duration = std::time::Duration::from_millis(1);
+pub(crate) const POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
-/// Hand every item to `each` until the senders are gone, sleeping [`POLL`] whenever the
+/// Hand every item to `each` until the senders are gone, sleeping `POLL` (1 ms) whenever the
 /// channel is empty (never parked in `recv`, so a send never has to wake this thread).
 pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
     loop {
@@ -38,24 +38,24 @@ pub fn for_each_polled<T>(rx: &Receiver<T>, mut each: impl FnMut(T)) {
 }
 
 #[derive(Debug)]
-pub struct WriterReport {
-    pub path: PathBuf,
-    pub schema: LogSchema,
+pub(crate) struct WriterReport {
+    pub(crate) path: PathBuf,
+    pub(crate) schema: LogSchema,
     /// Rows that reached the file (whole rows: a row cut by a failed write is taken back).
-    pub rows: u64,
+    pub(crate) rows: u64,
     /// Rows the writer was given.
-    pub received: u64,
+    pub(crate) received: u64,
     /// The first write error, if any; rows after it are lost.
-    pub error: Option<io::Error>,
+    pub(crate) error: Option<io::Error>,
     /// The last [`DUMP_TICKS`] records received, oldest first (for the fault dump).
-    pub tail: VecDeque<TickRecord>,
+    pub(crate) tail: VecDeque<TickRecord>,
     /// The log, still open: its lock holds until the report is dropped, so no other omnid
     /// takes the log (or its fault dump) while the run finishes.
-    pub file: File,
+    pub(crate) file: File,
 }
 
 /// `run.csv` → `run-fault.csv`, beside the log.
-pub fn dump_path(log: &Path) -> PathBuf {
+pub(crate) fn dump_path(log: &Path) -> PathBuf {
     let stem = log
         .file_stem()
         .map(|s| s.to_string_lossy())
@@ -69,7 +69,7 @@ pub fn dump_path(log: &Path) -> PathBuf {
 
 /// The header and rows of a fault dump: the same columns as the log, the last ticks before
 /// the fault.
-pub fn dump_rows(
+pub(crate) fn dump_rows(
     out: &mut impl Write,
     schema: &LogSchema,
     rows: &VecDeque<TickRecord>,
@@ -82,7 +82,7 @@ pub fn dump_rows(
 }
 
 /// Write the fault dump at `path` (whole, through [`crate::output`]).
-pub fn write_dump(
+pub(crate) fn write_dump(
     path: &Path,
     schema: &LogSchema,
     rows: &VecDeque<TickRecord>,
@@ -147,14 +147,31 @@ fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Resu
     w.write_all(&line)
 }
 
+/// Why a log could not be opened.
 #[derive(Debug, Error)]
 pub enum LogError {
+    /// Creating or opening the file failed.
     #[error("cannot create log {}: {source}", path.display())]
-    Io { path: PathBuf, source: io::Error },
+    Io {
+        /// The log's path.
+        path: PathBuf,
+        /// What the system reported.
+        source: io::Error,
+    },
+    /// The path is something a log cannot be written to (a directory, a socket, …).
     #[error("cannot create log {}: it is {what}; a log is a file, a character device such as /dev/null, or a FIFO", path.display())]
-    Unsuitable { path: PathBuf, what: &'static str },
+    Unsuitable {
+        /// The log's path.
+        path: PathBuf,
+        /// What it is instead, in words.
+        what: &'static str,
+    },
+    /// Another omnid process holds the log's lock.
     #[error("log {} is in use: another omnid writes it", path.display())]
-    InUse { path: PathBuf },
+    InUse {
+        /// The log's path.
+        path: PathBuf,
+    },
 }
 
 /// Take an exclusive `flock` without waiting: false when another process holds one. A file
@@ -193,8 +210,8 @@ fn suitable(path: &Path) -> Result<Option<bool>, LogError> {
 
 /// A run's log, open for writing and locked (`flock`) against every other omnid while open.
 #[derive(Debug)]
-pub struct LogFile {
-    pub path: PathBuf,
+pub(crate) struct LogFile {
+    pub(crate) path: PathBuf,
     file: File,
 }
 
@@ -228,7 +245,7 @@ fn open_special(path: &Path) -> io::Result<File> {
 impl LogFile {
     /// Check `path` as a log before the work starts: a suitable kind, its directory made, a
     /// file can be created there, and no other omnid writes it.
-    pub fn check(path: &Path) -> Result<(), LogError> {
+    pub(crate) fn check(path: &Path) -> Result<(), LogError> {
         let io_err = |source| LogError::Io {
             path: path.to_path_buf(),
             source,
@@ -261,7 +278,7 @@ impl LogFile {
     /// ext4 flushes a file that was truncated and rewritten when it is closed, and the next
     /// file created then waits for those tens of MB to reach the disk (~25 ms at the end of a
     /// 60 s `--fast` run). What a symlink names is truncated, a device written as it is.
-    pub fn create(path: &Path) -> Result<LogFile, LogError> {
+    pub(crate) fn create(path: &Path) -> Result<LogFile, LogError> {
         let io_err = |source| LogError::Io {
             path: path.to_path_buf(),
             source,
@@ -326,7 +343,7 @@ impl LogFile {
 
     /// A new log under a default name in `dir`: `stem.csv`, else `stem-2.csv`, … (never
     /// another run's file, even for runs started in the same second).
-    pub fn create_unique(dir: &Path, stem: &str) -> Result<LogFile, LogError> {
+    pub(crate) fn create_unique(dir: &Path, stem: &str) -> Result<LogFile, LogError> {
         let (path, file) = crate::output::create_unique(dir, stem, "csv").map_err(|e| match e {
             OutputError::Unwritable { path, source } | OutputError::Write { path, source } => {
                 LogError::Io { path, source }
@@ -393,7 +410,7 @@ impl RowSink {
 
 /// Write the header now (so an unwritable log fails before torque is enabled) and start the
 /// thread that fills the log.
-pub fn spawn_writer(
+pub(crate) fn spawn_writer(
     log: LogFile,
     schema: LogSchema,
     rx: Receiver<TickRecord>,

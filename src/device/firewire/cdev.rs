@@ -149,6 +149,9 @@ pub struct fw_cdev_create_iso_context {
     pub handle: u32,
 }
 
+/// Kept for the layout test only: the iso queue writes these descriptors (header-less,
+/// so one control word each) straight into a `u32` slice.
+#[cfg(test)]
 #[repr(C)]
 #[derive(Debug, Default, Clone, Copy)]
 pub struct fw_cdev_iso_packet {

@@ -8,7 +8,7 @@
 //!   restart after every bus reset, and the stop sequence on close (safe packet, clear bit 3
 //!   of 0x1087, stop iso, free channels).
 //! - [`FireWireBus`] does the bus work: asynchronous register reads and writes, channel
-//!   allocation, iso contexts, packets and bus-reset events. [`cdev::CdevBus`] is the real
+//!   allocation, iso contexts, packets and bus-reset events. `cdev::CdevBus` is the real
 //!   one (ioctls on `/dev/fwN`); tests drive the protocol over a fake bus.
 //!
 //! The registers at 0x1000..0x1087 are single bytes at byte addresses (0x1087 is not
@@ -16,11 +16,11 @@
 //! of the drivers' 1-byte `raw1394_write`) beside quadlet access (0x1006000C, 0x10060010,
 //! 0x20010).
 
-pub mod cdev;
+pub(crate) mod cdev;
 #[cfg(test)]
 pub(crate) mod fake;
-pub mod rate;
-pub mod serial;
+pub(crate) mod rate;
+pub(crate) mod serial;
 
 use super::codec::{MotorCommand, STATE_LAYOUT};
 use super::stream::{
@@ -35,51 +35,48 @@ use std::time::{Duration, Instant};
 use thiserror::Error;
 
 /// SensAble's IEEE OUI, in the config ROM and in the device's vendor register.
-pub const SENSABLE_VENDOR_ID: u32 = 0x000B99;
-
-/// Packet rate assumed by [`open_firewire`] (the servo rate of the default config).
-pub const DEFAULT_RATE_HZ: f64 = 1000.0;
+pub(crate) const SENSABLE_VENDOR_ID: u32 = 0x000B99;
 
 /// Largest iso payload the bus hands over (the Omni's are 44 bytes).
-pub const ISO_PAYLOAD_MAX: usize = 256;
+pub(crate) const ISO_PAYLOAD_MAX: usize = 256;
 
 /// Start attempts after a bus reset before giving up (each further reset during the start
 /// costs one).
-pub const RESTART_ATTEMPTS: u32 = 3;
+pub(crate) const RESTART_ATTEMPTS: u32 = 3;
 
 /// Packets read per exchange at most (the newest is delivered).
-pub const MAX_PACKETS_PER_EXCHANGE: usize = 64;
+pub(crate) const MAX_PACKETS_PER_EXCHANGE: usize = 64;
 
 /// Device registers (offsets in the node's address space), docs/FIREWIRE.md §2.
-pub mod reg {
+pub(crate) mod reg {
     /// Quadlet: vendor id << 8 (reads 0x000B9900 on an Omni).
-    pub const VENDOR: u64 = 0x1006_000C;
+    pub(crate) const VENDOR: u64 = 0x1006_000C;
     /// Quadlet: serial number, packed label digits (see `serial`).
-    pub const SERIAL: u64 = 0x1006_0010;
+    pub(crate) const SERIAL: u64 = 0x1006_0010;
     /// Byte: isochronous channel host → device.
-    pub const CHANNEL_TO_DEVICE: u64 = 0x1000;
+    pub(crate) const CHANNEL_TO_DEVICE: u64 = 0x1000;
     /// Byte: isochronous channel device → host; also the scratch test's register.
-    pub const CHANNEL_FROM_DEVICE: u64 = 0x1001;
+    pub(crate) const CHANNEL_FROM_DEVICE: u64 = 0x1001;
     /// Byte: the packet rate per the vendor library's symbol names. No open source reads or
     /// writes it; `omnid probe` only reads it (docs/FIREWIRE.md §5).
-    pub const RATE: u64 = 0x1002;
+    pub(crate) const RATE: u64 = 0x1002;
     /// Byte read during the start; expected [`CHECK_A_VALUE`].
-    pub const CHECK_A: u64 = 0x1083;
-    pub const CHECK_A_VALUE: u8 = 0xC0;
+    pub(crate) const CHECK_A: u64 = 0x1083;
+    pub(crate) const CHECK_A_VALUE: u8 = 0xC0;
     /// Byte read during the start; expected [`CHECK_B_VALUE`].
-    pub const CHECK_B: u64 = 0x1082;
-    pub const CHECK_B_VALUE: u8 = 0x00;
+    pub(crate) const CHECK_B: u64 = 0x1082;
+    pub(crate) const CHECK_B_VALUE: u8 = 0x00;
     /// Byte: control; bit 3 starts and stops streaming.
-    pub const CONTROL: u64 = 0x1087;
-    pub const CONTROL_STREAM: u8 = 1 << 3;
+    pub(crate) const CONTROL: u64 = 0x1087;
+    pub(crate) const CONTROL_STREAM: u8 = 1 << 3;
     /// Quadlet the vendor library writes before the start (purpose unknown).
-    pub const VENDOR_INIT: u64 = 0x2_0010;
+    pub(crate) const VENDOR_INIT: u64 = 0x2_0010;
     /// The quadlet as it goes on the wire: bytes 00 00 0F F8. The drivers write the x86
     /// integer 0xf80f0000 from memory, which the bus carries as these bytes
     /// (docs/FIREWIRE.md §2).
-    pub const VENDOR_INIT_VALUE: u32 = 0x0000_0FF8;
+    pub(crate) const VENDOR_INIT_VALUE: u32 = 0x0000_0FF8;
     /// The scratch test's value, written to and read back from 0x1001.
-    pub const SCRATCH_VALUE: u8 = 0x40;
+    pub(crate) const SCRATCH_VALUE: u8 = 0x40;
 }
 
 /// `[firewire]`: which node, how long to wait, and the start sequence's options.
@@ -133,11 +130,11 @@ impl Default for FirewireConfig {
 }
 
 /// Encoder count direction → OpenHaptics joint direction, per joint (docs/FIREWIRE.md §6).
-pub const OPENHAPTICS_ENCODER_SIGN: [i8; 3] = [-1, -1, 1];
+pub(crate) const OPENHAPTICS_ENCODER_SIGN: [i8; 3] = [-1, -1, 1];
 
 impl FirewireConfig {
     /// Check every value; the first problem names its field (`firewire.timeout_ms`, ...).
-    pub fn validate(&self) -> Result<(), ConfigError> {
+    pub(crate) fn validate(&self) -> Result<(), ConfigError> {
         let node_ok = self
             .device
             .strip_prefix("/dev/fw")
@@ -215,7 +212,7 @@ impl FirewireConfig {
     }
 
     /// `command_byte7` parsed (`None` when it is not valid).
-    pub fn byte7(&self) -> Option<Byte7> {
+    pub(crate) fn byte7(&self) -> Option<Byte7> {
         if self.command_byte7 == "counter" {
             return Some(Byte7::Counter);
         }
@@ -227,12 +224,12 @@ impl FirewireConfig {
     }
 
     /// Motors whose DAC sign has not been measured (0-based).
-    pub fn unmeasured_dac_signs(&self) -> Vec<usize> {
+    pub(crate) fn unmeasured_dac_signs(&self) -> Vec<usize> {
         (0..3).filter(|&j| self.dac_sign[j] == 0).collect()
     }
 
     /// The protocol options of this configuration at packet rate `rate_hz`.
-    pub fn options(&self, rate_hz: f64) -> FireWireOptions {
+    pub(crate) fn options(&self, rate_hz: f64) -> FireWireOptions {
         FireWireOptions {
             timeout: Duration::from_millis(u64::from(self.timeout_ms)),
             rate_hz,
@@ -248,8 +245,8 @@ impl FirewireConfig {
         }
     }
 
-    /// What `open_firewire` looks for, in words.
-    pub fn looked_for(&self) -> String {
+    /// What [`find_firewire`] looks for, in words.
+    pub(crate) fn looked_for(&self) -> String {
         let what = if self.device.is_empty() {
             "a FireWire Omni (config-ROM vendor 0x000B99) on /dev/fw*".to_string()
         } else {
@@ -263,29 +260,29 @@ impl FirewireConfig {
     }
 
     /// Whether the unit with serial quadlet `quadlet` is the configured one.
-    pub fn wants_serial(&self, quadlet: u32) -> bool {
+    pub(crate) fn wants_serial(&self, quadlet: u32) -> bool {
         self.serial.is_empty() || serial::parse(&self.serial) == Ok(quadlet)
     }
 }
 
 /// How [`FireWireOmni`] runs the protocol.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FireWireOptions {
+pub(crate) struct FireWireOptions {
     /// How long one exchange waits for the next packet.
-    pub timeout: Duration,
+    pub(crate) timeout: Duration,
     /// The configured packet rate (device time is counter / rate; checked at open).
-    pub rate_hz: f64,
-    pub vendor_init: bool,
-    pub scratch_test: bool,
-    pub busy_retries: u32,
-    pub busy_retry: Duration,
-    pub encoder_sign: [i8; 3],
-    pub format: WireFormat,
+    pub(crate) rate_hz: f64,
+    pub(crate) vendor_init: bool,
+    pub(crate) scratch_test: bool,
+    pub(crate) busy_retries: u32,
+    pub(crate) busy_retry: Duration,
+    pub(crate) encoder_sign: [i8; 3],
+    pub(crate) format: WireFormat,
 }
 
 impl FireWireOptions {
     /// The defaults of `[firewire]` at `rate_hz`, with `timeout`.
-    pub fn new(timeout: Duration, rate_hz: f64) -> Self {
+    pub(crate) fn new(timeout: Duration, rate_hz: f64) -> Self {
         FireWireOptions {
             timeout,
             ..FirewireConfig::default().options(rate_hz)
@@ -294,11 +291,11 @@ impl FireWireOptions {
 }
 
 /// The udev rule of docs/FIREWIRE.md §7.
-pub const FIREWIRE_UDEV_RULE: &str =
+pub(crate) const FIREWIRE_UDEV_RULE: &str =
     "SUBSYSTEM==\"firewire\", ATTR{vendor}==\"0x000b99\", MODE=\"0660\", GROUP=\"plugdev\"";
 
 /// How to fix "permission denied" on `/dev/fwN`.
-pub fn firewire_permission_hint() -> String {
+pub(crate) fn firewire_permission_hint() -> String {
     format!(
         "Install the udev rule (udev/99-omnid-firewire.rules, or put this line in \
          /etc/udev/rules.d/99-omnid-firewire.rules: {FIREWIRE_UDEV_RULE}), run `sudo udevadm \
@@ -314,39 +311,53 @@ fn os_text(errno: &i32) -> String {
 /// What the bus reports. Copy and allocation-free: it travels through the 1 kHz path.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
 pub enum BusError {
+    /// The bus was reset (a node joined or left): node ids and channels must be set up again.
     #[error("bus reset")]
     BusReset,
+    /// The node disappeared.
     #[error("the node is gone (unplugged or powered off)")]
     Gone,
+    /// No answer or packet within the wait.
     #[error("timed out")]
     Timeout,
+    /// The node's device file may not be opened by this user (the udev rule is missing).
     #[error("permission denied")]
     Permission,
+    /// Every isochronous channel is taken.
     #[error("no free isochronous channel at the isochronous resource manager")]
     NoChannel,
+    /// Our transmit context stopped taking packets.
     #[error("the isochronous transmit queue is full (the controller stopped sending)")]
     TxStalled,
     /// The node answered busy (RCODE_BUSY) or conflict (RCODE_CONFLICT_ERROR): try again, as
     /// the Twente driver does on EAGAIN (rev-eng/easy-com.c:34-37).
     #[error("the node answered busy (response code {0:#04x})")]
     Busy(u32),
+    /// Any other IEEE 1394 response code (address or type error, …).
     #[error("the node answered with response code {0:#04x}")]
     Rcode(u32),
+    /// A packet was sent or awaited before the stream was started.
     #[error("isochronous streaming is not running")]
     NotStreaming,
+    /// A system call failed.
     #[error("{op}: {}", os_text(.errno))]
-    Os { op: &'static str, errno: i32 },
+    Os {
+        /// The call (`FW_CDEV_IOC_QUEUE_ISO`, …).
+        op: &'static str,
+        /// Its `errno`.
+        errno: i32,
+    },
 }
 
 /// One received iso packet: its length and what the kernel reports beside it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PacketInfo {
     /// Payload bytes in the buffer.
-    pub len: usize,
+    pub(crate) len: usize,
     /// The 1394 iso packet header (data_length, tag, channel, tcode, sy), as a number.
-    pub iso_header: u32,
+    pub(crate) iso_header: u32,
     /// Receive timestamp: 3 bits cycleSeconds, 13 bits cycleCount.
-    pub timestamp: u16,
+    pub(crate) timestamp: u16,
 }
 
 /// What waiting for the next packet brought.
@@ -390,7 +401,7 @@ pub trait FireWireBus: Send {
 
 /// Which step of the start sequence an error happened in (named in the message).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Step {
+pub(crate) enum Step {
     ReadByte(u64),
     WriteByte(u64, u8),
     WriteQuadlet(u64, u32),
@@ -437,24 +448,24 @@ impl StartError {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Tapped {
     /// Host monotonic time, ns.
-    pub host_ns: u64,
+    pub(crate) host_ns: u64,
     /// `None` for a command the host sent.
-    pub received: Option<PacketInfo>,
-    pub bytes: Vec<u8>,
+    pub(crate) received: Option<PacketInfo>,
+    pub(crate) bytes: Vec<u8>,
 }
 
 /// One register as `omnid probe` reads it.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct RegisterReading {
-    pub offset: u64,
+pub(crate) struct RegisterReading {
+    pub(crate) offset: u64,
     /// 1 (byte register) or 4 (quadlet).
-    pub width: u8,
-    pub name: &'static str,
-    pub value: Result<u32, BusError>,
+    pub(crate) width: u8,
+    pub(crate) name: &'static str,
+    pub(crate) value: Result<u32, BusError>,
 }
 
 /// The registers `omnid probe` reads (reads only: nothing here is written).
-pub const PROBE_REGISTERS: &[(u64, u8, &str)] = &[
+pub(crate) const PROBE_REGISTERS: &[(u64, u8, &str)] = &[
     (reg::VENDOR, 4, "vendor quadlet (expect 0x000b9900)"),
     (reg::SERIAL, 4, "serial quadlet (label digits packed)"),
     (reg::CHANNEL_TO_DEVICE, 1, "iso channel host -> device"),
@@ -486,8 +497,6 @@ pub struct FireWireOmni<B: FireWireBus> {
     closed: bool,
     /// The stream bit was found set at a start (a run that crashed) and cleared.
     stale_stream_cleared: bool,
-    /// The last delivered packet's receive information.
-    last_packet: Option<PacketInfo>,
     /// `omnid probe`: every packet received and sent, when on.
     tap: Option<Vec<Tapped>>,
 }
@@ -495,12 +504,12 @@ pub struct FireWireOmni<B: FireWireBus> {
 impl<B: FireWireBus> FireWireOmni<B> {
     /// No bus traffic yet; default `[firewire]` options with this timeout and rate. See
     /// [`identify`](Self::identify) and [`start`](Self::start).
-    pub fn new(bus: B, name: String, timeout: Duration, rate_hz: f64) -> Self {
+    pub(crate) fn new(bus: B, name: String, timeout: Duration, rate_hz: f64) -> Self {
         Self::with_options(bus, name, FireWireOptions::new(timeout, rate_hz))
     }
 
     /// No bus traffic yet.
-    pub fn with_options(bus: B, name: String, opts: FireWireOptions) -> Self {
+    pub(crate) fn with_options(bus: B, name: String, opts: FireWireOptions) -> Self {
         FireWireOmni {
             bus,
             name,
@@ -519,13 +528,13 @@ impl<B: FireWireBus> FireWireOmni<B> {
             gone: false,
             closed: false,
             stale_stream_cleared: false,
-            last_packet: None,
             tap: None,
         }
     }
 
     /// Identify, then start streaming (no rate check: see [`check_rate`](Self::check_rate)).
-    pub fn open(
+    #[cfg(test)]
+    pub(crate) fn open(
         bus: B,
         name: String,
         timeout: Duration,
@@ -535,7 +544,12 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// Identify, then start streaming with these options.
-    pub fn open_with(bus: B, name: String, opts: FireWireOptions) -> Result<Self, DeviceError> {
+    #[cfg(test)]
+    pub(crate) fn open_with(
+        bus: B,
+        name: String,
+        opts: FireWireOptions,
+    ) -> Result<Self, DeviceError> {
         let mut omni = Self::with_options(bus, name, opts);
         omni.identify()?;
         omni.start()?;
@@ -543,29 +557,24 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// The name messages use (`/dev/fw1`).
-    pub fn name(&self) -> &str {
+    pub(crate) fn name(&self) -> &str {
         &self.name
     }
 
     /// The serial quadlet as read by [`identify`](Self::identify).
-    pub fn serial_quadlet(&self) -> Option<u32> {
+    pub(crate) fn serial_quadlet(&self) -> Option<u32> {
         self.serial_quadlet
     }
 
     /// Whether a start found the stream bit set (left by a run that did not stop) and cleared
     /// it.
-    pub fn stale_stream_cleared(&self) -> bool {
+    pub(crate) fn stale_stream_cleared(&self) -> bool {
         self.stale_stream_cleared
-    }
-
-    /// The last delivered packet's receive information.
-    pub fn last_packet(&self) -> Option<PacketInfo> {
-        self.last_packet
     }
 
     /// Check the vendor register says SensAble and read the serial number (no writes).
     /// Returns the serial in the 11-digit form of the unit's label.
-    pub fn identify(&mut self) -> Result<String, DeviceError> {
+    pub(crate) fn identify(&mut self) -> Result<String, DeviceError> {
         let vendor = self
             .read_quadlet(reg::VENDOR)
             .map_err(|e| self.bus_failure("reading the vendor register 0x1006000c", e))?;
@@ -593,7 +602,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// Read the registers of [`PROBE_REGISTERS`] (reads only).
-    pub fn read_registers(&mut self) -> Vec<RegisterReading> {
+    pub(crate) fn read_registers(&mut self) -> Vec<RegisterReading> {
         PROBE_REGISTERS
             .iter()
             .map(|&(offset, width, name)| RegisterReading {
@@ -610,7 +619,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// The start sequence (docs/FIREWIRE.md §2), redone after every bus reset.
-    pub fn start(&mut self) -> Result<(), DeviceError> {
+    pub(crate) fn start(&mut self) -> Result<(), DeviceError> {
         match self.start_sequence() {
             Ok(()) => Ok(()),
             Err(e) => {
@@ -623,7 +632,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     /// Measure the packet rate over [`rate::MEASURE_PACKETS`] packets (zero torque, amplifiers
     /// off) and refuse a device that does not run at the configured rate. The amplifiers stay
     /// off until the next sample after this.
-    pub fn check_rate(&mut self) -> Result<RateMeasurement, DeviceError> {
+    pub(crate) fn check_rate(&mut self) -> Result<RateMeasurement, DeviceError> {
         let m = self.measure_rate(rate::MEASURE_PACKETS)?;
         match m.mismatch(self.opts.rate_hz) {
             None => Ok(m),
@@ -635,7 +644,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// Exchange `packets` safe packets and measure the stream from what arrived.
-    pub fn measure_rate(&mut self, packets: usize) -> Result<RateMeasurement, DeviceError> {
+    pub(crate) fn measure_rate(&mut self, packets: usize) -> Result<RateMeasurement, DeviceError> {
         let tapping = self.tap.is_some();
         let mut seen: Vec<(u32, u16)> = Vec::with_capacity(packets);
         let mut misses = 0usize;
@@ -686,12 +695,12 @@ impl<B: FireWireBus> FireWireOmni<B> {
     /// servo: recording allocates.
     ///
     /// [`take_tapped`]: Self::take_tapped
-    pub fn set_tap(&mut self, on: bool) {
+    pub(crate) fn set_tap(&mut self, on: bool) {
         self.tap = on.then(|| self.tap.take().unwrap_or_default());
     }
 
     /// The packets recorded since the last call.
-    pub fn take_tapped(&mut self) -> Vec<Tapped> {
+    pub(crate) fn take_tapped(&mut self) -> Vec<Tapped> {
         match self.tap.as_mut() {
             Some(t) => std::mem::take(t),
             None => Vec::new(),
@@ -700,13 +709,13 @@ impl<B: FireWireBus> FireWireOmni<B> {
 
     /// One exchange with `cmd` as it is: no DAC signs applied (the probe's sign check). The
     /// amplifiers still stay off until a sample has been delivered.
-    pub fn exchange_raw(&mut self, cmd: MotorCommand) -> Result<RawSample, DeviceError> {
+    pub(crate) fn exchange_raw(&mut self, cmd: MotorCommand) -> Result<RawSample, DeviceError> {
         let wire = self.gate.raw(cmd);
         self.exchange_wire(wire, None)
     }
 
     /// Everything unusual seen on the stream so far.
-    pub fn stats(&self) -> StreamStats {
+    pub(crate) fn stats(&self) -> StreamStats {
         self.stats
     }
 
@@ -950,7 +959,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
     }
 
     /// The delivered packet: encoder words turned to the OpenHaptics directions.
-    fn deliver(&mut self, mut out: [u8; STATE_LEN], t: f64, info: PacketInfo) -> RawSample {
+    fn deliver(&mut self, mut out: [u8; STATE_LEN], t: f64) -> RawSample {
         for (j, &at) in STATE_LAYOUT.encoder.iter().enumerate() {
             if self.opts.encoder_sign[j] < 0 {
                 let raw = u16::from_le_bytes([out[at], out[at + 1]]);
@@ -959,7 +968,6 @@ impl<B: FireWireBus> FireWireOmni<B> {
         }
         self.stats.delivered += 1;
         self.gate.sample_delivered();
-        self.last_packet = Some(info);
         RawSample::new(out, t)
     }
 
@@ -1020,7 +1028,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
         }
         let start = Instant::now();
         let mut out = [0u8; STATE_LEN];
-        let mut newest: Option<(f64, PacketInfo)> = None;
+        let mut newest: Option<f64> = None;
         for _ in 0..MAX_PACKETS_PER_EXCHANGE {
             // Once a fresh packet is in hand, only take what is already there.
             let wait = match newest {
@@ -1054,20 +1062,20 @@ impl<B: FireWireBus> FireWireOmni<B> {
                                 self.stats.superseded += 1;
                             }
                             out.copy_from_slice(packet);
-                            newest = Some((t, info));
+                            newest = Some(t);
                         }
                     }
                 }
                 Ok(BusEvent::BusReset) | Err(BusError::BusReset) => return Err(self.restart()),
                 Ok(BusEvent::Timeout) | Err(BusError::Timeout) => match newest {
-                    Some((t, info)) => return Ok(self.deliver(out, t, info)),
+                    Some(t) => return Ok(self.deliver(out, t)),
                     None => return Err(self.miss(MissReason::ReadTimeout)),
                 },
                 Err(e) => return Err(self.bus_failure("receiving", e)),
             }
         }
         match newest {
-            Some((t, info)) => Ok(self.deliver(out, t, info)),
+            Some(t) => Ok(self.deliver(out, t)),
             None => Err(self.miss(MissReason::NoFreshPacket)),
         }
     }
@@ -1163,34 +1171,37 @@ impl<B: FireWireBus> Drop for FireWireOmni<B> {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct NodeInfo {
     /// `/dev/fw1`.
-    pub path: PathBuf,
+    pub(crate) path: PathBuf,
     /// Config-ROM vendor id (from sysfs, else from the ROM through the node), when known.
-    pub vendor: Option<u32>,
+    pub(crate) vendor: Option<u32>,
     /// GUID from sysfs, when known.
-    pub guid: Option<String>,
+    pub(crate) guid: Option<String>,
     /// Vendor and model names from sysfs, when known.
-    pub vendor_name: Option<String>,
-    pub model_name: Option<String>,
+    pub(crate) vendor_name: Option<String>,
+    pub(crate) model_name: Option<String>,
     /// Whether this user may open the node.
-    pub access: NodeAccess,
+    pub(crate) access: NodeAccess,
 }
 
 /// Whether a node can be opened read-write.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum NodeAccess {
+pub(crate) enum NodeAccess {
+    /// It opens read-write.
     Ok,
+    /// Permission denied (the udev rule is missing or the user is not in its group).
     Denied,
+    /// Another error, its message.
     Error(String),
 }
 
 impl NodeInfo {
-    pub fn is_omni(&self) -> bool {
+    pub(crate) fn is_omni(&self) -> bool {
         self.vendor == Some(SENSABLE_VENDOR_ID)
     }
 }
 
 /// The hint when there is no Omni among `nodes`.
-pub fn no_omni_hint(nodes: &[NodeInfo]) -> String {
+pub(crate) fn no_omni_hint(nodes: &[NodeInfo]) -> String {
     if nodes.is_empty() {
         return "There are no /dev/fw* nodes at all: this machine has no IEEE-1394 (FireWire) \
                 controller, or its driver is not loaded (`sudo modprobe firewire-ohci`). Check \
@@ -1215,7 +1226,7 @@ pub fn no_omni_hint(nodes: &[NodeInfo]) -> String {
 }
 
 /// Nodes to try, in order, for this configuration; errors say what was found instead.
-pub fn candidate_nodes(
+pub(crate) fn candidate_nodes(
     nodes: &[NodeInfo],
     cfg: &FirewireConfig,
 ) -> Result<Vec<PathBuf>, DeviceError> {
@@ -1272,27 +1283,8 @@ pub fn candidate_nodes(
     Ok(openable)
 }
 
-/// Open the FireWire Omni at the default rate (1 kHz).
-pub fn open_firewire(cfg: &FirewireConfig) -> Result<Box<dyn Device>, DeviceError> {
-    open_firewire_with_rate(cfg, DEFAULT_RATE_HZ)
-}
-
-/// Open the FireWire Omni, start it and check its packet rate against `rate_hz` (device time
-/// comes from the packet counter). Fails fast with `NotFound` when there is no FireWire or no
-/// Omni, with `Permission` (and the udev fix) when the node cannot be opened, and with
-/// `Unsupported` naming both rates when the device runs at another.
-pub fn open_firewire_with_rate(
-    cfg: &FirewireConfig,
-    rate_hz: f64,
-) -> Result<Box<dyn Device>, DeviceError> {
-    let mut omni = find_firewire(cfg, rate_hz)?;
-    omni.start()?;
-    omni.check_rate()?;
-    Ok(Box::new(omni))
-}
-
 /// Find and identify the configured Omni (reads only: nothing is written to it yet).
-pub fn find_firewire(
+pub(crate) fn find_firewire(
     cfg: &FirewireConfig,
     rate_hz: f64,
 ) -> Result<FireWireOmni<cdev::CdevBus>, DeviceError> {

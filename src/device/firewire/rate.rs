@@ -5,26 +5,26 @@
 //! cycleCount") and refuses a device that runs at another rate than `device.rate_hz`.
 
 /// Bus cycles per second (IEEE 1394: 125 µs cycles).
-pub const CYCLES_PER_S: u32 = 8000;
+pub(crate) const CYCLES_PER_S: u32 = 8000;
 /// The cycle clock of a timestamp wraps after 8 s.
-pub const CYCLE_WRAP: u32 = 8 * CYCLES_PER_S;
+pub(crate) const CYCLE_WRAP: u32 = 8 * CYCLES_PER_S;
 /// Packets measured at open.
-pub const MEASURE_PACKETS: usize = 64;
+pub(crate) const MEASURE_PACKETS: usize = 64;
 /// Pairs of consecutive packets the measurement needs at least.
-pub const MIN_PAIRS: usize = 8;
+pub(crate) const MIN_PAIRS: usize = 8;
 /// Relative difference between measured and configured rate that is refused.
-pub const TOLERANCE: f64 = 0.02;
+pub(crate) const TOLERANCE: f64 = 0.02;
 
 /// A receive timestamp as a cycle number within the 8 s wrap, or `None` when its cycle count
 /// is out of range (not a timestamp).
-pub fn cycle_index(timestamp: u16) -> Option<u32> {
+pub(crate) fn cycle_index(timestamp: u16) -> Option<u32> {
     let seconds = u32::from(timestamp >> 13);
     let count = u32::from(timestamp & 0x1FFF);
     (count < CYCLES_PER_S).then_some(seconds * CYCLES_PER_S + count)
 }
 
 /// Cycles from timestamp `a` to timestamp `b` (forward, modulo the 8 s wrap).
-pub fn cycles_between(a: u16, b: u16) -> Option<u32> {
+pub(crate) fn cycles_between(a: u16, b: u16) -> Option<u32> {
     let (a, b) = (cycle_index(a)?, cycle_index(b)?);
     Some((b + CYCLE_WRAP - a) % CYCLE_WRAP)
 }
@@ -33,17 +33,17 @@ pub fn cycles_between(a: u16, b: u16) -> Option<u32> {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RateMeasurement {
     /// Packets looked at.
-    pub packets: usize,
+    pub(crate) packets: usize,
     /// Consecutive pairs whose counter stepped by exactly one (the period is theirs).
-    pub pairs: usize,
+    pub(crate) pairs: usize,
     /// Period between packets, s: the mean of the middle 80 % of the pairs (0 when none).
-    pub period_s: f64,
+    pub(crate) period_s: f64,
     /// Median step of the per-packet counter (bytes 32..35) between consecutive packets.
-    pub counter_step: i64,
+    pub(crate) counter_step: i64,
 }
 
 impl RateMeasurement {
-    pub fn rate_hz(&self) -> f64 {
+    pub(crate) fn rate_hz(&self) -> f64 {
         if self.period_s > 0.0 {
             1.0 / self.period_s
         } else {
@@ -52,7 +52,7 @@ impl RateMeasurement {
     }
 
     /// Measure from consecutive packets' `(counter, timestamp)`.
-    pub fn from_packets(packets: &[(u32, u16)]) -> Self {
+    pub(crate) fn from_packets(packets: &[(u32, u16)]) -> Self {
         let mut steps: Vec<i64> = packets
             .windows(2)
             .map(|w| i64::from(w[1].0.wrapping_sub(w[0].0) as i32))
@@ -87,7 +87,7 @@ impl RateMeasurement {
     }
 
     /// The refusal, when this stream does not fit `rate_hz` (the text names the numbers).
-    pub fn mismatch(&self, rate_hz: f64) -> Option<String> {
+    pub(crate) fn mismatch(&self, rate_hz: f64) -> Option<String> {
         if self.packets <= MIN_PAIRS {
             return Some(format!(
                 "only {} packets arrived while the packet rate was measured; at least {} are \

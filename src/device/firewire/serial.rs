@@ -11,7 +11,7 @@ const UNUSED: u32 = 0x7C00_0000;
 
 /// The 11-digit label form of a serial quadlet, or `None` when the quadlet is not a packed
 /// serial (its fixed bits are wrong).
-pub fn label(quadlet: u32) -> Option<String> {
+pub(crate) fn label(quadlet: u32) -> Option<String> {
     if quadlet & FRAME != FRAME || quadlet & UNUSED != 0 {
         return None;
     }
@@ -25,17 +25,17 @@ pub fn label(quadlet: u32) -> Option<String> {
 
 /// How omnid names a unit: the label form, or `0x` and the raw quadlet when it does not
 /// decode (calibrations are stored under this name).
-pub fn name(quadlet: u32) -> String {
+pub(crate) fn name(quadlet: u32) -> String {
     label(quadlet).unwrap_or_else(|| format!("0x{quadlet:08x}"))
 }
 
 /// Why a configured serial cannot be an Omni's.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct SerialFormatError(pub String);
+pub(crate) struct SerialFormatError(pub String);
 
 /// The quadlet a configured serial stands for: the 11-digit label form, or `0x` and eight hex
 /// digits (the raw quadlet, as [`name`] prints a unit whose quadlet does not decode).
-pub fn parse(text: &str) -> Result<u32, SerialFormatError> {
+pub(crate) fn parse(text: &str) -> Result<u32, SerialFormatError> {
     if let Some(hex) = text.strip_prefix("0x") {
         if hex.len() == 8 {
             if let Ok(q) = u32::from_str_radix(hex, 16) {

@@ -754,7 +754,7 @@ fn no_firewire_here_is_not_found_quickly() {
         eprintln!("SKIPPED: an Omni is connected");
         return;
     }
-    let e = match open_firewire(&FirewireConfig::default()) {
+    let e = match find_firewire(&FirewireConfig::default(), 1000.0) {
         Ok(_) => panic!("opened an Omni that the scan did not see"),
         Err(e) => e,
     };
