@@ -11,10 +11,10 @@ pub mod read;
 pub mod render;
 
 pub use figures::Skipped;
-pub use read::ReadError;
 pub use render::RenderError;
 
 use crate::output::OutputError;
+use crate::telemetry::reader::ReadError;
 use figures::{PlannedFigure, JOINTS};
 use read::LogReader;
 use std::fmt;
