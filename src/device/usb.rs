@@ -689,6 +689,33 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             "packet rate {rate_hz} Hz is out of range: allowed a finite rate > 0"
         )));
     }
+    let (m, handle, serial) = find_bridge(cfg)?;
+    check_bridge_endpoints(cfg, &m)?;
+    let reattach = claim_interface(cfg, &handle, &m.location)?;
+    let name = match &serial {
+        Some(s) => format!("{} serial {s} at {}", cfg.ids(), m.location),
+        None => format!("{} at {}", cfg.ids(), m.location),
+    };
+    let transport = RusbTransport {
+        handle,
+        interface: cfg.interface,
+        endpoint_out: cfg.endpoint_out,
+        endpoint_in: cfg.endpoint_in,
+        transfer: cfg.transfer,
+        reattach_kernel_driver: reattach,
+        released: false,
+    };
+    Ok(Box::new(UsbOmni::new(
+        transport, cfg, rate_hz, name, serial,
+    )))
+}
+
+/// A bridge opened by [`open_matches`]: where it is, its handle, its serial.
+type OpenedBridge = (Matched, rusb::DeviceHandle<rusb::Context>, Option<String>);
+
+/// The one bridge with the configured ids (and serial, when set), opened. No USB, no match,
+/// no permission, or several matches without a serial to choose: each its own error.
+fn find_bridge(cfg: &UsbConfig) -> Result<OpenedBridge, DeviceError> {
     let not_found = |hint: String| DeviceError::NotFound {
         looked_for: cfg.looked_for(),
         hint,
@@ -703,8 +730,29 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             touch_hint(&touches(&context))
         )));
     }
+    let (mut opened, serials_seen) = open_matches(cfg, matched)?;
+    if opened.len() > 1 {
+        return Err(DeviceError::NotFound {
+            looked_for: format!("exactly one USB bridge with id {}", cfg.ids()),
+            hint: format!(
+                "found {} (serials {}); set usb.serial to choose one.",
+                opened.len(),
+                serials_seen.join(", ")
+            ),
+        });
+    }
+    opened
+        .pop()
+        .ok_or_else(|| not_found(no_match_hint(cfg, total)))
+}
 
-    // Open every match (permission problems show here), keep those with the wanted serial.
+/// Open every match (permission problems show here) and keep those with the wanted serial;
+/// also every serial seen, for the message when none or several are kept. None kept: a
+/// permission error when one was denied, else a hint naming the serials present.
+fn open_matches(
+    cfg: &UsbConfig,
+    matched: Vec<Matched>,
+) -> Result<(Vec<OpenedBridge>, Vec<String>), DeviceError> {
     let mut opened = Vec::new();
     let mut denied = None;
     let mut serials_seen = Vec::new();
@@ -736,25 +784,20 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
                 hint: cfg.permission_hint(),
             });
         }
-        return Err(not_found(format!(
-            "bridges with id {} have serials {}; set usb.serial to one of them.",
-            cfg.ids(),
-            serials_seen.join(", ")
-        )));
-    }
-    if opened.len() > 1 {
         return Err(DeviceError::NotFound {
-            looked_for: format!("exactly one USB bridge with id {}", cfg.ids()),
+            looked_for: cfg.looked_for(),
             hint: format!(
-                "found {} (serials {}); set usb.serial to choose one.",
-                opened.len(),
+                "bridges with id {} have serials {}; set usb.serial to one of them.",
+                cfg.ids(),
                 serials_seen.join(", ")
             ),
         });
     }
-    let Some((m, handle, serial)) = opened.pop() else {
-        return Err(not_found(no_match_hint(cfg, total)));
-    };
+    Ok((opened, serials_seen))
+}
+
+/// The bridge's interface must exist and have the configured endpoints and transfer type.
+fn check_bridge_endpoints(cfg: &UsbConfig, m: &Matched) -> Result<(), DeviceError> {
     let endpoints = interface_endpoints(&m.device, cfg).map_err(|e| DeviceError::NotFound {
         looked_for: format!(
             "interface {} of the bridge at {}",
@@ -768,19 +811,26 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             cfg.endpoint_out, cfg.endpoint_in, cfg.transfer, m.location
         ),
         hint: e,
-    })?;
+    })
+}
 
+/// Detach a kernel driver from the interface (if one holds it) and claim it; whether a
+/// driver was detached (to reattach it on release). A failed claim reattaches it at once.
+fn claim_interface(
+    cfg: &UsbConfig,
+    handle: &rusb::DeviceHandle<rusb::Context>,
+    location: &str,
+) -> Result<bool, DeviceError> {
     let iface = cfg.interface;
     let mut reattach = false;
     if let Ok(true) = handle.kernel_driver_active(iface) {
         handle.detach_kernel_driver(iface).map_err(|e| match e {
             rusb::Error::Access => DeviceError::Permission {
-                what: format!("detaching the kernel driver from {}", m.location),
+                what: format!("detaching the kernel driver from {location}"),
                 hint: cfg.permission_hint(),
             },
             e => DeviceError::Io(format!(
-                "detaching the kernel driver from interface {iface} at {}: {e}",
-                m.location
+                "detaching the kernel driver from interface {iface} at {location}: {e}"
             )),
         })?;
         reattach = true;
@@ -791,36 +841,20 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
         }
         return Err(match e {
             rusb::Error::Busy => DeviceError::Io(format!(
-                "interface {iface} of the bridge at {} is in use by another program (another omnid?)",
-                m.location
+                "interface {iface} of the bridge at {location} is in use by another program (another omnid?)"
             )),
             rusb::Error::Access => DeviceError::Permission {
-                what: format!("claiming interface {iface} of the bridge at {}", m.location),
+                what: format!("claiming interface {iface} of the bridge at {location}"),
                 hint: cfg.permission_hint(),
             },
-            rusb::Error::NoDevice => not_found("the bridge vanished while opening it".into()),
-            e => DeviceError::Io(format!(
-                "claiming interface {iface} at {}: {e}",
-                m.location
-            )),
+            rusb::Error::NoDevice => DeviceError::NotFound {
+                looked_for: cfg.looked_for(),
+                hint: "the bridge vanished while opening it".into(),
+            },
+            e => DeviceError::Io(format!("claiming interface {iface} at {location}: {e}")),
         });
     }
-    let name = match &serial {
-        Some(s) => format!("{} serial {s} at {}", cfg.ids(), m.location),
-        None => format!("{} at {}", cfg.ids(), m.location),
-    };
-    let transport = RusbTransport {
-        handle,
-        interface: iface,
-        endpoint_out: cfg.endpoint_out,
-        endpoint_in: cfg.endpoint_in,
-        transfer: cfg.transfer,
-        reattach_kernel_driver: reattach,
-        released: false,
-    };
-    Ok(Box::new(UsbOmni::new(
-        transport, cfg, rate_hz, name, serial,
-    )))
+    Ok(reattach)
 }
 
 #[cfg(test)]
