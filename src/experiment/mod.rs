@@ -33,8 +33,11 @@ use thiserror::Error;
 /// Which experiment to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Experiment {
+    /// PD, computed torque and NNIDC on the sine, after pre-tuning (`validation`).
     Validation,
+    /// The adaptation law's α sweep on one PD multisine log (`alpha`).
     Alpha,
+    /// A tip payload added mid-run: adapting NNIDC, frozen NNIDC and CT (`payload`).
     Payload,
     /// Haptics: transparency, walls, force accuracy (`haptics`).
     Haptics,
@@ -56,6 +59,7 @@ impl FromStr for Experiment {
 }
 
 impl Experiment {
+    /// The name the command line takes.
     pub fn as_str(self) -> &'static str {
         match self {
             Experiment::Validation => "validation",
@@ -66,6 +70,7 @@ impl Experiment {
     }
 }
 
+/// Why an experiment failed.
 #[derive(Debug, Error)]
 pub enum ExperimentError {
     /// The output directory cannot be used (the user's input is at fault).
@@ -74,21 +79,45 @@ pub enum ExperimentError {
     /// A file or directory the experiment writes cannot be written there (checked first).
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    /// One of the simulator runs could not be started or ended in an error.
     #[error("run `{name}`: {source}")]
-    Run { name: String, source: Box<RunError> },
+    Run {
+        /// The run, as the report names it.
+        name: String,
+        /// Why.
+        source: Box<RunError>,
+    },
+    /// A run ended, but with a fault.
     #[error("run `{name}` did not complete cleanly: {why}")]
-    RunFailed { name: String, why: String },
+    RunFailed {
+        /// The run, as the report names it.
+        name: String,
+        /// The first fault: class, time and message.
+        why: String,
+    },
+    /// Pre-tuning failed.
     #[error(transparent)]
     Identify(Box<IdentifyError>),
+    /// A figure could not be drawn.
     #[error(transparent)]
     Plot(Box<PlotError>),
+    /// A report or figure file could not be written.
     #[error("writing {}: {source}", path.display())]
     Write {
+        /// The file or directory.
         path: PathBuf,
+        /// What the operating system said.
         source: std::io::Error,
     },
+    /// A run's log could not be read back.
     #[error("reading {}: {why}", path.display())]
-    ReadLog { path: PathBuf, why: String },
+    ReadLog {
+        /// The log.
+        path: PathBuf,
+        /// The reader's message (line, column, field).
+        why: String,
+    },
+    /// Something the experiment relies on did not hold (a bug, not the user's input).
     #[error("{0}")]
     Internal(String),
 }
@@ -505,11 +534,11 @@ fn tracking_side_by_side(md: &mut String, overview: &[(&str, RunSummary)]) {
 // alpha
 
 /// The α values of the sweep (paper Figs. 5–6).
-pub const ALPHAS: [f64; 3] = [5.0, 50.0, 500.0];
+pub(crate) const ALPHAS: [f64; 3] = [5.0, 50.0, 500.0];
 /// The running RMS of ‖e1‖: exponential window, s.
-pub const ALPHA_WINDOW_S: f64 = 1.0;
+pub(crate) const ALPHA_WINDOW_S: f64 = 1.0;
 /// Convergence threshold on the running RMS of ‖e1‖, N·m.
-pub const ALPHA_THRESHOLD_NM: f64 = 0.01;
+pub(crate) const ALPHA_THRESHOLD_NM: f64 = 0.01;
 
 fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, ExperimentError> {
     let secs = if quick { 10.0 } else { 30.0 };

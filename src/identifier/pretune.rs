@@ -16,9 +16,13 @@ use thiserror::Error;
 /// One training sample: estimated state and the torque that acted on it.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Sample {
+    /// Joint angles, rad.
     pub q: Vector3<f64>,
+    /// Joint velocities, rad/s.
     pub qd: Vector3<f64>,
+    /// Joint accelerations, rad/s².
     pub qdd: Vector3<f64>,
+    /// Applied joint torques, N·m.
     pub tau: Vector3<f64>,
 }
 
@@ -30,17 +34,22 @@ impl Sample {
     }
 }
 
+/// How `omnid identify` trains the identifier's networks offline (mini-batch Adam).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PretuneConfig {
+    /// Passes over the training samples, 1 ..= 100000.
     pub epochs: usize,
+    /// Samples per mini-batch (one Adam step each), 1 ..= 1000000.
     pub batch_size: usize,
     /// Adam step size (the parameters are O(1) thanks to the scalings).
     pub learning_rate: f64,
     /// The step size decays geometrically to this fraction of `learning_rate` at the last
     /// epoch (1 = constant).
     pub final_rate_fraction: f64,
+    /// Adam's decay of the first-moment (mean gradient) estimate, 0 ..< 1.
     pub beta1: f64,
+    /// Adam's decay of the second-moment (squared gradient) estimate, 0 ..< 1.
     pub beta2: f64,
     /// Share of the samples held out for validation (0 = none).
     pub validation_fraction: f64,
@@ -69,28 +78,57 @@ impl Default for PretuneConfig {
     }
 }
 
+/// Why pre-tuning refused the samples or stopped.
 #[derive(Debug, Error, PartialEq)]
 pub enum PretuneError {
+    /// No samples at all.
     #[error("no samples to pre-tune on")]
     NoSamples,
+    /// Fewer samples than a validation split needs.
     #[error("{got} samples are too few to pre-tune with a validation split (need {need})")]
-    TooFew { got: usize, need: usize },
+    TooFew {
+        /// Samples given.
+        got: usize,
+        /// The fewest accepted.
+        need: usize,
+    },
+    /// A sample holds a NaN or an infinity.
     #[error("sample {index} is not finite (q, q̇, q̈ or τ)")]
-    NonFinite { index: usize },
+    NonFinite {
+        /// Its 0-based index.
+        index: usize,
+    },
+    /// A [`PretuneConfig`] value is out of range.
     #[error("pre-tuning: `{field}` = {value} is out of range: allowed {allowed}")]
     Invalid {
+        /// The field's name.
         field: &'static str,
+        /// Its value, as written.
         value: String,
+        /// The allowed range.
         allowed: &'static str,
     },
+    /// The loss or the weights became non-finite; the best (or initial) weights are back.
     #[error("pre-tuning diverged in epoch {epoch} (non-finite loss); weights restored")]
-    Diverged { epoch: usize },
+    Diverged {
+        /// The epoch it happened in, 1-based.
+        epoch: usize,
+    },
     /// Nothing to learn a joint from, nor to measure its error against (its NRMSE would be
     /// 0/0).
     #[error("joint {joint} has zero torque in every {split} sample")]
-    NoTorque { joint: usize, split: &'static str },
+    NoTorque {
+        /// The joint, 1-based.
+        joint: usize,
+        /// `training` or `validation`.
+        split: &'static str,
+    },
+    /// The operator's stop flag ended it; the identifier holds unfinished weights.
     #[error("pre-tuning stopped by the operator in epoch {epoch}")]
-    Stopped { epoch: usize },
+    Stopped {
+        /// The epoch it happened in, 1-based.
+        epoch: usize,
+    },
 }
 
 /// Errors after one epoch. NRMSE = RMS(τ − τ̂)/RMS(τ) per joint (NaN where RMS(τ) = 0 or the
@@ -99,30 +137,42 @@ pub enum PretuneError {
 pub struct EpochReport {
     /// 1-based.
     pub epoch: usize,
+    /// Epochs in the whole run.
     pub epochs: usize,
     /// Mean ½‖ε‖² over the epoch's mini-batches.
     pub train_loss: f64,
+    /// NRMSE per joint on the training split.
     pub train_nrmse: [f64; 3],
+    /// NRMSE per joint on the validation split (NaN without one).
     pub val_nrmse: [f64; 3],
 }
 
 /// What the callback sees: every mini-batch (for a progress bar) and every epoch.
 #[derive(Debug, Clone, Copy)]
 pub enum Progress<'a> {
+    /// A mini-batch has been trained on.
     Batch {
+        /// 1-based.
         epoch: usize,
+        /// 1-based, within the epoch.
         batch: usize,
+        /// Mini-batches per epoch.
         batches: usize,
     },
+    /// An epoch has ended; its errors.
     Epoch(&'a EpochReport),
 }
 
+/// What a whole pre-tuning did.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PretuneReport {
+    /// Every epoch's errors, in order.
     pub epochs: Vec<EpochReport>,
     /// Epoch whose weights were kept (1-based).
     pub kept_epoch: usize,
+    /// Samples in the training split.
     pub train_samples: usize,
+    /// Samples in the validation split.
     pub val_samples: usize,
 }
 

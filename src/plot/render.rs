@@ -14,7 +14,9 @@ use std::sync::OnceLock;
 const FONT: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 const FAMILY: &str = "sans-serif";
 
+/// Figure width, px (the SVG's user units too).
 pub const WIDTH: u32 = 1200;
+/// Figure height, px.
 pub const HEIGHT: u32 = 900;
 
 const TITLE_H: u32 = 46;
@@ -27,38 +29,54 @@ const DESC_PX: f64 = 17.0;
 /// Why a figure could not be drawn or written.
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
+    /// The font compiled into the binary could not be loaded.
     #[error("the embedded font could not be loaded")]
     Font,
+    /// The drawing backend failed.
     #[error("drawing: {0}")]
     Draw(String),
+    /// The PNG encoder failed.
     #[error("encoding the PNG: {0}")]
     Png(#[from] png::EncodingError),
+    /// Writing the file failed.
     #[error(transparent)]
     Io(#[from] std::io::Error),
+    /// The file cannot be created there.
     #[error(transparent)]
     Output(#[from] crate::output::OutputError),
 }
 
 /// One line as drawn: its points (already in plotted units) and its pen.
 pub struct Line {
+    /// (time s, value in plotted units), in time order.
     pub points: Vec<(f64, f64)>,
+    /// Its pen.
     pub role: Role,
 }
 
+/// One panel of a figure (one joint, or a norm).
 pub struct Panel {
+    /// Heading drawn above it.
     pub title: &'static str,
+    /// Its lines, in drawing order.
     pub lines: Vec<Line>,
 }
 
+/// A figure ready to draw: panels stacked, sharing the time axis.
 pub struct Figure {
+    /// Heading drawn above the panels.
     pub title: &'static str,
+    /// Y-axis description, with its unit.
     pub y_desc: &'static str,
+    /// Time axis range, s.
     pub x_range: (f64, f64),
     /// Shade the start-up blend, from the first sample to this time.
     pub shade_until: Option<f64>,
+    /// Draw y = 0 (error signals).
     pub zero_line: bool,
     /// Labels and roles, in drawing order.
     pub legend: Vec<(&'static str, Role)>,
+    /// The panels, top to bottom.
     pub panels: Vec<Panel>,
 }
 
@@ -109,6 +127,7 @@ impl Format {
     }
 }
 
+/// Draw `figure` into a new file at `path` in `format`.
 pub fn write(figure: &Figure, format: Format, path: &Path) -> Result<(), RenderError> {
     match format {
         Format::Png => write_png(figure, path),

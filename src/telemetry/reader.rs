@@ -3,9 +3,11 @@
 //! `enc1..3` and `mode` used when present).
 //!
 //! Two layers:
-//! - [`ColumnReader`]: header → column indices, one reused `ByteRecord`, field-count, number and
+//! - `ColumnReader`: header → column indices, one reused `ByteRecord`, field-count, number and
 //!   time-order checks, strict or lenient. Every problem is a [`ReadError`] naming the file, the
-//!   line and the column. Other importers (e.g. `convert`) build on it with their own columns.
+//!   line, the column (its 1-based index and its name) and the offending field. It is the
+//!   crate's one CSV log reader: `convert`, `plot` (only `t` required, gaps allowed: see
+//!   `Row::number_or_gap`) and `experiment` build on it with their own columns.
 //! - [`LogReader`]: the replayable log on top of it, yielding one `Copy` [`LogRow`] per data row.
 //!
 //! Memory is constant: one record buffer, reused; a row allocates nothing (an error does). A
@@ -41,7 +43,7 @@ use std::sync::Arc;
 use thiserror::Error;
 
 /// The seven columns a replayable file must have.
-pub use super::record::REQUIRED_COLUMNS;
+pub(crate) use super::record::REQUIRED_COLUMNS;
 
 /// How many skipped line numbers a [`SkipReport`] keeps.
 pub const SKIP_LINES_KEPT: usize = 5;
@@ -311,7 +313,7 @@ impl ReadError {
 /// A problem with one data row, before it becomes a [`ReadError`] (`Copy`, so skipping a row in
 /// lenient mode allocates nothing). Columns are field indices.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum RowFault {
+pub(crate) enum RowFault {
     FieldCount {
         got: usize,
     },
@@ -347,6 +349,7 @@ pub enum RowFault {
 /// Rows skipped in lenient mode.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SkipReport {
+    /// How many rows were skipped.
     pub count: u64,
     /// Line numbers of the first [`SKIP_LINES_KEPT`] skipped rows.
     pub first_lines: Vec<u64>,
@@ -441,7 +444,7 @@ impl<R: Read> Read for Tail<R> {
 }
 
 /// One data row, borrowed from the reader's buffer.
-pub struct Row<'a> {
+pub(crate) struct Row<'a> {
     record: &'a csv::ByteRecord,
     /// Line number in the file (1 = the header).
     pub line: u64,
@@ -631,7 +634,7 @@ fn is_known_log_column(name: &str) -> bool {
 }
 
 /// The CSV layer: named columns, one reused record, strict or lenient row checks.
-pub struct ColumnReader<R: Read> {
+pub(crate) struct ColumnReader<R: Read> {
     csv: csv::Reader<Tail<R>>,
     path: String,
     header: Vec<String>,
@@ -760,16 +763,14 @@ impl<R: Read> ColumnReader<R> {
         }
     }
 
+    /// The header's column names, in file order (whitespace and a BOM trimmed).
     pub fn header(&self) -> &[String] {
         &self.header
     }
 
+    /// The file, as named in messages.
     pub fn path(&self) -> &str {
         &self.path
-    }
-
-    pub fn lenient(&self) -> bool {
-        self.lenient
     }
 
     /// Rows skipped so far (lenient mode).
@@ -1020,13 +1021,18 @@ impl LogRow {
     }
 }
 
-/// Where the columns of a replayable log are.
+/// Where the columns of a replayable log are: 0-based field indices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogColumns {
+    /// `t`.
     pub t: usize,
+    /// `q1..3`.
     pub q: [usize; 3],
+    /// `tau1..3`.
     pub tau: [usize; 3],
+    /// `enc1..3`, when the log has them.
     pub enc: Option<[usize; 3]>,
+    /// `mode`, when the log has it.
     pub mode: Option<usize>,
 }
 
@@ -1038,7 +1044,8 @@ pub struct LogReader<R: Read = Input> {
 }
 
 impl LogReader<Input> {
-    /// Open a log file (`stop`: see [`ColumnReader::open`]).
+    /// Open a log file. `stop`: the operator's stop flag, which ends any read (without one,
+    /// only a regular file is accepted: see [`crate::input::open`]).
     pub fn open(
         path: &Path,
         lenient: bool,
@@ -1084,14 +1091,17 @@ impl<R: Read> LogReader<R> {
         })
     }
 
+    /// Where the log's columns are.
     pub fn columns(&self) -> &LogColumns {
         &self.cols
     }
 
+    /// The file, as named in messages.
     pub fn path(&self) -> &str {
         self.core.path()
     }
 
+    /// Rows skipped so far (lenient mode).
     pub fn skipped(&self) -> &SkipReport {
         self.core.skipped()
     }
