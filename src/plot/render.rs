@@ -3,6 +3,7 @@
 //! into the binary, so nothing is needed from the system at build or run time.
 
 use super::figures::Role;
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -306,6 +307,17 @@ fn draw_panel<DB: DrawingBackend>(
             RGBColor(90, 90, 90).stroke_width(1),
         ))?;
     }
+    draw_lines(&mut chart, panel, surface, (x0, x1), (y0, y1))
+}
+
+/// The panel's lines on its chart, over the mesh. `(x0, x1)`, `(y0, y1)`: the chart's ranges.
+fn draw_lines<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    panel: &Panel,
+    surface: Surface,
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     // plotters fills a wide polyline as one polygon, which a dense zigzag (min/max pairs,
     // repeated pixels) turns into specks and spikes. On a bitmap a wide line is therefore
     // drawn as 1-px lines shifted by whole pixels; SVG strokes width natively.

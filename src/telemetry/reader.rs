@@ -868,36 +868,41 @@ impl<R: Read> ColumnReader<R> {
         self.header.get(col).cloned().unwrap_or_default()
     }
 
+    /// A row with `got` fields, not the header's count: cut off at the end of the file
+    /// ([`ReadError::Truncated`]) or simply short or long ([`ReadError::FieldCount`]).
+    fn field_count_error(&self, got: usize, line: u64) -> ReadError {
+        let path = self.path.clone();
+        let expected = self.header.len();
+        let column = if got < expected {
+            self.column_name(got)
+        } else {
+            self.column_name(expected - 1)
+        };
+        if self.is_truncated_tail(RowFault::FieldCount { got }) {
+            ReadError::Truncated {
+                path,
+                line,
+                column,
+                got,
+                expected,
+            }
+        } else {
+            ReadError::FieldCount {
+                path,
+                line,
+                column,
+                got,
+                expected,
+            }
+        }
+    }
+
     /// Turn a row fault into the full error (the record is still in the buffer).
     fn error(&self, fault: RowFault, line: u64) -> ReadError {
         let path = self.path.clone();
         let value = |col: usize| quote(self.record.get(col).unwrap_or(b"").trim_ascii());
         match fault {
-            RowFault::FieldCount { got } => {
-                let expected = self.header.len();
-                let column = if got < expected {
-                    self.column_name(got)
-                } else {
-                    self.column_name(expected - 1)
-                };
-                if self.is_truncated_tail(fault) {
-                    ReadError::Truncated {
-                        path,
-                        line,
-                        column,
-                        got,
-                        expected,
-                    }
-                } else {
-                    ReadError::FieldCount {
-                        path,
-                        line,
-                        column,
-                        got,
-                        expected,
-                    }
-                }
-            }
+            RowFault::FieldCount { got } => self.field_count_error(got, line),
             RowFault::NotANumber { col } => ReadError::NotANumber {
                 path,
                 line,
