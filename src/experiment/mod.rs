@@ -756,7 +756,7 @@ pub fn window_rms(log: &Path, from: f64, to: f64) -> Result<[f64; 3], Experiment
         path: log.to_path_buf(),
         why,
     };
-    // The one log reader (as replay, plot's input checks and identify use): named columns,
+    // The one log reader (as replay, plot, convert and identify use): named columns,
     // every field checked, errors naming the line and the column.
     let mut r = ColumnReader::open(log, &COLUMNS, false, None).map_err(|e| bad(e.to_string()))?;
     let col = |n: &str| r.require(n, &COLUMNS).map_err(|e| bad(e.to_string()));
