@@ -43,22 +43,45 @@ pub enum SourceFormat {
 }
 
 /// The ROS driver's columns (the first is the time).
-pub const ROS_TOUCH_COLUMNS: [&str; 4] = ["t", "waist", "shoulder", "elbow"];
+pub(crate) const ROS_TOUCH_COLUMNS: [&str; 4] = ["t", "waist", "shoulder", "elbow"];
 
+/// Why a conversion failed.
 #[derive(Debug, Error)]
 pub enum ConvertError {
+    /// The input could not be read, or a row of it is bad.
     #[error(transparent)]
     Read(#[from] ReadError),
+    /// Writing the output failed part-way (the partial file is removed).
     #[error("cannot write {path}: {source}")]
-    Write { path: String, source: io::Error },
+    Write {
+        /// The output file.
+        path: String,
+        /// What the operating system said.
+        source: io::Error,
+    },
+    /// An input column has the name of a column the output writes itself.
     #[error("{path}: line 1: column `{column}` would clash with the output column of that name")]
-    ColumnClash { path: String, column: String },
+    ColumnClash {
+        /// The input file.
+        path: String,
+        /// The clashing name.
+        column: String,
+    },
+    /// Nothing left to write (every row skipped, or none at all).
     #[error("{path}: no data rows to convert{}", if skipped.count > 0 { format!(" ({skipped})") } else { String::new() })]
-    NoRows { path: String, skipped: SkipReport },
+    NoRows {
+        /// The input file.
+        path: String,
+        /// What lenient reading skipped.
+        skipped: SkipReport,
+    },
+    /// `--out` names the input file itself.
     #[error("the output {0} is the input")]
     SameFile(String),
+    /// The output file cannot be created there.
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    /// A probe capture (`--from capture`) could not be read.
     #[error(transparent)]
     Capture(#[from] crate::device::capture::CaptureError),
 }
@@ -84,13 +107,16 @@ impl ConvertError {
 /// What a conversion did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConvertReport {
+    /// Data rows written.
     pub rows: u64,
+    /// The output's header, in order.
     pub columns: Vec<String>,
+    /// Rows skipped in lenient mode.
     pub skipped: SkipReport,
 }
 
 /// Convert `input` (in format `from`) into a replayable log at `out`. `stop` (the operator's)
-/// ends the reading (see [`ColumnReader::open`]); nothing is left at `out` then.
+/// ends the reading (see [`crate::input::open`]); nothing is left at `out` then.
 pub fn convert(
     from: SourceFormat,
     input: &Path,

@@ -18,28 +18,42 @@ use std::sync::Arc;
 use thiserror::Error;
 
 /// Samples dropped at the start of each log while the Kalman filter settles.
-pub const WARMUP_SAMPLES: usize = 200;
+pub(crate) const WARMUP_SAMPLES: usize = 200;
 
+/// Why `omnid identify` wrote no weights.
 #[derive(Debug, Error)]
 pub enum IdentifyError {
+    /// A log could not be read, or a row of it is bad.
     #[error(transparent)]
     Read(#[from] ReadError),
+    /// The identifier could not be built from the configuration, or pre-tuning failed.
     #[error("{0}")]
     Ident(String),
+    /// No log had more rows than the Kalman warm-up drops.
     #[error("no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows)")]
     NoSamples(Vec<PathBuf>),
+    /// A joint has zero torque throughout: nothing to learn it from.
     #[error(
         "{}: {detail}: the data carry no information to identify it from (a recording without \
          torque, e.g. one converted with `convert --from ros-touch`, cannot be identified)",
         files(.logs)
     )]
-    NoInformation { logs: Vec<PathBuf>, detail: String },
+    NoInformation {
+        /// The logs given.
+        logs: Vec<PathBuf>,
+        /// Which joint and split lack torque.
+        detail: String,
+    },
     /// The weights file cannot be written there (checked before the work), or its writing
     /// failed.
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    /// The operator's stop flag ended the training.
     #[error("stopped by the operator in epoch {epoch}; no weights written")]
-    Stopped { epoch: usize },
+    Stopped {
+        /// The epoch it happened in, 1-based.
+        epoch: usize,
+    },
 }
 
 impl IdentifyError {

@@ -85,7 +85,7 @@ fn non_numeric_value() {
     let (e, msg) = error_of("text.csv", &text);
     assert!(matches!(e, ReadError::NotANumber { line: 3, .. }));
     assert_names(&msg, 3, "q2");
-    assert!(msg.contains("`abc`"), "{msg}");
+    assert!(msg.contains("\"abc\""), "{msg}");
     let text = format!("{HEADER}0,0,0,0,0,,0\n");
     let (_, msg) = error_of("blank.csv", &text);
     assert_names(&msg, 2, "tau2");

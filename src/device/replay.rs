@@ -48,48 +48,81 @@ const DURATION_SLACK_S: f64 = 1e-9;
 /// Why a log cannot be replayed.
 #[derive(Debug, Error)]
 pub enum ReplayError {
+    /// The log could not be read, or a row of it is bad.
     #[error(transparent)]
     Read(#[from] ReadError),
+    /// The log is a pipe, FIFO or device, which cannot be read twice.
     #[error(
         "{path} is {kind}: a replay is checked whole before it plays, so its file is read \
          twice; save the recording to a regular file and replay that"
     )]
-    NotRegular { path: String, kind: &'static str },
+    NotRegular {
+        /// The log, as given.
+        path: String,
+        /// What it is instead ("a FIFO", …).
+        kind: &'static str,
+    },
+    /// Nothing to play (every row skipped, or none at all).
     #[error("{path}: no data rows to replay{}", if skipped.count > 0 { format!(" ({skipped})") } else { String::new() })]
-    NoRows { path: String, skipped: SkipReport },
+    NoRows {
+        /// The log, as given.
+        path: String,
+        /// What lenient reading skipped.
+        skipped: SkipReport,
+    },
+    /// The first row's encoder count does not fit the device's signed 16-bit counter.
     #[error("{path}: line {line}: column `{column}`: the first count {count} is outside \
              -32768..=32767: the servo takes the first packet's 16-bit count as signed, so this \
              log cannot be replayed through the encoder path (device.counts_per_rev = {counts_per_rev})")]
     FirstCountRange {
+        /// The log, as given.
         path: String,
+        /// The first row's line.
         line: u64,
+        /// The `enc` column (or the `q` column counts are made from).
         column: String,
+        /// The count, encoder counts.
         count: i64,
+        /// The configuration's counts per revolution.
         counts_per_rev: f64,
     },
+    /// Two rows' counts differ by more than the 16-bit counter can tell apart.
     #[error(
         "{path}: line {line}: column `{column}`: a step of {step} counts from the previous row \
              (limit ±32767: the 16-bit encoder counter would be ambiguous)"
     )]
     CountJump {
+        /// The log, as given.
         path: String,
+        /// The later row's line.
         line: u64,
+        /// The `enc` column (or the `q` column counts are made from).
         column: String,
+        /// The step, encoder counts.
         step: i128,
     },
+    /// `enc` and `q` disagree by more than half a count: another `counts_per_rev` made it.
     #[error(
         "{path}: line {line}: column `{column}`: {enc} counts are {expected} rad at \
              device.counts_per_rev = {counts_per_rev}, but `{q_column}` = {q} (more than half a \
              count away): the log was recorded with another counts_per_rev"
     )]
     EncoderMismatch {
+        /// The log, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The `enc` column.
         column: String,
+        /// The matching `q` column.
         q_column: String,
+        /// The count, encoder counts.
         enc: i64,
+        /// The angle that count means here, rad.
         expected: f64,
+        /// The logged angle, rad.
         q: f64,
+        /// The configuration's counts per revolution.
         counts_per_rev: f64,
     },
 }
@@ -97,10 +130,13 @@ pub enum ReplayError {
 /// What the validation pass found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReplayInfo {
+    /// The log, as given.
     pub path: PathBuf,
     /// Rows that will be played (the final `stop` row included).
     pub rows: u64,
+    /// The first row's time, s.
     pub first_t: f64,
+    /// The last played row's time, s.
     pub last_t: f64,
     /// The log has `enc1..3` (else counts come from `q`).
     pub has_enc: bool,
@@ -245,13 +281,13 @@ impl ReplayDevice {
     }
 
     /// Play only rows less than `seconds` of device time after the first (`None`: all).
-    pub fn with_duration_limit(mut self, seconds: Option<f64>) -> Self {
+    pub(crate) fn with_duration_limit(mut self, seconds: Option<f64>) -> Self {
         self.duration_s = seconds.unwrap_or(f64::INFINITY);
         self
     }
 
     /// Read the whole file once: every row checked as playback will see it.
-    pub fn scan(
+    pub(crate) fn scan(
         path: &Path,
         device: &DeviceConfig,
         lenient: bool,
@@ -297,6 +333,7 @@ impl ReplayDevice {
         })
     }
 
+    /// What the validation pass found.
     pub fn info(&self) -> &ReplayInfo {
         &self.info
     }

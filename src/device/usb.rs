@@ -3,13 +3,13 @@
 //! endpoints (bulk or interrupt).
 //!
 //! Split in two:
-//! - [`UsbOmni`] holds the protocol: it frames the incoming byte stream by length (a transfer
+//! - `UsbOmni` holds the protocol: it frames the incoming byte stream by length (a transfer
 //!   may carry part of a packet or several), checks the per-packet counter (gaps, duplicates,
 //!   stale packets), keeps the amplifiers off until it has delivered a sample, sends the open
 //!   drivers' byte 7 (0x53, docs/FIREWIRE.md §3: the bridge forwards the Omni's packets) on
 //!   every packet, maps timeouts to `Missed` and unplugging to `Disconnected`, and ends with
 //!   the safe packet on close (or drop).
-//! - [`UsbTransport`] moves bytes. [`RusbTransport`] is the real one (libusb through `rusb`);
+//! - `UsbTransport` moves bytes. `RusbTransport` is the real one (libusb through `rusb`);
 //!   tests drive `UsbOmni` over a scriptable fake.
 //!
 //! `exchange` allocates nothing: its buffers are made at open. (libusb's synchronous
@@ -24,21 +24,20 @@ use std::fmt;
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
-/// Packet rate assumed by [`open_usb`] (the servo rate of the default config).
-pub const DEFAULT_RATE_HZ: f64 = 1000.0;
-
 /// Size of one read; a transfer may carry several packets.
-pub const READ_BUF_LEN: usize = 1024;
+pub(crate) const READ_BUF_LEN: usize = 1024;
 
 /// Reads tried per exchange before it counts as missed (a bound for a device that trickles
 /// bytes that never make a packet).
-pub const MAX_READS_PER_EXCHANGE: usize = 64;
+pub(crate) const MAX_READS_PER_EXCHANGE: usize = 64;
 
 /// USB transfer type of the bridge's endpoints.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum UsbTransfer {
+    /// Bulk endpoints (most bridges).
     Bulk,
+    /// Interrupt endpoints (polled by the host every frame).
     Interrupt,
 }
 
@@ -91,17 +90,18 @@ impl Default for UsbConfig {
 }
 
 /// USB vendor id of 3D Systems, maker of the USB Geomagic/3D Systems Touch.
-pub const TOUCH_VENDOR_ID: u16 = 0x2988;
+pub(crate) const TOUCH_VENDOR_ID: u16 = 0x2988;
 
 /// Whether these ids are a USB Touch: vendor 0x2988 (the Touch reports 2988:0302), or
 /// 0301:2988, the pair 3D Systems' own instructions give (both seen in
 /// bharatm11/Geomagic_Touch_ROS_Drivers issue #2). docs/FIREWIRE.md §8.
-pub fn is_usb_touch(vendor_id: u16, product_id: u16) -> bool {
+pub(crate) fn is_usb_touch(vendor_id: u16, product_id: u16) -> bool {
     vendor_id == TOUCH_VENDOR_ID || (vendor_id == 0x0301 && product_id == TOUCH_VENDOR_ID)
 }
 
 /// What a USB Touch is, for refusals.
-pub const TOUCH_IS_NOT_A_BRIDGE: &str = "a 3D Systems (Geomagic) Touch: a USB CDC-ACM serial \
+pub(crate) const TOUCH_IS_NOT_A_BRIDGE: &str =
+    "a 3D Systems (Geomagic) Touch: a USB CDC-ACM serial \
      device with an undocumented protocol, not a bridge forwarding a FireWire Omni's packets; \
      omnid cannot drive it (docs/FIREWIRE.md §8)";
 
@@ -161,17 +161,17 @@ impl UsbConfig {
     }
 
     /// Whether a device with these ids is the configured bridge.
-    pub fn matches(&self, vendor_id: u16, product_id: u16) -> bool {
+    pub(crate) fn matches(&self, vendor_id: u16, product_id: u16) -> bool {
         vendor_id == self.vendor_id && product_id == self.product_id
     }
 
     /// `1209:0001` style.
-    pub fn ids(&self) -> String {
+    pub(crate) fn ids(&self) -> String {
         format!("{:04x}:{:04x}", self.vendor_id, self.product_id)
     }
 
-    /// What `open_usb` looks for, in words.
-    pub fn looked_for(&self) -> String {
+    /// What `open_usb_with_rate` looks for, in words.
+    pub(crate) fn looked_for(&self) -> String {
         if self.serial.is_empty() {
             format!("a USB bridge with id {}", self.ids())
         } else {
@@ -184,7 +184,7 @@ impl UsbConfig {
     }
 
     /// The udev rule that lets the plugdev group open this bridge.
-    pub fn udev_rule(&self) -> String {
+    pub(crate) fn udev_rule(&self) -> String {
         format!(
             "SUBSYSTEM==\"usb\", ATTRS{{idVendor}}==\"{:04x}\", ATTRS{{idProduct}}==\"{:04x}\", MODE=\"0660\", GROUP=\"plugdev\"",
             self.vendor_id, self.product_id
@@ -192,7 +192,7 @@ impl UsbConfig {
     }
 
     /// How to fix "permission denied" on the bridge.
-    pub fn permission_hint(&self) -> String {
+    pub(crate) fn permission_hint(&self) -> String {
         format!(
             "Install the udev rule (udev/99-omnid-usb.rules, or put this line in \
              /etc/udev/rules.d/99-omnid-usb.rules: {}), run `sudo udevadm control --reload-rules \
@@ -205,7 +205,7 @@ impl UsbConfig {
 
 /// What a transport reports. Copy and allocation-free: it travels through the 1 kHz path.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
-pub enum TransportError {
+pub(crate) enum TransportError {
     #[error("timed out")]
     Timeout,
     #[error("the device is gone (unplugged or reset)")]
@@ -217,7 +217,7 @@ pub enum TransportError {
 }
 
 /// Moves bytes to and from the bridge's endpoints.
-pub trait UsbTransport: Send {
+pub(crate) trait UsbTransport: Send {
     /// Write one command packet to the OUT endpoint; returns the bytes written.
     fn write_out(&mut self, data: &[u8], timeout: Duration) -> Result<usize, TransportError>;
     /// Read one transfer from the IN endpoint (any length up to `buf.len()`).
@@ -227,7 +227,7 @@ pub trait UsbTransport: Send {
 }
 
 /// The Omni behind a USB bridge. Generic over the transport so tests can script the bridge.
-pub struct UsbOmni<T: UsbTransport> {
+pub(crate) struct UsbOmni<T: UsbTransport> {
     transport: T,
     name: String,
     serial: Option<String>,
@@ -266,8 +266,10 @@ impl<T: UsbTransport> UsbOmni<T> {
         }
     }
 
-    /// Everything unusual seen on the stream so far.
-    pub fn stats(&self) -> StreamStats {
+    /// Everything unusual seen on the stream so far (the tests' view; the servo sees each
+    /// miss as it happens).
+    #[cfg(test)]
+    fn stats(&self) -> StreamStats {
         self.stats
     }
 
@@ -390,7 +392,7 @@ impl<T: UsbTransport> Drop for UsbOmni<T> {
 
 /// Endpoint transfer kinds as the descriptors state them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum EndpointKind {
+pub(crate) enum EndpointKind {
     Bulk,
     Interrupt,
     Other,
@@ -408,7 +410,7 @@ impl EndpointKind {
 
 /// Check the configured endpoints against the interface's endpoint list
 /// `(address, kind)`; the error says what the bridge has and which key to change.
-pub fn check_endpoints(cfg: &UsbConfig, found: &[(u8, EndpointKind)]) -> Result<(), String> {
+pub(crate) fn check_endpoints(cfg: &UsbConfig, found: &[(u8, EndpointKind)]) -> Result<(), String> {
     let want = match cfg.transfer {
         UsbTransfer::Bulk => EndpointKind::Bulk,
         UsbTransfer::Interrupt => EndpointKind::Interrupt,
@@ -472,7 +474,7 @@ fn map_rusb(e: rusb::Error) -> TransportError {
 }
 
 /// The bridge's claimed interface, through libusb.
-pub struct RusbTransport {
+pub(crate) struct RusbTransport {
     handle: rusb::DeviceHandle<rusb::Context>,
     interface: u8,
     endpoint_out: u8,
@@ -593,7 +595,7 @@ pub(crate) fn enumerate(
         let Ok(descriptor) = device.device_descriptor() else {
             continue;
         };
-        if descriptor.vendor_id() == cfg.vendor_id && descriptor.product_id() == cfg.product_id {
+        if cfg.matches(descriptor.vendor_id(), descriptor.product_id()) {
             let location = format!(
                 "bus {:03} device {:03} (/dev/bus/usb/{:03}/{:03})",
                 device.bus_number(),
@@ -673,15 +675,13 @@ pub(crate) fn interface_endpoints(
     ))
 }
 
-/// Open the configured USB bridge at the default rate (1 kHz).
-pub fn open_usb(cfg: &UsbConfig) -> Result<Box<dyn Device>, DeviceError> {
-    open_usb_with_rate(cfg, DEFAULT_RATE_HZ)
-}
-
 /// Open the configured USB bridge; `rate_hz` is the device's packet rate (device time comes
 /// from the packet counter). Fails fast with `NotFound` when there is no USB or no bridge,
 /// and with `Permission` (and the udev fix) when the bridge cannot be opened.
-pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Device>, DeviceError> {
+pub(crate) fn open_usb_with_rate(
+    cfg: &UsbConfig,
+    rate_hz: f64,
+) -> Result<Box<dyn Device>, DeviceError> {
     cfg.validate()
         .map_err(|e| DeviceError::Unsupported(e.to_string()))?;
     if !(rate_hz.is_finite() && rate_hz > 0.0) {
@@ -689,6 +689,33 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             "packet rate {rate_hz} Hz is out of range: allowed a finite rate > 0"
         )));
     }
+    let (m, handle, serial) = find_bridge(cfg)?;
+    check_bridge_endpoints(cfg, &m)?;
+    let reattach = claim_interface(cfg, &handle, &m.location)?;
+    let name = match &serial {
+        Some(s) => format!("{} serial {s} at {}", cfg.ids(), m.location),
+        None => format!("{} at {}", cfg.ids(), m.location),
+    };
+    let transport = RusbTransport {
+        handle,
+        interface: cfg.interface,
+        endpoint_out: cfg.endpoint_out,
+        endpoint_in: cfg.endpoint_in,
+        transfer: cfg.transfer,
+        reattach_kernel_driver: reattach,
+        released: false,
+    };
+    Ok(Box::new(UsbOmni::new(
+        transport, cfg, rate_hz, name, serial,
+    )))
+}
+
+/// A bridge opened by [`open_matches`]: where it is, its handle, its serial.
+type OpenedBridge = (Matched, rusb::DeviceHandle<rusb::Context>, Option<String>);
+
+/// The one bridge with the configured ids (and serial, when set), opened. No USB, no match,
+/// no permission, or several matches without a serial to choose: each its own error.
+fn find_bridge(cfg: &UsbConfig) -> Result<OpenedBridge, DeviceError> {
     let not_found = |hint: String| DeviceError::NotFound {
         looked_for: cfg.looked_for(),
         hint,
@@ -703,8 +730,29 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             touch_hint(&touches(&context))
         )));
     }
+    let (mut opened, serials_seen) = open_matches(cfg, matched)?;
+    if opened.len() > 1 {
+        return Err(DeviceError::NotFound {
+            looked_for: format!("exactly one USB bridge with id {}", cfg.ids()),
+            hint: format!(
+                "found {} (serials {}); set usb.serial to choose one.",
+                opened.len(),
+                serials_seen.join(", ")
+            ),
+        });
+    }
+    opened
+        .pop()
+        .ok_or_else(|| not_found(no_match_hint(cfg, total)))
+}
 
-    // Open every match (permission problems show here), keep those with the wanted serial.
+/// Open every match (permission problems show here) and keep those with the wanted serial;
+/// also every serial seen, for the message when none or several are kept. None kept: a
+/// permission error when one was denied, else a hint naming the serials present.
+fn open_matches(
+    cfg: &UsbConfig,
+    matched: Vec<Matched>,
+) -> Result<(Vec<OpenedBridge>, Vec<String>), DeviceError> {
     let mut opened = Vec::new();
     let mut denied = None;
     let mut serials_seen = Vec::new();
@@ -736,25 +784,20 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
                 hint: cfg.permission_hint(),
             });
         }
-        return Err(not_found(format!(
-            "bridges with id {} have serials {}; set usb.serial to one of them.",
-            cfg.ids(),
-            serials_seen.join(", ")
-        )));
-    }
-    if opened.len() > 1 {
         return Err(DeviceError::NotFound {
-            looked_for: format!("exactly one USB bridge with id {}", cfg.ids()),
+            looked_for: cfg.looked_for(),
             hint: format!(
-                "found {} (serials {}); set usb.serial to choose one.",
-                opened.len(),
+                "bridges with id {} have serials {}; set usb.serial to one of them.",
+                cfg.ids(),
                 serials_seen.join(", ")
             ),
         });
     }
-    let Some((m, handle, serial)) = opened.pop() else {
-        return Err(not_found(no_match_hint(cfg, total)));
-    };
+    Ok((opened, serials_seen))
+}
+
+/// The bridge's interface must exist and have the configured endpoints and transfer type.
+fn check_bridge_endpoints(cfg: &UsbConfig, m: &Matched) -> Result<(), DeviceError> {
     let endpoints = interface_endpoints(&m.device, cfg).map_err(|e| DeviceError::NotFound {
         looked_for: format!(
             "interface {} of the bridge at {}",
@@ -768,19 +811,26 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
             cfg.endpoint_out, cfg.endpoint_in, cfg.transfer, m.location
         ),
         hint: e,
-    })?;
+    })
+}
 
+/// Detach a kernel driver from the interface (if one holds it) and claim it; whether a
+/// driver was detached (to reattach it on release). A failed claim reattaches it at once.
+fn claim_interface(
+    cfg: &UsbConfig,
+    handle: &rusb::DeviceHandle<rusb::Context>,
+    location: &str,
+) -> Result<bool, DeviceError> {
     let iface = cfg.interface;
     let mut reattach = false;
     if let Ok(true) = handle.kernel_driver_active(iface) {
         handle.detach_kernel_driver(iface).map_err(|e| match e {
             rusb::Error::Access => DeviceError::Permission {
-                what: format!("detaching the kernel driver from {}", m.location),
+                what: format!("detaching the kernel driver from {location}"),
                 hint: cfg.permission_hint(),
             },
             e => DeviceError::Io(format!(
-                "detaching the kernel driver from interface {iface} at {}: {e}",
-                m.location
+                "detaching the kernel driver from interface {iface} at {location}: {e}"
             )),
         })?;
         reattach = true;
@@ -791,36 +841,20 @@ pub fn open_usb_with_rate(cfg: &UsbConfig, rate_hz: f64) -> Result<Box<dyn Devic
         }
         return Err(match e {
             rusb::Error::Busy => DeviceError::Io(format!(
-                "interface {iface} of the bridge at {} is in use by another program (another omnid?)",
-                m.location
+                "interface {iface} of the bridge at {location} is in use by another program (another omnid?)"
             )),
             rusb::Error::Access => DeviceError::Permission {
-                what: format!("claiming interface {iface} of the bridge at {}", m.location),
+                what: format!("claiming interface {iface} of the bridge at {location}"),
                 hint: cfg.permission_hint(),
             },
-            rusb::Error::NoDevice => not_found("the bridge vanished while opening it".into()),
-            e => DeviceError::Io(format!(
-                "claiming interface {iface} at {}: {e}",
-                m.location
-            )),
+            rusb::Error::NoDevice => DeviceError::NotFound {
+                looked_for: cfg.looked_for(),
+                hint: "the bridge vanished while opening it".into(),
+            },
+            e => DeviceError::Io(format!("claiming interface {iface} at {location}: {e}")),
         });
     }
-    let name = match &serial {
-        Some(s) => format!("{} serial {s} at {}", cfg.ids(), m.location),
-        None => format!("{} at {}", cfg.ids(), m.location),
-    };
-    let transport = RusbTransport {
-        handle,
-        interface: iface,
-        endpoint_out: cfg.endpoint_out,
-        endpoint_in: cfg.endpoint_in,
-        transfer: cfg.transfer,
-        reattach_kernel_driver: reattach,
-        released: false,
-    };
-    Ok(Box::new(UsbOmni::new(
-        transport, cfg, rate_hz, name, serial,
-    )))
+    Ok(reattach)
 }
 
 #[cfg(test)]
@@ -1366,7 +1400,7 @@ mod tests {
             ..Default::default()
         };
         let t = Instant::now();
-        let e = match open_usb(&cfg) {
+        let e = match open_usb_with_rate(&cfg, 1000.0) {
             Ok(_) => panic!("a bridge with the unassigned id fffe:fffd opened"),
             Err(e) => e,
         };

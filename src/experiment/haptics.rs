@@ -15,6 +15,7 @@ use crate::plot::figures::Role;
 use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
 use crate::plot::PlotError;
 use crate::run::{execute, RunOptions};
+use crate::telemetry::reader::{ColumnReader, ReadError, Row};
 use serde_json::{json, Value};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -35,45 +36,56 @@ const STABLE_PP_MM: f64 = 0.15;
 /// ... and the hand still pushes on it with most of its force (not bouncing off).
 const STABLE_FORCE_FRACTION: f64 = 0.8;
 
-/// The columns of one log, by name.
+/// The columns the haptics analyses read (a log without some of them simply lacks them).
+const LOG_COLUMNS: [&str; 13] = [
+    "t", "q1", "q2", "q3", "tip1", "tip2", "tip3", "fhand1", "fhand2", "fhand3", "fcmd1", "fcmd2",
+    "fcmd3",
+];
+
+/// The [`LOG_COLUMNS`] of one log, by name, every row but the last (the final stop packet).
 struct Log {
-    names: Vec<String>,
-    rows: Vec<Vec<f64>>,
+    columns: Vec<(&'static str, Vec<f64>)>,
 }
 
 impl Log {
+    /// Read `path` through the crate's log reader; a field that is not a number is NaN.
     fn read(path: &Path) -> Result<Log, ExperimentError> {
-        let bad = |why: String| ExperimentError::ReadLog {
+        let bad = |e: ReadError| ExperimentError::ReadLog {
             path: path.to_path_buf(),
-            why,
+            why: e.to_string(),
         };
-        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
-        let mut lines = text.lines();
-        let names: Vec<String> = lines
-            .next()
-            .ok_or_else(|| bad("empty".into()))?
-            .split(',')
-            .map(String::from)
-            .collect();
-        // Every row but the final stop packet (mode is not a number: NaN).
-        let mut rows: Vec<Vec<f64>> = lines
-            .map(|l| {
-                l.split(',')
-                    .map(|v| v.parse().unwrap_or(f64::NAN))
-                    .collect()
-            })
-            .collect();
-        rows.pop();
-        Ok(Log { names, rows })
+        let mut reader = ColumnReader::open(path, &["t"], false, None).map_err(bad)?;
+        let mut wanted = Vec::new();
+        let mut columns = Vec::new();
+        for name in LOG_COLUMNS {
+            if let Some(i) = reader.header().iter().position(|h| h == name) {
+                wanted.push(i);
+                columns.push((name, Vec::new()));
+            }
+        }
+        let mut take = |row: &Row<'_>| {
+            for (&i, (_, values)) in wanted.iter().zip(columns.iter_mut()) {
+                let v = std::str::from_utf8(row.field(i))
+                    .ok()
+                    .and_then(|s| s.parse().ok());
+                values.push(v.unwrap_or(f64::NAN));
+            }
+            Ok(())
+        };
+        while reader.next_with(&mut take).map_err(bad)?.is_some() {}
+        // Every row but the final stop packet.
+        for (_, values) in &mut columns {
+            values.pop();
+        }
+        Ok(Log { columns })
     }
 
     fn col(&self, name: &str) -> Result<Vec<f64>, ExperimentError> {
-        let i = self
-            .names
+        self.columns
             .iter()
-            .position(|n| n == name)
-            .ok_or_else(|| ExperimentError::Internal(format!("log has no column `{name}`")))?;
-        Ok(self.rows.iter().map(|r| r[i]).collect())
+            .find(|(n, _)| *n == name)
+            .map(|(_, values)| values.clone())
+            .ok_or_else(|| ExperimentError::Internal(format!("log has no column `{name}`")))
     }
 
     fn group(&self, prefix: &str) -> Result<[Vec<f64>; 3], ExperimentError> {

@@ -14,7 +14,7 @@ mod haptics;
 
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
-use crate::identifier::{Identifier, PretuneConfig, Progress, WeightsFile};
+use crate::identifier::{Identifier, PretuneConfig, PretuneReport, Progress, Sample, WeightsFile};
 use crate::log_pretune::{identify, samples_from_log, IdentifyError};
 use crate::output::OutputError;
 use crate::plot::figures::{Role, FIGURES};
@@ -33,8 +33,11 @@ use thiserror::Error;
 /// Which experiment to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Experiment {
+    /// PD, computed torque and NNIDC on the sine, after pre-tuning (`validation`).
     Validation,
+    /// The adaptation law's α sweep on one PD multisine log (`alpha`).
     Alpha,
+    /// A tip payload added mid-run: adapting NNIDC, frozen NNIDC and CT (`payload`).
     Payload,
     /// Haptics: transparency, walls, force accuracy (`haptics`).
     Haptics,
@@ -56,6 +59,7 @@ impl FromStr for Experiment {
 }
 
 impl Experiment {
+    /// The name the command line takes.
     pub fn as_str(self) -> &'static str {
         match self {
             Experiment::Validation => "validation",
@@ -66,6 +70,7 @@ impl Experiment {
     }
 }
 
+/// Why an experiment failed.
 #[derive(Debug, Error)]
 pub enum ExperimentError {
     /// The output directory cannot be used (the user's input is at fault).
@@ -74,21 +79,45 @@ pub enum ExperimentError {
     /// A file or directory the experiment writes cannot be written there (checked first).
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    /// One of the simulator runs could not be started or ended in an error.
     #[error("run `{name}`: {source}")]
-    Run { name: String, source: Box<RunError> },
+    Run {
+        /// The run, as the report names it.
+        name: String,
+        /// Why.
+        source: Box<RunError>,
+    },
+    /// A run ended, but with a fault.
     #[error("run `{name}` did not complete cleanly: {why}")]
-    RunFailed { name: String, why: String },
+    RunFailed {
+        /// The run, as the report names it.
+        name: String,
+        /// The first fault: class, time and message.
+        why: String,
+    },
+    /// Pre-tuning failed.
     #[error(transparent)]
     Identify(Box<IdentifyError>),
+    /// A figure could not be drawn.
     #[error(transparent)]
     Plot(Box<PlotError>),
+    /// A report or figure file could not be written.
     #[error("writing {}: {source}", path.display())]
     Write {
+        /// The file or directory.
         path: PathBuf,
+        /// What the operating system said.
         source: std::io::Error,
     },
+    /// A run's log could not be read back.
     #[error("reading {}: {why}", path.display())]
-    ReadLog { path: PathBuf, why: String },
+    ReadLog {
+        /// The log.
+        path: PathBuf,
+        /// The reader's message (line, column, field).
+        why: String,
+    },
+    /// Something the experiment relies on did not hold (a bug, not the user's input).
     #[error("{0}")]
     Internal(String),
 }
@@ -344,76 +373,18 @@ fn validation(
 ) -> Result<String, ExperimentError> {
     // `--quick` keeps one full-length log: weights from 20 s and 3 epochs drive NNIDC into
     // the joint-speed limit within the first second (measured), which is no validation.
-    let (seeds, ms_secs, epochs) = (pretune_seeds(quick), 60.0, if quick { 8 } else { 20 });
-    let sine_secs = 10.0;
-    let steps = seeds.len() + 1 + VALIDATION_CONTROLLERS.len() * 2;
-    let bar = crate::progress::bar(steps as u64, "validation");
-
-    // Pre-tuning, as mock/README.md makes the shipped weights.
-    let pre = out.join("pretune");
-    let mut logs = Vec::new();
-    for &seed in seeds {
-        let mut cfg = Config::default();
-        cfg.sim.seed = seed;
-        let log = pretune_log(&pre, seed);
-        sim_run(
-            &format!("pre-tune log, seed {seed}"),
-            &cfg,
-            ControllerKind::Pd,
-            Trajectory::Multisine,
-            ms_secs,
-            &log,
-            None,
-            false,
-        )?;
-        logs.push(log);
-        bar.inc(1);
-    }
-    let weights = pre.join("weights.json");
-    let pcfg = PretuneConfig {
-        epochs,
-        ..PretuneConfig::default()
+    let pre = PretunePlan {
+        seeds: pretune_seeds(quick),
+        secs: 60.0,
+        epochs: if quick { 8 } else { 20 },
     };
-    let epoch_bar = crate::progress::bar(epochs as u64, "pre-tuning");
-    let pre_report = identify(&logs, &weights, &Config::default(), &pcfg, None, |p| {
-        if let Progress::Epoch(_) = p {
-            epoch_bar.inc(1);
-        }
-    })?;
-    epoch_bar.finish_and_clear();
-    bar.inc(1);
-    let kept = &pre_report.epochs[pre_report.kept_epoch - 1];
+    let sine_secs = 10.0;
+    let steps = pre.seeds.len() + 1 + VALIDATION_CONTROLLERS.len() * 2;
+    let bar = crate::progress::bar(steps as u64, "validation");
+    let (weights, pre_report) = validation_pretune(out, &pre, &bar)?;
 
     let cfg = Config::default();
-    let mut md = String::new();
-    let _ = writeln!(
-        md,
-        "# Validation: PD, computed torque and NNIDC on the sine (paper Figs. 8–12)\n\n\
-         Simulated Omni, `--fast`, seed {}, 0.5 Hz sine for {sine_secs} s{}.\n\n\
-         Pre-tuning: {} PD multisine log(s) of {ms_secs} s (seeds {}), {epochs} epochs \
-         (`omnid identify`); kept epoch {}: validation NRMSE {} / {} / {}. Weights: \
-         [`pretune/weights.json`](pretune/weights.json). NNIDC starts from them and adapts \
-         online; PD and CT run the identifier alongside (fresh weights, adapting) so their \
-         identification NRMSE is that of learning from scratch.\n\n\
-         The oracle NRMSE is that of the exact plant model against the measured torque: the \
-         floor set by sensor noise and estimation.\n",
-        cfg.sim.seed,
-        if quick {
-            " (`--quick`: shortened pre-tuning)"
-        } else {
-            ""
-        },
-        seeds.len(),
-        seeds
-            .iter()
-            .map(|s| s.to_string())
-            .collect::<Vec<_>>()
-            .join(", "),
-        pre_report.kept_epoch,
-        num(Some(kept.val_nrmse[0]), 4),
-        num(Some(kept.val_nrmse[1]), 4),
-        num(Some(kept.val_nrmse[2]), 4),
-    );
+    let mut md = validation_intro(&cfg, quick, &pre, sine_secs, &pre_report);
     let mut figs_md = String::new();
     let mut overview = Vec::new();
     for name in VALIDATION_CONTROLLERS {
@@ -449,27 +420,125 @@ fn validation(
              `mock/nnidc-pretuned.json`: the pipeline reproduces them.\n",
         );
     }
-    md.push_str("## Tracking RMS side by side (mrad)\n\n| controller | joint 1 | joint 2 | joint 3 |\n|---|---:|---:|---:|\n");
-    for (name, s) in &overview {
-        let v = s.tracking_rms_rad;
-        let cell = |j: usize| num(v.map(|v| v[j] * 1e3), 3);
-        let _ = writeln!(md, "| {name} | {} | {} | {} |", cell(0), cell(1), cell(2));
-    }
+    tracking_side_by_side(&mut md, &overview);
     md.push_str("\n## Figures\n\n");
     md.push_str(&figs_md);
     bar.finish_and_clear();
     Ok(md)
 }
 
+/// How the validation pre-tunes NNIDC's weights: PD multisine logs, one per seed, each `secs`
+/// long, then `epochs` passes of `omnid identify` over them.
+struct PretunePlan {
+    seeds: &'static [u64],
+    secs: f64,
+    epochs: usize,
+}
+
+/// Record the pre-tuning logs under `out/pretune` and pre-tune on them, as mock/README.md
+/// makes the shipped weights: the weights file and the pre-tuning report.
+fn validation_pretune(
+    out: &Path,
+    plan: &PretunePlan,
+    bar: &indicatif::ProgressBar,
+) -> Result<(PathBuf, PretuneReport), ExperimentError> {
+    let pre = out.join("pretune");
+    let mut logs = Vec::new();
+    for &seed in plan.seeds {
+        let mut cfg = Config::default();
+        cfg.sim.seed = seed;
+        let log = pretune_log(&pre, seed);
+        sim_run(
+            &format!("pre-tune log, seed {seed}"),
+            &cfg,
+            ControllerKind::Pd,
+            Trajectory::Multisine,
+            plan.secs,
+            &log,
+            None,
+            false,
+        )?;
+        logs.push(log);
+        bar.inc(1);
+    }
+    let weights = pre.join("weights.json");
+    let pcfg = PretuneConfig {
+        epochs: plan.epochs,
+        ..PretuneConfig::default()
+    };
+    let epoch_bar = crate::progress::bar(plan.epochs as u64, "pre-tuning");
+    let report = identify(&logs, &weights, &Config::default(), &pcfg, None, |p| {
+        if let Progress::Epoch(_) = p {
+            epoch_bar.inc(1);
+        }
+    })?;
+    epoch_bar.finish_and_clear();
+    bar.inc(1);
+    Ok((weights, report))
+}
+
+/// The validation report's opening: the set-up and the pre-tuning's outcome.
+fn validation_intro(
+    cfg: &Config,
+    quick: bool,
+    pre: &PretunePlan,
+    sine_secs: f64,
+    report: &PretuneReport,
+) -> String {
+    let kept = &report.epochs[report.kept_epoch - 1];
+    let mut md = String::new();
+    let _ = writeln!(
+        md,
+        "# Validation: PD, computed torque and NNIDC on the sine (paper Figs. 8–12)\n\n\
+         Simulated Omni, `--fast`, seed {}, 0.5 Hz sine for {sine_secs} s{}.\n\n\
+         Pre-tuning: {} PD multisine log(s) of {ms_secs} s (seeds {}), {epochs} epochs \
+         (`omnid identify`); kept epoch {}: validation NRMSE {} / {} / {}. Weights: \
+         [`pretune/weights.json`](pretune/weights.json). NNIDC starts from them and adapts \
+         online; PD and CT run the identifier alongside (fresh weights, adapting) so their \
+         identification NRMSE is that of learning from scratch.\n\n\
+         The oracle NRMSE is that of the exact plant model against the measured torque: the \
+         floor set by sensor noise and estimation.\n",
+        cfg.sim.seed,
+        if quick {
+            " (`--quick`: shortened pre-tuning)"
+        } else {
+            ""
+        },
+        pre.seeds.len(),
+        pre.seeds
+            .iter()
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        report.kept_epoch,
+        num(Some(kept.val_nrmse[0]), 4),
+        num(Some(kept.val_nrmse[1]), 4),
+        num(Some(kept.val_nrmse[2]), 4),
+        ms_secs = pre.secs,
+        epochs = pre.epochs,
+    );
+    md
+}
+
+/// The tracking RMS of every controller's run, one row each, mrad.
+fn tracking_side_by_side(md: &mut String, overview: &[(&str, RunSummary)]) {
+    md.push_str("## Tracking RMS side by side (mrad)\n\n| controller | joint 1 | joint 2 | joint 3 |\n|---|---:|---:|---:|\n");
+    for (name, s) in overview {
+        let v = s.tracking_rms_rad;
+        let cell = |j: usize| num(v.map(|v| v[j] * 1e3), 3);
+        let _ = writeln!(md, "| {name} | {} | {} | {} |", cell(0), cell(1), cell(2));
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // alpha
 
 /// The α values of the sweep (paper Figs. 5–6).
-pub const ALPHAS: [f64; 3] = [5.0, 50.0, 500.0];
+pub(crate) const ALPHAS: [f64; 3] = [5.0, 50.0, 500.0];
 /// The running RMS of ‖e1‖: exponential window, s.
-pub const ALPHA_WINDOW_S: f64 = 1.0;
+pub(crate) const ALPHA_WINDOW_S: f64 = 1.0;
 /// Convergence threshold on the running RMS of ‖e1‖, N·m.
-pub const ALPHA_THRESHOLD_NM: f64 = 0.01;
+pub(crate) const ALPHA_THRESHOLD_NM: f64 = 0.01;
 
 fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, ExperimentError> {
     let secs = if quick { 10.0 } else { 30.0 };
@@ -494,53 +563,14 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
         ));
     }
     let dt = 1.0 / cfg.device.rate_hz;
-    let k = dt / ALPHA_WINDOW_S;
-    let n = samples.len();
-    let span = n as f64 * dt;
-    let stride = (n / 3000).max(1);
-    let bar = crate::progress::bar((ALPHAS.len() * n) as u64, "α sweep");
-    let mut rows = Vec::new();
-    let mut lines = Vec::new();
-    for (i, &alpha) in ALPHAS.iter().enumerate() {
-        let mut c = cfg.clone();
-        c.identifier.alpha = alpha;
-        c.identifier.unit_gain_filter = true;
-        c.identifier.sigma = 0.0;
-        let mut id = shipped_identifier(&c)?;
-        id.set_anchor();
-        let mut ms = None::<f64>;
-        let mut reached = None;
-        let mut tail = (0.0, 0usize);
-        let mut points = Vec::with_capacity(n / stride + 1);
-        for (i, s) in samples.iter().enumerate() {
-            id.update(&s.q, &s.qd, &s.qdd, &s.tau, dt);
-            let e2 = id.last_errors().e1.norm_squared();
-            let m = ms.map_or(e2, |m| m + k * (e2 - m));
-            ms = Some(m);
-            let t = i as f64 * dt;
-            if reached.is_none() && t >= ALPHA_WINDOW_S && m.sqrt() < ALPHA_THRESHOLD_NM {
-                reached = Some(t);
-            }
-            if t >= span - 5.0_f64.min(span / 2.0) {
-                tail.0 += e2;
-                tail.1 += 1;
-            }
-            if i % stride == 0 {
-                points.push((t, m.sqrt() * 1e3));
-            }
-            if i % 1000 == 999 {
-                bar.inc(1000);
-            }
-        }
-        let change = id.weight_change_norm();
-        let late = (tail.0 / tail.1.max(1) as f64).sqrt();
-        rows.push((alpha, reached, change, late, id.healthy()));
-        let role = [Role::Measured, Role::Estimate, Role::Error][i];
-        lines.push(Line { points, role });
+    let span = samples.len() as f64 * dt;
+    let bar = crate::progress::bar((ALPHAS.len() * samples.len()) as u64, "α sweep");
+    let mut runs = Vec::new();
+    for &alpha in &ALPHAS {
+        runs.push(alpha_run(&cfg, alpha, &samples, dt, &bar)?);
     }
     bar.finish_and_clear();
 
-    let tail_s = 5.0_f64.min(span / 2.0);
     let mut md = String::new();
     let _ = writeln!(
         md,
@@ -561,27 +591,122 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
         },
         ALPHA_THRESHOLD_NM * 1e3,
     );
+    alpha_table(&mut md, &runs, span);
+    alpha_figure(out, runs, span, files)?;
+    md.push_str("\n![‖e1‖ over time per α](alpha-e1.png) ([SVG](alpha-e1.svg))\n");
+    Ok(md)
+}
+
+/// One α of the sweep: what its row of the table and its line of the figure show.
+struct AlphaRun {
+    alpha: f64,
+    /// When the running RMS of ‖e1‖ first fell below [`ALPHA_THRESHOLD_NM`], s.
+    reached: Option<f64>,
+    /// ‖θ − θ0‖ at the end.
+    change: f64,
+    /// RMS of ‖e1‖ over the log's tail, N·m.
+    late: f64,
+    healthy: bool,
+    /// The running RMS of ‖e1‖ over time, (s, mN·m), thinned to about 3000 points.
+    points: Vec<(f64, f64)>,
+}
+
+/// Adapt the shipped identifier over every sample with this `alpha` (unit-gain filter, no
+/// leakage), tracking the running RMS of ‖e1‖.
+fn alpha_run(
+    cfg: &Config,
+    alpha: f64,
+    samples: &[Sample],
+    dt: f64,
+    bar: &indicatif::ProgressBar,
+) -> Result<AlphaRun, ExperimentError> {
+    let k = dt / ALPHA_WINDOW_S;
+    let n = samples.len();
+    let span = n as f64 * dt;
+    let stride = (n / 3000).max(1);
+    let mut c = cfg.clone();
+    c.identifier.alpha = alpha;
+    c.identifier.unit_gain_filter = true;
+    c.identifier.sigma = 0.0;
+    let mut id = shipped_identifier(&c)?;
+    id.set_anchor();
+    let mut ms = None::<f64>;
+    let mut reached = None;
+    let mut tail = (0.0, 0usize);
+    let mut points = Vec::with_capacity(n / stride + 1);
+    for (i, s) in samples.iter().enumerate() {
+        id.update(&s.q, &s.qd, &s.qdd, &s.tau, dt);
+        let e2 = id.last_errors().e1.norm_squared();
+        let m = ms.map_or(e2, |m| m + k * (e2 - m));
+        ms = Some(m);
+        let t = i as f64 * dt;
+        if reached.is_none() && t >= ALPHA_WINDOW_S && m.sqrt() < ALPHA_THRESHOLD_NM {
+            reached = Some(t);
+        }
+        if t >= span - 5.0_f64.min(span / 2.0) {
+            tail.0 += e2;
+            tail.1 += 1;
+        }
+        if i % stride == 0 {
+            points.push((t, m.sqrt() * 1e3));
+        }
+        if i % 1000 == 999 {
+            bar.inc(1000);
+        }
+    }
+    Ok(AlphaRun {
+        alpha,
+        reached,
+        change: id.weight_change_norm(),
+        late: (tail.0 / tail.1.max(1) as f64).sqrt(),
+        healthy: id.healthy(),
+        points,
+    })
+}
+
+/// The sweep's table, one row per α, and a note for each α whose identifier ended unhealthy.
+fn alpha_table(md: &mut String, runs: &[AlphaRun], span: f64) {
+    let tail_s = 5.0_f64.min(span / 2.0);
     let _ = writeln!(
         md,
         "| α | time to threshold (s) | ‖θ − θ0‖ | RMS ‖e1‖ over the last {tail_s} s (mN·m) |\n|---:|---:|---:|---:|"
     );
-    for (alpha, reached, change, late, _) in &rows {
-        let t = match reached {
-            Some(t) => num(Some(*t), 3),
+    for run in runs {
+        let t = match run.reached {
+            Some(t) => num(Some(t), 3),
             None => format!("> {span:.3}"),
         };
         let _ = writeln!(
             md,
-            "| {alpha} | {t} | {} | {} |",
-            num(Some(*change), 4),
-            num(Some(late * 1e3), 3)
+            "| {} | {t} | {} | {} |",
+            run.alpha,
+            num(Some(run.change), 4),
+            num(Some(run.late * 1e3), 3)
         );
     }
-    for (alpha, _, _, _, healthy) in &rows {
-        if !healthy {
-            let _ = writeln!(md, "\nα = {alpha}: the identifier ended unhealthy.");
+    for run in runs {
+        if !run.healthy {
+            let _ = writeln!(md, "\nα = {}: the identifier ended unhealthy.", run.alpha);
         }
     }
+}
+
+/// `out/alpha-e1.{png,svg}`: every α's running RMS of ‖e1‖ over time, and the threshold.
+fn alpha_figure(
+    out: &Path,
+    runs: Vec<AlphaRun>,
+    span: f64,
+    files: &mut Vec<PathBuf>,
+) -> Result<(), ExperimentError> {
+    let roles = [Role::Measured, Role::Estimate, Role::Error];
+    let mut lines: Vec<Line> = runs
+        .into_iter()
+        .zip(roles)
+        .map(|(run, role)| Line {
+            points: run.points,
+            role,
+        })
+        .collect();
     // The threshold, for reading the crossings off the figure.
     lines.push(Line {
         points: vec![
@@ -617,8 +742,7 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
         })?;
         files.push(file);
     }
-    md.push_str("\n![‖e1‖ over time per α](alpha-e1.png) ([SVG](alpha-e1.svg))\n");
-    Ok(md)
+    Ok(())
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -632,7 +756,7 @@ pub fn window_rms(log: &Path, from: f64, to: f64) -> Result<[f64; 3], Experiment
         path: log.to_path_buf(),
         why,
     };
-    // The one log reader (as replay, plot's input checks and identify use): named columns,
+    // The one log reader (as replay, plot, convert and identify use): named columns,
     // every field checked, errors naming the line and the column.
     let mut r = ColumnReader::open(log, &COLUMNS, false, None).map_err(|e| bad(e.to_string()))?;
     let col = |n: &str| r.require(n, &COLUMNS).map_err(|e| bad(e.to_string()));

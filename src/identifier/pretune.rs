@@ -16,9 +16,13 @@ use thiserror::Error;
 /// One training sample: estimated state and the torque that acted on it.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Sample {
+    /// Joint angles, rad.
     pub q: Vector3<f64>,
+    /// Joint velocities, rad/s.
     pub qd: Vector3<f64>,
+    /// Joint accelerations, rad/s².
     pub qdd: Vector3<f64>,
+    /// Applied joint torques, N·m.
     pub tau: Vector3<f64>,
 }
 
@@ -30,17 +34,22 @@ impl Sample {
     }
 }
 
+/// How `omnid identify` trains the identifier's networks offline (mini-batch Adam).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PretuneConfig {
+    /// Passes over the training samples, 1 ..= 100000.
     pub epochs: usize,
+    /// Samples per mini-batch (one Adam step each), 1 ..= 1000000.
     pub batch_size: usize,
     /// Adam step size (the parameters are O(1) thanks to the scalings).
     pub learning_rate: f64,
     /// The step size decays geometrically to this fraction of `learning_rate` at the last
     /// epoch (1 = constant).
     pub final_rate_fraction: f64,
+    /// Adam's decay of the first-moment (mean gradient) estimate, 0 ..< 1.
     pub beta1: f64,
+    /// Adam's decay of the second-moment (squared gradient) estimate, 0 ..< 1.
     pub beta2: f64,
     /// Share of the samples held out for validation (0 = none).
     pub validation_fraction: f64,
@@ -69,28 +78,57 @@ impl Default for PretuneConfig {
     }
 }
 
+/// Why pre-tuning refused the samples or stopped.
 #[derive(Debug, Error, PartialEq)]
 pub enum PretuneError {
+    /// No samples at all.
     #[error("no samples to pre-tune on")]
     NoSamples,
+    /// Fewer samples than a validation split needs.
     #[error("{got} samples are too few to pre-tune with a validation split (need {need})")]
-    TooFew { got: usize, need: usize },
+    TooFew {
+        /// Samples given.
+        got: usize,
+        /// The fewest accepted.
+        need: usize,
+    },
+    /// A sample holds a NaN or an infinity.
     #[error("sample {index} is not finite (q, q̇, q̈ or τ)")]
-    NonFinite { index: usize },
+    NonFinite {
+        /// Its 0-based index.
+        index: usize,
+    },
+    /// A [`PretuneConfig`] value is out of range.
     #[error("pre-tuning: `{field}` = {value} is out of range: allowed {allowed}")]
     Invalid {
+        /// The field's name.
         field: &'static str,
+        /// Its value, as written.
         value: String,
+        /// The allowed range.
         allowed: &'static str,
     },
+    /// The loss or the weights became non-finite; the best (or initial) weights are back.
     #[error("pre-tuning diverged in epoch {epoch} (non-finite loss); weights restored")]
-    Diverged { epoch: usize },
+    Diverged {
+        /// The epoch it happened in, 1-based.
+        epoch: usize,
+    },
     /// Nothing to learn a joint from, nor to measure its error against (its NRMSE would be
     /// 0/0).
     #[error("joint {joint} has zero torque in every {split} sample")]
-    NoTorque { joint: usize, split: &'static str },
+    NoTorque {
+        /// The joint, 1-based.
+        joint: usize,
+        /// `training` or `validation`.
+        split: &'static str,
+    },
+    /// The operator's stop flag ended it; the identifier holds unfinished weights.
     #[error("pre-tuning stopped by the operator in epoch {epoch}")]
-    Stopped { epoch: usize },
+    Stopped {
+        /// The epoch it happened in, 1-based.
+        epoch: usize,
+    },
 }
 
 /// Errors after one epoch. NRMSE = RMS(τ − τ̂)/RMS(τ) per joint (NaN where RMS(τ) = 0 or the
@@ -99,30 +137,42 @@ pub enum PretuneError {
 pub struct EpochReport {
     /// 1-based.
     pub epoch: usize,
+    /// Epochs in the whole run.
     pub epochs: usize,
     /// Mean ½‖ε‖² over the epoch's mini-batches.
     pub train_loss: f64,
+    /// NRMSE per joint on the training split.
     pub train_nrmse: [f64; 3],
+    /// NRMSE per joint on the validation split (NaN without one).
     pub val_nrmse: [f64; 3],
 }
 
 /// What the callback sees: every mini-batch (for a progress bar) and every epoch.
 #[derive(Debug, Clone, Copy)]
 pub enum Progress<'a> {
+    /// A mini-batch has been trained on.
     Batch {
+        /// 1-based.
         epoch: usize,
+        /// 1-based, within the epoch.
         batch: usize,
+        /// Mini-batches per epoch.
         batches: usize,
     },
+    /// An epoch has ended; its errors.
     Epoch(&'a EpochReport),
 }
 
+/// What a whole pre-tuning did.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PretuneReport {
+    /// Every epoch's errors, in order.
     pub epochs: Vec<EpochReport>,
     /// Epoch whose weights were kept (1-based).
     pub kept_epoch: usize,
+    /// Samples in the training split.
     pub train_samples: usize,
+    /// Samples in the validation split.
     pub val_samples: usize,
 }
 
@@ -236,95 +286,33 @@ pub fn pretune(
     mut progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, PretuneError> {
     cfg.validate()?;
-    if samples.is_empty() {
-        return Err(PretuneError::NoSamples);
-    }
-    if let Some(index) = samples.iter().position(|s| !s.is_finite()) {
-        return Err(PretuneError::NonFinite { index });
-    }
-    let need = if cfg.validation_fraction > 0.0 { 10 } else { 1 };
-    if samples.len() < need {
-        return Err(PretuneError::TooFew {
-            got: samples.len(),
-            need,
-        });
-    }
-    let (mut train, val) = split(samples.len(), cfg);
-    for (idx, name) in [(&train, "training"), (&val, "validation")] {
-        for joint in 0..3 {
-            if !idx.is_empty() && idx.iter().all(|&i| samples[i].tau[joint] == 0.0) {
-                return Err(PretuneError::NoTorque {
-                    joint: joint + 1,
-                    split: name,
-                });
-            }
-        }
-    }
+    let (mut train, val) = check_and_split(samples, cfg)?;
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let mut moments: Vec<Option<Moments>> = Net::ALL
-        .iter()
-        .map(|&n| {
-            id.net(n).map(|m| Moments {
-                m: vec![0.0; m.params().len()],
-                v: vec![0.0; m.params().len()],
-            })
-        })
-        .collect();
+    let mut adam = Adam::new(id);
     let initial = snapshot(id);
     let mut best: Option<(f64, usize, Vec<Vec<f64>>)> = None;
     let mut reports = Vec::with_capacity(cfg.epochs);
-    let batches = train.len().div_ceil(cfg.batch_size);
     let decay = cfg
         .final_rate_fraction
         .powf(1.0 / (cfg.epochs.max(2) - 1) as f64);
-    let mut t_adam = 0i32;
 
     for epoch in 1..=cfg.epochs {
         let lr = cfg.learning_rate * decay.powi(epoch as i32 - 1);
         train.shuffle(&mut rng);
-        let mut loss_sum = 0.0;
-        for (b, chunk) in train.chunks(cfg.batch_size).enumerate() {
-            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
-                return Err(PretuneError::Stopped { epoch });
-            }
-            id.zero_grads();
-            for &i in chunk {
-                let s = &samples[i];
-                let eps = id.evaluate_wae(&s.q, &s.qd, &s.qdd, &s.tau);
-                loss_sum += 0.5 * eps.norm_squared();
-                // ∂(½‖ε‖²)/∂θ = (∂ε/∂θ)ᵀε.
-                id.accumulate_gradient(&eps);
-            }
-            t_adam += 1;
-            adam_step(id, &mut moments, cfg, lr, t_adam, chunk.len() as f64);
-            progress(Progress::Batch {
-                epoch,
-                batch: b + 1,
-                batches,
-            });
-        }
-        let train_loss = loss_sum / train.len() as f64;
+        let pass = Epoch {
+            samples,
+            train: &train,
+            cfg,
+            epoch,
+            lr,
+        };
+        let train_loss = pass.train(id, &mut adam, stop, &mut progress)?;
         if !train_loss.is_finite() || id.weights_norm().iter().any(|w| !w.is_finite()) {
             let saved = best.map_or(initial, |b| b.2);
             restore(id, &saved);
             return Err(PretuneError::Diverged { epoch });
         }
-        let report = EpochReport {
-            epoch,
-            epochs: cfg.epochs,
-            train_loss,
-            train_nrmse: nrmse(id, samples, Some(&train)),
-            val_nrmse: if val.is_empty() {
-                [f64::NAN; 3]
-            } else {
-                nrmse(id, samples, Some(&val))
-            },
-        };
-        let score = if val.is_empty() {
-            report.train_nrmse.iter().sum::<f64>()
-        } else {
-            report.val_nrmse.iter().sum::<f64>()
-        };
+        let (report, score) = pass.report(id, &val, train_loss);
         // NaN scores (no torque on a joint) never win against a number.
         let better = match &best {
             None => true,
@@ -350,6 +338,133 @@ pub fn pretune(
         train_samples: train.len(),
         val_samples: val.len(),
     })
+}
+
+/// Refuse samples that cannot be learnt from (none, a non-finite one, too few, a joint
+/// without torque in a split), else the training and validation indices ([`split`]).
+fn check_and_split(
+    samples: &[Sample],
+    cfg: &PretuneConfig,
+) -> Result<(Vec<usize>, Vec<usize>), PretuneError> {
+    if samples.is_empty() {
+        return Err(PretuneError::NoSamples);
+    }
+    if let Some(index) = samples.iter().position(|s| !s.is_finite()) {
+        return Err(PretuneError::NonFinite { index });
+    }
+    let need = if cfg.validation_fraction > 0.0 { 10 } else { 1 };
+    if samples.len() < need {
+        return Err(PretuneError::TooFew {
+            got: samples.len(),
+            need,
+        });
+    }
+    let (train, val) = split(samples.len(), cfg);
+    for (idx, name) in [(&train, "training"), (&val, "validation")] {
+        for joint in 0..3 {
+            if !idx.is_empty() && idx.iter().all(|&i| samples[i].tau[joint] == 0.0) {
+                return Err(PretuneError::NoTorque {
+                    joint: joint + 1,
+                    split: name,
+                });
+            }
+        }
+    }
+    Ok((train, val))
+}
+
+/// One epoch: the training indices (already shuffled) and its learning rate.
+struct Epoch<'a> {
+    samples: &'a [Sample],
+    train: &'a [usize],
+    cfg: &'a PretuneConfig,
+    /// 1-based.
+    epoch: usize,
+    lr: f64,
+}
+
+impl Epoch<'_> {
+    /// One pass of mini-batch Adam over the training indices; the summed ½‖ε‖² over the
+    /// epoch divided by the training samples (the mean loss).
+    fn train(
+        &self,
+        id: &mut Identifier,
+        adam: &mut Adam,
+        stop: Option<&AtomicBool>,
+        progress: &mut impl FnMut(Progress<'_>),
+    ) -> Result<f64, PretuneError> {
+        let batches = self.train.len().div_ceil(self.cfg.batch_size);
+        let mut loss_sum = 0.0;
+        for (b, chunk) in self.train.chunks(self.cfg.batch_size).enumerate() {
+            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+                return Err(PretuneError::Stopped { epoch: self.epoch });
+            }
+            id.zero_grads();
+            for &i in chunk {
+                let s = &self.samples[i];
+                let eps = id.evaluate_wae(&s.q, &s.qd, &s.qdd, &s.tau);
+                loss_sum += 0.5 * eps.norm_squared();
+                // ∂(½‖ε‖²)/∂θ = (∂ε/∂θ)ᵀε.
+                id.accumulate_gradient(&eps);
+            }
+            adam.step(id, self.cfg, self.lr, chunk.len() as f64);
+            progress(Progress::Batch {
+                epoch: self.epoch,
+                batch: b + 1,
+                batches,
+            });
+        }
+        Ok(loss_sum / self.train.len() as f64)
+    }
+
+    /// The epoch's report and its score (the summed validation NRMSE, or the training one
+    /// without a validation split): lower is better.
+    fn report(&self, id: &mut Identifier, val: &[usize], train_loss: f64) -> (EpochReport, f64) {
+        let report = EpochReport {
+            epoch: self.epoch,
+            epochs: self.cfg.epochs,
+            train_loss,
+            train_nrmse: nrmse(id, self.samples, Some(self.train)),
+            val_nrmse: if val.is_empty() {
+                [f64::NAN; 3]
+            } else {
+                nrmse(id, self.samples, Some(val))
+            },
+        };
+        let score = if val.is_empty() {
+            report.train_nrmse.iter().sum::<f64>()
+        } else {
+            report.val_nrmse.iter().sum::<f64>()
+        };
+        (report, score)
+    }
+}
+
+/// Adam's state: the moment estimates of every network present, and the step count.
+struct Adam {
+    moments: Vec<Option<Moments>>,
+    t: i32,
+}
+
+impl Adam {
+    fn new(id: &Identifier) -> Adam {
+        let moments = Net::ALL
+            .iter()
+            .map(|&n| {
+                id.net(n).map(|m| Moments {
+                    m: vec![0.0; m.params().len()],
+                    v: vec![0.0; m.params().len()],
+                })
+            })
+            .collect();
+        Adam { moments, t: 0 }
+    }
+
+    /// One step on the gradients accumulated over a batch of `batch` samples.
+    fn step(&mut self, id: &mut Identifier, cfg: &PretuneConfig, lr: f64, batch: f64) {
+        self.t += 1;
+        adam_step(id, &mut self.moments, cfg, lr, self.t, batch);
+    }
 }
 
 fn adam_step(

@@ -23,9 +23,12 @@ pub struct Decimated {
     pub rows: u64,
     /// First and last time seen (min and max, in case a log's clock is not monotonic).
     pub t_range: (f64, f64),
+    /// Per channel, (time s, value) points: each kept bucket's minimum and maximum.
     pub channels: Vec<Vec<(f64, f64)>>,
 }
 
+/// The decimator's running state: bounded by twice the target bucket count, whatever the
+/// number of rows.
 pub struct Decimator {
     channels: usize,
     target: usize,
@@ -52,6 +55,7 @@ impl Decimator {
         }
     }
 
+    /// Rows pushed so far.
     pub fn rows(&self) -> u64 {
         self.rows
     }
@@ -110,6 +114,7 @@ impl Decimator {
         self.rows_per_bucket *= 2;
     }
 
+    /// The kept points, per channel in time order.
     pub fn finish(self) -> Decimated {
         let width = 2 * self.channels;
         let mut channels = vec![Vec::with_capacity(2 * self.buckets()); self.channels];

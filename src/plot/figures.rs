@@ -62,19 +62,25 @@ pub enum Role {
     Error,
 }
 
+/// One line of a figure, as defined: what it shows and how it is drawn.
 #[derive(Debug)]
 pub struct LineDef {
+    /// Legend text.
     pub label: &'static str,
+    /// What is plotted, per joint.
     pub quantity: Quantity,
+    /// Its pen.
     pub role: Role,
     /// Without it the figure is skipped; without an optional line it is drawn without it.
     pub required: bool,
 }
 
+/// One figure, as defined: three panels (one per joint) with the same lines.
 #[derive(Debug)]
 pub struct FigureDef {
     /// File stem: `<name>.png`, `<name>.svg`.
     pub name: &'static str,
+    /// Heading drawn above the panels.
     pub title: &'static str,
     /// Y-axis description, with its unit.
     pub y_desc: &'static str,
@@ -86,6 +92,7 @@ pub struct FigureDef {
     pub lines: &'static [LineDef],
 }
 
+/// Every figure `omnid plot` can draw, in report order.
 pub const FIGURES: &[FigureDef] = &[
     FigureDef {
         name: "angles",
@@ -187,14 +194,19 @@ pub const JOINTS: [&str; 3] = [
 ];
 
 /// A figure that will be drawn, with the lines the log can feed.
+/// A figure this log can feed, with the lines it has the columns for.
 #[derive(Debug)]
 pub struct PlannedFigure {
+    /// Its definition.
     pub def: &'static FigureDef,
+    /// The lines to draw, in drawing order.
     pub lines: Vec<PlannedLine>,
 }
 
+/// A line this log can feed.
 #[derive(Debug)]
 pub struct PlannedLine {
+    /// Its definition.
     pub def: &'static LineDef,
     /// Per joint: index into [`Plan::formulas`] (and so into the decimated channels).
     pub channels: [usize; 3],
@@ -203,13 +215,18 @@ pub struct PlannedLine {
 /// A figure not drawn, and why.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Skipped {
+    /// The figure's file stem (`tracking_error`, …).
     pub figure: &'static str,
+    /// What the log lacks for it (`no ref1..3 columns`, …).
     pub reason: String,
 }
 
+/// What one log can be drawn as, decided from its header alone.
 #[derive(Debug)]
 pub struct Plan {
+    /// Figures to draw, in report order.
     pub figures: Vec<PlannedFigure>,
+    /// Figures not drawn, and why.
     pub skipped: Vec<Skipped>,
     /// Figures drawn without an optional line, and why.
     pub notes: Vec<String>,
@@ -254,6 +271,7 @@ fn resolve(header: &Header, q: Quantity) -> Result<[Formula; 3], String> {
     }
 }
 
+/// Decide from the header which figures and lines can be drawn, and what each row must give.
 pub fn plan(header: &Header) -> Plan {
     let mut plan = Plan {
         figures: Vec::new(),

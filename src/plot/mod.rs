@@ -1,20 +1,20 @@
 //! `omnid plot`: figures like the paper's from a log, as PNG and SVG.
 //!
 //! [`plot_log`] reads the header, plans which figures the log's columns can feed
-//! ([`figures`]), streams the rows once through a min/max decimator ([`read`], [`decimate`])
-//! and draws each figure ([`render`]). Figures whose columns are missing are skipped and
+//! (`figures`), streams the rows once through the crate's log reader into a min/max decimator
+//! (`read`, `decimate`) and draws each figure (`render`). Figures whose columns are missing are skipped and
 //! reported, so a seven-column log from another tool still gets its angle and torque plots.
 
-pub mod decimate;
-pub mod figures;
-pub mod read;
-pub mod render;
+pub(crate) mod decimate;
+pub(crate) mod figures;
+pub(crate) mod read;
+pub(crate) mod render;
 
 pub use figures::Skipped;
-pub use read::ReadError;
 pub use render::RenderError;
 
 use crate::output::OutputError;
+use crate::telemetry::reader::ReadError;
 use figures::{PlannedFigure, JOINTS};
 use read::LogReader;
 use std::fmt;
@@ -30,22 +30,34 @@ const BUCKETS: usize = 1024;
 /// read before a bar would be worth drawing).
 const PROGRESS_MIN_BYTES: u64 = 16 << 20;
 
+/// Why `omnid plot` drew nothing, or not everything.
 #[derive(Debug, thiserror::Error)]
 pub enum PlotError {
+    /// The log could not be read, or a row of it is bad.
     #[error(transparent)]
     Read(#[from] ReadError),
+    /// The log's columns feed no figure at all.
     #[error("{}: nothing to plot: {}", path.display(), reasons(skipped))]
     NothingToPlot {
+        /// The log.
         path: PathBuf,
+        /// Every figure, and what the log lacks for it.
         skipped: Vec<Skipped>,
     },
+    /// The output directory cannot be made or used.
     #[error("--out: output directory: {0}")]
     OutDir(OutputError),
     /// A figure's file cannot be written there (checked before the log is read).
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    /// A figure could not be drawn or written.
     #[error("writing {}: {source}", file.display())]
-    Render { file: PathBuf, source: RenderError },
+    Render {
+        /// The figure's file.
+        file: PathBuf,
+        /// Why.
+        source: RenderError,
+    },
 }
 
 impl PlotError {
@@ -114,7 +126,7 @@ impl fmt::Display for PlotReport {
 
 /// Draw every figure `log` can feed into `out_dir` (created if needed) as `<name>.png` and
 /// `<name>.svg`. The output paths are checked before the rows are read. `stop` (the
-/// operator's) ends the reading (see [`LogReader::open`]).
+/// operator's) ends the reading (see [`crate::input::open`]).
 pub fn plot_log(
     log: &Path,
     out_dir: &Path,

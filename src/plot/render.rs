@@ -3,6 +3,7 @@
 //! into the binary, so nothing is needed from the system at build or run time.
 
 use super::figures::Role;
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -14,7 +15,9 @@ use std::sync::OnceLock;
 const FONT: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 const FAMILY: &str = "sans-serif";
 
+/// Figure width, px (the SVG's user units too).
 pub const WIDTH: u32 = 1200;
+/// Figure height, px.
 pub const HEIGHT: u32 = 900;
 
 const TITLE_H: u32 = 46;
@@ -27,38 +30,54 @@ const DESC_PX: f64 = 17.0;
 /// Why a figure could not be drawn or written.
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
+    /// The font compiled into the binary could not be loaded.
     #[error("the embedded font could not be loaded")]
     Font,
+    /// The drawing backend failed.
     #[error("drawing: {0}")]
     Draw(String),
+    /// The PNG encoder failed.
     #[error("encoding the PNG: {0}")]
     Png(#[from] png::EncodingError),
+    /// Writing the file failed.
     #[error(transparent)]
     Io(#[from] std::io::Error),
+    /// The file cannot be created there.
     #[error(transparent)]
     Output(#[from] crate::output::OutputError),
 }
 
 /// One line as drawn: its points (already in plotted units) and its pen.
 pub struct Line {
+    /// (time s, value in plotted units), in time order.
     pub points: Vec<(f64, f64)>,
+    /// Its pen.
     pub role: Role,
 }
 
+/// One panel of a figure (one joint, or a norm).
 pub struct Panel {
+    /// Heading drawn above it.
     pub title: &'static str,
+    /// Its lines, in drawing order.
     pub lines: Vec<Line>,
 }
 
+/// A figure ready to draw: panels stacked, sharing the time axis.
 pub struct Figure {
+    /// Heading drawn above the panels.
     pub title: &'static str,
+    /// Y-axis description, with its unit.
     pub y_desc: &'static str,
+    /// Time axis range, s.
     pub x_range: (f64, f64),
     /// Shade the start-up blend, from the first sample to this time.
     pub shade_until: Option<f64>,
+    /// Draw y = 0 (error signals).
     pub zero_line: bool,
     /// Labels and roles, in drawing order.
     pub legend: Vec<(&'static str, Role)>,
+    /// The panels, top to bottom.
     pub panels: Vec<Panel>,
 }
 
@@ -109,6 +128,7 @@ impl Format {
     }
 }
 
+/// Draw `figure` into a new file at `path` in `format`.
 pub fn write(figure: &Figure, format: Format, path: &Path) -> Result<(), RenderError> {
     match format {
         Format::Png => write_png(figure, path),
@@ -287,6 +307,17 @@ fn draw_panel<DB: DrawingBackend>(
             RGBColor(90, 90, 90).stroke_width(1),
         ))?;
     }
+    draw_lines(&mut chart, panel, surface, (x0, x1), (y0, y1))
+}
+
+/// The panel's lines on its chart, over the mesh. `(x0, x1)`, `(y0, y1)`: the chart's ranges.
+fn draw_lines<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    panel: &Panel,
+    surface: Surface,
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     // plotters fills a wide polyline as one polygon, which a dense zigzag (min/max pairs,
     // repeated pixels) turns into specks and spikes. On a bitmap a wide line is therefore
     // drawn as 1-px lines shifted by whole pixels; SVG strokes width natively.

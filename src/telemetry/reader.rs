@@ -3,9 +3,11 @@
 //! `enc1..3` and `mode` used when present).
 //!
 //! Two layers:
-//! - [`ColumnReader`]: header → column indices, one reused `ByteRecord`, field-count, number and
+//! - `ColumnReader`: header → column indices, one reused `ByteRecord`, field-count, number and
 //!   time-order checks, strict or lenient. Every problem is a [`ReadError`] naming the file, the
-//!   line and the column. Other importers (e.g. `convert`) build on it with their own columns.
+//!   line, the column (its 1-based index and its name) and the offending field. It is the
+//!   crate's one CSV log reader: `convert`, `plot` (only `t` required, gaps allowed: see
+//!   `Row::number_or_gap`) and `experiment` build on it with their own columns.
 //! - [`LogReader`]: the replayable log on top of it, yielding one `Copy` [`LogRow`] per data row.
 //!
 //! Memory is constant: one record buffer, reused; a row allocates nothing (an error does). A
@@ -41,7 +43,7 @@ use std::sync::Arc;
 use thiserror::Error;
 
 /// The seven columns a replayable file must have.
-pub use super::record::REQUIRED_COLUMNS;
+pub(crate) use super::record::REQUIRED_COLUMNS;
 
 /// How many skipped line numbers a [`SkipReport`] keeps.
 pub const SKIP_LINES_KEPT: usize = 5;
@@ -50,127 +52,239 @@ pub const SKIP_LINES_KEPT: usize = 5;
 const MAX_QUOTED: usize = 40;
 
 /// A problem reading a log. Every variant names the file; row problems name the line (1 is the
-/// header) and the column.
+/// header, as a text editor counts) and the column, by its 1-based index (as a spreadsheet
+/// counts) and its header name.
 #[derive(Debug, Error)]
 pub enum ReadError {
+    /// The file could not be opened or read.
     #[error("{path}: {source}")]
-    Io { path: String, source: io::Error },
+    Io {
+        /// The file, as given.
+        path: String,
+        /// What the operating system said.
+        source: io::Error,
+    },
+    /// The operator's stop flag ended the read.
     #[error("{path}: reading stopped by the operator")]
-    Stopped { path: String },
+    Stopped {
+        /// The file, as given.
+        path: String,
+    },
+    /// One row is longer than [`MAX_ROW_BYTES`] (no line ends, or an unclosed quote).
     #[error(
         "{path}: line {line}: the row starting here runs past {limit} bytes, the most a row may \
          take (a file without line ends, or a quote that is never closed?)"
     )]
-    RowTooLong { path: String, line: u64, limit: u64 },
+    RowTooLong {
+        /// The file, as given.
+        path: String,
+        /// Where the row starts.
+        line: u64,
+        /// The limit, bytes.
+        limit: u64,
+    },
+    /// No header row at all.
     #[error(
         "{path}: line 1: the file is empty: expected a header row with the columns {expected}"
     )]
-    Empty { path: String, expected: String },
-    #[error("{path}: line 1: required column `{column}` is missing{}; the header has: {header}",
-            suggestion.as_ref().map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default())]
-    MissingColumn {
+    Empty {
+        /// The file, as given.
         path: String,
+        /// The required columns, comma-separated.
+        expected: String,
+    },
+    /// A required column is not in the header.
+    #[error("{path}: line 1: no `{column}` column (required{}); the header has: {header}",
+            suggestion.as_ref().map(|s| format!("; did you mean `{s}`?")).unwrap_or_default())]
+    MissingColumn {
+        /// The file, as given.
+        path: String,
+        /// The column looked for.
         column: String,
+        /// A header field that is probably that column under another name.
         suggestion: Option<String>,
+        /// The header row as read, comma-separated.
         header: String,
     },
+    /// A column the reader uses appears more than once in the header.
     #[error("{path}: line 1: column `{}` appears twice (fields {first} and {second})",
             crate::text::cut(.column))]
     DuplicateColumn {
+        /// The file, as given.
         path: String,
+        /// The repeated name.
         column: String,
+        /// 1-based index of its first occurrence.
         first: usize,
+        /// 1-based index of its second occurrence.
         second: usize,
     },
-    #[error("{path}: line {line}: {got} fields, the header has {expected} (column `{}` {})",
+    /// A row has more or fewer fields than the header.
+    #[error("{path}: line {line}: {got} fields, but the header has {expected} (column `{}` {})",
             crate::text::cut(.column), if got < expected { "is missing" } else { "is the last one" })]
     FieldCount {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
         /// The first missing column, or the last column when there are too many fields.
         column: String,
+        /// Fields in the row.
         got: usize,
+        /// Fields in the header.
         expected: usize,
     },
+    /// The file ends mid-row, without a newline, before the row's last field.
     #[error(
         "{path}: line {line}: truncated last line: the file ends mid-row without a newline \
              after {got} of {expected} fields (column `{column}` is missing)"
     )]
     Truncated {
+        /// The file, as given.
         path: String,
+        /// The cut row's line.
         line: u64,
+        /// The first missing column.
         column: String,
+        /// Fields in the row.
         got: usize,
+        /// Fields in the header.
         expected: usize,
     },
-    #[error("{path}: line {line}: column `{}`: `{}` is not a number", crate::text::cut(.column), crate::text::cut(.value))]
+    /// A field that must be a number is not one.
+    #[error("{path}: line {line}: column {index} (`{}`): {value:?} is not a number",
+            crate::text::cut(.column))]
     NotANumber {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The column's header name.
         column: String,
+        /// The column's 1-based index.
+        index: usize,
+        /// The field, as read (cut to a readable length).
         value: String,
     },
-    #[error("{path}: line {line}: column `{}`: `{}` is not an integer", crate::text::cut(.column), crate::text::cut(.value))]
+    /// A field that must be an integer (an encoder count) is not one.
+    #[error("{path}: line {line}: column {index} (`{}`): {value:?} is not an integer",
+            crate::text::cut(.column))]
     NotAnInteger {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The column's header name.
         column: String,
+        /// The column's 1-based index.
+        index: usize,
+        /// The field, as read (cut to a readable length).
         value: String,
     },
-    #[error("{path}: line {line}: column `{}`: `{}` is not finite", crate::text::cut(.column), crate::text::cut(.value))]
+    /// A number that must be finite is NaN or infinite.
+    #[error("{path}: line {line}: column {index} (`{}`): {value:?} is not finite",
+            crate::text::cut(.column))]
     NotFinite {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The column's header name.
         column: String,
+        /// The column's 1-based index.
+        index: usize,
+        /// The field, as read (cut to a readable length).
         value: String,
     },
+    /// The time column decreases.
     #[error(
-        "{path}: line {line}: column `{column}`: time goes backwards: {t} after {previous} \
-             (line {previous_line})"
+        "{path}: line {line}: column {index} (`{column}`): time goes backwards: {t} after \
+         {previous} (line {previous_line})"
     )]
     TimeBackwards {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The time column's header name.
         column: String,
+        /// The time column's 1-based index.
+        index: usize,
+        /// This row's time, s.
         t: f64,
+        /// The last accepted row's time, s.
         previous: f64,
+        /// The last accepted row's line.
         previous_line: u64,
     },
+    /// The time column repeats a value (allowed only for the final `stop` row).
     #[error(
-        "{path}: line {line}: column `{column}`: time repeats: {t} again (line {previous_line})"
+        "{path}: line {line}: column {index} (`{column}`): time repeats: {t} again (line \
+         {previous_line})"
     )]
     TimeRepeats {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The time column's header name.
         column: String,
+        /// The time column's 1-based index.
+        index: usize,
+        /// The repeated time, s.
         t: f64,
+        /// The line that had it first.
         previous_line: u64,
     },
+    /// A `mode` field that omnid never writes.
     #[error(
-        "{path}: line {line}: column `{column}`: `{value}` is not a mode omnid writes \
+        "{path}: line {line}: column {index} (`{column}`): `{value}` is not a mode omnid writes \
              (allowed: {})", Mode::ALL.map(Mode::as_str).join(", ")
     )]
     UnknownMode {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The mode column's header name.
         column: String,
+        /// The mode column's 1-based index.
+        index: usize,
+        /// The field, as read (cut to a readable length).
         value: String,
     },
+    /// A row after the final `mode = stop` row.
     #[error(
-        "{path}: line {line}: column `{column}`: a row after the final `stop` row (line \
-             {stop_line}); a `mode = stop` row must be the last"
+        "{path}: line {line}: column {index} (`{column}`): a row after the final `stop` row \
+         (line {stop_line}); a `mode = stop` row must be the last"
     )]
     AfterStop {
+        /// The file, as given.
         path: String,
+        /// The row's line.
         line: u64,
+        /// The mode column's header name (the time column's when there is none).
         column: String,
+        /// That column's 1-based index.
+        index: usize,
+        /// The `stop` row's line.
         stop_line: u64,
     },
+    /// The CSV parser's own complaint (e.g. invalid quoting).
     #[error("{path}: line {line}: {message}")]
     Csv {
+        /// The file, as given.
         path: String,
+        /// Where the row starts.
         line: u64,
+        /// The parser's description.
         message: String,
+    },
+    /// A header and no data row (for a reader that needs at least one).
+    #[error("{path}: no data rows after the header")]
+    NoRows {
+        /// The file, as given.
+        path: String,
     },
 }
 
@@ -179,7 +293,7 @@ impl ReadError {
     pub fn line(&self) -> Option<u64> {
         use ReadError::*;
         match self {
-            Io { .. } | Stopped { .. } => None,
+            Io { .. } | Stopped { .. } | NoRows { .. } => None,
             Empty { .. } | MissingColumn { .. } | DuplicateColumn { .. } => Some(1),
             FieldCount { line, .. }
             | Truncated { line, .. }
@@ -199,7 +313,7 @@ impl ReadError {
 /// A problem with one data row, before it becomes a [`ReadError`] (`Copy`, so skipping a row in
 /// lenient mode allocates nothing). Columns are field indices.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum RowFault {
+pub(crate) enum RowFault {
     FieldCount {
         got: usize,
     },
@@ -235,6 +349,7 @@ pub enum RowFault {
 /// Rows skipped in lenient mode.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SkipReport {
+    /// How many rows were skipped.
     pub count: u64,
     /// Line numbers of the first [`SKIP_LINES_KEPT`] skipped rows.
     pub first_lines: Vec<u64>,
@@ -329,7 +444,7 @@ impl<R: Read> Read for Tail<R> {
 }
 
 /// One data row, borrowed from the reader's buffer.
-pub struct Row<'a> {
+pub(crate) struct Row<'a> {
     record: &'a csv::ByteRecord,
     /// Line number in the file (1 = the header).
     pub line: u64,
@@ -348,6 +463,25 @@ impl Row<'_> {
     /// A finite number.
     pub fn f64(&self, col: usize) -> Result<f64, RowFault> {
         parse_f64(self.field(col), col)
+    }
+
+    /// A number, or NaN for an empty field (a gap, as other tools write a missing value). NaN
+    /// and infinities written out are accepted too: for a reader that only draws the values
+    /// (plot), where a wild value is no reason to refuse the file.
+    pub fn number_or_gap(&self, col: usize) -> Result<f64, RowFault> {
+        let b = self.field(col);
+        if b.is_empty() {
+            return Ok(f64::NAN);
+        }
+        std::str::from_utf8(b)
+            .ok()
+            .and_then(|s| s.trim().parse::<f64>().ok())
+            .ok_or(RowFault::NotANumber { col })
+    }
+
+    /// Where the row starts in the file, bytes (for a progress bar).
+    pub fn byte(&self) -> u64 {
+        self.record.position().map_or(0, |p| p.byte())
     }
 
     /// An integer (also written as an integral float, e.g. `1234.0`).
@@ -500,7 +634,7 @@ fn is_known_log_column(name: &str) -> bool {
 }
 
 /// The CSV layer: named columns, one reused record, strict or lenient row checks.
-pub struct ColumnReader<R: Read> {
+pub(crate) struct ColumnReader<R: Read> {
     csv: csv::Reader<Tail<R>>,
     path: String,
     header: Vec<String>,
@@ -629,16 +763,14 @@ impl<R: Read> ColumnReader<R> {
         }
     }
 
+    /// The header's column names, in file order (whitespace and a BOM trimmed).
     pub fn header(&self) -> &[String] {
         &self.header
     }
 
+    /// The file, as named in messages.
     pub fn path(&self) -> &str {
         &self.path
-    }
-
-    pub fn lenient(&self) -> bool {
-        self.lenient
     }
 
     /// Rows skipped so far (lenient mode).
@@ -736,52 +868,60 @@ impl<R: Read> ColumnReader<R> {
         self.header.get(col).cloned().unwrap_or_default()
     }
 
+    /// A row with `got` fields, not the header's count: cut off at the end of the file
+    /// ([`ReadError::Truncated`]) or simply short or long ([`ReadError::FieldCount`]).
+    fn field_count_error(&self, got: usize, line: u64) -> ReadError {
+        let path = self.path.clone();
+        let expected = self.header.len();
+        let column = if got < expected {
+            self.column_name(got)
+        } else {
+            self.column_name(expected - 1)
+        };
+        if self.is_truncated_tail(RowFault::FieldCount { got }) {
+            ReadError::Truncated {
+                path,
+                line,
+                column,
+                got,
+                expected,
+            }
+        } else {
+            ReadError::FieldCount {
+                path,
+                line,
+                column,
+                got,
+                expected,
+            }
+        }
+    }
+
     /// Turn a row fault into the full error (the record is still in the buffer).
     fn error(&self, fault: RowFault, line: u64) -> ReadError {
         let path = self.path.clone();
         let value = |col: usize| quote(self.record.get(col).unwrap_or(b"").trim_ascii());
         match fault {
-            RowFault::FieldCount { got } => {
-                let expected = self.header.len();
-                let column = if got < expected {
-                    self.column_name(got)
-                } else {
-                    self.column_name(expected - 1)
-                };
-                if self.is_truncated_tail(fault) {
-                    ReadError::Truncated {
-                        path,
-                        line,
-                        column,
-                        got,
-                        expected,
-                    }
-                } else {
-                    ReadError::FieldCount {
-                        path,
-                        line,
-                        column,
-                        got,
-                        expected,
-                    }
-                }
-            }
+            RowFault::FieldCount { got } => self.field_count_error(got, line),
             RowFault::NotANumber { col } => ReadError::NotANumber {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 value: value(col),
             },
             RowFault::NotAnInteger { col } => ReadError::NotAnInteger {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 value: value(col),
             },
             RowFault::NotFinite { col } => ReadError::NotFinite {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 value: value(col),
             },
             RowFault::TimeBackwards {
@@ -793,6 +933,7 @@ impl<R: Read> ColumnReader<R> {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 t,
                 previous,
                 previous_line,
@@ -805,6 +946,7 @@ impl<R: Read> ColumnReader<R> {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 t,
                 previous_line,
             },
@@ -812,12 +954,14 @@ impl<R: Read> ColumnReader<R> {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 value: value(col),
             },
             RowFault::AfterStop { col, stop_line } => ReadError::AfterStop {
                 path,
                 line,
                 column: self.column_name(col),
+                index: col + 1,
                 stop_line,
             },
         }
@@ -882,13 +1026,18 @@ impl LogRow {
     }
 }
 
-/// Where the columns of a replayable log are.
+/// Where the columns of a replayable log are: 0-based field indices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LogColumns {
+    /// `t`.
     pub t: usize,
+    /// `q1..3`.
     pub q: [usize; 3],
+    /// `tau1..3`.
     pub tau: [usize; 3],
+    /// `enc1..3`, when the log has them.
     pub enc: Option<[usize; 3]>,
+    /// `mode`, when the log has it.
     pub mode: Option<usize>,
 }
 
@@ -900,7 +1049,8 @@ pub struct LogReader<R: Read = Input> {
 }
 
 impl LogReader<Input> {
-    /// Open a log file (`stop`: see [`ColumnReader::open`]).
+    /// Open a log file. `stop`: the operator's stop flag, which ends any read (without one,
+    /// only a regular file is accepted: see [`crate::input::open`]).
     pub fn open(
         path: &Path,
         lenient: bool,
@@ -946,14 +1096,17 @@ impl<R: Read> LogReader<R> {
         })
     }
 
+    /// Where the log's columns are.
     pub fn columns(&self) -> &LogColumns {
         &self.cols
     }
 
+    /// The file, as named in messages.
     pub fn path(&self) -> &str {
         self.core.path()
     }
 
+    /// Rows skipped so far (lenient mode).
     pub fn skipped(&self) -> &SkipReport {
         self.core.skipped()
     }
