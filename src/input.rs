@@ -210,10 +210,6 @@ impl<R> RowBound<R> {
     pub fn row_starts_at(&mut self, offset: u64) {
         self.row_start = offset;
     }
-
-    pub fn get_ref(&self) -> &R {
-        &self.inner
-    }
 }
 
 impl<R: Read> Read for RowBound<R> {

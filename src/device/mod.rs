@@ -1,16 +1,16 @@
 //! The device boundary: one packet exchange per tick (command out, state in, with the device's
 //! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
 
-pub mod calibration;
-pub mod capture;
+pub(crate) mod calibration;
+pub(crate) mod capture;
 pub mod codec;
-pub mod discovery;
+pub(crate) mod discovery;
 pub mod firewire;
 pub mod inject;
 pub mod probe;
 pub mod replay;
 pub mod sim;
-pub mod stream;
+pub(crate) mod stream;
 #[cfg(test)]
 pub(crate) mod testkit;
 pub mod usb;
@@ -19,6 +19,7 @@ pub use codec::{
     decode_state, encode_command, CodecError, DacScale, EncoderUnwrap, MotorCommand, StatePacket,
     COMMAND_LEN, STATE_LEN,
 };
+pub use discovery::{list_devices, DiscoveryReport};
 
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};

@@ -3,10 +3,10 @@
 //! and a Rust client. The daemon itself (assembling the servo and starting the hub) is
 //! `crate::daemon`.
 
-pub mod access;
+pub(crate) mod access;
 pub mod client;
-pub mod config;
-pub mod device_info;
+pub(crate) mod config;
+pub(crate) mod device_info;
 pub mod hub;
 pub mod protocol;
 pub mod socket;

@@ -2,11 +2,11 @@
 //! per packet. Everything it touches is allocated before the first tick; telemetry leaves
 //! through a bounded channel with `try_send`.
 
-pub mod command;
+pub(crate) mod command;
 pub mod realtime;
-pub mod safety;
+pub(crate) mod safety;
 pub mod summary;
-pub mod thermal_store;
+pub(crate) mod thermal_store;
 pub mod timing;
 
 use crate::clock;
