@@ -36,7 +36,7 @@ impl OutputError {
 
 /// `path` with the symlinks of its last component followed: the file a write reaches (it
 /// need not exist).
-pub fn resolve(path: &Path) -> io::Result<PathBuf> {
+pub(crate) fn resolve(path: &Path) -> io::Result<PathBuf> {
     let mut p = path.to_path_buf();
     for _ in 0..40 {
         match std::fs::symlink_metadata(&p) {
@@ -138,13 +138,13 @@ impl Drop for Temp {
 
 /// Check that a whole file can be written at `path`: the target is a regular file or new, its
 /// directory exists (it is created if needed) and a file can be made there.
-pub fn check_file(path: &Path) -> Result<(), OutputError> {
+pub(crate) fn check_file(path: &Path) -> Result<(), OutputError> {
     let target = target(path)?;
     prepare_dir(path, dir_of(&target))
 }
 
 /// Check that files can be written in `dir` (created if needed).
-pub fn check_dir(dir: &Path) -> Result<(), OutputError> {
+pub(crate) fn check_dir(dir: &Path) -> Result<(), OutputError> {
     let target = resolve(dir).map_err(|source| OutputError::Unwritable {
         path: dir.to_path_buf(),
         source,
@@ -178,7 +178,7 @@ fn prepare_dir(path: &Path, dir: &Path) -> Result<(), OutputError> {
 /// Write the whole file at `path` (see the module notes): `fill` writes the contents; the
 /// file is in place only if it and the final flush succeed. Its errors are returned as they
 /// are; the temporary file is removed on every error.
-pub fn write_with<T, E: From<OutputError>>(
+pub(crate) fn write_with<T, E: From<OutputError>>(
     path: &Path,
     fill: impl FnOnce(&mut BufWriter<&File>) -> Result<T, E>,
 ) -> Result<T, E> {
@@ -223,7 +223,11 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
 
 /// Create a new, empty file `dir/stem.ext`, or `dir/stem-2.ext`, `-3`, … if that name is
 /// taken: a default name never replaces another file (two runs started in the same second).
-pub fn create_unique(dir: &Path, stem: &str, ext: &str) -> Result<(PathBuf, File), OutputError> {
+pub(crate) fn create_unique(
+    dir: &Path,
+    stem: &str,
+    ext: &str,
+) -> Result<(PathBuf, File), OutputError> {
     let unwritable = |path: PathBuf| move |source| OutputError::Unwritable { path, source };
     std::fs::create_dir_all(dir).map_err(unwritable(dir.to_path_buf()))?;
     for n in 1..=10_000 {
@@ -244,7 +248,7 @@ pub fn create_unique(dir: &Path, stem: &str, ext: &str) -> Result<(PathBuf, File
 }
 
 /// [`create_unique`], filled by `fill`; a file that could not be written whole is removed.
-pub fn write_unique(
+pub(crate) fn write_unique(
     dir: &Path,
     stem: &str,
     ext: &str,
@@ -265,7 +269,7 @@ pub fn write_unique(
 /// Whether writing `a` and `b` would write the same regular file: the same inode (through
 /// symlinks, hard links or different spellings), or the same new path. Devices and FIFOs are
 /// never "the same file" (two outputs to /dev/null lose nothing).
-pub fn same_file(a: &Path, b: &Path) -> bool {
+pub(crate) fn same_file(a: &Path, b: &Path) -> bool {
     let (Ok(ra), Ok(rb)) = (resolve(a), resolve(b)) else {
         return false;
     };

@@ -111,8 +111,8 @@ impl Default for RunOptions {
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
 /// box (see mock/README.md for how they were made).
-pub const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
-pub const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
+pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
+pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
 
 /// The identifier a run starts with, and a label for the summary.
 /// `stop`: the operator's, which ends a wait on a weights file that is a pipe (without it such
@@ -217,7 +217,7 @@ fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Dev
 
 /// The refusal when a motor's DAC sign has not been measured: the first torque on a new Omni
 /// goes through `omnid probe --outputs`, never straight into a controller.
-pub fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
+pub(crate) fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
     let missing = cfg.unmeasured_dac_signs();
     if missing.is_empty() {
         return None;
@@ -271,7 +271,7 @@ fn open_device(
 
 /// Check the options that do not need the device: duration, `--fast`, the simulator's
 /// substeps, the faults to inject (the command line's and the config's).
-pub fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
+pub(crate) fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
     let replay = matches!(opts.device, DeviceSpec::Replay(_));
     if !(opts.duration_s > 0.0 && (opts.duration_s.is_finite() || replay)) {
         return Err(RunError::BadInput(format!(
@@ -283,7 +283,10 @@ pub fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunE
 }
 
 /// The checks `run` and `serve` share.
-pub fn check_device_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
+pub(crate) fn check_device_options(
+    opts: &RunOptions,
+    cfg: &Config,
+) -> Result<Vec<Fault>, RunError> {
     if opts.fast && matches!(opts.device, DeviceSpec::Usb | DeviceSpec::Firewire) {
         return Err(RunError::BadInput(
             "--fast works only with the sim and replay devices: real hardware paces itself".into(),
@@ -311,7 +314,7 @@ pub fn check_device_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault
 /// Check every file a run will write before it starts: the log (not in use by another
 /// omnid), the fault dump beside it, the summary JSON; and that no two of them, nor the
 /// replay input, name the same file (one would destroy the other).
-pub fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
+pub(crate) fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
     // Each file as the user named it, and its path.
     let mut named: Vec<(String, PathBuf)> = Vec::new();
     if let DeviceSpec::Replay(input) = &opts.device {
@@ -358,25 +361,25 @@ pub fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
 pub struct Pipeline {
     pub servo: Servo,
     /// The log columns this device feeds.
-    pub schema: LogSchema,
+    pub(crate) schema: LogSchema,
     /// Where the identifier's weights came from (`shipped`, `fresh` or a path).
-    pub weights_label: String,
+    pub(crate) weights_label: String,
     /// The identifier as it started (its shape; `serve` copies live weights into clones).
-    pub identifier: Identifier,
+    pub(crate) identifier: Identifier,
     /// Where motor heat is carried over between runs (none for replays).
-    pub heat_path: Option<PathBuf>,
+    pub(crate) heat_path: Option<PathBuf>,
     /// Things the operator should know that do not stop the run.
-    pub warnings: Vec<String>,
+    pub(crate) warnings: Vec<String>,
     /// Realtime steps to take on the servo thread (paced runs only).
-    pub realtime: Option<crate::servo::realtime::RealtimeConfig>,
+    pub(crate) realtime: Option<crate::servo::realtime::RealtimeConfig>,
     /// Which realtime steps took effect, once the servo thread has taken them (before its
     /// first tick): for a daemon's status while it runs.
-    pub realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
+    pub(crate) realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
 }
 
 /// Build the pipeline for `opts` with `faults` (from [`check_options`]); telemetry leaves
 /// through `telemetry`, `stop` ends the loop.
-pub fn assemble(
+pub(crate) fn assemble(
     opts: &RunOptions,
     cfg: &Config,
     faults: &[Fault],
@@ -463,12 +466,14 @@ pub fn assemble(
 }
 
 /// The servo thread's result: the loop's report and which realtime steps took effect.
-pub type ServoThreadResult = (ServoReport, Option<crate::servo::realtime::RealtimeReport>);
+pub(crate) type ServoThreadResult = (ServoReport, Option<crate::servo::realtime::RealtimeReport>);
 
 impl Pipeline {
     /// Start the loop on its own thread (realtime steps taken there, before the first tick).
     /// Returns what the caller keeps: the thread and the bookkeeping for the end.
-    pub fn spawn(self) -> Result<(std::thread::JoinHandle<ServoThreadResult>, Ending), RunError> {
+    pub(crate) fn spawn(
+        self,
+    ) -> Result<(std::thread::JoinHandle<ServoThreadResult>, Ending), RunError> {
         let Pipeline {
             mut servo,
             schema,
@@ -512,7 +517,7 @@ impl Pipeline {
 }
 
 /// What is needed once the loop has ended.
-pub struct Ending {
+pub(crate) struct Ending {
     pub schema: LogSchema,
     pub weights_label: String,
     pub heat_path: Option<PathBuf>,
@@ -521,7 +526,7 @@ pub struct Ending {
 
 impl Ending {
     /// Keep the motors' heat for the next run and warn about motors that ran hot.
-    pub fn save_heat(&self, report: &ServoReport) {
+    pub(crate) fn save_heat(&self, report: &ServoReport) {
         if let Some(path) = &self.heat_path {
             if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
                 crate::errln!("omnid: warning: motor heat not saved: {e}");
@@ -566,7 +571,7 @@ fn unreached_faults(faults: &[Fault], reached_s: f64) -> Vec<String> {
 }
 
 /// Join the servo thread.
-pub fn join_servo(
+pub(crate) fn join_servo(
     handle: std::thread::JoinHandle<ServoThreadResult>,
 ) -> Result<ServoThreadResult, RunError> {
     handle

@@ -11,15 +11,15 @@ pub const COMMAND_LEN: usize = 16;
 /// Device → host packet length, bytes (docs/FIREWIRE.md §4).
 pub const STATE_LEN: usize = 44;
 /// DAC word for zero torque (12-bit offset binary).
-pub const DAC_ZERO: u16 = 0x07FF;
+pub(crate) const DAC_ZERO: u16 = 0x07FF;
 /// Largest DAC word (12 bits).
-pub const DAC_MAX: u16 = 0x0FFF;
+pub(crate) const DAC_MAX: u16 = 0x0FFF;
 /// Byte 7 of every command both open drivers send: a constant, not a counter
 /// (docs/FIREWIRE.md §3).
-pub const DRIVERS_BYTE7: u8 = 0x53;
+pub(crate) const DRIVERS_BYTE7: u8 = 0x53;
 
 /// Byte layout of the host → device command packet (little-endian).
-pub struct CommandLayout {
+pub(crate) struct CommandLayout {
     /// Offsets of the three u16 motor words.
     pub motor: [usize; 3],
     /// Offset of the misc-out byte.
@@ -35,7 +35,7 @@ pub struct CommandLayout {
 }
 
 /// Byte layout of the device → host state packet (little-endian).
-pub struct StateLayout {
+pub(crate) struct StateLayout {
     /// Offsets of the three u16 encoder counts.
     pub encoder: [usize; 3],
     /// Offsets of the three u16 gimbal potentiometer words.
@@ -51,7 +51,7 @@ pub struct StateLayout {
 }
 
 /// docs/FIREWIRE.md §3: omnifirewire.h:60-90 (ROS) and PhantomSpec.h:93-123 (Twente).
-pub const COMMAND_LAYOUT: CommandLayout = CommandLayout {
+pub(crate) const COMMAND_LAYOUT: CommandLayout = CommandLayout {
     // force_x/y/z: omnifirewire.h:62-64; PhantomSpec.h:95-97.
     motor: [0, 2, 4],
     // The low byte of the u16 status word: omnifirewire.h:66-86; PhantomSpec.h:98-120.
@@ -68,7 +68,7 @@ pub const COMMAND_LAYOUT: CommandLayout = CommandLayout {
 
 /// docs/FIREWIRE.md §4: omnifirewire.h:92-136 (ROS) and PhantomSpec.h:53-88 (Twente); the
 /// switch byte is 19 in both (omnifirewire.h:105-119, PhantomSpec.h:62-77).
-pub const STATE_LAYOUT: StateLayout = StateLayout {
+pub(crate) const STATE_LAYOUT: StateLayout = StateLayout {
     // encoder_x/y/z: omnifirewire.h:96-98; PhantomSpec.h:57-59.
     encoder: [4, 6, 8],
     // gimbal_a_x/y/z: omnifirewire.h:100-102; PhantomSpec.h:60.
@@ -86,7 +86,7 @@ pub const STATE_LAYOUT: StateLayout = StateLayout {
 /// Bits 3..7 of the switch byte as the Twente trace expects them on an idle device
 /// (libraw1394-2.0.5-trace.patch:1580-1588: bit 4 and bit 7 set), so that encoded packets
 /// look like the device's.
-pub const STATUS_IDLE_HIGH_BITS: u8 = 0x90;
+pub(crate) const STATUS_IDLE_HIGH_BITS: u8 = 0x90;
 
 /// A malformed packet. Never a panic: every decoder returns one of these.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
@@ -314,7 +314,7 @@ impl DacScale {
         w
     }
 
-    pub fn to_torque(&self, words: &[u16; 3]) -> [f64; 3] {
+    pub(crate) fn to_torque(&self, words: &[u16; 3]) -> [f64; 3] {
         let mut t = [0.0; 3];
         for j in 0..3 {
             t[j] = (words[j] as f64 - DAC_ZERO as f64) * self.nm_per_count[j];

@@ -136,7 +136,7 @@ impl FromStr for Fault {
 }
 
 /// Fixed-capacity list of faults (no allocation in the loop).
-pub const MAX_FAULTS: usize = 16;
+pub(crate) const MAX_FAULTS: usize = 16;
 
 /// A device with faults injected.
 pub struct FaultyDevice {

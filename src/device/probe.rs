@@ -28,13 +28,13 @@ use thiserror::Error;
 
 /// Largest DAC offset `--outputs` will send (about 44 mN·m at the default 2.2e-4 N·m per
 /// count: a tenth of the Omni's peak).
-pub const MAX_PULSE_COUNTS: u16 = 200;
+pub(crate) const MAX_PULSE_COUNTS: u16 = 200;
 /// Encoder counts a joint must move for the probe to call it a direction (≈ 0.08 rad).
-pub const MOVE_COUNTS: i64 = 200;
+pub(crate) const MOVE_COUNTS: i64 = 200;
 /// Encoder counts a sign pulse may move a joint before it is a surprise (≈ 0.35 rad).
-pub const SURPRISE_COUNTS: i64 = 850;
+pub(crate) const SURPRISE_COUNTS: i64 = 850;
 /// Encoder counts of motion that count as "the motor moved the joint" in a sign pulse.
-pub const PULSE_MOTION_COUNTS: i64 = 10;
+pub(crate) const PULSE_MOTION_COUNTS: i64 = 10;
 
 /// What the probe does.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -756,7 +756,10 @@ pub struct ProbeSetup<'a> {
 
 impl ProbePlan {
     /// The probe's options for this configuration, or what is wrong with the plan.
-    pub fn options<'a>(&self, cfg: impl Into<ProbeSetup<'a>>) -> Result<ProbeOptions, ProbeError> {
+    pub(crate) fn options<'a>(
+        &self,
+        cfg: impl Into<ProbeSetup<'a>>,
+    ) -> Result<ProbeOptions, ProbeError> {
         let cfg = cfg.into();
         if !(self.seconds.is_finite() && self.seconds > 0.0 && self.seconds <= 3600.0) {
             return Err(ProbeError::BadInput(format!(
@@ -784,7 +787,7 @@ impl ProbePlan {
 
 /// The capture's header lines for this configuration (the converter reads `kind`,
 /// `encoder_sign`, `counts_per_rev` and `rate_hz`).
-pub fn capture_header<'a>(cfg: impl Into<ProbeSetup<'a>>, kind: &str) -> String {
+pub(crate) fn capture_header<'a>(cfg: impl Into<ProbeSetup<'a>>, kind: &str) -> String {
     let cfg = cfg.into();
     let s = cfg.firewire.encoder_sign;
     format!(

@@ -75,7 +75,7 @@ impl SimConfig {
 
     /// What the simulated plant needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
-    pub fn check_plant(
+    pub(crate) fn check_plant(
         &self,
         d: &DeviceConfig,
         m: &ModelParams,

@@ -39,7 +39,7 @@ const MAX_UNREAD_REPLIES: usize = 4096;
 /// Write `ring` (the last ticks) to a new file `<dir>/faults/omnid-serve-<UTC>-<why>-fault.csv`
 /// (a new name for every dump: two faults in one second keep both) and say where; `None`
 /// when it cannot be written (said too).
-pub fn write_fault_dump(
+pub(crate) fn write_fault_dump(
     dir: &std::path::Path,
     schema: &LogSchema,
     ring: &VecDeque<TickRecord>,
@@ -68,7 +68,7 @@ pub fn write_fault_dump(
 
 /// What the hub was built with.
 pub struct HubSetup {
-    pub listener: Listener,
+    pub(crate) listener: Listener,
     pub wake: Arc<Wake>,
     pub records: Receiver<TickRecord>,
     pub commands: Sender<ServoCommand>,
@@ -80,14 +80,14 @@ pub struct HubSetup {
     /// The device's serial number, when its backend knows one.
     pub serial: Option<String>,
     pub rate_hz: f64,
-    pub period_ns: u64,
-    pub schema: LogSchema,
+    pub(crate) period_ns: u64,
+    pub(crate) schema: LogSchema,
     pub geometry: Geometry,
-    pub identifier_cfg: IdentifierConfig,
+    pub(crate) identifier_cfg: IdentifierConfig,
     /// The identifier as the servo started with it (shape for weight snapshots).
     pub identifier: Identifier,
     pub controller: ControllerKind,
-    pub weights_label: String,
+    pub(crate) weights_label: String,
     pub seed: u64,
     /// Where recordings without a path and fault dumps go.
     pub state_dir: PathBuf,
@@ -107,11 +107,11 @@ pub struct HubReport {
     /// An error of the recording in progress at the end, if any.
     pub recording_error: Option<String>,
     /// Clients told goodbye (their connections are closed when the report is dropped).
-    pub clients: Vec<ClientConn>,
+    pub(crate) clients: Vec<ClientConn>,
 }
 
 /// A connection kept until the daemon's socket is gone.
-pub struct ClientConn(#[allow(dead_code)] Conn);
+pub(crate) struct ClientConn(#[allow(dead_code)] Conn);
 
 /// One message waiting for a client.
 enum Out {

@@ -31,7 +31,7 @@ pub fn default_socket_dirs() -> Vec<PathBuf> {
 }
 
 /// Where the daemon for `device` listens unless told otherwise.
-pub fn default_socket(device: &str) -> PathBuf {
+pub(crate) fn default_socket(device: &str) -> PathBuf {
     // SAFETY: geteuid has no arguments and cannot fail.
     let root = unsafe { libc::geteuid() } == 0;
     let dirs = default_socket_dirs();

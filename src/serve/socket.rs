@@ -49,7 +49,7 @@ fn seqpacket() -> io::Result<OwnedFd> {
 }
 
 /// Make `fd` non-blocking.
-pub fn set_nonblocking(fd: RawFd) -> io::Result<()> {
+pub(crate) fn set_nonblocking(fd: RawFd) -> io::Result<()> {
     // SAFETY: fcntl on a descriptor we own; no pointers.
     unsafe {
         let flags = check(libc::fcntl(fd, libc::F_GETFL))?;
@@ -137,10 +137,6 @@ impl Conn {
         }
     }
 
-    pub fn set_nonblocking(&self) -> io::Result<()> {
-        set_nonblocking(self.0.as_raw_fd())
-    }
-
     pub fn raw(&self) -> RawFd {
         self.0.as_raw_fd()
     }
@@ -206,7 +202,7 @@ impl Peer {
 
 /// The daemon's listening socket. Removed from the file system when dropped.
 #[derive(Debug)]
-pub struct Listener {
+pub(crate) struct Listener {
     fd: OwnedFd,
     path: PathBuf,
 }
@@ -214,7 +210,7 @@ pub struct Listener {
 impl Listener {
     /// Bind `path` (mode 0660, group `group` when given) and listen, non-blocking. A file
     /// left at `path` by a daemon that died is replaced; the caller holds the path's lock.
-    pub fn bind(path: &Path, group: Option<u32>) -> io::Result<Listener> {
+    pub(crate) fn bind(path: &Path, group: Option<u32>) -> io::Result<Listener> {
         let fd = seqpacket()?;
         let bytes = path.as_os_str().as_bytes();
         let (addr, len) = address(bytes)?;
@@ -257,7 +253,7 @@ impl Listener {
     }
 
     /// The next waiting connection (non-blocking, close-on-exec), or `None`.
-    pub fn accept(&self) -> io::Result<Option<Conn>> {
+    pub(crate) fn accept(&self) -> io::Result<Option<Conn>> {
         // SAFETY: null address pointers are allowed (the peer's address is not wanted).
         let fd = unsafe {
             libc::accept4(
@@ -296,13 +292,13 @@ impl Drop for Listener {
 /// An exclusive `flock` on `<socket>.lock`, holding the daemon's pid: released by the kernel
 /// when the process dies, so a crashed daemon never leaves a stale lock.
 #[derive(Debug)]
-pub struct PathLock {
+pub(crate) struct PathLock {
     _file: std::fs::File,
 }
 
 impl PathLock {
     /// Lock `path`, or say which process holds it.
-    pub fn acquire(path: &Path) -> Result<PathLock, String> {
+    pub(crate) fn acquire(path: &Path) -> Result<PathLock, String> {
         use std::io::{Read, Seek, Write};
         let mut file = std::fs::OpenOptions::new()
             .read(true)
@@ -332,12 +328,12 @@ impl PathLock {
 /// exclusive machine-wide and ends with the process, with no file to go stale. Keeps two
 /// daemons (or a `run` and a `serve`) off the same real device.
 #[derive(Debug)]
-pub struct DeviceLock {
+pub(crate) struct DeviceLock {
     _fd: OwnedFd,
 }
 
 impl DeviceLock {
-    pub fn acquire(kind: &str) -> Result<DeviceLock, String> {
+    pub(crate) fn acquire(kind: &str) -> Result<DeviceLock, String> {
         let fd = seqpacket().map_err(|e| format!("device lock: {e}"))?;
         let mut name = vec![0u8];
         name.extend_from_slice(format!("omnid-device-{kind}").as_bytes());
@@ -365,7 +361,7 @@ impl DeviceLock {
 }
 
 /// A group's id by name.
-pub fn group_id(name: &str) -> Option<u32> {
+pub(crate) fn group_id(name: &str) -> Option<u32> {
     let c = CString::new(name).ok()?;
     let mut grp: libc::group = unsafe { std::mem::zeroed() };
     let mut buf = vec![0 as libc::c_char; 16 * 1024];

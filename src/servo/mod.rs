@@ -273,13 +273,13 @@ impl Servo {
 
     /// Serve clients: take commands from `link` and start in `Idle` (amplifiers off) instead
     /// of tracking; a safety trip then drops to `Idle` instead of ending the run.
-    pub fn attach(&mut self, link: ServoLink) {
+    pub(crate) fn attach(&mut self, link: ServoLink) {
         self.link = Some(link);
         self.activity = Activity::Idle;
     }
 
     /// The device's serial number, when its backend knows one (the daemon's hello).
-    pub fn device_serial(&self) -> Option<String> {
+    pub(crate) fn device_serial(&self) -> Option<String> {
         self.device.serial().map(String::from)
     }
 
@@ -297,7 +297,7 @@ impl Servo {
     }
 
     /// Start from warm motors (heat carried over from earlier runs).
-    pub fn set_initial_heat(&mut self, heat: [f64; 3]) {
+    pub(crate) fn set_initial_heat(&mut self, heat: [f64; 3]) {
         self.safety.set_heat(heat);
     }
 

@@ -18,16 +18,16 @@ pub struct RunStats {
     torque_tv: [f64; 3],
     last_tau: Option<[f64; 3]>,
     /// The identifier's τ̂ against the torque that acted.
-    pub identifier: ErrorBins,
+    pub(crate) identifier: ErrorBins,
     /// The plant's exact model against the same torque (simulator only).
-    pub oracle: ErrorBins,
+    pub(crate) oracle: ErrorBins,
     oracle_seen: bool,
     pub clamped_ticks: u64,
 }
 
 impl RunStats {
     /// Become a copy of `other` without allocating (the error bins are reused).
-    pub fn copy_from(&mut self, other: &RunStats) {
+    pub(crate) fn copy_from(&mut self, other: &RunStats) {
         let RunStats {
             ticks,
             first_t,
@@ -122,7 +122,7 @@ impl RunStats {
 /// run and of its last 20 % without storing every tick or knowing the length in advance.
 /// When the bins fill up, neighbours merge and each bin covers twice as many ticks.
 #[derive(Debug, Clone)]
-pub struct ErrorBins {
+pub(crate) struct ErrorBins {
     err_sq: Vec<[f64; 3]>,
     ref_sq: Vec<[f64; 3]>,
     used: usize,
@@ -146,7 +146,7 @@ impl Default for ErrorBins {
 
 impl ErrorBins {
     /// Become a copy of `other` without allocating.
-    pub fn copy_from(&mut self, other: &ErrorBins) {
+    pub(crate) fn copy_from(&mut self, other: &ErrorBins) {
         self.err_sq.clone_from(&other.err_sq);
         self.ref_sq.clone_from(&other.ref_sq);
         self.used = other.used;
@@ -245,7 +245,7 @@ pub struct TimingSummary {
 }
 
 impl TimingSummary {
-    pub fn from_timing(t: &TickTiming) -> Self {
+    pub(crate) fn from_timing(t: &TickTiming) -> Self {
         TimingSummary {
             period: t.period.percentiles_us(),
             lateness: t.lateness.percentiles_us(),
@@ -336,7 +336,7 @@ fn pct(p: &Option<Percentiles>) -> String {
 }
 
 /// What names a run in its summary.
-pub struct SummaryLabels<'a> {
+pub(crate) struct SummaryLabels<'a> {
     pub device: &'a str,
     pub controller: &'a str,
     pub trajectory: String,
@@ -347,7 +347,7 @@ pub struct SummaryLabels<'a> {
 }
 
 /// The identifier's state at the time of the summary.
-pub struct IdentifierState {
+pub(crate) struct IdentifierState {
     pub adapt: bool,
     pub fault: Option<crate::identifier::Fault>,
 }
@@ -355,7 +355,7 @@ pub struct IdentifierState {
 impl RunSummary {
     /// The summary of the loop's results so far. How the run ended, its faults, log and
     /// realtime report are the caller's to fill in (`end` is "running" until then).
-    pub fn from_results(
+    pub(crate) fn from_results(
         labels: &SummaryLabels,
         stats: &RunStats,
         timing: &TickTiming,

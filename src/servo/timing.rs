@@ -36,7 +36,7 @@ impl Histogram {
     }
 
     /// Become a copy of `other` without allocating (same range: the bins are reused).
-    pub fn copy_from(&mut self, other: &Histogram) {
+    pub(crate) fn copy_from(&mut self, other: &Histogram) {
         self.bin_ns = other.bin_ns;
         self.bins.clone_from(&other.bins);
         self.overflow = other.overflow;
@@ -125,7 +125,7 @@ impl TickTiming {
     }
 
     /// Become a copy of `other` without allocating (built for the same period).
-    pub fn copy_from(&mut self, other: &TickTiming) {
+    pub(crate) fn copy_from(&mut self, other: &TickTiming) {
         self.period.copy_from(&other.period);
         self.lateness.copy_from(&other.lateness);
         self.compute.copy_from(&other.compute);
