@@ -17,14 +17,33 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use thiserror::Error;
 
+/// Why an output file was not written.
 #[derive(Debug, Error)]
 pub enum OutputError {
+    /// The path names something other than a regular file (a directory, a device, a FIFO, …).
     #[error("{} is {what}, not a regular file: refusing to write over it", path.display())]
-    NotAFile { path: PathBuf, what: &'static str },
+    NotAFile {
+        /// The path.
+        path: PathBuf,
+        /// What is there instead, e.g. `a directory`.
+        what: &'static str,
+    },
+    /// The file cannot be created or opened for writing (checked before a run starts).
     #[error("cannot write {}: {source}", path.display())]
-    Unwritable { path: PathBuf, source: io::Error },
+    Unwritable {
+        /// The path.
+        path: PathBuf,
+        /// What the open said.
+        source: io::Error,
+    },
+    /// Writing failed part-way; the file at the path is as it was.
     #[error("writing {} failed: {source} (nothing was changed there)", path.display())]
-    Write { path: PathBuf, source: io::Error },
+    Write {
+        /// The path.
+        path: PathBuf,
+        /// What the write said.
+        source: io::Error,
+    },
 }
 
 impl OutputError {

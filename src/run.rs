@@ -28,9 +28,13 @@ use thiserror::Error;
 /// `--device`: which Omni to talk to.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum DeviceSpec {
+    /// The simulated Omni (`sim`).
     Sim,
+    /// A recorded omnid log played back (`replay:PATH`).
     Replay(PathBuf),
+    /// A real Omni through the USB bridge (`usb`).
     Usb,
+    /// A real FireWire Omni on Linux firewire-cdev (`firewire`).
     Firewire,
 }
 
@@ -52,6 +56,7 @@ impl FromStr for DeviceSpec {
 }
 
 impl DeviceSpec {
+    /// The backend's name: `sim`, `replay`, `usb` or `firewire`.
     pub fn name(&self) -> &'static str {
         match self {
             DeviceSpec::Sim => "sim",
@@ -62,10 +67,15 @@ impl DeviceSpec {
     }
 }
 
+/// `omnid run`'s options (the rest comes from the config); [`Default`] gives the CLI's
+/// defaults.
 #[derive(Debug, Clone)]
 pub struct RunOptions {
+    /// The device to run on.
     pub device: DeviceSpec,
+    /// The controller.
     pub controller: ControllerKind,
+    /// The reference trajectory to track.
     pub trajectory: Trajectory,
     /// Seconds of device time; `f64::INFINITY` (replay only): the whole log.
     pub duration_s: f64,
@@ -75,6 +85,7 @@ pub struct RunOptions {
     /// Where the caller will write the summary as JSON: checked with the run's other outputs
     /// before the run starts.
     pub summary_json: Option<PathBuf>,
+    /// Run unpaced, as fast as the host allows (simulator and replay only; no realtime steps).
     pub fast: bool,
     /// Replay: skip damaged rows (and report them) instead of refusing the log.
     pub lenient: bool,
@@ -157,16 +168,19 @@ pub fn make_identifier(
 /// Problems that stop a run before the loop starts (bad input, no device, no log file).
 #[derive(Debug, Error)]
 pub enum RunError {
+    /// Options or inputs that cannot work together; the message says which.
     #[error("{0}")]
     BadInput(String),
     /// The log cannot be created, or another omnid writes it.
     #[error(transparent)]
     Log(#[from] LogError),
+    /// The device cannot be opened.
     #[error(transparent)]
     Device(#[from] DeviceError),
     /// The log given to `--device replay:PATH` cannot be replayed.
     #[error(transparent)]
     Replay(#[from] ReplayError),
+    /// The servo thread could not be started, or it panicked.
     #[error("internal error: {0}")]
     Internal(String),
     /// Ctrl-C or SIGTERM before the loop started (while a log was checked or a file waited on).
@@ -186,7 +200,9 @@ impl RunError {
 
 /// The outcome of a run that started.
 pub struct RunOutcome {
+    /// The run summary.
     pub summary: RunSummary,
+    /// Why the loop ended.
     pub end: EndReason,
     /// Writing the log failed part-way (the loop was not affected).
     pub log_error: Option<String>,
@@ -359,6 +375,7 @@ pub(crate) fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
 /// A servo loop ready to start: the device open, the controllers and the identifier built,
 /// the motors' heat loaded. `run` and `serve` both assemble it here.
 pub struct Pipeline {
+    /// The loop, ready to run.
     pub servo: Servo,
     /// The log columns this device feeds.
     pub(crate) schema: LogSchema,

@@ -16,7 +16,7 @@ pub(crate) const DAC_ZERO: u16 = 0x07FF;
 pub(crate) const DAC_MAX: u16 = 0x0FFF;
 /// Byte 7 of every command both open drivers send: a constant, not a counter
 /// (docs/FIREWIRE.md §3).
-pub(crate) const DRIVERS_BYTE7: u8 = 0x53;
+pub const DRIVERS_BYTE7: u8 = 0x53;
 
 /// Byte layout of the host → device command packet (little-endian).
 pub(crate) struct CommandLayout {
@@ -91,16 +91,32 @@ pub(crate) const STATUS_IDLE_HIGH_BITS: u8 = 0x90;
 /// A malformed packet. Never a panic: every decoder returns one of these.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum CodecError {
+    /// A packet of the wrong size.
     #[error("{what} packet has {got} bytes, expected {expected}")]
     Length {
+        /// Which packet: `state` or `command`.
         what: &'static str,
+        /// Its length, bytes.
         got: usize,
+        /// The length it must have, bytes.
         expected: usize,
     },
+    /// A motor word above 0x0FFF.
     #[error("command packet byte {byte}: motor word {word:#06x} exceeds the 12-bit DAC range")]
-    DacRange { byte: usize, word: u16 },
+    DacRange {
+        /// Offset of the word in the packet.
+        byte: usize,
+        /// The word.
+        word: u16,
+    },
+    /// A reserved byte that is not zero.
     #[error("command packet byte {byte}: reserved byte is {value:#04x}, expected 0")]
-    Reserved { byte: usize, value: u8 },
+    Reserved {
+        /// Offset of the byte in the packet.
+        byte: usize,
+        /// Its value.
+        value: u8,
+    },
 }
 
 /// Decoded host → device command.
@@ -108,6 +124,7 @@ pub enum CodecError {
 pub struct MotorCommand {
     /// Motor DAC words, 0..=0x0FFF, 0x07FF = zero torque.
     pub dac: [u16; 3],
+    /// Motor amplifiers enabled.
     pub amps_on: bool,
     /// Dock lamp bits (0..=3).
     pub lamp: u8,
@@ -302,6 +319,8 @@ pub struct DacScale {
 }
 
 impl DacScale {
+    /// Joint torques, N·m, as DAC words (rounded, saturated at the 12-bit range; a
+    /// non-finite torque gives zero torque).
     pub fn to_words(&self, tau: &[f64; 3]) -> [u16; 3] {
         let mut w = [DAC_ZERO; 3];
         for j in 0..3 {

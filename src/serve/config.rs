@@ -7,7 +7,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum StaleFallback {
+    /// Hold the arm where it is (amplifiers on).
     Hold,
+    /// Amplifiers off: the arm rests.
     Idle,
 }
 
@@ -21,6 +23,7 @@ impl StaleFallback {
     }
 }
 
+/// The `[serve]` section: the client interface of `omnid serve` (docs/PROTOCOL.md).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ServeConfig {
@@ -65,6 +68,7 @@ impl Default for ServeConfig {
 }
 
 impl ServeConfig {
+    /// Check every value; the first problem names its field (`serve.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
         check::in_range(
             "serve.stream_ttl_ms",
@@ -117,6 +121,7 @@ impl ServeConfig {
         Ok(())
     }
 
+    /// `stream_ttl_ms` in seconds.
     pub fn stream_ttl_s(&self) -> f64 {
         self.stream_ttl_ms * 1e-3
     }

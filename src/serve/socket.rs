@@ -137,6 +137,7 @@ impl Conn {
         }
     }
 
+    /// The socket's file descriptor (to poll it).
     pub fn raw(&self) -> RawFd {
         self.0.as_raw_fd()
     }
@@ -187,14 +188,18 @@ impl Conn {
 /// A connected peer's credentials.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Peer {
+    /// Process id.
     pub pid: i32,
+    /// User id.
     pub uid: u32,
+    /// Primary group id.
     pub gid: u32,
     /// Supplementary groups.
     pub groups: Vec<u32>,
 }
 
 impl Peer {
+    /// Whether the peer is in group `gid` (primary or supplementary).
     pub fn in_group(&self, gid: u32) -> bool {
         self.gid == gid || self.groups.contains(&gid)
     }
