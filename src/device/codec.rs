@@ -333,7 +333,8 @@ impl DacScale {
         w
     }
 
-    pub(crate) fn to_torque(&self, words: &[u16; 3]) -> [f64; 3] {
+    /// DAC words as the joint torques they command, N·m.
+    pub fn to_torque(&self, words: &[u16; 3]) -> [f64; 3] {
         let mut t = [0.0; 3];
         for j in 0..3 {
             t[j] = (words[j] as f64 - DAC_ZERO as f64) * self.nm_per_count[j];
