@@ -5,7 +5,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Longest single sleep of [`sleep_until_ns_or_stop`] between two looks at the stop flag.
-pub(crate) const STOP_SLICE_NS: u64 = 20_000_000;
+pub const STOP_SLICE_NS: u64 = 20_000_000;
 
 /// Monotonic time in nanoseconds.
 pub fn now_ns() -> u64 {
@@ -45,7 +45,7 @@ pub fn sleep_until_ns(deadline_ns: u64) {
 /// most [`STOP_SLICE_NS`], so a wait of any length (a gap in a replay, an injected slowdown)
 /// ends within one slice of Ctrl-C. A wait shorter than a slice is one `clock_nanosleep`, as
 /// [`sleep_until_ns`]; nothing allocates or locks. Returns false when the flag cut it short.
-pub(crate) fn sleep_until_ns_or_stop(deadline_ns: u64, stop: &AtomicBool) -> bool {
+pub fn sleep_until_ns_or_stop(deadline_ns: u64, stop: &AtomicBool) -> bool {
     loop {
         if stop.load(Ordering::Relaxed) {
             return false;

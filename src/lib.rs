@@ -75,7 +75,7 @@ pub mod experiment;
 pub(crate) mod fast_tanh;
 pub mod haptics;
 pub mod identifier;
-pub(crate) mod input;
+pub mod input;
 pub mod log_pretune;
 pub mod omni;
 pub mod output;

@@ -157,13 +157,13 @@ impl Drop for Temp {
 
 /// Check that a whole file can be written at `path`: the target is a regular file or new, its
 /// directory exists (it is created if needed) and a file can be made there.
-pub(crate) fn check_file(path: &Path) -> Result<(), OutputError> {
+pub fn check_file(path: &Path) -> Result<(), OutputError> {
     let target = target(path)?;
     prepare_dir(path, dir_of(&target))
 }
 
 /// Check that files can be written in `dir` (created if needed).
-pub(crate) fn check_dir(dir: &Path) -> Result<(), OutputError> {
+pub fn check_dir(dir: &Path) -> Result<(), OutputError> {
     let target = resolve(dir).map_err(|source| OutputError::Unwritable {
         path: dir.to_path_buf(),
         source,
@@ -197,7 +197,7 @@ fn prepare_dir(path: &Path, dir: &Path) -> Result<(), OutputError> {
 /// Write the whole file at `path` (see the module notes): `fill` writes the contents; the
 /// file is in place only if it and the final flush succeed. Its errors are returned as they
 /// are; the temporary file is removed on every error.
-pub(crate) fn write_with<T, E: From<OutputError>>(
+pub fn write_with<T, E: From<OutputError>>(
     path: &Path,
     fill: impl FnOnce(&mut BufWriter<&File>) -> Result<T, E>,
 ) -> Result<T, E> {
@@ -242,11 +242,7 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
 
 /// Create a new, empty file `dir/stem.ext`, or `dir/stem-2.ext`, `-3`, … if that name is
 /// taken: a default name never replaces another file (two runs started in the same second).
-pub(crate) fn create_unique(
-    dir: &Path,
-    stem: &str,
-    ext: &str,
-) -> Result<(PathBuf, File), OutputError> {
+pub fn create_unique(dir: &Path, stem: &str, ext: &str) -> Result<(PathBuf, File), OutputError> {
     let unwritable = |path: PathBuf| move |source| OutputError::Unwritable { path, source };
     std::fs::create_dir_all(dir).map_err(unwritable(dir.to_path_buf()))?;
     for n in 1..=10_000 {

@@ -2,7 +2,7 @@
 //! megabyte-long field must not become a megabyte-long error).
 
 /// Longest quoted value, in characters.
-pub(crate) const MAX_QUOTED: usize = 80;
+pub const MAX_QUOTED: usize = 80;
 
 /// `s` as it is when short, else its first [`MAX_QUOTED`] characters, `…` and its length.
 pub fn cut(s: &str) -> String {

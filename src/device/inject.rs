@@ -21,7 +21,7 @@ use thiserror::Error;
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct InjectConfig {
-    /// E.g. ["disconnect@5", "stall@2:50", "corrupt:0.01", "encoder-jump@3:800", "nan@4", "slow@1:5"].
+    /// E.g. `["disconnect@5", "stall@2:50", "corrupt:0.01", "encoder-jump@3:800", "nan@4", "slow@1:5"]`.
     pub faults: Vec<String>,
 }
 

@@ -28,7 +28,7 @@ use thiserror::Error;
 
 /// Largest DAC offset `--outputs` will send (about 44 mN·m at the default 2.2e-4 N·m per
 /// count: a tenth of the Omni's peak).
-pub(crate) const MAX_PULSE_COUNTS: u16 = 200;
+pub const MAX_PULSE_COUNTS: u16 = 200;
 /// Encoder counts a joint must move for the probe to call it a direction (≈ 0.08 rad).
 pub(crate) const MOVE_COUNTS: i64 = 200;
 /// Encoder counts a sign pulse may move a joint before it is a surprise (≈ 0.35 rad).

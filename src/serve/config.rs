@@ -27,7 +27,7 @@ impl StaleFallback {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ServeConfig {
-    /// Socket path; empty: $XDG_RUNTIME_DIR/omnid/<device>.sock (or /run/omnid/ as root).
+    /// Socket path; empty: `$XDG_RUNTIME_DIR/omnid/<device>.sock` (or /run/omnid/ as root).
     pub socket: String,
     /// A stream command (`servo_jp`, `servo_jf`) stays in effect this long unless renewed, ms.
     pub stream_ttl_ms: f64,
