@@ -8,7 +8,7 @@
 //! ```text
 //!  Device ──state packet──▶ decode ──▶ estimate (Kalman) ──▶ control (PD, CT, NNIDC, …)
 //!    ▲                                                              │
-//!    └──────── encode ◀── safety (ramp, walls, speed, heat) ◀───────┘
+//!    └──────── encode ◀── safety (walls, ramp, heat, clamp) ◀───────┘
 //!                   │
 //!                   └──▶ telemetry: the CSV log and the run summary
 //! ```
@@ -26,10 +26,13 @@
 //!   it through [`Client`] (the protocol is in `docs/PROTOCOL.md`).
 //! - A loop of your own: build a [`Servo`] over any [`Device`] — [`SimOmni`] (the simulated
 //!   arm), [`ReplayDevice`] (a recorded log) or, for fault drills, [`FaultyDevice`] wrapping
-//!   either with [`Fault`]s.
+//!   any of them with [`Fault`]s.
 //! - Off the loop: [`plot`] draws figures from a log, [`convert`] turns other recordings into
 //!   omnid logs, [`experiment`] reproduces the paper's experiments, [`log_pretune`] pretunes the
 //!   identifier from a log.
+//! - Around them: [`input`] reads files from outside (no wait beyond Ctrl-C, no unbounded
+//!   row), [`output`] writes files without leaving half-written ones, [`progress`] draws the
+//!   progress bars of long commands.
 //!
 //! Terminal text goes through [`out!`], [`outln!`] and [`errln!`], which never panic on a
 //! closed pipe.
