@@ -16,13 +16,19 @@ use std::sync::Arc;
 /// `omnid serve`'s options (the rest comes from the config).
 #[derive(Debug, Clone)]
 pub struct ServeOptions {
+    /// The device to serve.
     pub device: DeviceSpec,
+    /// The controller the daemon starts with (clients may switch).
     pub controller: crate::control::ControllerKind,
     /// Socket path (None: `serve.socket`, else the default for the device).
     pub socket: Option<PathBuf>,
+    /// Identifier weights to start from (None: the shipped ones).
     pub weights: Option<PathBuf>,
+    /// Keep the identifier's weights fixed (`--no-adapt`).
     pub no_adapt: bool,
+    /// Skip malformed rows of a replayed log instead of failing (`--lenient`).
     pub lenient: bool,
+    /// Faults to inject (`--inject`).
     pub inject: Vec<crate::device::inject::Fault>,
 }
 
@@ -30,12 +36,17 @@ pub struct ServeOptions {
 pub struct ServeOutcome {
     /// The whole session's summary (as `omnid run`'s).
     pub summary: crate::servo::summary::RunSummary,
+    /// Why the servo loop ended.
     pub end: EndReason,
     /// A client asked for the shutdown (`omnid ctl shutdown`).
     pub shutdown_requested: bool,
+    /// A device error while sending the final safe packet or closing, if any.
     pub shutdown_error: Option<String>,
+    /// Fault dumps written during the session.
     pub dumps: Vec<PathBuf>,
+    /// An error of the recording in progress at the end, if any.
     pub recording_error: Option<String>,
+    /// The socket the daemon listened on.
     pub socket: PathBuf,
 }
 
@@ -80,9 +91,11 @@ fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, PathLock), 
 /// A daemon ready to start: the servo pipeline (started in idle, taking commands) and the
 /// hub that will serve its clients, the socket bound and locked.
 pub struct Prepared {
+    /// The servo loop, attached to the hub's mailbox.
     pub pipeline: crate::run::Pipeline,
+    /// What [`hub::Hub::new`] takes.
     pub hub: hub::HubSetup,
-    pub socket: PathBuf,
+    pub(crate) socket: PathBuf,
     _device_lock: Option<DeviceLock>,
     _socket_lock: PathLock,
 }

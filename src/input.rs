@@ -40,6 +40,7 @@ pub struct Stopped;
 #[derive(Debug, Error)]
 #[error("row longer than {limit} bytes")]
 pub struct RowTooLong {
+    /// The cap, bytes.
     pub limit: u64,
 }
 
@@ -47,6 +48,7 @@ pub struct RowTooLong {
 #[derive(Debug, Error)]
 #[error("larger than {}, the most accepted for this file", size(*.limit))]
 pub struct TooBig {
+    /// The file's limit, bytes.
     pub limit: u64,
 }
 
@@ -54,6 +56,7 @@ pub struct TooBig {
 #[derive(Debug, Error)]
 #[error("{kind}, not a regular file")]
 pub struct NotRegular {
+    /// What it is instead, e.g. `a character device`.
     pub kind: &'static str,
 }
 
@@ -198,6 +201,7 @@ pub struct RowBound<R> {
 }
 
 impl<R> RowBound<R> {
+    /// `inner` capped, the first row starting at byte 0.
     pub fn new(inner: R) -> Self {
         RowBound {
             inner,
@@ -209,10 +213,6 @@ impl<R> RowBound<R> {
     /// The next row starts at byte `offset` of the input.
     pub fn row_starts_at(&mut self, offset: u64) {
         self.row_start = offset;
-    }
-
-    pub fn get_ref(&self) -> &R {
-        &self.inner
     }
 }
 

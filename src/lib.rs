@@ -1,10 +1,43 @@
-//! omnid: a hardware I/O daemon for the Phantom Omni haptic device.
+//! omnid: a hardware I/O daemon for the Phantom Omni (SensAble Phantom Omni / Geomagic Touch)
+//! haptic device, with the simulator, log replay, the identifier and the tools around them.
 //!
-//! Data flow, one module per stage:
-//! `device` (packets) → `estimate` (Kalman) → `control` (PD, …) → safety in `servo` →
-//! `device`, with `telemetry` carrying each tick to the log and the summary, and `omni` the
-//! geometry and physics shared by the simulator and model-based control. Off the loop: `plot`
-//! draws figures from a log, `experiment` reproduces the paper's experiments, `progress` the terminal progress bars of long commands, `input` the files read from outside (never an uninterruptible wait, never an unbounded row).
+//! # Data flow
+//!
+//! Once per device packet (1 kHz), the [`Servo`] runs one tick:
+//!
+//! ```text
+//!  Device ──state packet──▶ decode ──▶ estimate (Kalman) ──▶ control (PD, CT, NNIDC, …)
+//!    ▲                                                              │
+//!    └──────── encode ◀── safety (walls, ramp, heat, clamp) ◀───────┘
+//!                   │
+//!                   └──▶ telemetry: the CSV log and the run summary
+//! ```
+//!
+//! One module per stage: [`device`] (packets and the [`Device`] trait), [`estimate`],
+//! [`control`], [`servo`] (the loop and its safety layer), [`telemetry`]; [`omni`] holds the
+//! geometry and physics shared by the simulator and model-based control, [`identifier`] the
+//! online model identifier. Everything the loop touches is allocated before its first tick.
+//!
+//! # Entry points
+//!
+//! - A run (`omnid run`): fill a [`Config`] and [`RunOptions`], call [`execute`], read the
+//!   [`RunOutcome`] (its [`RunSummary`] and [`EndReason`]).
+//! - The daemon (`omnid serve`): [`daemon::serve`] with [`ServeOptions`]; lab software talks to
+//!   it through [`Client`] (the protocol is in `docs/PROTOCOL.md`).
+//! - A loop of your own: build a [`Servo`] over any [`Device`] — [`SimOmni`] (the simulated
+//!   arm), [`ReplayDevice`] (a recorded log) or, for fault drills, [`FaultyDevice`] wrapping
+//!   any of them with [`Fault`]s.
+//! - Off the loop: [`plot`] draws figures from a log, [`convert`] turns other recordings into
+//!   omnid logs, [`experiment`] reproduces the paper's experiments, [`log_pretune`] pretunes the
+//!   identifier from a log.
+//! - Around them: [`input`] reads files from outside (no wait beyond Ctrl-C, no unbounded
+//!   row), [`output`] writes files without leaving half-written ones, [`progress`] draws the
+//!   progress bars of long commands.
+//!
+//! Terminal text goes through [`out!`], [`outln!`] and [`errln!`], which never panic on a
+//! closed pipe.
+
+#![warn(missing_docs)]
 
 /// Terminal output that never panics. `print!` and `eprintln!` panic when the stream is a
 /// closed pipe or a hung-up terminal, which would lose the exit code, the summary JSON and the
@@ -37,14 +70,14 @@ macro_rules! errln {
 
 pub mod clock;
 pub mod config;
-pub mod config_check;
+pub(crate) mod config_check;
 pub mod control;
 pub mod convert;
 pub mod daemon;
 pub mod device;
 pub mod estimate;
 pub mod experiment;
-pub mod fast_tanh;
+pub(crate) mod fast_tanh;
 pub mod haptics;
 pub mod identifier;
 pub mod input;
@@ -58,3 +91,16 @@ pub mod serve;
 pub mod servo;
 pub mod telemetry;
 pub mod text;
+
+pub use config::{Config, ConfigError};
+pub use control::{ControllerKind, Trajectory};
+pub use daemon::{ServeOptions, ServeOutcome};
+pub use device::inject::{Fault, FaultyDevice};
+pub use device::replay::ReplayDevice;
+pub use device::sim::SimOmni;
+pub use device::{Device, DeviceError, RawSample};
+pub use omni::{Geometry, Joint3};
+pub use run::{execute, DeviceSpec, RunError, RunOptions, RunOutcome};
+pub use serve::client::{Client, ClientError, Message};
+pub use servo::summary::RunSummary;
+pub use servo::{EndReason, Servo};

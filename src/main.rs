@@ -907,7 +907,7 @@ fn main() -> ExitCode {
         Command::Identify(args) => identify_cmd(args),
         Command::Devices { config } => match load_config(config.as_deref(), None) {
             Ok(cfg) => {
-                omnid::out!("{}", omnid::device::discovery::list_devices(&cfg.usb));
+                omnid::out!("{}", omnid::device::list_devices(&cfg.usb));
                 Ok(0)
             }
             Err(code) => Ok(code),

@@ -17,14 +17,33 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use thiserror::Error;
 
+/// Why an output file was not written.
 #[derive(Debug, Error)]
 pub enum OutputError {
+    /// The path names something other than a regular file (a directory, a device, a FIFO, …).
     #[error("{} is {what}, not a regular file: refusing to write over it", path.display())]
-    NotAFile { path: PathBuf, what: &'static str },
+    NotAFile {
+        /// The path.
+        path: PathBuf,
+        /// What is there instead, e.g. `a directory`.
+        what: &'static str,
+    },
+    /// The file cannot be created or opened for writing (checked before a run starts).
     #[error("cannot write {}: {source}", path.display())]
-    Unwritable { path: PathBuf, source: io::Error },
+    Unwritable {
+        /// The path.
+        path: PathBuf,
+        /// What the open said.
+        source: io::Error,
+    },
+    /// Writing failed part-way; the file at the path is as it was.
     #[error("writing {} failed: {source} (nothing was changed there)", path.display())]
-    Write { path: PathBuf, source: io::Error },
+    Write {
+        /// The path.
+        path: PathBuf,
+        /// What the write said.
+        source: io::Error,
+    },
 }
 
 impl OutputError {
@@ -36,7 +55,7 @@ impl OutputError {
 
 /// `path` with the symlinks of its last component followed: the file a write reaches (it
 /// need not exist).
-pub fn resolve(path: &Path) -> io::Result<PathBuf> {
+pub(crate) fn resolve(path: &Path) -> io::Result<PathBuf> {
     let mut p = path.to_path_buf();
     for _ in 0..40 {
         match std::fs::symlink_metadata(&p) {
@@ -244,7 +263,7 @@ pub fn create_unique(dir: &Path, stem: &str, ext: &str) -> Result<(PathBuf, File
 }
 
 /// [`create_unique`], filled by `fill`; a file that could not be written whole is removed.
-pub fn write_unique(
+pub(crate) fn write_unique(
     dir: &Path,
     stem: &str,
     ext: &str,
@@ -265,7 +284,7 @@ pub fn write_unique(
 /// Whether writing `a` and `b` would write the same regular file: the same inode (through
 /// symlinks, hard links or different spellings), or the same new path. Devices and FIFOs are
 /// never "the same file" (two outputs to /dev/null lose nothing).
-pub fn same_file(a: &Path, b: &Path) -> bool {
+pub(crate) fn same_file(a: &Path, b: &Path) -> bool {
     let (Ok(ra), Ok(rb)) = (resolve(a), resolve(b)) else {
         return false;
     };

@@ -28,9 +28,13 @@ use thiserror::Error;
 /// `--device`: which Omni to talk to.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum DeviceSpec {
+    /// The simulated Omni (`sim`).
     Sim,
+    /// A recorded omnid log played back (`replay:PATH`).
     Replay(PathBuf),
+    /// A real Omni through the USB bridge (`usb`).
     Usb,
+    /// A real FireWire Omni on Linux firewire-cdev (`firewire`).
     Firewire,
 }
 
@@ -52,6 +56,7 @@ impl FromStr for DeviceSpec {
 }
 
 impl DeviceSpec {
+    /// The backend's name: `sim`, `replay`, `usb` or `firewire`.
     pub fn name(&self) -> &'static str {
         match self {
             DeviceSpec::Sim => "sim",
@@ -62,10 +67,15 @@ impl DeviceSpec {
     }
 }
 
+/// `omnid run`'s options (the rest comes from the config); [`Default`] gives the CLI's
+/// defaults.
 #[derive(Debug, Clone)]
 pub struct RunOptions {
+    /// The device to run on.
     pub device: DeviceSpec,
+    /// The controller.
     pub controller: ControllerKind,
+    /// The reference trajectory to track.
     pub trajectory: Trajectory,
     /// Seconds of device time; `f64::INFINITY` (replay only): the whole log.
     pub duration_s: f64,
@@ -75,6 +85,7 @@ pub struct RunOptions {
     /// Where the caller will write the summary as JSON: checked with the run's other outputs
     /// before the run starts.
     pub summary_json: Option<PathBuf>,
+    /// Run unpaced, as fast as the host allows (simulator and replay only; no realtime steps).
     pub fast: bool,
     /// Replay: skip damaged rows (and report them) instead of refusing the log.
     pub lenient: bool,
@@ -111,8 +122,8 @@ impl Default for RunOptions {
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
 /// box (see mock/README.md for how they were made).
-pub const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
-pub const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
+pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
+pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
 
 /// The identifier a run starts with, and a label for the summary.
 /// `stop`: the operator's, which ends a wait on a weights file that is a pipe (without it such
@@ -157,16 +168,19 @@ pub fn make_identifier(
 /// Problems that stop a run before the loop starts (bad input, no device, no log file).
 #[derive(Debug, Error)]
 pub enum RunError {
+    /// Options or inputs that cannot work together; the message says which.
     #[error("{0}")]
     BadInput(String),
     /// The log cannot be created, or another omnid writes it.
     #[error(transparent)]
     Log(#[from] LogError),
+    /// The device cannot be opened.
     #[error(transparent)]
     Device(#[from] DeviceError),
     /// The log given to `--device replay:PATH` cannot be replayed.
     #[error(transparent)]
     Replay(#[from] ReplayError),
+    /// The servo thread could not be started, or it panicked.
     #[error("internal error: {0}")]
     Internal(String),
     /// Ctrl-C or SIGTERM before the loop started (while a log was checked or a file waited on).
@@ -186,7 +200,9 @@ impl RunError {
 
 /// The outcome of a run that started.
 pub struct RunOutcome {
+    /// The run summary.
     pub summary: RunSummary,
+    /// Why the loop ended.
     pub end: EndReason,
     /// Writing the log failed part-way (the loop was not affected).
     pub log_error: Option<String>,
@@ -217,7 +233,7 @@ fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Dev
 
 /// The refusal when a motor's DAC sign has not been measured: the first torque on a new Omni
 /// goes through `omnid probe --outputs`, never straight into a controller.
-pub fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
+pub(crate) fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
     let missing = cfg.unmeasured_dac_signs();
     if missing.is_empty() {
         return None;
@@ -271,7 +287,7 @@ fn open_device(
 
 /// Check the options that do not need the device: duration, `--fast`, the simulator's
 /// substeps, the faults to inject (the command line's and the config's).
-pub fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
+pub(crate) fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
     let replay = matches!(opts.device, DeviceSpec::Replay(_));
     if !(opts.duration_s > 0.0 && (opts.duration_s.is_finite() || replay)) {
         return Err(RunError::BadInput(format!(
@@ -283,7 +299,10 @@ pub fn check_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunE
 }
 
 /// The checks `run` and `serve` share.
-pub fn check_device_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault>, RunError> {
+pub(crate) fn check_device_options(
+    opts: &RunOptions,
+    cfg: &Config,
+) -> Result<Vec<Fault>, RunError> {
     if opts.fast && matches!(opts.device, DeviceSpec::Usb | DeviceSpec::Firewire) {
         return Err(RunError::BadInput(
             "--fast works only with the sim and replay devices: real hardware paces itself".into(),
@@ -311,7 +330,7 @@ pub fn check_device_options(opts: &RunOptions, cfg: &Config) -> Result<Vec<Fault
 /// Check every file a run will write before it starts: the log (not in use by another
 /// omnid), the fault dump beside it, the summary JSON; and that no two of them, nor the
 /// replay input, name the same file (one would destroy the other).
-pub fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
+pub(crate) fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
     // Each file as the user named it, and its path.
     let mut named: Vec<(String, PathBuf)> = Vec::new();
     if let DeviceSpec::Replay(input) = &opts.device {
@@ -356,27 +375,28 @@ pub fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
 /// A servo loop ready to start: the device open, the controllers and the identifier built,
 /// the motors' heat loaded. `run` and `serve` both assemble it here.
 pub struct Pipeline {
+    /// The loop, ready to run.
     pub servo: Servo,
     /// The log columns this device feeds.
-    pub schema: LogSchema,
+    pub(crate) schema: LogSchema,
     /// Where the identifier's weights came from (`shipped`, `fresh` or a path).
-    pub weights_label: String,
+    pub(crate) weights_label: String,
     /// The identifier as it started (its shape; `serve` copies live weights into clones).
-    pub identifier: Identifier,
+    pub(crate) identifier: Identifier,
     /// Where motor heat is carried over between runs (none for replays).
-    pub heat_path: Option<PathBuf>,
+    pub(crate) heat_path: Option<PathBuf>,
     /// Things the operator should know that do not stop the run.
-    pub warnings: Vec<String>,
+    pub(crate) warnings: Vec<String>,
     /// Realtime steps to take on the servo thread (paced runs only).
-    pub realtime: Option<crate::servo::realtime::RealtimeConfig>,
+    pub(crate) realtime: Option<crate::servo::realtime::RealtimeConfig>,
     /// Which realtime steps took effect, once the servo thread has taken them (before its
     /// first tick): for a daemon's status while it runs.
-    pub realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
+    pub(crate) realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
 }
 
 /// Build the pipeline for `opts` with `faults` (from [`check_options`]); telemetry leaves
 /// through `telemetry`, `stop` ends the loop.
-pub fn assemble(
+pub(crate) fn assemble(
     opts: &RunOptions,
     cfg: &Config,
     faults: &[Fault],
@@ -463,12 +483,14 @@ pub fn assemble(
 }
 
 /// The servo thread's result: the loop's report and which realtime steps took effect.
-pub type ServoThreadResult = (ServoReport, Option<crate::servo::realtime::RealtimeReport>);
+pub(crate) type ServoThreadResult = (ServoReport, Option<crate::servo::realtime::RealtimeReport>);
 
 impl Pipeline {
     /// Start the loop on its own thread (realtime steps taken there, before the first tick).
     /// Returns what the caller keeps: the thread and the bookkeeping for the end.
-    pub fn spawn(self) -> Result<(std::thread::JoinHandle<ServoThreadResult>, Ending), RunError> {
+    pub(crate) fn spawn(
+        self,
+    ) -> Result<(std::thread::JoinHandle<ServoThreadResult>, Ending), RunError> {
         let Pipeline {
             mut servo,
             schema,
@@ -512,7 +534,7 @@ impl Pipeline {
 }
 
 /// What is needed once the loop has ended.
-pub struct Ending {
+pub(crate) struct Ending {
     pub schema: LogSchema,
     pub weights_label: String,
     pub heat_path: Option<PathBuf>,
@@ -521,7 +543,7 @@ pub struct Ending {
 
 impl Ending {
     /// Keep the motors' heat for the next run and warn about motors that ran hot.
-    pub fn save_heat(&self, report: &ServoReport) {
+    pub(crate) fn save_heat(&self, report: &ServoReport) {
         if let Some(path) = &self.heat_path {
             if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
                 crate::errln!("omnid: warning: motor heat not saved: {e}");
@@ -566,7 +588,7 @@ fn unreached_faults(faults: &[Fault], reached_s: f64) -> Vec<String> {
 }
 
 /// Join the servo thread.
-pub fn join_servo(
+pub(crate) fn join_servo(
     handle: std::thread::JoinHandle<ServoThreadResult>,
 ) -> Result<ServoThreadResult, RunError> {
     handle

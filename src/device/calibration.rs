@@ -35,6 +35,7 @@ pub struct Calibration {
 
 impl Calibration {
     /// The nominal inkwell pose for `serial` (a starting point; measure and correct per unit).
+    #[cfg(test)]
     pub fn nominal(serial: &str) -> Self {
         Calibration {
             serial: serial.to_string(),
@@ -163,6 +164,7 @@ pub fn load(dir: &Path, serial: &str) -> Result<Option<Calibration>, Calibration
 }
 
 /// Store a calibration (atomically: a temporary file renamed into place).
+#[cfg(test)]
 pub fn save(dir: &Path, cal: &Calibration) -> Result<PathBuf, CalibrationError> {
     let path = path_for(dir, &cal.serial)?;
     cal.validate(&path)?;
@@ -195,11 +197,6 @@ pub struct Calibrated {
 impl Calibrated {
     pub fn new(inner: Box<dyn Device>, offset: [u16; 3]) -> Self {
         Calibrated { inner, offset }
-    }
-
-    /// Raw counts subtracted from each joint.
-    pub fn offset(&self) -> [u16; 3] {
-        self.offset
     }
 }
 

@@ -200,10 +200,6 @@ impl<R: BufRead> CaptureReader<R> {
         &self.header
     }
 
-    pub fn path(&self) -> &str {
-        &self.path
-    }
-
     fn err(&self, message: String) -> CaptureError {
         CaptureError::Line {
             path: self.path.clone(),

@@ -11,15 +11,15 @@ pub const COMMAND_LEN: usize = 16;
 /// Device → host packet length, bytes (docs/FIREWIRE.md §4).
 pub const STATE_LEN: usize = 44;
 /// DAC word for zero torque (12-bit offset binary).
-pub const DAC_ZERO: u16 = 0x07FF;
+pub(crate) const DAC_ZERO: u16 = 0x07FF;
 /// Largest DAC word (12 bits).
-pub const DAC_MAX: u16 = 0x0FFF;
+pub(crate) const DAC_MAX: u16 = 0x0FFF;
 /// Byte 7 of every command both open drivers send: a constant, not a counter
 /// (docs/FIREWIRE.md §3).
 pub const DRIVERS_BYTE7: u8 = 0x53;
 
 /// Byte layout of the host → device command packet (little-endian).
-pub struct CommandLayout {
+pub(crate) struct CommandLayout {
     /// Offsets of the three u16 motor words.
     pub motor: [usize; 3],
     /// Offset of the misc-out byte.
@@ -35,7 +35,7 @@ pub struct CommandLayout {
 }
 
 /// Byte layout of the device → host state packet (little-endian).
-pub struct StateLayout {
+pub(crate) struct StateLayout {
     /// Offsets of the three u16 encoder counts.
     pub encoder: [usize; 3],
     /// Offsets of the three u16 gimbal potentiometer words.
@@ -51,7 +51,7 @@ pub struct StateLayout {
 }
 
 /// docs/FIREWIRE.md §3: omnifirewire.h:60-90 (ROS) and PhantomSpec.h:93-123 (Twente).
-pub const COMMAND_LAYOUT: CommandLayout = CommandLayout {
+pub(crate) const COMMAND_LAYOUT: CommandLayout = CommandLayout {
     // force_x/y/z: omnifirewire.h:62-64; PhantomSpec.h:95-97.
     motor: [0, 2, 4],
     // The low byte of the u16 status word: omnifirewire.h:66-86; PhantomSpec.h:98-120.
@@ -68,7 +68,7 @@ pub const COMMAND_LAYOUT: CommandLayout = CommandLayout {
 
 /// docs/FIREWIRE.md §4: omnifirewire.h:92-136 (ROS) and PhantomSpec.h:53-88 (Twente); the
 /// switch byte is 19 in both (omnifirewire.h:105-119, PhantomSpec.h:62-77).
-pub const STATE_LAYOUT: StateLayout = StateLayout {
+pub(crate) const STATE_LAYOUT: StateLayout = StateLayout {
     // encoder_x/y/z: omnifirewire.h:96-98; PhantomSpec.h:57-59.
     encoder: [4, 6, 8],
     // gimbal_a_x/y/z: omnifirewire.h:100-102; PhantomSpec.h:60.
@@ -86,21 +86,37 @@ pub const STATE_LAYOUT: StateLayout = StateLayout {
 /// Bits 3..7 of the switch byte as the Twente trace expects them on an idle device
 /// (libraw1394-2.0.5-trace.patch:1580-1588: bit 4 and bit 7 set), so that encoded packets
 /// look like the device's.
-pub const STATUS_IDLE_HIGH_BITS: u8 = 0x90;
+pub(crate) const STATUS_IDLE_HIGH_BITS: u8 = 0x90;
 
 /// A malformed packet. Never a panic: every decoder returns one of these.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum CodecError {
+    /// A packet of the wrong size.
     #[error("{what} packet has {got} bytes, expected {expected}")]
     Length {
+        /// Which packet: `state` or `command`.
         what: &'static str,
+        /// Its length, bytes.
         got: usize,
+        /// The length it must have, bytes.
         expected: usize,
     },
+    /// A motor word above 0x0FFF.
     #[error("command packet byte {byte}: motor word {word:#06x} exceeds the 12-bit DAC range")]
-    DacRange { byte: usize, word: u16 },
+    DacRange {
+        /// Offset of the word in the packet.
+        byte: usize,
+        /// The word.
+        word: u16,
+    },
+    /// A reserved byte that is not zero.
     #[error("command packet byte {byte}: reserved byte is {value:#04x}, expected 0")]
-    Reserved { byte: usize, value: u8 },
+    Reserved {
+        /// Offset of the byte in the packet.
+        byte: usize,
+        /// Its value.
+        value: u8,
+    },
 }
 
 /// Decoded host → device command.
@@ -108,6 +124,7 @@ pub enum CodecError {
 pub struct MotorCommand {
     /// Motor DAC words, 0..=0x0FFF, 0x07FF = zero torque.
     pub dac: [u16; 3],
+    /// Motor amplifiers enabled.
     pub amps_on: bool,
     /// Dock lamp bits (0..=3).
     pub lamp: u8,
@@ -302,6 +319,8 @@ pub struct DacScale {
 }
 
 impl DacScale {
+    /// Joint torques, N·m, as DAC words (rounded, saturated at the 12-bit range; a
+    /// non-finite torque gives zero torque).
     pub fn to_words(&self, tau: &[f64; 3]) -> [u16; 3] {
         let mut w = [DAC_ZERO; 3];
         for j in 0..3 {
@@ -314,6 +333,7 @@ impl DacScale {
         w
     }
 
+    /// DAC words as the joint torques they command, N·m.
     pub fn to_torque(&self, words: &[u16; 3]) -> [f64; 3] {
         let mut t = [0.0; 3];
         for j in 0..3 {

@@ -99,8 +99,8 @@ pub struct FirewireEntry {
 /// Everything `omnid devices` prints.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DiscoveryReport {
-    pub usb: UsbSection,
-    pub firewire: Vec<FirewireEntry>,
+    pub(crate) usb: UsbSection,
+    pub(crate) firewire: Vec<FirewireEntry>,
 }
 
 impl DiscoveryReport {

@@ -21,11 +21,12 @@ use thiserror::Error;
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct InjectConfig {
-    /// E.g. ["disconnect@5", "stall@2:50", "corrupt:0.01", "encoder-jump@3:800", "nan@4", "slow@1:5"].
+    /// E.g. `["disconnect@5", "stall@2:50", "corrupt:0.01", "encoder-jump@3:800", "nan@4", "slow@1:5"]`.
     pub faults: Vec<String>,
 }
 
 impl InjectConfig {
+    /// The specs as faults; a bad one names its index (`inject.faults[i]`).
     pub fn parsed(&self) -> Result<Vec<Fault>, ConfigError> {
         self.faults
             .iter()
@@ -54,26 +55,55 @@ impl InjectConfig {
     }
 }
 
+/// One fault to inject, parsed from a spec such as `stall@2:50` (`--inject`, `[inject]`).
+/// Times are device time since the run started, s.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Fault {
     /// From T on, the device is gone.
-    Disconnect { at_s: f64 },
+    Disconnect {
+        /// T, s.
+        at_s: f64,
+    },
     /// From T, no packet comes back for MS milliseconds.
-    Stall { at_s: f64, ms: f64 },
+    Stall {
+        /// T, s.
+        at_s: f64,
+        /// MS, ms.
+        ms: f64,
+    },
     /// Each packet is corrupt (truncated) with probability P.
-    Corrupt { probability: f64 },
+    Corrupt {
+        /// P, 0..=1.
+        probability: f64,
+    },
     /// From T, joint 1's encoder reads COUNTS more.
-    EncoderJump { at_s: f64, counts: i64 },
+    EncoderJump {
+        /// T, s.
+        at_s: f64,
+        /// COUNTS, encoder counts.
+        counts: i64,
+    },
     /// At T, the controller's output turns non-finite.
-    Nan { at_s: f64 },
+    Nan {
+        /// T, s.
+        at_s: f64,
+    },
     /// At T, one packet arrives MS milliseconds late.
-    Slow { at_s: f64, ms: f64 },
+    Slow {
+        /// T, s.
+        at_s: f64,
+        /// MS, ms.
+        ms: f64,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq, Error)]
 #[error("bad fault spec `{}`: {why} (expected disconnect@T, stall@T:MS, corrupt:P, encoder-jump@T:COUNTS, nan@T or slow@T:MS)", crate::text::cut(.spec))]
+/// A fault spec that does not parse.
 pub struct FaultSpecError {
+    /// The spec as given.
     pub spec: String,
+    /// What is wrong with it.
     pub why: String,
 }
 
@@ -151,6 +181,8 @@ pub struct FaultyDevice {
 }
 
 impl FaultyDevice {
+    /// `inner` with `faults` injected (at most [`MAX_FAULTS`]; more are ignored), its random
+    /// corruption seeded by `seed`; `stop` ends a `slow` wait early.
     pub fn new(inner: Box<dyn Device>, faults: &[Fault], seed: u64, stop: Arc<AtomicBool>) -> Self {
         let mut list = [None; MAX_FAULTS];
         for (slot, f) in list.iter_mut().zip(faults) {

@@ -1,16 +1,16 @@
 //! The device boundary: one packet exchange per tick (command out, state in, with the device's
 //! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
 
-pub mod calibration;
-pub mod capture;
+pub(crate) mod calibration;
+pub(crate) mod capture;
 pub mod codec;
-pub mod discovery;
+pub(crate) mod discovery;
 pub mod firewire;
 pub mod inject;
 pub mod probe;
 pub mod replay;
 pub mod sim;
-pub mod stream;
+pub(crate) mod stream;
 #[cfg(test)]
 pub(crate) mod testkit;
 pub mod usb;
@@ -19,6 +19,7 @@ pub use codec::{
     decode_state, encode_command, CodecError, DacScale, EncoderUnwrap, MotorCommand, StatePacket,
     COMMAND_LEN, STATE_LEN,
 };
+pub use discovery::{list_devices, DiscoveryReport};
 
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
@@ -48,6 +49,7 @@ impl Default for DeviceConfig {
 }
 
 impl DeviceConfig {
+    /// Joint angle of one encoder count, rad.
     pub fn rad_per_count(&self) -> f64 {
         std::f64::consts::TAU / self.counts_per_rev
     }
@@ -79,12 +81,14 @@ impl DeviceConfig {
 pub struct RawSample {
     /// Packet bytes; `len` of them are valid.
     pub bytes: [u8; STATE_LEN],
+    /// Valid bytes in `bytes`.
     pub len: usize,
     /// Device time of this sample, seconds since the device started streaming.
     pub device_time_s: f64,
 }
 
 impl RawSample {
+    /// A full-length packet taken at `device_time_s`.
     pub fn new(bytes: [u8; STATE_LEN], device_time_s: f64) -> Self {
         RawSample {
             bytes,
@@ -93,6 +97,7 @@ impl RawSample {
         }
     }
 
+    /// The valid bytes.
     pub fn packet(&self) -> &[u8] {
         &self.bytes[..self.len]
     }
@@ -134,22 +139,37 @@ impl std::fmt::Display for MissReason {
 pub enum DeviceError {
     /// No device matched. `looked_for` says what was searched, `hint` how to fix it.
     #[error("no device found: looked for {looked_for}. {hint}")]
-    NotFound { looked_for: String, hint: String },
+    NotFound {
+        /// What was searched.
+        looked_for: String,
+        /// How to fix it.
+        hint: String,
+    },
+    /// The device node exists but may not be opened.
     #[error("permission denied opening {what}. {hint}")]
-    Permission { what: String, hint: String },
+    Permission {
+        /// The node or interface refused.
+        what: String,
+        /// How to get access (udev rules, group).
+        hint: String,
+    },
     /// The packet for this tick did not arrive in time or was corrupt: hold and go on. The
     /// reason is a `Copy` value, so a miss on the servo thread allocates nothing.
     #[error("missed packet: {0}")]
     Missed(MissReason),
+    /// A packet that does not decode.
     #[error("malformed packet: {0}")]
     Malformed(#[from] CodecError),
+    /// The device went away.
     #[error("device disconnected: {0}")]
     Disconnected(String),
+    /// Any other I/O failure talking to the device.
     #[error("device I/O error: {0}")]
     Io(String),
     /// A recorded log has no more samples: the normal end of a replay.
     #[error("end of recorded data")]
     EndOfData,
+    /// The backend cannot do what was asked (on this platform or with this device).
     #[error("{0}")]
     Unsupported(String),
 }

@@ -30,11 +30,11 @@ use thiserror::Error;
 /// count: a tenth of the Omni's peak).
 pub const MAX_PULSE_COUNTS: u16 = 200;
 /// Encoder counts a joint must move for the probe to call it a direction (≈ 0.08 rad).
-pub const MOVE_COUNTS: i64 = 200;
+pub(crate) const MOVE_COUNTS: i64 = 200;
 /// Encoder counts a sign pulse may move a joint before it is a surprise (≈ 0.35 rad).
-pub const SURPRISE_COUNTS: i64 = 850;
+pub(crate) const SURPRISE_COUNTS: i64 = 850;
 /// Encoder counts of motion that count as "the motor moved the joint" in a sign pulse.
-pub const PULSE_MOTION_COUNTS: i64 = 10;
+pub(crate) const PULSE_MOTION_COUNTS: i64 = 10;
 
 /// What the probe does.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -76,13 +76,18 @@ pub trait Operator {
 /// What stopped the probe early.
 #[derive(Debug, Error)]
 pub enum ProbeError {
+    /// A plan that cannot work with this configuration; the message says why.
     #[error("{0}")]
     BadInput(String),
+    /// The device failed or could not be opened.
     #[error(transparent)]
     Device(#[from] DeviceError),
+    /// The capture file could not be written.
     #[error("writing the capture {path}: {source}")]
     Capture {
+        /// The capture file.
         path: String,
+        /// What the write said.
         source: std::io::Error,
     },
 }
@@ -90,7 +95,9 @@ pub enum ProbeError {
 /// The probe's findings.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ProbeReport {
+    /// The device's serial number, if it gave one.
     pub serial: Option<String>,
+    /// The measured packet rate, if enough packets came to measure it.
     pub rate: Option<RateMeasurement>,
     /// Packets written to the capture.
     pub captured: u64,
@@ -741,22 +748,31 @@ fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3
 /// What `omnid probe` was asked to do.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ProbePlan {
+    /// The capture file to write (replayable after `omnid convert --from capture`).
     pub capture: std::path::PathBuf,
+    /// How long to capture with the amplifiers off, s (ends early once every step was seen).
     pub seconds: f64,
+    /// Also run the guided lamp, amplifier and motor-sign steps (`--outputs`).
     pub outputs: bool,
+    /// DAC counts of the sign pulses (1..=200).
     pub counts: u16,
 }
 
 /// The sections of the configuration a probe reads (a `&Config` gives them).
 #[derive(Debug, Clone, Copy)]
 pub struct ProbeSetup<'a> {
+    /// Encoder resolution and servo rate.
     pub device: &'a super::DeviceConfig,
+    /// The FireWire device's ids, timing and DAC signs.
     pub firewire: &'a super::firewire::FirewireConfig,
 }
 
 impl ProbePlan {
     /// The probe's options for this configuration, or what is wrong with the plan.
-    pub fn options<'a>(&self, cfg: impl Into<ProbeSetup<'a>>) -> Result<ProbeOptions, ProbeError> {
+    pub(crate) fn options<'a>(
+        &self,
+        cfg: impl Into<ProbeSetup<'a>>,
+    ) -> Result<ProbeOptions, ProbeError> {
         let cfg = cfg.into();
         if !(self.seconds.is_finite() && self.seconds > 0.0 && self.seconds <= 3600.0) {
             return Err(ProbeError::BadInput(format!(
@@ -784,7 +800,7 @@ impl ProbePlan {
 
 /// The capture's header lines for this configuration (the converter reads `kind`,
 /// `encoder_sign`, `counts_per_rev` and `rate_hz`).
-pub fn capture_header<'a>(cfg: impl Into<ProbeSetup<'a>>, kind: &str) -> String {
+pub(crate) fn capture_header<'a>(cfg: impl Into<ProbeSetup<'a>>, kind: &str) -> String {
     let cfg = cfg.into();
     let s = cfg.firewire.encoder_sign;
     format!(
@@ -844,6 +860,7 @@ pub fn probe_firewire<'a>(
 /// The operator at a terminal: prompts on stderr, answers from stdin (one line each).
 /// Waiting for an answer gives up when `stop` is set (Ctrl-C).
 pub struct TerminalOperator<'a> {
+    /// The operator's stop flag (set by Ctrl-C).
     pub stop: &'a AtomicBool,
 }
 

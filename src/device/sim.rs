@@ -75,7 +75,7 @@ impl SimConfig {
 
     /// What the simulated plant needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
-    pub fn check_plant(
+    pub(crate) fn check_plant(
         &self,
         d: &DeviceConfig,
         m: &ModelParams,
@@ -161,9 +161,13 @@ impl SimConfig {
 /// The sections of the configuration the simulator is built from.
 #[derive(Debug, Clone, Copy)]
 pub struct SimSetup<'a> {
+    /// Encoder resolution, DAC scale, servo rate.
     pub device: &'a DeviceConfig,
+    /// Noise, payload and seed of the simulation.
     pub sim: &'a SimConfig,
+    /// The plant's rigid-body model.
     pub model: &'a ModelParams,
+    /// Link lengths, for the tip position.
     pub geometry: &'a Geometry,
     /// The simulated hand on the stylus (none by default).
     pub hand: &'a HandConfig,
@@ -174,6 +178,9 @@ pub struct SimSetup<'a> {
 /// How close to the start pose (rad) counts as "stylus in the inkwell".
 const INKWELL_TOLERANCE: f64 = 0.02;
 
+/// The simulated Omni: the rigid-body model integrated at the servo rate, with encoder
+/// quantisation, sensor and torque noise, an optional payload and a simulated hand, behind
+/// the [`Device`] trait.
 pub struct SimOmni {
     plant: Dynamics,
     payload_kg: f64,

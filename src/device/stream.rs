@@ -159,6 +159,8 @@ impl CounterTracker {
         self.trusted = false;
     }
 
+    /// Whether the counter is trusted (an accepted packet anchored it since the last reset).
+    #[cfg(test)]
     pub fn is_anchored(&self) -> bool {
         self.trusted
     }
@@ -234,10 +236,6 @@ impl CommandGate {
         }
     }
 
-    pub fn format(&self) -> WireFormat {
-        self.format
-    }
-
     fn stamp(&mut self, mut cmd: MotorCommand) -> [u8; COMMAND_LEN] {
         self.counter = self.counter.wrapping_add(1);
         cmd.watchdog = match self.format.byte7 {
@@ -286,10 +284,6 @@ impl CommandGate {
     pub fn require_new_sample(&mut self) {
         self.sample_delivered = false;
     }
-
-    pub fn amps_allowed(&self) -> bool {
-        self.sample_delivered
-    }
 }
 
 /// Room for unconsumed bytes between reads.
@@ -323,6 +317,7 @@ impl Framer {
     }
 
     /// Bytes waiting for the rest of their packet (or for boundaries to be confirmed).
+    #[cfg(test)]
     pub fn pending(&self) -> usize {
         self.len
     }

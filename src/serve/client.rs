@@ -8,22 +8,30 @@ use serde_json::{json, Value};
 use std::path::Path;
 use thiserror::Error;
 
+/// What went wrong talking to the daemon.
 #[derive(Debug, Error)]
 pub enum ClientError {
+    /// No daemon answered at the socket.
     #[error("cannot connect to {path}: {source}")]
     Connect {
+        /// The socket path.
         path: String,
+        /// What the connect said.
         source: std::io::Error,
     },
+    /// The socket failed after connecting.
     #[error("{0}")]
     Io(#[from] std::io::Error),
     /// The daemon refused the request; its reason.
     #[error("{0}")]
     Refused(String),
+    /// The daemon closed the connection.
     #[error("the daemon closed the connection")]
     Closed,
+    /// Nothing came within the wait, ms.
     #[error("no answer within {0} ms")]
     Timeout(i32),
+    /// The daemon sent something that is not a protocol message.
     #[error("unreadable message from the daemon: {0}")]
     Protocol(String),
 }
@@ -31,11 +39,14 @@ pub enum ClientError {
 /// A message from the daemon.
 #[derive(Debug, Clone)]
 pub enum Message {
+    /// A state of the stream.
     State(State),
     /// Anything else (`reply`, `error`, `event`, `lost`, `bye`), as JSON.
     Other(Value),
 }
 
+/// A connection to `omnid serve`, greeted (docs/PROTOCOL.md): requests with their replies,
+/// and the state stream.
 pub struct Client {
     conn: Conn,
     hello: Hello,
@@ -98,6 +109,7 @@ impl Client {
         }
     }
 
+    /// The daemon's greeting.
     pub fn hello(&self) -> &Hello {
         &self.hello
     }

@@ -7,7 +7,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum StaleFallback {
+    /// Hold the arm where it is (amplifiers on).
     Hold,
+    /// Amplifiers off: the arm rests.
     Idle,
 }
 
@@ -21,10 +23,11 @@ impl StaleFallback {
     }
 }
 
+/// The `[serve]` section: the client interface of `omnid serve` (docs/PROTOCOL.md).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ServeConfig {
-    /// Socket path; empty: $XDG_RUNTIME_DIR/omnid/<device>.sock (or /run/omnid/ as root).
+    /// Socket path; empty: `$XDG_RUNTIME_DIR/omnid/<device>.sock` (or /run/omnid/ as root).
     pub socket: String,
     /// A stream command (`servo_jp`, `servo_jf`) stays in effect this long unless renewed, ms.
     pub stream_ttl_ms: f64,
@@ -71,6 +74,7 @@ impl Default for ServeConfig {
 }
 
 impl ServeConfig {
+    /// Check every value; the first problem names its field (`serve.…`).
     /// `servo_fifo_priority` is `realtime.fifo_priority`: the hub must stay below the servo.
     pub fn validate(&self, servo_fifo_priority: i32) -> Result<(), ConfigError> {
         check::in_range(
@@ -141,6 +145,7 @@ impl ServeConfig {
         Ok(())
     }
 
+    /// `stream_ttl_ms` in seconds.
     pub fn stream_ttl_s(&self) -> f64 {
         self.stream_ttl_ms * 1e-3
     }

@@ -39,7 +39,7 @@ const MAX_UNREAD_REPLIES: usize = 4096;
 /// Write `ring` (the last ticks) to a new file `<dir>/faults/omnid-serve-<UTC>-<why>-fault.csv`
 /// (a new name for every dump: two faults in one second keep both) and say where; `None`
 /// when it cannot be written (said too).
-pub fn write_fault_dump(
+pub(crate) fn write_fault_dump(
     dir: &std::path::Path,
     schema: &LogSchema,
     ring: &VecDeque<TickRecord>,
@@ -68,50 +68,50 @@ pub fn write_fault_dump(
 
 /// What the hub was built with.
 pub struct HubSetup {
-    pub listener: Listener,
-    pub wake: Arc<Wake>,
-    pub records: Receiver<TickRecord>,
-    pub commands: Sender<ServoCommand>,
-    pub replies: Receiver<ServoReply>,
-    pub stop: Arc<AtomicBool>,
-    pub policy: Policy,
-    pub serve: super::ServeConfig,
-    pub device: String,
+    pub(crate) listener: Listener,
+    pub(crate) wake: Arc<Wake>,
+    pub(crate) records: Receiver<TickRecord>,
+    pub(crate) commands: Sender<ServoCommand>,
+    pub(crate) replies: Receiver<ServoReply>,
+    pub(crate) stop: Arc<AtomicBool>,
+    pub(crate) policy: Policy,
+    pub(crate) serve: super::ServeConfig,
+    pub(crate) device: String,
     /// The device's serial number, when its backend knows one.
-    pub serial: Option<String>,
-    pub rate_hz: f64,
-    pub period_ns: u64,
-    pub schema: LogSchema,
-    pub geometry: Geometry,
-    pub identifier_cfg: IdentifierConfig,
+    pub(crate) serial: Option<String>,
+    pub(crate) rate_hz: f64,
+    pub(crate) period_ns: u64,
+    pub(crate) schema: LogSchema,
+    pub(crate) geometry: Geometry,
+    pub(crate) identifier_cfg: IdentifierConfig,
     /// The identifier as the servo started with it (shape for weight snapshots).
-    pub identifier: Identifier,
-    pub controller: ControllerKind,
-    pub weights_label: String,
-    pub seed: u64,
+    pub(crate) identifier: Identifier,
+    pub(crate) controller: ControllerKind,
+    pub(crate) weights_label: String,
+    pub(crate) seed: u64,
     /// Where recordings without a path and fault dumps go.
-    pub state_dir: PathBuf,
+    pub(crate) state_dir: PathBuf,
     /// The realtime steps the servo thread took (set before its first tick).
-    pub realtime: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
+    pub(crate) realtime: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
 }
 
 /// What the hub saw, for the daemon's exit.
 pub struct HubReport {
-    pub shutdown_requested: bool,
+    pub(crate) shutdown_requested: bool,
     /// Safety trips the daemon survived (it went idle).
-    pub faults: Vec<FaultEntry>,
+    pub(crate) faults: Vec<FaultEntry>,
     /// Fault dumps written.
-    pub dumps: Vec<PathBuf>,
+    pub(crate) dumps: Vec<PathBuf>,
     /// The last tick records, oldest first (for a dump at the end).
-    pub ring: VecDeque<TickRecord>,
+    pub(crate) ring: VecDeque<TickRecord>,
     /// An error of the recording in progress at the end, if any.
-    pub recording_error: Option<String>,
+    pub(crate) recording_error: Option<String>,
     /// Clients told goodbye (their connections are closed when the report is dropped).
-    pub clients: Vec<ClientConn>,
+    pub(crate) clients: Vec<ClientConn>,
 }
 
 /// A connection kept until the daemon's socket is gone.
-pub struct ClientConn(#[allow(dead_code)] Conn);
+pub(crate) struct ClientConn(#[allow(dead_code)] Conn);
 
 /// One message waiting for a client.
 enum Out {
@@ -159,6 +159,8 @@ struct Recording {
     dropped: u64,
 }
 
+/// The thread that serves clients of `omnid serve`: admits them, streams states, passes
+/// their commands to the servo and answers them (docs/PROTOCOL.md).
 pub struct Hub {
     s: HubSetup,
     clients: Vec<Client>,
@@ -208,6 +210,7 @@ fn utc_stamp() -> String {
 }
 
 impl Hub {
+    /// A hub over the socket and the servo mailbox that `daemon::prepare` set up.
     pub fn new(s: HubSetup) -> Hub {
         let ring_cap = (s.serve.ring_s * s.rate_hz).round().max(1.0) as usize;
         let spare = Some(Box::new(Snapshot::new(

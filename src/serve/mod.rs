@@ -3,10 +3,10 @@
 //! and a Rust client. The daemon itself (assembling the servo and starting the hub) is
 //! `crate::daemon`.
 
-pub mod access;
+pub(crate) mod access;
 pub mod client;
-pub mod config;
-pub mod device_info;
+pub(crate) mod config;
+pub(crate) mod device_info;
 pub mod hub;
 pub mod protocol;
 pub mod socket;
@@ -31,7 +31,7 @@ pub fn default_socket_dirs() -> Vec<PathBuf> {
 }
 
 /// Where the daemon for `device` listens unless told otherwise.
-pub fn default_socket(device: &str) -> PathBuf {
+pub(crate) fn default_socket(device: &str) -> PathBuf {
     // SAFETY: geteuid has no arguments and cannot fail.
     let root = unsafe { libc::geteuid() } == 0;
     let dirs = default_socket_dirs();

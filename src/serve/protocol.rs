@@ -14,7 +14,7 @@ pub const MAX_MESSAGE: usize = 64 * 1024;
 /// A request from a client. `id` (any JSON value) is echoed in the reply.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Request {
+pub(crate) enum Request {
     /// Must be the first message: the protocol version the client speaks.
     Hello {
         protocol: u32,
@@ -225,7 +225,9 @@ pub struct State {
     pub qd: [f64; 3],
     /// Stylus tip, mm, OpenHaptics frame (+x right, +y up, +z toward the user).
     pub tip_mm: [f64; 3],
+    /// Stylus buttons pressed (dark grey, light grey).
     pub buttons: [bool; 2],
+    /// Whether the stylus sits in its inkwell.
     pub inkwell: bool,
     /// Gimbal angles, rad (nominal, uncalibrated: `serve::device_info`; 0 at mid-scale).
     #[serde(default)]
@@ -234,9 +236,11 @@ pub struct State {
     pub tau: [f64; 3],
     /// The identifier's prediction of the torque that acted, N·m.
     pub tau_hat: [f64; 3],
+    /// The active controller (`pd`, `nnidc`, `ct`, `off`).
     pub controller: String,
     /// idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, stop.
     pub mode: String,
+    /// Whether the motor amplifiers are on.
     pub amps: bool,
     /// Safety and status bits (README, Logs: `flags`).
     pub flags: u32,
@@ -247,25 +251,35 @@ pub struct State {
 /// The daemon's greeting (`type: "hello"`), the first message on every admitted connection.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Hello {
+    /// The protocol version the daemon speaks ([`PROTOCOL_VERSION`]).
     pub protocol: u32,
+    /// The daemon's name and version, e.g. `omnid 0.1.0`.
     pub server: String,
+    /// The device backend: `sim`, `usb`, `firewire` or `replay`.
     pub device: String,
+    /// The servo rate, Hz (the fastest a state stream can run).
     pub rate_hz: f64,
     /// What this client may do: "read" or "control".
     pub access: String,
     /// This connection's number (named in lease messages).
     pub client: u64,
+    /// How long a streamed command stays in effect without a newer one, ms of device time
+    /// (the default `ttl_ms`).
     pub stream_ttl_ms: f64,
+    /// Controllers a `controller` request may choose.
     pub controllers: Vec<String>,
+    /// Modes a `mode` request may choose.
     pub modes: Vec<String>,
-    /// The device's identification: model, vendor, serial number and firmware (`null` when
-    /// the backend does not know it).
+    /// The device's model name.
     #[serde(default)]
     pub model: String,
+    /// The device's vendor.
     #[serde(default)]
     pub vendor: String,
+    /// The device's serial number (`null` when the backend does not know it).
     #[serde(default)]
     pub serial: Option<String>,
+    /// The device's firmware version (`null` when the backend does not know it).
     #[serde(default)]
     pub firmware: Option<String>,
 }

@@ -49,7 +49,7 @@ fn seqpacket() -> io::Result<OwnedFd> {
 }
 
 /// Make `fd` non-blocking.
-pub fn set_nonblocking(fd: RawFd) -> io::Result<()> {
+pub(crate) fn set_nonblocking(fd: RawFd) -> io::Result<()> {
     // SAFETY: fcntl on a descriptor we own; no pointers.
     unsafe {
         let flags = check(libc::fcntl(fd, libc::F_GETFL))?;
@@ -76,6 +76,23 @@ impl Conn {
             )
         })?;
         Ok(Conn(fd))
+    }
+
+    /// Two connected ends, as a client and the daemon hold them: a client library's protocol
+    /// logic can be tested against a scripted daemon end without a running daemon.
+    pub fn pair() -> io::Result<(Conn, Conn)> {
+        let mut fds = [0; 2];
+        // SAFETY: `fds` has room for the two descriptors socketpair writes.
+        check(unsafe {
+            libc::socketpair(
+                libc::AF_UNIX,
+                libc::SOCK_SEQPACKET | libc::SOCK_CLOEXEC,
+                0,
+                fds.as_mut_ptr(),
+            )
+        })?;
+        // SAFETY: both descriptors are new and owned by nothing else.
+        Ok(unsafe { (Conn(OwnedFd::from_raw_fd(fds[0])), Conn(OwnedFd::from_raw_fd(fds[1]))) })
     }
 
     /// Send one message. Non-blocking connections return `WouldBlock` when the peer's
@@ -137,10 +154,7 @@ impl Conn {
         }
     }
 
-    pub fn set_nonblocking(&self) -> io::Result<()> {
-        set_nonblocking(self.0.as_raw_fd())
-    }
-
+    /// The socket's file descriptor (to poll it).
     pub fn raw(&self) -> RawFd {
         self.0.as_raw_fd()
     }
@@ -191,14 +205,18 @@ impl Conn {
 /// A connected peer's credentials.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Peer {
+    /// Process id.
     pub pid: i32,
+    /// User id.
     pub uid: u32,
+    /// Primary group id.
     pub gid: u32,
     /// Supplementary groups.
     pub groups: Vec<u32>,
 }
 
 impl Peer {
+    /// Whether the peer is in group `gid` (primary or supplementary).
     pub fn in_group(&self, gid: u32) -> bool {
         self.gid == gid || self.groups.contains(&gid)
     }
@@ -206,7 +224,7 @@ impl Peer {
 
 /// The daemon's listening socket. Removed from the file system when dropped.
 #[derive(Debug)]
-pub struct Listener {
+pub(crate) struct Listener {
     fd: OwnedFd,
     path: PathBuf,
     /// A descriptor held in reserve (on /dev/null) for [`Listener::shed_one`].
@@ -221,7 +239,7 @@ fn reserve_fd() -> Option<OwnedFd> {
 impl Listener {
     /// Bind `path` (mode 0660, group `group` when given) and listen, non-blocking. A file
     /// left at `path` by a daemon that died is replaced; the caller holds the path's lock.
-    pub fn bind(path: &Path, group: Option<u32>) -> io::Result<Listener> {
+    pub(crate) fn bind(path: &Path, group: Option<u32>) -> io::Result<Listener> {
         let fd = seqpacket()?;
         let bytes = path.as_os_str().as_bytes();
         let (addr, len) = address(bytes)?;
@@ -265,7 +283,7 @@ impl Listener {
     }
 
     /// The next waiting connection (non-blocking, close-on-exec), or `None`.
-    pub fn accept(&self) -> io::Result<Option<Conn>> {
+    pub(crate) fn accept(&self) -> io::Result<Option<Conn>> {
         // SAFETY: null address pointers are allowed (the peer's address is not wanted).
         let fd = unsafe {
             libc::accept4(
@@ -326,13 +344,13 @@ impl Drop for Listener {
 /// An exclusive `flock` on `<socket>.lock`, holding the daemon's pid: released by the kernel
 /// when the process dies, so a crashed daemon never leaves a stale lock.
 #[derive(Debug)]
-pub struct PathLock {
+pub(crate) struct PathLock {
     _file: std::fs::File,
 }
 
 impl PathLock {
     /// Lock `path`, or say which process holds it.
-    pub fn acquire(path: &Path) -> Result<PathLock, String> {
+    pub(crate) fn acquire(path: &Path) -> Result<PathLock, String> {
         use std::io::{Read, Seek, Write};
         let mut file = std::fs::OpenOptions::new()
             .read(true)
@@ -362,12 +380,12 @@ impl PathLock {
 /// exclusive machine-wide and ends with the process, with no file to go stale. Keeps two
 /// daemons (or a `run` and a `serve`) off the same real device.
 #[derive(Debug)]
-pub struct DeviceLock {
+pub(crate) struct DeviceLock {
     _fd: OwnedFd,
 }
 
 impl DeviceLock {
-    pub fn acquire(kind: &str) -> Result<DeviceLock, String> {
+    pub(crate) fn acquire(kind: &str) -> Result<DeviceLock, String> {
         let fd = seqpacket().map_err(|e| format!("device lock: {e}"))?;
         let mut name = vec![0u8];
         name.extend_from_slice(format!("omnid-device-{kind}").as_bytes());
@@ -395,7 +413,7 @@ impl DeviceLock {
 }
 
 /// A group's id by name.
-pub fn group_id(name: &str) -> Option<u32> {
+pub(crate) fn group_id(name: &str) -> Option<u32> {
     let c = CString::new(name).ok()?;
     let mut grp: libc::group = unsafe { std::mem::zeroed() };
     let mut buf = vec![0 as libc::c_char; 16 * 1024];

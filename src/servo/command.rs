@@ -50,6 +50,7 @@ impl Activity {
         !matches!(self, Activity::Idle | Activity::Free | Activity::ServoCf)
     }
 
+    /// The mode this activity is logged as.
     pub fn mode(self) -> Mode {
         match self {
             Activity::Idle => Mode::Idle,

@@ -2,11 +2,11 @@
 //! per packet. Everything it touches is allocated before the first tick; telemetry leaves
 //! through a bounded channel with `try_send`.
 
-pub mod command;
+pub(crate) mod command;
 pub mod realtime;
-pub mod safety;
+pub(crate) mod safety;
 pub mod summary;
-pub mod thermal_store;
+pub(crate) mod thermal_store;
 pub mod timing;
 
 use crate::clock;
@@ -27,7 +27,8 @@ use crate::omni::Geometry;
 use crate::omni::Joint3;
 use crate::servo::summary::{FaultEntry, RunStats};
 use crate::telemetry::record::{flags, HapticRecord, Live, Mode, TickRecord};
-pub use command::{Activity, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
+pub use command::Activity;
+pub(crate) use command::{ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
 use crossbeam_channel::{Sender, TrySendError};
 use safety::SafetyConfig;
 use safety::SafetyLayer;
@@ -57,6 +58,8 @@ pub enum EndReason {
 }
 
 impl EndReason {
+    /// The name the summary and the fault list use (`completed`, `end-of-data`,
+    /// `operator-stop`, `device-fault`, `safety-fault`).
     pub fn as_str(&self) -> &'static str {
         match self {
             EndReason::Completed => "completed",
@@ -70,14 +73,21 @@ impl EndReason {
 
 /// What the loop hands back when it ends.
 pub struct ServoReport {
+    /// Why the loop ended.
     pub end: EndReason,
+    /// The summary's running sums.
     pub stats: RunStats,
+    /// Per-tick timing histograms.
     pub timing: TickTiming,
+    /// Faults, in order (a daemon survives some).
     pub faults: Vec<FaultEntry>,
+    /// Log records dropped because the telemetry channel was full.
     pub telemetry_dropped: u64,
+    /// Packets lost or corrupt.
     pub missed_packets: u64,
     /// Times the estimator restarted across a gap in the device time, and the longest gap, s.
     pub estimator_restarts: u64,
+    /// The longest gap in device time the estimator restarted across, s.
     pub longest_gap_s: f64,
     /// The last command packet sent (always the safe one after a clean shutdown).
     pub last_command: MotorCommand,
@@ -191,18 +201,28 @@ pub struct Servo {
 /// The sections of the configuration the loop is built from (a `&Config` gives them).
 #[derive(Debug, Clone, Copy)]
 pub struct ServoSetup<'a> {
+    /// Servo rate, encoder resolution, DAC scale.
     pub device: &'a DeviceConfig,
+    /// The identifier's shape and learning settings.
     pub identifier: &'a IdentifierConfig,
+    /// Reference trajectories a client may ask for, and the blend into them.
     pub reference: &'a ReferenceConfig,
+    /// Torque, speed and heat limits, walls.
     pub safety: &'a SafetyConfig,
+    /// The velocity estimator.
     pub kalman: &'a KalmanConfig,
     /// Seeds the trajectories a client asks for (`[sim] seed`).
     pub seed: u64,
+    /// Haptic effects and the force limit.
     pub haptics: &'a HapticsConfig,
+    /// Link lengths, for the tip position and τ = Jᵀ F.
     pub geometry: &'a Geometry,
 }
 
 impl Servo {
+    /// A loop over `device` driven by `controllers` toward `reference`, its records sent on
+    /// `telemetry`. It ends when `stop` is set, after `max_ticks` (if any) or on a fault;
+    /// `paced` measures lateness against the device's schedule (off for `--fast` runs).
     #[allow(clippy::too_many_arguments)]
     pub fn new<'a>(
         cfg: impl Into<ServoSetup<'a>>,
@@ -273,16 +293,17 @@ impl Servo {
 
     /// Serve clients: take commands from `link` and start in `Idle` (amplifiers off) instead
     /// of tracking; a safety trip then drops to `Idle` instead of ending the run.
-    pub fn attach(&mut self, link: ServoLink) {
+    pub(crate) fn attach(&mut self, link: ServoLink) {
         self.link = Some(link);
         self.activity = Activity::Idle;
     }
 
     /// The device's serial number, when its backend knows one (the daemon's hello).
-    pub fn device_serial(&self) -> Option<String> {
+    pub(crate) fn device_serial(&self) -> Option<String> {
         self.device.serial().map(String::from)
     }
 
+    /// What the loop is doing now.
     pub fn activity(&self) -> Activity {
         self.activity
     }
@@ -292,12 +313,13 @@ impl Servo {
         self.identifier = Some(identifier);
     }
 
+    /// The online identifier, if it could be built from the configuration.
     pub fn identifier(&self) -> Option<&Identifier> {
         self.identifier.as_ref()
     }
 
     /// Start from warm motors (heat carried over from earlier runs).
-    pub fn set_initial_heat(&mut self, heat: [f64; 3]) {
+    pub(crate) fn set_initial_heat(&mut self, heat: [f64; 3]) {
         self.safety.set_heat(heat);
     }
 

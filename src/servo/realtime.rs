@@ -6,6 +6,7 @@
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};
 
+/// The `[realtime]` section: the realtime steps taken on the servo thread of a paced run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct RealtimeConfig {
@@ -31,6 +32,7 @@ impl Default for RealtimeConfig {
 }
 
 impl RealtimeConfig {
+    /// Check every value; the first problem names its field (`realtime.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
         if !(0..=99).contains(&self.fifo_priority) {
             return Err(check::invalid(
@@ -63,10 +65,15 @@ impl RealtimeConfig {
 /// Which steps took effect, for the summary.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct RealtimeReport {
+    /// The SCHED_FIFO priority the thread got (null: normal scheduler).
     pub fifo_priority: Option<i32>,
+    /// Whether memory was locked.
     pub memory_locked: bool,
+    /// The CPU the thread was pinned to (null: not pinned).
     pub cpu: Option<i32>,
+    /// Stack touched before the first tick, KiB.
     pub stack_prefaulted_kib: usize,
+    /// Whether SIGINT and SIGTERM were blocked on the thread.
     pub signals_blocked: bool,
     /// One line per step that was asked for but not permitted.
     pub warnings: Vec<String>,

@@ -8,6 +8,7 @@ use crate::omni::Joint3;
 use crate::telemetry::record::flags;
 use serde::{Deserialize, Serialize};
 
+/// The `[safety]` section: the limits the safety layer enforces on every tick.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct SafetyConfig {

@@ -7,9 +7,10 @@ use serde::{Deserialize, Serialize};
 /// Running sums for the summary, updated every tick.
 #[derive(Debug, Clone, Default)]
 pub struct RunStats {
+    /// Ticks run so far.
     pub ticks: u64,
-    pub first_t: Option<f64>,
-    pub last_t: f64,
+    pub(crate) first_t: Option<f64>,
+    pub(crate) last_t: f64,
     tracked: u64,
     track_sq: [f64; 3],
     track_max: [f64; 3],
@@ -18,16 +19,16 @@ pub struct RunStats {
     torque_tv: [f64; 3],
     last_tau: Option<[f64; 3]>,
     /// The identifier's τ̂ against the torque that acted.
-    pub identifier: ErrorBins,
+    pub(crate) identifier: ErrorBins,
     /// The plant's exact model against the same torque (simulator only).
-    pub oracle: ErrorBins,
+    pub(crate) oracle: ErrorBins,
     oracle_seen: bool,
-    pub clamped_ticks: u64,
+    pub(crate) clamped_ticks: u64,
 }
 
 impl RunStats {
     /// Become a copy of `other` without allocating (the error bins are reused).
-    pub fn copy_from(&mut self, other: &RunStats) {
+    pub(crate) fn copy_from(&mut self, other: &RunStats) {
         let RunStats {
             ticks,
             first_t,
@@ -54,13 +55,13 @@ impl RunStats {
         self.clamped_ticks = *clamped_ticks;
     }
 
-    pub fn record_time(&mut self, t: f64) {
+    pub(crate) fn record_time(&mut self, t: f64) {
         self.ticks += 1;
         self.first_t.get_or_insert(t);
         self.last_t = t;
     }
 
-    pub fn record_tracking(&mut self, error: &[f64; 3]) {
+    pub(crate) fn record_tracking(&mut self, error: &[f64; 3]) {
         self.tracked += 1;
         for j in 0..3 {
             self.track_sq[j] += error[j] * error[j];
@@ -68,7 +69,7 @@ impl RunStats {
         }
     }
 
-    pub fn record_torque(&mut self, tau: &[f64; 3]) {
+    pub(crate) fn record_torque(&mut self, tau: &[f64; 3]) {
         self.torque_n += 1;
         for j in 0..3 {
             self.torque_sq[j] += tau[j] * tau[j];
@@ -80,28 +81,28 @@ impl RunStats {
     }
 
     /// The plant's exact model against the torque that acted (simulator only).
-    pub fn record_oracle(&mut self, tau: &[f64; 3], tau_model: &[f64; 3]) {
+    pub(crate) fn record_oracle(&mut self, tau: &[f64; 3], tau_model: &[f64; 3]) {
         self.oracle_seen = true;
         self.oracle.record(tau, tau_model);
     }
 
-    pub fn tracking_rms(&self) -> Option<[f64; 3]> {
+    pub(crate) fn tracking_rms(&self) -> Option<[f64; 3]> {
         (self.tracked > 0).then(|| self.track_sq.map(|s| (s / self.tracked as f64).sqrt()))
     }
 
-    pub fn tracking_max(&self) -> Option<[f64; 3]> {
+    pub(crate) fn tracking_max(&self) -> Option<[f64; 3]> {
         (self.tracked > 0).then_some(self.track_max)
     }
 
-    pub fn torque_rms(&self) -> Option<[f64; 3]> {
+    pub(crate) fn torque_rms(&self) -> Option<[f64; 3]> {
         (self.torque_n > 0).then(|| self.torque_sq.map(|s| (s / self.torque_n as f64).sqrt()))
     }
 
-    pub fn torque_total_variation(&self) -> [f64; 3] {
+    pub(crate) fn torque_total_variation(&self) -> [f64; 3] {
         self.torque_tv
     }
 
-    pub fn oracle_nrmse(&self) -> Option<[f64; 3]> {
+    pub(crate) fn oracle_nrmse(&self) -> Option<[f64; 3]> {
         if self.oracle_seen {
             self.oracle.nrmse()
         } else {
@@ -109,7 +110,7 @@ impl RunStats {
         }
     }
 
-    pub fn oracle_nrmse_last_20pct(&self) -> Option<[f64; 3]> {
+    pub(crate) fn oracle_nrmse_last_20pct(&self) -> Option<[f64; 3]> {
         if self.oracle_seen {
             self.oracle.nrmse_last_20pct()
         } else {
@@ -122,7 +123,7 @@ impl RunStats {
 /// run and of its last 20 % without storing every tick or knowing the length in advance.
 /// When the bins fill up, neighbours merge and each bin covers twice as many ticks.
 #[derive(Debug, Clone)]
-pub struct ErrorBins {
+pub(crate) struct ErrorBins {
     err_sq: Vec<[f64; 3]>,
     ref_sq: Vec<[f64; 3]>,
     used: usize,
@@ -146,7 +147,7 @@ impl Default for ErrorBins {
 
 impl ErrorBins {
     /// Become a copy of `other` without allocating.
-    pub fn copy_from(&mut self, other: &ErrorBins) {
+    pub(crate) fn copy_from(&mut self, other: &ErrorBins) {
         self.err_sq.clone_from(&other.err_sq);
         self.ref_sq.clone_from(&other.ref_sq);
         self.used = other.used;
@@ -221,31 +222,40 @@ impl ErrorBins {
     }
 }
 
+/// How well the identifier predicted the torque that acted (summary JSON `identifier`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct IdentifierSummary {
+    /// NRMSE of τ̂ against the torque that acted, per joint, over the whole run.
     pub nrmse: Option<[f64; 3]>,
+    /// The same over the last 20 % of the run (after learning).
     pub nrmse_last_20pct: Option<[f64; 3]>,
+    /// The exact model's NRMSE over the whole run (simulator only).
     pub nrmse_oracle: Option<[f64; 3]>,
     /// The exact model's NRMSE over the last 20 % (simulator only).
     pub nrmse_oracle_last_20pct: Option<[f64; 3]>,
     /// Weights the run started from: "fresh", "shipped", or a file path.
     pub weights: Option<String>,
+    /// Whether the identifier learned online during the run.
     pub adapt: bool,
     /// Why the identifier stopped adapting, if it did (NNIDC then ran on PD).
     pub fault: Option<String>,
 }
 
+/// Tick timing percentiles, µs (summary JSON `timing_us`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct TimingSummary {
+    /// Time between successive samples arriving.
     pub period: Option<Percentiles>,
     /// Null for unpaced (`--fast`) runs, where lateness has no meaning.
     pub lateness: Option<Percentiles>,
+    /// Time from a sample's arrival to its command being ready.
     pub compute: Option<Percentiles>,
+    /// Ticks whose lateness plus compute exceeded the device's step.
     pub overruns: u64,
 }
 
 impl TimingSummary {
-    pub fn from_timing(t: &TickTiming) -> Self {
+    pub(crate) fn from_timing(t: &TickTiming) -> Self {
         TimingSummary {
             period: t.period.percentiles_us(),
             lateness: t.lateness.percentiles_us(),
@@ -255,33 +265,56 @@ impl TimingSummary {
     }
 }
 
+/// One fault of a run (summary JSON `faults`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FaultEntry {
+    /// The tick it happened on.
     pub tick: u64,
+    /// Device time it happened at, s.
     pub t: f64,
+    /// What kind: `device-fault` or `safety-fault`.
     pub class: String,
+    /// What went wrong, for the operator.
     pub message: String,
 }
 
+/// The summary of a run: printed for people ([`RunSummary::human`]) and written as the
+/// summary JSON (`--summary-json`, docs/DESIGN.md §2.3).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunSummary {
+    /// The device backend: `sim`, `usb`, `firewire` or `replay`.
     pub device: String,
+    /// The controller that ran.
     pub controller: String,
+    /// The reference trajectory it tracked.
     pub trajectory: String,
+    /// Ticks run.
     pub ticks: u64,
+    /// Device time from the first tick to the last, s.
     pub duration_s: f64,
+    /// RMS tracking error per joint, rad (null if nothing was tracked).
     pub tracking_rms_rad: Option<[f64; 3]>,
+    /// Largest tracking error per joint, rad.
     pub tracking_max_rad: Option<[f64; 3]>,
+    /// RMS commanded torque per joint, N·m.
     pub torque_rms_nm: Option<[f64; 3]>,
+    /// Sum of tick-to-tick torque changes per joint, N·m (how much the command chattered).
     pub torque_total_variation_nm: [f64; 3],
+    /// How well the identifier predicted the torque.
     pub identifier: IdentifierSummary,
+    /// Tick timing.
     pub timing_us: TimingSummary,
+    /// Faults, in order.
     pub faults: Vec<FaultEntry>,
+    /// Log rows dropped because the writer fell behind.
     pub telemetry_dropped: u64,
     /// How the run ended: completed, end-of-data, operator-stop, device-fault, safety-fault.
     pub end: String,
+    /// Packets lost or corrupt.
     pub missed_packets: u64,
+    /// Ticks on which the safety layer limited the torque.
     pub clamped_ticks: u64,
+    /// The log written, if any.
     pub log_path: Option<String>,
     /// Rows that reached the log file.
     pub log_rows: u64,
@@ -289,9 +322,12 @@ pub struct RunSummary {
     /// many were lost and why (a full disk, rows dropped by a writer that fell behind).
     #[serde(default)]
     pub log_complete: Option<bool>,
+    /// Why rows were lost, if any were.
     #[serde(default)]
     pub log_error: Option<String>,
+    /// The simulator's random seed.
     pub seed: u64,
+    /// Whether the run was unpaced (`--fast`).
     pub fast: bool,
     /// The realtime steps that took effect (null for `--fast` runs, which skip them).
     pub realtime: Option<crate::servo::realtime::RealtimeReport>,
@@ -299,12 +335,14 @@ pub struct RunSummary {
     /// a paced run, the speed-up of a `--fast` one.
     #[serde(default)]
     pub wall_s: Option<f64>,
+    /// Device time over host time (see `wall_s`).
     #[serde(default)]
     pub realtime_factor: Option<f64>,
     /// Times the Kalman filter restarted across a gap in the device time (longer than
     /// `estimate::kalman::RESTART_GAP_S`), and the longest such gap, s.
     #[serde(default)]
     pub estimator_restarts: u64,
+    /// The longest gap in device time the filter restarted across, s.
     #[serde(default)]
     pub longest_gap_s: f64,
     /// Things that did not stop the run but must not go unseen (faults scheduled past its
@@ -336,7 +374,7 @@ fn pct(p: &Option<Percentiles>) -> String {
 }
 
 /// What names a run in its summary.
-pub struct SummaryLabels<'a> {
+pub(crate) struct SummaryLabels<'a> {
     pub device: &'a str,
     pub controller: &'a str,
     pub trajectory: String,
@@ -347,7 +385,7 @@ pub struct SummaryLabels<'a> {
 }
 
 /// The identifier's state at the time of the summary.
-pub struct IdentifierState {
+pub(crate) struct IdentifierState {
     pub adapt: bool,
     pub fault: Option<crate::identifier::Fault>,
 }
@@ -355,7 +393,7 @@ pub struct IdentifierState {
 impl RunSummary {
     /// The summary of the loop's results so far. How the run ended, its faults, log and
     /// realtime report are the caller's to fill in (`end` is "running" until then).
-    pub fn from_results(
+    pub(crate) fn from_results(
         labels: &SummaryLabels,
         stats: &RunStats,
         timing: &TickTiming,

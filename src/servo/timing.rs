@@ -15,9 +15,13 @@ pub struct Histogram {
 /// Percentiles in microseconds, as in the summary JSON.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct Percentiles {
+    /// Median.
     pub p50: f64,
+    /// 99th percentile.
     pub p99: f64,
+    /// 99.9th percentile.
     pub p999: f64,
+    /// Largest value seen (exact).
     pub max: f64,
 }
 
@@ -36,7 +40,7 @@ impl Histogram {
     }
 
     /// Become a copy of `other` without allocating (same range: the bins are reused).
-    pub fn copy_from(&mut self, other: &Histogram) {
+    pub(crate) fn copy_from(&mut self, other: &Histogram) {
         self.bin_ns = other.bin_ns;
         self.bins.clone_from(&other.bins);
         self.overflow = other.overflow;
@@ -44,6 +48,7 @@ impl Histogram {
         self.max_ns = other.max_ns;
     }
 
+    /// Count one duration, ns.
     pub fn record(&mut self, ns: u64) {
         let i = (ns / self.bin_ns) as usize;
         match self.bins.get_mut(i) {
@@ -54,10 +59,12 @@ impl Histogram {
         self.max_ns = self.max_ns.max(ns);
     }
 
+    /// Durations recorded.
     pub fn count(&self) -> u64 {
         self.count
     }
 
+    /// Largest duration recorded, ns (exact).
     pub fn max_ns(&self) -> u64 {
         self.max_ns
     }
@@ -112,6 +119,7 @@ pub struct TickTiming {
 }
 
 impl TickTiming {
+    /// Histograms sized for a device step of `period_ns`.
     pub fn new(period_ns: u64) -> Self {
         TickTiming {
             period: Histogram::new(1_000, 20 * period_ns),
@@ -125,7 +133,7 @@ impl TickTiming {
     }
 
     /// Become a copy of `other` without allocating (built for the same period).
-    pub fn copy_from(&mut self, other: &TickTiming) {
+    pub(crate) fn copy_from(&mut self, other: &TickTiming) {
         self.period.copy_from(&other.period);
         self.lateness.copy_from(&other.lateness);
         self.compute.copy_from(&other.compute);

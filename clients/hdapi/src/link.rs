@@ -240,7 +240,6 @@ impl Link {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use omnid::serve::socket::Listener;
     use serde_json::json;
 
     fn state(seq: u64) -> Vec<u8> {
@@ -255,22 +254,8 @@ mod tests {
 
     /// A connected pair: (the library's link, the daemon's end).
     fn pair() -> (Arc<Link>, Conn) {
-        let dir = std::env::temp_dir().join(format!("omnid-hd-link-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("t.sock");
-        let _ = std::fs::remove_file(&path);
-        let listener = Listener::bind(&path, None).unwrap();
-        let client = Conn::connect(&path).unwrap();
-        let until = Instant::now() + Duration::from_secs(5);
-        let server = loop {
-            if let Some(c) = listener.accept().unwrap() {
-                break c;
-            }
-            assert!(Instant::now() < until, "no connection");
-            std::thread::yield_now();
-        };
-        let _ = std::fs::remove_dir_all(&dir);
-        (Arc::new(Link::new(client)), server)
+        let (client, daemon) = Conn::pair().unwrap();
+        (Arc::new(Link::new(client)), daemon)
     }
 
     const WAIT: Duration = Duration::from_secs(5);
