@@ -92,7 +92,12 @@ impl Conn {
             )
         })?;
         // SAFETY: both descriptors are new and owned by nothing else.
-        Ok(unsafe { (Conn(OwnedFd::from_raw_fd(fds[0])), Conn(OwnedFd::from_raw_fd(fds[1]))) })
+        Ok(unsafe {
+            (
+                Conn(OwnedFd::from_raw_fd(fds[0])),
+                Conn(OwnedFd::from_raw_fd(fds[1])),
+            )
+        })
     }
 
     /// Send one message. Non-blocking connections return `WouldBlock` when the peer's
