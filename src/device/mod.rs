@@ -5,7 +5,7 @@ pub(crate) mod calibration;
 pub(crate) mod capture;
 pub mod codec;
 pub(crate) mod discovery;
-pub mod firewire;
+pub(crate) mod firewire;
 pub mod inject;
 pub mod probe;
 pub mod replay;
@@ -13,7 +13,7 @@ pub mod sim;
 pub(crate) mod stream;
 #[cfg(test)]
 pub(crate) mod testkit;
-pub mod usb;
+pub(crate) mod usb;
 
 pub use codec::{
     decode_state, encode_command, CodecError, DacScale, EncoderUnwrap, MotorCommand, StatePacket,
