@@ -118,17 +118,8 @@ pub fn prepare(
         ..RunOptions::default()
     };
     let faults = check_device_options(&run_opts, cfg)?;
-    let policy = Policy {
-        // SAFETY: geteuid has no arguments and cannot fail.
-        own_uid: unsafe { libc::geteuid() },
-        read_group: group("serve.read_group", &cfg.serve.read_group)?,
-        control_group: group("serve.control_group", &cfg.serve.control_group)?,
-    };
-    let socket_path = opts
-        .socket
-        .clone()
-        .or_else(|| (!cfg.serve.socket.is_empty()).then(|| PathBuf::from(&cfg.serve.socket)))
-        .unwrap_or_else(|| default_socket(opts.device.name()));
+    let policy = policy(cfg)?;
+    let socket_path = socket_path(opts, cfg);
     // Real hardware is one per daemon: a second `serve` (or a `run`) is refused, not raced.
     let device_lock = match opts.device {
         DeviceSpec::Usb | DeviceSpec::Firewire => {
@@ -149,11 +140,7 @@ pub fn prepare(
         wake: wake.clone(),
         stale_fallback: cfg.serve.stale_fallback.activity(),
     });
-    let state_dir = if cfg.serve.dump_dir.is_empty() {
-        crate::servo::thermal_store::state_dir().unwrap_or_else(std::env::temp_dir)
-    } else {
-        PathBuf::from(&cfg.serve.dump_dir)
-    };
+    let state_dir = dump_dir(cfg);
     let setup = hub::HubSetup {
         listener,
         wake,
@@ -184,6 +171,34 @@ pub fn prepare(
         _device_lock: device_lock,
         _socket_lock: socket_lock,
     })
+}
+
+/// Who may read and who may command (`[serve] read_group`, `control_group`).
+fn policy(cfg: &Config) -> Result<Policy, RunError> {
+    Ok(Policy {
+        // SAFETY: geteuid has no arguments and cannot fail.
+        own_uid: unsafe { libc::geteuid() },
+        read_group: group("serve.read_group", &cfg.serve.read_group)?,
+        control_group: group("serve.control_group", &cfg.serve.control_group)?,
+    })
+}
+
+/// `--socket`, else `[serve] socket`, else the device's default socket.
+fn socket_path(opts: &ServeOptions, cfg: &Config) -> PathBuf {
+    opts.socket
+        .clone()
+        .or_else(|| (!cfg.serve.socket.is_empty()).then(|| PathBuf::from(&cfg.serve.socket)))
+        .unwrap_or_else(|| default_socket(opts.device.name()))
+}
+
+/// Where fault dumps go: `[serve] dump_dir`, else the state directory (else the temporary
+/// directory).
+fn dump_dir(cfg: &Config) -> PathBuf {
+    if cfg.serve.dump_dir.is_empty() {
+        crate::servo::thermal_store::state_dir().unwrap_or_else(std::env::temp_dir)
+    } else {
+        PathBuf::from(&cfg.serve.dump_dir)
+    }
 }
 
 /// Run the daemon until SIGINT/SIGTERM (`stop`), a client's shutdown, or a device fault.

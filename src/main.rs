@@ -664,30 +664,35 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         use std::io::Write;
         let _ = write!(std::io::stdout(), "{}", outcome.summary.human());
     }
-    let stopped = if outcome.shutdown_error.is_none() {
+    Ok(say_how_serve_ended(&outcome))
+}
+
+/// The daemon's last words on stderr, and its exit code.
+fn say_how_serve_ended(o: &omnid::daemon::ServeOutcome) -> u8 {
+    let stopped = if o.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {
         "the final zero-torque packet could not be delivered: switch the device off (whether it drops its amplifiers when packets stop is not known, docs/FIREWIRE.md §9)"
     };
     // Each fault dump was announced where it was written.
-    if let Some(e) = &outcome.recording_error {
+    if let Some(e) = &o.recording_error {
         omnid::errln!("omnid serve: the recording is incomplete: {e}");
     }
-    if let Some(e) = &outcome.shutdown_error {
+    if let Some(e) = &o.shutdown_error {
         omnid::errln!("omnid: warning: {e}");
     }
-    let code = match &outcome.end {
-        EndReason::OperatorStop if outcome.shutdown_requested => {
+    let code = match &o.end {
+        EndReason::OperatorStop if o.shutdown_requested => {
             omnid::errln!(
                 "omnid serve: shut down by a client; {stopped}; socket {} removed",
-                outcome.socket.display()
+                o.socket.display()
             );
             0
         }
         EndReason::OperatorStop => {
             omnid::errln!(
                 "omnid serve: stopped by the operator; {stopped}; socket {} removed",
-                outcome.socket.display()
+                o.socket.display()
             );
             EXIT_OPERATOR_STOP
         }
@@ -704,11 +709,11 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
             EXIT_SAFETY_FAULT
         }
     };
-    Ok(if code == 0 && outcome.shutdown_error.is_some() {
+    if code == 0 && o.shutdown_error.is_some() {
         EXIT_DEVICE_FAULT
     } else {
         code
-    })
+    }
 }
 
 /// Connect to the daemon (exit code 3 and the reason when there is none).

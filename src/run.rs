@@ -404,27 +404,7 @@ pub(crate) fn assemble(
     stop: Arc<AtomicBool>,
 ) -> Result<Pipeline, RunError> {
     let replay = matches!(opts.device, DeviceSpec::Replay(_));
-    let mut controllers = ControllerSet::new(cfg, opts.controller, cfg.serve.switch_fade_s);
-    let (identifier, weights_label) = make_identifier(
-        cfg,
-        opts.controller,
-        opts.weights.as_deref(),
-        opts.no_adapt,
-        Some(&stop),
-    )?;
-    if weights_label == "shipped" {
-        crate::errln!(
-            "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
-             the simulator); pass --weights FILE for your own (`omnid identify`)"
-        );
-    }
-    if let Some(at_s) = faults.iter().find_map(|f| match f {
-        Fault::Nan { at_s } => Some(*at_s),
-        _ => None,
-    }) {
-        let inner = controllers.take(opts.controller);
-        controllers.replace(opts.controller, Box::new(NanAfter { inner, at_s }));
-    }
+    let (controllers, identifier, weights_label) = laws(opts, cfg, faults, &stop)?;
     let mut warnings = Vec::new();
     let mut device = open_device(opts, cfg, &mut warnings, &stop)?;
     if !faults.is_empty() {
@@ -463,11 +443,7 @@ pub(crate) fn assemble(
     }
     servo.set_effects(&opts.haptics.effects);
     if let Some(path) = &heat_path {
-        let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
-        if let Some(note) = note {
-            crate::errln!("omnid: warning: {note}; starting with cold motors");
-        }
-        servo.set_initial_heat(heat);
+        servo.set_initial_heat(load_heat(path, cfg));
     }
     Ok(Pipeline {
         servo,
@@ -480,6 +456,48 @@ pub(crate) fn assemble(
         realtime: (!opts.fast).then(|| cfg.realtime.clone()),
         realtime_taken: Arc::default(),
     })
+}
+
+/// The control laws and the identifier for `opts` (an injected NaN fault wraps the active
+/// law), and the label of the weights the identifier starts from.
+fn laws(
+    opts: &RunOptions,
+    cfg: &Config,
+    faults: &[Fault],
+    stop: &Arc<AtomicBool>,
+) -> Result<(ControllerSet, Identifier, String), RunError> {
+    let mut controllers = ControllerSet::new(cfg, opts.controller, cfg.serve.switch_fade_s);
+    let (identifier, weights_label) = make_identifier(
+        cfg,
+        opts.controller,
+        opts.weights.as_deref(),
+        opts.no_adapt,
+        Some(stop),
+    )?;
+    if weights_label == "shipped" {
+        crate::errln!(
+            "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
+             the simulator); pass --weights FILE for your own (`omnid identify`)"
+        );
+    }
+    if let Some(at_s) = faults.iter().find_map(|f| match f {
+        Fault::Nan { at_s } => Some(*at_s),
+        _ => None,
+    }) {
+        let inner = controllers.take(opts.controller);
+        controllers.replace(opts.controller, Box::new(NanAfter { inner, at_s }));
+    }
+    Ok((controllers, identifier, weights_label))
+}
+
+/// The motors' heat left by the last run on this device (cold, with a warning, if it cannot
+/// be read).
+fn load_heat(path: &std::path::Path, cfg: &Config) -> [f64; 3] {
+    let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
+    if let Some(note) = note {
+        crate::errln!("omnid: warning: {note}; starting with cold motors");
+    }
+    heat
 }
 
 /// The servo thread's result: the loop's report and which realtime steps took effect.

@@ -263,6 +263,8 @@ pub fn entries_from(
 }
 
 impl fmt::Display for DiscoveryReport {
+    /// The `omnid devices` listing. Long on purpose: one block per bus and per device, in the
+    /// order printed.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let no_usb = matches!(self.usb, UsbSection::Unavailable { .. });
         if no_usb && self.firewire.is_empty() {

@@ -14,8 +14,8 @@
 //!    between the operator and the encoders, or a device error ends the step at zero torque
 //!    with the amplifiers off, and the device is stopped.
 //!
-//! The steps run over any `FireWireBus` (`device::firewire`), so the whole kit is tested on the fake bus; the
-//! operator is a trait so tests can answer (or refuse) in scripts.
+//! The steps run over any `FireWireBus` (`device::firewire`), so the whole kit is tested on the
+//! fake bus; the operator is a trait so tests can answer (or refuse) in scripts.
 
 use super::capture::CaptureWriter;
 use super::codec::{decode_state, MotorCommand, DAC_ZERO};

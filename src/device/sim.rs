@@ -75,6 +75,7 @@ impl SimConfig {
 
     /// What the simulated plant needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
+    /// Long on purpose: an ordered list of checks, each naming its field.
     pub(crate) fn check_plant(
         &self,
         d: &DeviceConfig,
