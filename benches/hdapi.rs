@@ -138,6 +138,13 @@ fn main() {
     let daemon = Daemon::start(&[]);
     let (lib, frames) = libhd(hd, &daemon, secs);
     let bare = plain(&daemon, secs);
+    // The servo's own timing over both phases: a tick that starts late leaves the next one
+    // (at its absolute deadline) no time for any client's round trip.
+    let timing = daemon
+        .client("bench-status")
+        .request(json!({"op": "status"}))
+        .map(|v| v["status"]["timing_us"].clone())
+        .unwrap_or_default();
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!(
         "libHD bench: {secs} s per phase on the simulator (load {})",
@@ -156,10 +163,16 @@ fn main() {
         );
     }
     println!("  frames the HD program ran: {frames}");
+    let lateness = &timing["lateness"];
+    println!(
+        "  the servo's own lateness (both phases): p99 {} p99.9 {} max {} µs; overruns {}",
+        lateness["p99"], lateness["p999"], lateness["max"], timing["overruns"]
+    );
     let out = json!({
         "seconds": secs,
         "libhd": {"judged": lib.judged, "on_time": lib.on_time, "fraction": lib.fraction(), "gaps": lib.gaps, "frames": frames},
         "plain": {"judged": bare.judged, "on_time": bare.on_time, "fraction": bare.fraction(), "gaps": bare.gaps},
+        "servo_timing_us": timing,
     });
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/hdapi-bench.json");
     let _ = std::fs::write(&path, serde_json::to_vec_pretty(&out).unwrap_or_default());
