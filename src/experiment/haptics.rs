@@ -12,8 +12,7 @@ use crate::control::{ControllerKind, Trajectory};
 use crate::haptics::{Effect, HandPattern, HapticRun};
 use crate::omni::{jacobian, tip_position_mm, Joint3};
 use crate::plot::figures::Role;
-use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
-use crate::plot::PlotError;
+use crate::plot::render::{Figure, Line, Panel};
 use crate::run::{execute, RunOptions};
 use crate::telemetry::reader::{ColumnReader, ReadError, Row};
 use serde_json::{json, Value};
@@ -195,17 +194,7 @@ fn figure(
         legend,
         panels,
     };
-    for format in FORMATS {
-        let file = dir.join(format!("{name}.{}", format.extension()));
-        render::write(&fig, format, &file).map_err(|source| {
-            ExperimentError::from(PlotError::Render {
-                file: file.clone(),
-                source,
-            })
-        })?;
-        files.push(file);
-    }
-    Ok(())
+    super::write_figure(&fig, dir, name, files)
 }
 
 fn series(t: &[f64], y: &[f64], scale: f64) -> Vec<(f64, f64)> {

@@ -732,9 +732,19 @@ fn alpha_figure(
             lines,
         }],
     };
+    write_figure(&figure, out, "alpha-e1", files)
+}
+
+/// Draw `figure` as `dir/name.png` and `.svg`, adding the files to `files`.
+fn write_figure(
+    figure: &Figure,
+    dir: &Path,
+    name: &str,
+    files: &mut Vec<PathBuf>,
+) -> Result<(), ExperimentError> {
     for format in FORMATS {
-        let file = out.join(format!("alpha-e1.{}", format.extension()));
-        render::write(&figure, format, &file).map_err(|source| {
+        let file = dir.join(format!("{name}.{}", format.extension()));
+        render::write(figure, format, &file).map_err(|source| {
             ExperimentError::from(PlotError::Render {
                 file: file.clone(),
                 source,

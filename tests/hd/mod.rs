@@ -144,14 +144,19 @@ pub struct Watchdog {
 
 /// `pid` is still a child of this process (running, or exited and not yet reaped).
 fn is_our_child(pid: u32) -> bool {
-    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
-        return false;
-    };
-    // Fields after the command name (which may hold spaces) start after its last ')'.
-    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
-        return false;
-    };
-    rest.split_whitespace().nth(1) == Some(std::process::id().to_string().as_str())
+    // Field 4 is the parent's pid.
+    stat_field(std::path::Path::new(&format!("/proc/{pid}/stat")), 4)
+        == Some(std::process::id().to_string())
+}
+
+/// Field `n` (1-based, as `man proc` numbers them) of a `/proc/…/stat` file. The fields after
+/// the command name (which may hold spaces) start after its last ')', at field 3.
+fn stat_field(path: &std::path::Path, n: usize) -> Option<String> {
+    let stat = std::fs::read_to_string(path).ok()?;
+    let rest = stat.rsplit_once(')')?.1;
+    rest.split_whitespace()
+        .nth(n.checked_sub(3)?)
+        .map(str::to_string)
 }
 
 impl Watchdog {
@@ -283,10 +288,8 @@ pub fn thread_sched(pid: u32, name: &str) -> Option<(u32, u32)> {
         if comm.trim_end() != name {
             continue;
         }
-        let stat = std::fs::read_to_string(task.path().join("stat")).ok()?;
-        // Fields after the command name (which may hold spaces) start at field 3.
-        let rest: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
-        let field = |n: usize| rest.get(n - 3).and_then(|v| v.parse().ok());
+        let stat = task.path().join("stat");
+        let field = |n| stat_field(&stat, n).and_then(|v| v.parse().ok());
         return Some((field(41)?, field(40)?));
     }
     None

@@ -177,7 +177,6 @@ impl Link {
             // Taken over while we waited: the new reader is waiting for this message.
             return;
         }
-        lock(&self.inbox).filed_by = Some(std::thread::current().id());
         for _ in 0..MAX_BATCH {
             let n = match self.conn.recv(&mut buf) {
                 Ok(0) | Err(_) => return self.close_inbox(),
@@ -199,6 +198,7 @@ impl Link {
             return true;
         };
         let mut i = lock(&self.inbox);
+        i.filed_by = Some(std::thread::current().id());
         match v["type"].as_str() {
             Some("state") => {
                 if let Ok(s) = serde_json::from_value::<State>(v) {

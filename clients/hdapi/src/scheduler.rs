@@ -67,11 +67,7 @@ fn raise_priority() {
         .unwrap_or(DEFAULT_FIFO_PRIORITY)
         .clamp(0, 99);
     if priority > 0 {
-        let param = libc::sched_param {
-            sched_priority: priority,
-        };
-        // SAFETY: a valid sched_param; 0 is the calling thread.
-        let _ = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+        let _ = omnid::servo::realtime::set_fifo_priority(priority);
     }
 }
 
