@@ -1183,6 +1183,7 @@ impl Hub {
             amps: r.amps,
             flags: r.flags,
             cmd_seq: r.live.cmd_seq,
+            heat: r.live.heat,
         }
     }
 

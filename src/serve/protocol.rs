@@ -246,6 +246,10 @@ pub struct State {
     pub flags: u32,
     /// Sequence number of the last servo_jp/servo_jf/servo_cf command applied.
     pub cmd_seq: u64,
+    /// Motor heat per joint from the thermal model (1 = steady state at the continuous
+    /// torque; the limit is `[safety] thermal_limit`).
+    #[serde(default)]
+    pub heat: [f64; 3],
 }
 
 /// The daemon's greeting (`type: "hello"`), the first message on every admitted connection.

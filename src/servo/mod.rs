@@ -565,6 +565,7 @@ impl Servo {
                 controller: Some(self.controllers.active()),
                 cmd_seq: self.cmd_seq,
                 event,
+                heat: self.safety.heat(),
             },
         });
         self.last_t = t;

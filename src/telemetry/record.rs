@@ -81,6 +81,12 @@ pub mod flags {
     pub const THERMAL_WARN: u32 = 1 << 7;
     /// The identifier has stopped on a non-finite value (NNIDC runs on PD).
     pub const IDENT_FAULT: u32 = 1 << 8;
+    /// The tip force was held to `[haptics] max_force_n` (a client's `servo_cf`, the scene's
+    /// effects, or both).
+    pub const FORCE_LIMIT: u32 = 1 << 9;
+    /// An effect whose force was not finite at this pose was left out of the sum (the other
+    /// effects still act).
+    pub const EFFECT_SKIPPED: u32 = 1 << 10;
 }
 
 /// Everything the loop knows at one tick: one row of the log, what `omnid serve` streams and
@@ -146,6 +152,9 @@ pub(crate) struct Live {
     pub(crate) cmd_seq: u64,
     /// Something happened this tick that every client is told about.
     pub(crate) event: Option<ServoEvent>,
+    /// Motor heat per joint from the safety layer's thermal model (1 = the steady state at the
+    /// continuous torque; `[safety] thermal_limit` holds the motor to it).
+    pub(crate) heat: [f64; 3],
 }
 
 /// Which optional column groups a log carries.
