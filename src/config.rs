@@ -29,6 +29,24 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
+/// How `[[arm]]` reads, at the end of the default configuration (commented out: a file
+/// without arms is one arm named after its device).
+const ARMS_EXAMPLE: &str = "
+# Several arms in one daemon: one [[arm]] each (name, device, serial, aliases, cpu, socket),
+# with any of [arm.sim], [arm.model], [arm.geometry], [arm.kalman], [arm.control],
+# [arm.reference], [arm.safety], [arm.identifier], [arm.usb], [arm.firewire], [arm.inject],
+# [arm.haptics] laid over the sections above key by key. `omnid serve` serves them all, each
+# on <runtime dir>/<name>.sock; `omnid run --arm NAME` runs one.
+# [[arm]]
+# name = \"left\"
+# device = \"firewire\"
+# serial = \"10203400567\"
+# aliases = [\"PHANToM 1\"]
+# cpu = 2
+# [arm.safety]
+# max_torque_nm = [0.3, 0.3, 0.3]
+";
+
 /// The largest config file read (the full default config is about 12 kB).
 pub(crate) const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
@@ -68,6 +86,10 @@ pub struct Config {
     pub serve: ServeConfig,
     /// Haptics: tip force limits, the passivity controller, and the simulated hand (docs/HAPTICS.md).
     pub haptics: HapticsConfig,
+    /// Several arms in one daemon (`[[arm]]`, see `omnid config --print-default`'s end); none:
+    /// one arm, named after its device.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub arm: Vec<crate::arm::config::ArmEntry>,
 }
 
 impl Config {
@@ -78,6 +100,7 @@ impl Config {
             message: describe_toml_error(text, &e),
         })?;
         cfg.validate()?;
+        cfg.arms()?;
         Ok(cfg)
     }
 
@@ -150,6 +173,7 @@ impl Config {
                 out.push('\n');
             }
         }
+        out.push_str(ARMS_EXAMPLE);
         out
     }
 }

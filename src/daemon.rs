@@ -1,26 +1,32 @@
-//! `omnid serve`: the daemon that lab software connects to (docs/PROTOCOL.md). The servo
-//! thread is the same pipeline `omnid run` assembles (`run::assemble`), started in `idle`
-//! and fed commands through a bounded mailbox; a second thread (`serve::hub`) serves clients
-//! on a Unix SOCK_SEQPACKET socket.
+//! `omnid serve`: the daemon that lab software connects to (docs/PROTOCOL.md). It serves
+//! every arm it is given — the devices on its command line, else the config's `[[arm]]`s,
+//! else one simulated arm — each as its own unit: the pipeline `omnid run` assembles
+//! (`arm::pipeline`), started idle and fed through its station's mailbox, its own socket
+//! (`<name>.sock`), lease, safety, heat and fault dumps, and its own threads. One arm's fault
+//! ends that arm only, unless `[serve] fail_together` says the arms stop together.
 
+use crate::arm::pipeline::{assemble, join_servo, Ending, ServoThreadResult};
+use crate::arm::{ArmIdentity, ArmSpec};
 use crate::config::Config;
-use crate::run::{assemble, check_device_options, join_servo, DeviceSpec, RunError, RunOptions};
+use crate::run::{check_device_options, DeviceSpec, RunError, RunOptions};
 use crate::serve::access::Policy;
-use crate::serve::socket::{self, DeviceLock, Listener, PathLock};
+use crate::serve::socket::{self, Listener, PathLock};
 use crate::serve::{default_socket, hub};
-use crate::servo::{EndReason, ServoLink, Wake};
+use crate::servo::{ArmSignals, EndReason, ServoLink, Wake};
+use crate::station::StationSetup;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 /// `omnid serve`'s options (the rest comes from the config).
 #[derive(Debug, Clone)]
 pub struct ServeOptions {
-    /// The device to serve.
-    pub device: DeviceSpec,
+    /// The devices to serve, one arm each (`--device`, repeatable); empty: the config's
+    /// `[[arm]]`s, else one simulated arm.
+    pub devices: Vec<DeviceSpec>,
     /// The controller the daemon starts with (clients may switch).
     pub controller: crate::control::ControllerKind,
-    /// Socket path (None: `serve.socket`, else the default for the device).
+    /// Socket path (one arm only; None: `serve.socket`, else the default for the arm).
     pub socket: Option<PathBuf>,
     /// Identifier weights to start from (None: the shipped ones).
     pub weights: Option<PathBuf>,
@@ -32,22 +38,30 @@ pub struct ServeOptions {
     pub inject: Vec<crate::device::inject::Fault>,
 }
 
-/// How the daemon ended.
-pub struct ServeOutcome {
-    /// The whole session's summary (as `omnid run`'s).
+/// How one arm ended.
+pub struct ArmOutcome {
+    /// The arm's name.
+    pub name: String,
+    /// The arm's whole session's summary (as `omnid run`'s).
     pub summary: crate::servo::summary::RunSummary,
-    /// Why the servo loop ended.
+    /// Why its servo loop ended.
     pub end: EndReason,
-    /// A client asked for the shutdown (`omnid ctl shutdown`).
-    pub shutdown_requested: bool,
     /// A device error while sending the final safe packet or closing, if any.
     pub shutdown_error: Option<String>,
     /// Fault dumps written during the session.
     pub dumps: Vec<PathBuf>,
     /// An error of the recording in progress at the end, if any.
     pub recording_error: Option<String>,
-    /// The socket the daemon listened on.
+    /// The socket the arm was served on.
     pub socket: PathBuf,
+}
+
+/// How the daemon ended.
+pub struct ServeOutcome {
+    /// Each arm, in the order they were served.
+    pub arms: Vec<ArmOutcome>,
+    /// A client asked for the shutdown (`omnid ctl shutdown`).
+    pub shutdown_requested: bool,
 }
 
 fn group(field: &str, name: &str) -> Result<Option<(String, u32)>, RunError> {
@@ -88,48 +102,80 @@ fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, PathLock), 
     Ok((listener, lock))
 }
 
-/// A daemon ready to start: the servo pipeline (started in idle, taking commands) and the
-/// hub that will serve its clients, the socket bound and locked.
+/// An arm ready to start: its servo pipeline (started in idle, taking commands) and the hub
+/// that will serve its socket, bound and locked.
 pub struct Prepared {
-    /// The servo loop, attached to the hub's mailbox.
-    pub pipeline: crate::run::Pipeline,
+    /// The servo loop, attached to the station's mailbox.
+    pub pipeline: crate::arm::pipeline::Pipeline,
     /// What [`hub::Hub::new`] takes.
     pub hub: hub::HubSetup,
-    pub(crate) socket: PathBuf,
-    _device_lock: Option<DeviceLock>,
+    name: String,
+    socket: PathBuf,
     _socket_lock: PathLock,
 }
 
-/// Check the options, lock the device and the socket, bind it, and assemble the pipeline
-/// (`run::assemble`, the same path as `omnid run`) attached to a new hub.
+/// The arms to serve: the command line's devices, else the config's `[[arm]]`s, else the
+/// simulator.
+pub fn arms(opts: &ServeOptions, cfg: &Config) -> Result<Vec<ArmSpec>, RunError> {
+    let arms = if !opts.devices.is_empty() {
+        ArmSpec::from_devices(&opts.devices, cfg)
+    } else {
+        let configured = cfg.arms().map_err(|e| RunError::BadInput(e.to_string()))?;
+        if configured.is_empty() {
+            vec![ArmSpec::single(DeviceSpec::Sim, cfg)]
+        } else {
+            configured
+        }
+    };
+    if arms.len() > 1 && (opts.socket.is_some() || !cfg.serve.socket.is_empty()) {
+        return Err(RunError::BadInput(format!(
+            "--socket (or serve.socket) names one socket, but {} arms are served: each gets \
+             <runtime dir>/<name>.sock, or its [[arm]] `socket`",
+            arms.len()
+        )));
+    }
+    Ok(arms)
+}
+
+/// Check the options, lock the arm and its socket, bind it, and assemble the pipeline
+/// (`arm::pipeline::assemble`, the same path as `omnid run`) attached to a new station. The
+/// first arm of [`arms`] (the whole daemon when it serves one).
 pub fn prepare(
     opts: &ServeOptions,
     cfg: &Config,
     stop: Arc<AtomicBool>,
 ) -> Result<Prepared, RunError> {
+    let arm = arms(opts, cfg)?.remove(0);
+    prepare_arm(&arm, opts, cfg, stop)
+}
+
+/// [`prepare`] for one arm.
+pub fn prepare_arm(
+    arm: &ArmSpec,
+    opts: &ServeOptions,
+    global: &Config,
+    stop: Arc<AtomicBool>,
+) -> Result<Prepared, RunError> {
+    let cfg = &arm.config;
     let run_opts = RunOptions {
-        device: opts.device.clone(),
+        device: arm.device.clone(),
         controller: opts.controller,
         duration_s: f64::INFINITY,
         lenient: opts.lenient,
         inject: opts.inject.clone(),
         weights: opts.weights.clone(),
         no_adapt: opts.no_adapt,
+        arm: Some(arm.name.clone()),
+        arm_configured: !global.arm.is_empty(),
         ..RunOptions::default()
     };
     let faults = check_device_options(&run_opts, cfg)?;
-    let policy = policy(cfg)?;
-    let socket_path = socket_path(opts, cfg);
-    // Real hardware is one per daemon: a second `serve` (or a `run`) is refused, not raced.
-    let device_lock = match opts.device {
-        DeviceSpec::Usb | DeviceSpec::Firewire => {
-            Some(DeviceLock::acquire(opts.device.name()).map_err(RunError::BadInput)?)
-        }
-        _ => None,
-    };
+    let policy = policy(global)?;
+    let socket_path = socket_path(arm, opts, global);
     let (listener, socket_lock) = prepare_socket(&socket_path, &policy)?;
 
     let wake = Arc::new(Wake::new().map_err(|e| RunError::Internal(format!("eventfd: {e}")))?);
+    let signals = Arc::new(ArmSignals::new(global.serve.stale_fallback.activity()));
     let (tx, records) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
     let (commands, command_rx) = crossbeam_channel::bounded(256);
     let (reply_tx, replies) = crossbeam_channel::bounded(64);
@@ -138,20 +184,22 @@ pub fn prepare(
         commands: command_rx,
         replies: reply_tx,
         wake: wake.clone(),
-        stale_fallback: cfg.serve.stale_fallback.activity(),
+        signals: signals.clone(),
     });
-    let state_dir = dump_dir(cfg);
-    let setup = hub::HubSetup {
-        listener,
+    let station = StationSetup {
+        arm: ArmIdentity {
+            name: arm.name.clone(),
+            kind: arm.device.name(),
+            serial: pipeline.servo.device_serial(),
+            aliases: arm.aliases.clone(),
+        },
         wake,
         records,
         commands,
         replies,
+        signals,
         stop,
-        policy,
-        serve: cfg.serve.clone(),
-        device: opts.device.name().to_string(),
-        serial: pipeline.servo.device_serial(),
+        serve: global.serve.clone(),
         rate_hz: cfg.device.rate_hz,
         period_ns: (1e9 / cfg.device.rate_hz).round() as u64,
         schema: pipeline.schema,
@@ -161,14 +209,18 @@ pub fn prepare(
         controller: opts.controller,
         weights_label: pipeline.weights_label.clone(),
         seed: cfg.sim.seed,
-        state_dir,
+        state_dir: dump_dir(global),
         realtime: pipeline.realtime_taken.clone(),
     };
     Ok(Prepared {
         pipeline,
-        hub: setup,
+        hub: hub::HubSetup {
+            listener,
+            policy,
+            station,
+        },
+        name: arm.name.clone(),
         socket: socket_path,
-        _device_lock: device_lock,
         _socket_lock: socket_lock,
     })
 }
@@ -183,12 +235,13 @@ fn policy(cfg: &Config) -> Result<Policy, RunError> {
     })
 }
 
-/// `--socket`, else `[serve] socket`, else the device's default socket.
-fn socket_path(opts: &ServeOptions, cfg: &Config) -> PathBuf {
+/// `--socket`, else the arm's `socket`, else `[serve] socket`, else the arm's default socket.
+fn socket_path(arm: &ArmSpec, opts: &ServeOptions, cfg: &Config) -> PathBuf {
     opts.socket
         .clone()
+        .or_else(|| arm.socket.clone())
         .or_else(|| (!cfg.serve.socket.is_empty()).then(|| PathBuf::from(&cfg.serve.socket)))
-        .unwrap_or_else(|| default_socket(opts.device.name()))
+        .unwrap_or_else(|| default_socket(&arm.name))
 }
 
 /// Where fault dumps go: `[serve] dump_dir`, else the state directory (else the temporary
@@ -201,42 +254,136 @@ fn dump_dir(cfg: &Config) -> PathBuf {
     }
 }
 
-/// Run the daemon until SIGINT/SIGTERM (`stop`), a client's shutdown, or a device fault.
+/// Run the daemon until SIGINT/SIGTERM (`stop`), a client's shutdown, or the end of every arm.
 pub fn serve(
     opts: &ServeOptions,
     cfg: &Config,
     stop: Arc<AtomicBool>,
 ) -> Result<ServeOutcome, RunError> {
-    let Prepared {
-        pipeline,
-        hub: setup,
-        socket: socket_path,
-        _device_lock,
-        _socket_lock,
-    } = prepare(opts, cfg, stop)?;
-    crate::errln!(
-        "omnid serve: {} on {} (amplifiers off until a client asks for a mode; `omnid ctl \
-         --socket {} mode hold`)",
-        opts.device.name(),
-        socket_path.display(),
-        socket_path.display()
-    );
-    for w in &pipeline.warnings {
-        crate::errln!("omnid: warning: {w}");
+    let arms = arms(opts, cfg)?;
+    // Every arm ready before any starts: a daemon that cannot serve one serves none.
+    let mut prepared = Vec::with_capacity(arms.len());
+    for arm in &arms {
+        prepared.push(prepare_arm(arm, opts, cfg, stop.clone())?);
     }
-    let (handle, ending) = pipeline.spawn()?;
-    let dump_dir = setup.state_dir.clone();
-    let hub_report = serve_clients(setup, cfg.serve.hub_fifo_priority);
-    let (report, realtime) = join_servo(handle)?;
+    for p in &prepared {
+        crate::errln!(
+            "omnid serve: arm `{}` ({}) on {} (amplifiers off until a client asks for a mode; \
+             `omnid ctl --socket {} mode hold`)",
+            p.name,
+            p.hub.station.arm.kind,
+            p.socket.display(),
+            p.socket.display()
+        );
+        for w in &p.pipeline.warnings {
+            crate::errln!("omnid: warning: {}: {w}", p.name);
+        }
+    }
+    let mut threads = Vec::new();
+    for p in prepared {
+        let Prepared {
+            pipeline,
+            hub: setup,
+            name,
+            socket: socket_path,
+            _socket_lock,
+        } = p;
+        let (servo, ending) = pipeline.spawn()?;
+        let dump_dir = setup.station.state_dir.clone();
+        let kind = setup.station.arm.kind;
+        let (priority, fail_together) = (cfg.serve.hub_fifo_priority, cfg.serve.fail_together);
+        let stop = stop.clone();
+        let seed = cfg.sim.seed;
+        let controller = opts.controller;
+        let thread = std::thread::Builder::new()
+            .name(format!("omnid-hub-{name}"))
+            .spawn(move || {
+                let report = serve_clients(setup, priority);
+                let outcome = end_arm(
+                    ArmEnd {
+                        name,
+                        kind,
+                        socket: socket_path,
+                        dump_dir,
+                        seed,
+                        controller,
+                    },
+                    report,
+                    servo,
+                    ending,
+                );
+                // The socket's lock goes with the arm.
+                drop(_socket_lock);
+                if fail_together
+                    && matches!(
+                        outcome.as_ref().map(|(o, _)| &o.end),
+                        Ok(EndReason::DeviceFault(_) | EndReason::SafetyFault(_)) | Err(_)
+                    )
+                {
+                    stop.store(true, Ordering::SeqCst);
+                }
+                outcome
+            })
+            .map_err(|e| RunError::Internal(format!("cannot start a hub thread: {e}")))?;
+        threads.push(thread);
+    }
+    let mut outcome = ServeOutcome {
+        arms: Vec::new(),
+        shutdown_requested: false,
+    };
+    let mut first_error = None;
+    for t in threads {
+        match t.join() {
+            Ok(Ok((arm, shutdown))) => {
+                outcome.shutdown_requested |= shutdown;
+                outcome.arms.push(arm);
+            }
+            Ok(Err(e)) => {
+                first_error.get_or_insert(e);
+            }
+            Err(_) => {
+                first_error.get_or_insert(RunError::Internal("a hub thread panicked".into()));
+            }
+        }
+    }
+    match first_error {
+        Some(e) if outcome.arms.is_empty() => Err(e),
+        Some(e) => {
+            crate::errln!("omnid serve: {e}");
+            Ok(outcome)
+        }
+        None => Ok(outcome),
+    }
+}
+
+/// What an arm's end needs besides its reports.
+struct ArmEnd {
+    name: String,
+    kind: &'static str,
+    socket: PathBuf,
+    dump_dir: PathBuf,
+    seed: u64,
+    controller: crate::control::ControllerKind,
+}
+
+/// The arm's servo has ended (the hub saw its records stop): join it, keep its heat, dump on a
+/// device fault, and sum up. Also whether a client asked for the shutdown.
+fn end_arm(
+    a: ArmEnd,
+    mut hub_report: hub::HubReport,
+    servo: std::thread::JoinHandle<ServoThreadResult>,
+    ending: Ending,
+) -> Result<(ArmOutcome, bool), RunError> {
+    let (report, realtime) = join_servo(servo)?;
     ending.save_heat(&report);
     let mut summary = crate::servo::summary::RunSummary::from_results(
         &crate::servo::summary::SummaryLabels {
-            device: opts.device.name(),
+            device: a.kind,
             // The law the daemon started with (clients may have switched since).
-            controller: opts.controller.as_str(),
+            controller: a.controller.as_str(),
             trajectory: "serve".into(),
             weights: ending.weights_label.clone(),
-            seed: cfg.sim.seed,
+            seed: a.seed,
             fast: false,
         },
         &report.stats,
@@ -252,29 +399,26 @@ pub fn serve(
         report.missed_packets,
     );
     summary.end = report.end.as_str().to_string();
-    summary.faults = hub_report.faults.clone();
+    let station = &mut hub_report.station;
+    summary.faults = station.faults.clone();
     summary.faults.extend(report.faults.iter().cloned());
     summary.realtime = realtime;
-    let mut dumps = hub_report.dumps;
     if matches!(report.end, EndReason::DeviceFault(_)) {
-        dumps.extend(hub::write_fault_dump(
-            &dump_dir,
-            &ending.schema,
-            &hub_report.ring,
-            "device",
-        ));
+        station.dump_device_fault(&a.dump_dir, &a.name);
     }
-    // The clients' connections close only now, after the final safe packet went out.
-    drop(hub_report.clients);
-    Ok(ServeOutcome {
+    let shutdown = station.shutdown_requested;
+    let outcome = ArmOutcome {
+        name: a.name,
         summary,
         end: report.end,
-        shutdown_requested: hub_report.shutdown_requested,
         shutdown_error: report.shutdown_error,
-        dumps,
-        recording_error: hub_report.recording_error,
-        socket: socket_path,
-    })
+        dumps: std::mem::take(&mut station.dumps),
+        recording_error: station.recording_error.take(),
+        socket: a.socket,
+    };
+    // The clients' connections close only now, after the final safe packet went out.
+    drop(hub_report);
+    Ok((outcome, shutdown))
 }
 
 /// Run the hub on this thread until the servo ends, at the configured realtime priority (the
@@ -285,9 +429,5 @@ fn serve_clients(setup: hub::HubSetup, fifo_priority: i32) -> hub::HubReport {
             crate::errln!("omnid: warning: the client hub: {w}");
         }
     }
-    let report = hub::Hub::new(setup).run();
-    if fifo_priority > 0 {
-        let _ = crate::servo::realtime::set_fifo_priority(0);
-    }
-    report
+    hub::Hub::new(setup).run()
 }

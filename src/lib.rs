@@ -68,6 +68,7 @@ macro_rules! errln {
     }};
 }
 
+pub mod arm;
 pub mod clock;
 pub mod config;
 pub(crate) mod config_check;
@@ -89,12 +90,13 @@ pub mod progress;
 pub mod run;
 pub mod serve;
 pub mod servo;
+pub mod station;
 pub mod telemetry;
 pub mod text;
 
 pub use config::{Config, ConfigError};
 pub use control::{ControllerKind, Trajectory};
-pub use daemon::{ServeOptions, ServeOutcome};
+pub use daemon::{ArmOutcome, ServeOptions, ServeOutcome};
 pub use device::inject::{Fault, FaultyDevice};
 pub use device::replay::ReplayDevice;
 pub use device::sim::SimOmni;

@@ -166,9 +166,13 @@ fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
 
 #[derive(clap::Args)]
 struct RunArgs {
-    /// sim | replay:PATH | usb | firewire
-    #[arg(long, default_value = "sim")]
-    device: DeviceSpec,
+    /// sim | replay:PATH | usb | firewire [default: sim, or the --arm's device]
+    #[arg(long)]
+    device: Option<DeviceSpec>,
+    /// A configured arm (`[[arm]]` in --config): its device, serial and sections; its lock is
+    /// taken, so a run cannot take an arm a daemon serves.
+    #[arg(long, value_name = "NAME")]
+    arm: Option<String>,
     /// Control law.
     #[arg(long, value_enum, default_value = "nnidc")]
     controller: ControllerKind,
@@ -225,13 +229,15 @@ enum RunMode {
 
 #[derive(clap::Args)]
 struct ServeArgs {
-    /// sim | replay:PATH | usb | firewire
-    #[arg(long, default_value = "sim")]
-    device: DeviceSpec,
+    /// sim | replay:PATH | usb | firewire; repeat for several arms (the second of a kind is
+    /// named `<kind>-2`) [default: the config's [[arm]]s, else sim]
+    #[arg(long)]
+    device: Vec<DeviceSpec>,
     /// The control law in effect when a client asks for hold, track or free (switchable).
     #[arg(long, value_enum, default_value = "nnidc")]
     controller: ControllerKind,
-    /// Socket path [default: $XDG_RUNTIME_DIR/omnid/<device>.sock, /run/omnid/ as root].
+    /// Socket path, one arm only [default: $XDG_RUNTIME_DIR/omnid/<arm>.sock, /run/omnid/ as
+    /// root].
     #[arg(long)]
     socket: Option<PathBuf>,
     /// TOML configuration file (its [serve] section: access groups, stream time to live).
@@ -256,6 +262,9 @@ struct WatchArgs {
     /// The daemon's socket [default: $OMNID_SOCKET, else the one in the default directory].
     #[arg(long)]
     socket: Option<PathBuf>,
+    /// The arm, by name or alias (its socket `<name>.sock` in the default directories).
+    #[arg(long, value_name = "NAME", conflicts_with = "socket")]
+    arm: Option<String>,
     /// Stop after this many samples.
     #[arg(long)]
     count: Option<u64>,
@@ -272,6 +281,9 @@ struct CtlArgs {
     /// The daemon's socket [default: $OMNID_SOCKET, else the one in the default directory].
     #[arg(long)]
     socket: Option<PathBuf>,
+    /// The arm, by name or alias (its socket `<name>.sock` in the default directories).
+    #[arg(long, value_name = "NAME", conflicts_with = "socket")]
+    arm: Option<String>,
     #[command(subcommand)]
     command: CtlCommand,
 }
@@ -459,7 +471,7 @@ fn haptic_options(
     stop: &std::sync::Arc<std::sync::atomic::AtomicBool>,
 ) -> Result<omnid::haptics::HapticRun, String> {
     if let Some(name) = &args.hand {
-        if args.device != DeviceSpec::Sim {
+        if args.device.as_ref().is_some_and(|d| *d != DeviceSpec::Sim) {
             return Err("--hand needs the simulator (--device sim)".into());
         }
         cfg.haptics.hand.pattern = omnid::haptics::HandPattern::try_from(name.clone())
@@ -484,7 +496,29 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
     };
-    let replay = matches!(args.device, DeviceSpec::Replay(_));
+    // `--arm NAME`: that arm's device and whole configuration.
+    let mut device = args.device.clone().unwrap_or(DeviceSpec::Sim);
+    if let Some(name) = &args.arm {
+        match cfg.arm_named(name) {
+            Ok(arm) => {
+                if args.device.as_ref().is_some_and(|d| *d != arm.device) {
+                    omnid::errln!(
+                        "omnid: --device {} and --arm {name} (device {}) disagree; give one",
+                        args.device.as_ref().map_or("", |d| d.name()),
+                        arm.device.name()
+                    );
+                    return Ok(EXIT_BAD_INPUT);
+                }
+                device = arm.device;
+                cfg = arm.config;
+            }
+            Err(e) => {
+                omnid::errln!("omnid: --arm: {e}");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        }
+    }
+    let replay = matches!(device, DeviceSpec::Replay(_));
     let haptics = match haptic_options(&args, &mut cfg, &stop) {
         Ok(h) => h,
         Err(e) => {
@@ -493,7 +527,9 @@ fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         }
     };
     let opts = RunOptions {
-        device: args.device,
+        arm_configured: args.arm.is_some(),
+        arm: args.arm.clone(),
+        device,
         controller: args.controller,
         trajectory: args.trajectory,
         duration_s: args
@@ -635,7 +671,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         Err(code) => return Ok(code),
     };
     let opts = omnid::daemon::ServeOptions {
-        device: args.device,
+        devices: args.device,
         controller: args.controller,
         socket: args.socket,
         weights: args.weights,
@@ -659,16 +695,37 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
             return Ok(EXIT_BAD_INPUT);
         }
     };
-    // The session's summary; a closed stdout loses nothing else.
-    {
+    // Each arm's summary; a closed stdout loses nothing else.
+    let several = outcome.arms.len() > 1;
+    for arm in &outcome.arms {
         use std::io::Write;
-        let _ = write!(std::io::stdout(), "{}", outcome.summary.human());
+        if several {
+            let _ = writeln!(std::io::stdout(), "arm {}:", arm.name);
+        }
+        let _ = write!(std::io::stdout(), "{}", arm.summary.human());
     }
-    Ok(say_how_serve_ended(&outcome))
+    // The worst ending decides the exit code (an operator's stop only when nothing failed).
+    let codes: Vec<u8> = outcome
+        .arms
+        .iter()
+        .map(|a| say_how_arm_ended(a, outcome.shutdown_requested, several))
+        .collect();
+    Ok(codes
+        .iter()
+        .copied()
+        .filter(|&c| c != 0 && c != EXIT_OPERATOR_STOP)
+        .max()
+        .or_else(|| codes.iter().copied().max())
+        .unwrap_or(0))
 }
 
-/// The daemon's last words on stderr, and its exit code.
-fn say_how_serve_ended(o: &omnid::daemon::ServeOutcome) -> u8 {
+/// An arm's last words on stderr, and its exit code.
+fn say_how_arm_ended(o: &omnid::daemon::ArmOutcome, shutdown_requested: bool, several: bool) -> u8 {
+    let arm = if several {
+        format!("arm {}: ", o.name)
+    } else {
+        String::new()
+    };
     let stopped = if o.shutdown_error.is_none() {
         "zero torque sent, amplifiers off"
     } else {
@@ -676,36 +733,36 @@ fn say_how_serve_ended(o: &omnid::daemon::ServeOutcome) -> u8 {
     };
     // Each fault dump was announced where it was written.
     if let Some(e) = &o.recording_error {
-        omnid::errln!("omnid serve: the recording is incomplete: {e}");
+        omnid::errln!("omnid serve: {arm}the recording is incomplete: {e}");
     }
     if let Some(e) = &o.shutdown_error {
-        omnid::errln!("omnid: warning: {e}");
+        omnid::errln!("omnid: warning: {arm}{e}");
     }
     let code = match &o.end {
-        EndReason::OperatorStop if o.shutdown_requested => {
+        EndReason::OperatorStop if shutdown_requested => {
             omnid::errln!(
-                "omnid serve: shut down by a client; {stopped}; socket {} removed",
+                "omnid serve: {arm}shut down by a client; {stopped}; socket {} removed",
                 o.socket.display()
             );
             0
         }
         EndReason::OperatorStop => {
             omnid::errln!(
-                "omnid serve: stopped by the operator; {stopped}; socket {} removed",
+                "omnid serve: {arm}stopped by the operator; {stopped}; socket {} removed",
                 o.socket.display()
             );
             EXIT_OPERATOR_STOP
         }
         EndReason::Completed | EndReason::EndOfData => {
-            omnid::errln!("omnid serve: the replayed log ended; {stopped}");
+            omnid::errln!("omnid serve: {arm}the replayed log ended; {stopped}");
             0
         }
         EndReason::DeviceFault(m) => {
-            omnid::errln!("omnid serve: device fault: {m}; {stopped}");
+            omnid::errln!("omnid serve: {arm}device fault: {m}; {stopped}");
             EXIT_DEVICE_FAULT
         }
         EndReason::SafetyFault(m) => {
-            omnid::errln!("omnid serve: safety fault: {m}; {stopped}");
+            omnid::errln!("omnid serve: {arm}safety fault: {m}; {stopped}");
             EXIT_SAFETY_FAULT
         }
     };
@@ -717,8 +774,17 @@ fn say_how_serve_ended(o: &omnid::daemon::ServeOutcome) -> u8 {
 }
 
 /// Connect to the daemon (exit code 3 and the reason when there is none).
-fn connect(socket: Option<PathBuf>, name: &str) -> Result<omnid::serve::client::Client, u8> {
-    let path = match socket.map(Ok).unwrap_or_else(omnid::serve::find_socket) {
+fn connect(
+    socket: Option<PathBuf>,
+    arm: Option<&str>,
+    name: &str,
+) -> Result<omnid::serve::client::Client, u8> {
+    let found = match (socket, arm) {
+        (Some(p), _) => Ok(p),
+        (None, Some(arm)) => omnid::serve::find_arm_socket(arm),
+        (None, None) => omnid::serve::find_socket(),
+    };
+    let path = match found {
         Ok(p) => p,
         Err(e) => {
             omnid::errln!("omnid: {e}");
@@ -741,7 +807,7 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
         omnid::errln!("omnid watch: --rate {} must be a number > 0", args.rate);
         return Ok(EXIT_BAD_INPUT);
     }
-    let mut client = match connect(args.socket, "omnid watch") {
+    let mut client = match connect(args.socket, args.arm.as_deref(), "omnid watch") {
         Ok(c) => c,
         Err(code) => return Ok(code),
     };
@@ -839,7 +905,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     {
         request["path"] = json!(absolute(std::path::Path::new(&p)));
     }
-    let mut client = match connect(args.socket, "omnid ctl") {
+    let mut client = match connect(args.socket, args.arm.as_deref(), "omnid ctl") {
         Ok(c) => c,
         Err(code) => return Ok(code),
     };

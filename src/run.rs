@@ -1,71 +1,21 @@
 //! `omnid run`: build the pipeline (device, controller, reference, servo, log writer) from the
 //! options, run it on its own thread, and turn the result into the run summary.
 
+pub(crate) use crate::arm::pipeline::{
+    assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
+};
+pub use crate::arm::pipeline::{make_identifier, Pipeline, RunError};
 use crate::config::Config;
 pub use crate::control::make_controller;
-use crate::control::NanAfter;
-use crate::control::{ControllerKind, ControllerSet, Reference, Trajectory};
-use crate::device::calibration::{self, CalibrationError};
-use crate::device::firewire::{find_firewire, FirewireConfig};
-use crate::device::inject::{Fault, FaultyDevice};
-use crate::device::replay::{ReplayDevice, ReplayError};
-use crate::device::sim::SimOmni;
-use crate::device::usb::open_usb_with_rate;
-use crate::device::{Device, DeviceError};
-use crate::identifier::{Identifier, WeightsFile};
+use crate::control::{ControllerKind, Trajectory};
+use crate::device::inject::Fault;
+pub use crate::device::registry::DeviceSpec;
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
-use crate::servo::{EndReason, Servo, ServoReport};
-use crate::telemetry::reader::ReadError;
-use crate::telemetry::{
-    dump_path, spawn_writer, write_dump, LogError, LogFile, LogSchema, WriterReport,
-};
+use crate::servo::{EndReason, ServoReport};
+use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use thiserror::Error;
-
-/// `--device`: which Omni to talk to.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum DeviceSpec {
-    /// The simulated Omni (`sim`).
-    Sim,
-    /// A recorded omnid log played back (`replay:PATH`).
-    Replay(PathBuf),
-    /// A real Omni through the USB bridge (`usb`).
-    Usb,
-    /// A real FireWire Omni on Linux firewire-cdev (`firewire`).
-    Firewire,
-}
-
-impl FromStr for DeviceSpec {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "sim" => Ok(DeviceSpec::Sim),
-            "usb" => Ok(DeviceSpec::Usb),
-            "firewire" => Ok(DeviceSpec::Firewire),
-            _ => match s.strip_prefix("replay:") {
-                Some(p) if !p.is_empty() => Ok(DeviceSpec::Replay(PathBuf::from(p))),
-                _ => Err(format!(
-                    "unknown device `{s}`: expected sim, replay:PATH, usb or firewire"
-                )),
-            },
-        }
-    }
-}
-
-impl DeviceSpec {
-    /// The backend's name: `sim`, `replay`, `usb` or `firewire`.
-    pub fn name(&self) -> &'static str {
-        match self {
-            DeviceSpec::Sim => "sim",
-            DeviceSpec::Replay(_) => "replay",
-            DeviceSpec::Usb => "usb",
-            DeviceSpec::Firewire => "firewire",
-        }
-    }
-}
 
 /// `omnid run`'s options (the rest comes from the config); [`Default`] gives the CLI's
 /// defaults.
@@ -98,6 +48,19 @@ pub struct RunOptions {
     pub no_adapt: bool,
     /// Free mode and a scene of effects (docs/HAPTICS.md).
     pub haptics: crate::haptics::HapticRun,
+    /// The arm's name (`--arm`, or a configured `[[arm]]`): keys its heat file and its lock.
+    /// `None`: the device kind, as a one-arm set-up has always named it.
+    pub arm: Option<String>,
+    /// The arm is one the config names (`[[arm]]`): a simulated one is locked too, as real
+    /// hardware always is, so a `run` cannot take an arm a `serve` has.
+    pub arm_configured: bool,
+}
+
+impl RunOptions {
+    /// The arm's name: `arm`, else the device kind.
+    pub fn arm_name(&self) -> &str {
+        self.arm.as_deref().unwrap_or(self.device.name())
+    }
 }
 
 impl Default for RunOptions {
@@ -116,85 +79,9 @@ impl Default for RunOptions {
             weights: None,
             no_adapt: false,
             haptics: Default::default(),
+            arm: None,
+            arm_configured: false,
         }
-    }
-}
-
-/// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
-/// box (see mock/README.md for how they were made).
-pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
-pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
-
-/// The identifier a run starts with, and a label for the summary.
-/// `stop`: the operator's, which ends a wait on a weights file that is a pipe (without it such
-/// a file is refused).
-pub fn make_identifier(
-    cfg: &Config,
-    controller: ControllerKind,
-    weights: Option<&std::path::Path>,
-    no_adapt: bool,
-    stop: Option<&Arc<AtomicBool>>,
-) -> Result<(Identifier, String), RunError> {
-    let mut id_cfg = cfg.identifier.clone();
-    if no_adapt {
-        id_cfg.adapt = false;
-    }
-    let bad = |e: &dyn std::fmt::Display| RunError::BadInput(e.to_string());
-    match weights {
-        Some(path) => match Identifier::from_weights_file(&id_cfg, path, stop) {
-            Ok(id) => Ok((id, path.display().to_string())),
-            Err(e) if e.is_stopped() => Err(RunError::Stopped(e.to_string())),
-            Err(e) => Err(bad(&e)),
-        },
-        None if controller == ControllerKind::Nnidc => {
-            let mut id = Identifier::new(&id_cfg).map_err(|e| bad(&e))?;
-            let w = WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME)
-                .map_err(|e| bad(&e))?;
-            id.apply_weights(&w, SHIPPED_WEIGHTS_NAME).map_err(|e| {
-                RunError::BadInput(format!(
-                    "{e} (the shipped weights fit the default [identifier] sizes; pass --weights \
-                     with weights made by `omnid identify` for other sizes)"
-                ))
-            })?;
-            Ok((id, "shipped".to_string()))
-        }
-        None => Ok((
-            Identifier::new(&id_cfg).map_err(|e| bad(&e))?,
-            "fresh".to_string(),
-        )),
-    }
-}
-
-/// Problems that stop a run before the loop starts (bad input, no device, no log file).
-#[derive(Debug, Error)]
-pub enum RunError {
-    /// Options or inputs that cannot work together; the message says which.
-    #[error("{0}")]
-    BadInput(String),
-    /// The log cannot be created, or another omnid writes it.
-    #[error(transparent)]
-    Log(#[from] LogError),
-    /// The device cannot be opened.
-    #[error(transparent)]
-    Device(#[from] DeviceError),
-    /// The log given to `--device replay:PATH` cannot be replayed.
-    #[error(transparent)]
-    Replay(#[from] ReplayError),
-    /// The servo thread could not be started, or it panicked.
-    #[error("internal error: {0}")]
-    Internal(String),
-    /// Ctrl-C or SIGTERM before the loop started (while a log was checked or a file waited on).
-    #[error("{0}")]
-    Stopped(String),
-}
-
-impl RunError {
-    /// The operator stopped it (exit code 130, as a run stopped in the loop).
-    pub fn is_stopped(&self) -> bool {
-        matches!(
-            self,
-            RunError::Stopped(_) | RunError::Replay(ReplayError::Read(ReadError::Stopped { .. }))
-        )
     }
 }
 
@@ -215,74 +102,6 @@ pub struct RunOutcome {
     pub dump: Option<PathBuf>,
     /// Why the fault dump could not be written.
     pub dump_error: Option<String>,
-}
-
-/// Real hardware gets encoder zero at the inkwell from its stored calibration before the
-/// loop starts; a device without one is refused (the message says how to calibrate).
-fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Device>, RunError> {
-    calibration::prepare_for_torque(
-        device,
-        calibration::default_dir().as_deref(),
-        cfg.device.rad_per_count(),
-    )
-    .map_err(|e| match e {
-        CalibrationError::Device(d) => RunError::Device(d),
-        e => RunError::BadInput(e.to_string()),
-    })
-}
-
-/// The refusal when a motor's DAC sign has not been measured: the first torque on a new Omni
-/// goes through `omnid probe --outputs`, never straight into a controller.
-pub(crate) fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
-    let missing = cfg.unmeasured_dac_signs();
-    if missing.is_empty() {
-        return None;
-    }
-    let motors: Vec<String> = missing.iter().map(|j| (j + 1).to_string()).collect();
-    Some(format!(
-        "the DAC sign of motor(s) {} of FireWire Omni {} is not measured (firewire.dac_sign = \
-         {:?}), so omnid applies no torque with it. Run `omnid probe --outputs`: it finds each \
-         motor's sign with a few DAC counts, asking before every step, and prints the \
-         `dac_sign` line to put under [firewire] (docs/BRINGUP.md).",
-        motors.join(", "),
-        serial.unwrap_or("?"),
-        cfg.dac_sign
-    ))
-}
-
-fn open_device(
-    opts: &RunOptions,
-    cfg: &Config,
-    warnings: &mut Vec<String>,
-    stop: &Arc<AtomicBool>,
-) -> Result<Box<dyn Device>, RunError> {
-    match &opts.device {
-        DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, !opts.fast))),
-        DeviceSpec::Replay(path) => {
-            let device = ReplayDevice::open(path, &cfg.device, !opts.fast, opts.lenient, stop)?
-                .with_duration_limit(opts.duration_s.is_finite().then_some(opts.duration_s));
-            if device.info().skipped.count > 0 {
-                warnings.push(format!(
-                    "--lenient: {}: {}",
-                    path.display(),
-                    device.info().skipped
-                ));
-            }
-            Ok(Box::new(device))
-        }
-        DeviceSpec::Usb => ready_for_torque(open_usb_with_rate(&cfg.usb, cfg.device.rate_hz)?, cfg),
-        DeviceSpec::Firewire => {
-            // Identify first (reads only), so that a machine without the Omni hears what was
-            // looked for; then no torque before the motors' signs are known.
-            let mut omni = find_firewire(&cfg.firewire, cfg.device.rate_hz)?;
-            if let Some(why) = unmeasured_dac_signs(&cfg.firewire, omni.serial()) {
-                return Err(RunError::BadInput(why));
-            }
-            omni.start()?;
-            omni.check_rate()?;
-            ready_for_torque(Box::new(omni), cfg)
-        }
-    }
 }
 
 /// Check the options that do not need the device: duration, `--fast`, the simulator's
@@ -372,213 +191,6 @@ pub(crate) fn check_outputs(opts: &RunOptions) -> Result<(), RunError> {
     Ok(())
 }
 
-/// A servo loop ready to start: the device open, the controllers and the identifier built,
-/// the motors' heat loaded. `run` and `serve` both assemble it here.
-pub struct Pipeline {
-    /// The loop, ready to run.
-    pub servo: Servo,
-    /// The log columns this device feeds.
-    pub(crate) schema: LogSchema,
-    /// Where the identifier's weights came from (`shipped`, `fresh` or a path).
-    pub(crate) weights_label: String,
-    /// The identifier as it started (its shape; `serve` copies live weights into clones).
-    pub(crate) identifier: Identifier,
-    /// Where motor heat is carried over between runs (none for replays).
-    pub(crate) heat_path: Option<PathBuf>,
-    /// Things the operator should know that do not stop the run.
-    pub(crate) warnings: Vec<String>,
-    /// Realtime steps to take on the servo thread (paced runs only).
-    pub(crate) realtime: Option<crate::servo::realtime::RealtimeConfig>,
-    /// Which realtime steps took effect, once the servo thread has taken them (before its
-    /// first tick): for a daemon's status while it runs.
-    pub(crate) realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
-}
-
-/// Build the pipeline for `opts` with `faults` (from [`check_options`]); telemetry leaves
-/// through `telemetry`, `stop` ends the loop.
-pub(crate) fn assemble(
-    opts: &RunOptions,
-    cfg: &Config,
-    faults: &[Fault],
-    telemetry: crossbeam_channel::Sender<crate::telemetry::record::TickRecord>,
-    stop: Arc<AtomicBool>,
-) -> Result<Pipeline, RunError> {
-    let replay = matches!(opts.device, DeviceSpec::Replay(_));
-    let (controllers, identifier, weights_label) = laws(opts, cfg, faults, &stop)?;
-    let mut warnings = Vec::new();
-    let mut device = open_device(opts, cfg, &mut warnings, &stop)?;
-    if !faults.is_empty() {
-        device = Box::new(FaultyDevice::new(
-            device,
-            faults,
-            cfg.sim.seed,
-            stop.clone(),
-        ));
-    }
-    let schema = LogSchema {
-        model: device.plant_model().is_some(),
-    };
-    let reference = Reference::new(opts.trajectory, &cfg.reference, cfg.sim.seed);
-    // A replay limits itself in device time (its rows need not come at rate_hz).
-    let max_ticks = (!replay && opts.duration_s.is_finite())
-        .then(|| (opts.duration_s * cfg.device.rate_hz).round() as u64);
-    // A replay drives no motors: it neither inherits nor leaves heat (and stays reproducible).
-    let heat_path = (cfg.safety.persist_heat && !replay)
-        .then(crate::servo::thermal_store::state_dir)
-        .flatten()
-        .map(|d| crate::servo::thermal_store::heat_file(&d, opts.device.name()));
-    let mut servo = Servo::new(
-        cfg,
-        device,
-        controllers,
-        reference,
-        telemetry,
-        stop,
-        max_ticks,
-        !opts.fast,
-    );
-    servo.set_identifier(identifier.clone());
-    if opts.haptics.free {
-        servo.start_free();
-    }
-    servo.set_effects(&opts.haptics.effects);
-    if let Some(path) = &heat_path {
-        servo.set_initial_heat(load_heat(path, cfg));
-    }
-    Ok(Pipeline {
-        servo,
-        schema,
-        weights_label,
-        identifier,
-        heat_path,
-        warnings,
-        // Realtime steps only make sense when the loop is paced.
-        realtime: (!opts.fast).then(|| cfg.realtime.clone()),
-        realtime_taken: Arc::default(),
-    })
-}
-
-/// The control laws and the identifier for `opts` (an injected NaN fault wraps the active
-/// law), and the label of the weights the identifier starts from.
-fn laws(
-    opts: &RunOptions,
-    cfg: &Config,
-    faults: &[Fault],
-    stop: &Arc<AtomicBool>,
-) -> Result<(ControllerSet, Identifier, String), RunError> {
-    let mut controllers = ControllerSet::new(cfg, opts.controller, cfg.serve.switch_fade_s);
-    let (identifier, weights_label) = make_identifier(
-        cfg,
-        opts.controller,
-        opts.weights.as_deref(),
-        opts.no_adapt,
-        Some(stop),
-    )?;
-    if weights_label == "shipped" {
-        crate::errln!(
-            "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
-             the simulator); pass --weights FILE for your own (`omnid identify`)"
-        );
-    }
-    if let Some(at_s) = faults.iter().find_map(|f| match f {
-        Fault::Nan { at_s } => Some(*at_s),
-        _ => None,
-    }) {
-        let inner = controllers.take(opts.controller);
-        controllers.replace(opts.controller, Box::new(NanAfter { inner, at_s }));
-    }
-    Ok((controllers, identifier, weights_label))
-}
-
-/// The motors' heat left by the last run on this device (cold, with a warning, if it cannot
-/// be read).
-fn load_heat(path: &std::path::Path, cfg: &Config) -> [f64; 3] {
-    let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
-    if let Some(note) = note {
-        crate::errln!("omnid: warning: {note}; starting with cold motors");
-    }
-    heat
-}
-
-/// The servo thread's result: the loop's report and which realtime steps took effect.
-pub(crate) type ServoThreadResult = (ServoReport, Option<crate::servo::realtime::RealtimeReport>);
-
-impl Pipeline {
-    /// Start the loop on its own thread (realtime steps taken there, before the first tick).
-    /// Returns what the caller keeps: the thread and the bookkeeping for the end.
-    pub(crate) fn spawn(
-        self,
-    ) -> Result<(std::thread::JoinHandle<ServoThreadResult>, Ending), RunError> {
-        let Pipeline {
-            mut servo,
-            schema,
-            weights_label,
-            identifier: _,
-            heat_path,
-            warnings,
-            realtime,
-            realtime_taken,
-        } = self;
-        let handle = std::thread::Builder::new()
-            .name("omnid-servo".into())
-            .stack_size(2 << 20)
-            .spawn(move || {
-                let realtime = realtime.as_ref().map(crate::servo::realtime::apply);
-                // Before the first tick: one line per step that was not permitted.
-                for w in realtime.iter().flat_map(|r| &r.warnings) {
-                    crate::errln!("omnid: warning: {w}");
-                }
-                if let Some(r) = &realtime {
-                    let _ = realtime_taken.set(r.clone());
-                }
-                let end = loop {
-                    if let Some(end) = servo.tick() {
-                        break end;
-                    }
-                };
-                (servo.finish(end), realtime)
-            })
-            .map_err(|e| RunError::Internal(format!("cannot start the servo thread: {e}")))?;
-        Ok((
-            handle,
-            Ending {
-                schema,
-                weights_label,
-                heat_path,
-                warnings,
-            },
-        ))
-    }
-}
-
-/// What is needed once the loop has ended.
-pub(crate) struct Ending {
-    pub schema: LogSchema,
-    pub weights_label: String,
-    pub heat_path: Option<PathBuf>,
-    pub warnings: Vec<String>,
-}
-
-impl Ending {
-    /// Keep the motors' heat for the next run and warn about motors that ran hot.
-    pub(crate) fn save_heat(&self, report: &ServoReport) {
-        if let Some(path) = &self.heat_path {
-            if let Err(e) = crate::servo::thermal_store::save(path, report.heat) {
-                crate::errln!("omnid: warning: motor heat not saved: {e}");
-            }
-        }
-        for (j, warned) in report.thermal_warned.iter().enumerate() {
-            if *warned {
-                crate::errln!(
-                    "omnid: warning: motor {} reached its thermal warning level (heat {:.2})",
-                    j + 1,
-                    report.heat[j]
-                );
-            }
-        }
-    }
-}
-
 /// Injected faults scheduled after the run's end: reported, not silently dropped.
 fn unreached_faults(faults: &[Fault], reached_s: f64) -> Vec<String> {
     faults
@@ -603,15 +215,6 @@ fn unreached_faults(faults: &[Fault], reached_s: f64) -> Vec<String> {
             })
         })
         .collect()
-}
-
-/// Join the servo thread.
-pub(crate) fn join_servo(
-    handle: std::thread::JoinHandle<ServoThreadResult>,
-) -> Result<ServoThreadResult, RunError> {
-    handle
-        .join()
-        .map_err(|_| RunError::Internal("the servo thread panicked".into()))
 }
 
 /// Validate options, open the device and the log, run the loop to its end.

@@ -261,7 +261,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     cfg.serve.dump_dir = dir.path().display().to_string();
     let socket = dir.path().join("sim.sock");
     let opts = omnid::daemon::ServeOptions {
-        device: omnid::run::DeviceSpec::Sim,
+        devices: vec![omnid::run::DeviceSpec::Sim],
         controller: ControllerKind::Nnidc,
         socket: Some(socket.clone()),
         weights: None,

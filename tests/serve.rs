@@ -232,18 +232,19 @@ fn one_commander_many_readers_and_lease_handover() {
     a.request(json!({"op": "mode", "mode": "hold"})).unwrap();
     // b may read, not command, while a holds the lease.
     b.request(json!({"op": "status"})).unwrap();
-    let e = refused(b.request(json!({"op": "mode", "mode": "idle"})));
+    let e = refused(b.request(json!({"op": "mode", "mode": "hold"})));
     assert!(e.contains("lease") && e.contains("`a`"), "{e}");
     a.request(json!({"op": "release"})).unwrap();
     b.request(json!({"op": "lease"})).unwrap();
-    assert!(refused(a.request(json!({"op": "mode", "mode": "idle"}))).contains("`b`"));
-    // A one-shot commander leaves; its mode persists and the lease is free again.
-    b.request(json!({"op": "mode", "mode": "free"})).unwrap();
+    assert!(refused(a.request(json!({"op": "mode", "mode": "hold"}))).contains("`b`"));
+    // A one-shot commander leaves; its mode persists (tracking makes no force of the
+    // client's own, unlike free, streams and effects) and the lease is free again.
+    b.request(json!({"op": "mode", "mode": "track"})).unwrap();
     drop(b);
     reader
         .request(json!({"op": "stream", "rate_hz": 100}))
         .unwrap();
-    let seen = states_until(&mut reader, 500, |s| s.mode == "free");
+    let seen = states_until(&mut reader, 500, |s| s.mode == "track");
     assert!(seen.windows(2).all(|w| w[1].seq == w[0].seq + 10));
     let until = Instant::now() + Duration::from_secs(5);
     loop {
@@ -583,6 +584,9 @@ fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
 fn a_full_daemon_refuses_with_its_reason() {
     let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
     let _only = d.client("only");
+    // Root and the daemon's own user have 8 slots more (the one who can stop the arm always
+    // gets in); these tests run as the daemon's user.
+    let _kept: Vec<Client> = (0..8).map(|k| d.client(&format!("kept {k}"))).collect();
     for _ in 0..10 {
         let out = omnid()
             .args(["ctl", "--socket"])

@@ -8,6 +8,7 @@ pub(crate) mod discovery;
 pub(crate) mod firewire;
 pub mod inject;
 pub mod probe;
+pub mod registry;
 pub mod replay;
 pub mod sim;
 pub(crate) mod stream;

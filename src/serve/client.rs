@@ -36,7 +36,9 @@ pub enum ClientError {
     Protocol(String),
 }
 
-/// A message from the daemon.
+/// A message from the daemon. (A state is the larger variant; a client reads one message at
+/// a time, so it is not boxed.)
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 pub enum Message {
     /// A state of the stream.
@@ -69,6 +71,8 @@ impl Client {
                 protocol: 0,
                 server: String::new(),
                 device: String::new(),
+                arm: String::new(),
+                aliases: Vec::new(),
                 rate_hz: 0.0,
                 access: String::new(),
                 client: 0,

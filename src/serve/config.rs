@@ -40,8 +40,19 @@ pub struct ServeConfig {
     pub read_group: String,
     /// Members of this group may also command (empty: only the daemon's own user and root).
     pub control_group: String,
-    /// Most clients connected at once.
+    /// Most clients connected at once (root and the daemon's own user have 8 more slots, so
+    /// the one who can stop the arm always gets in).
     pub max_clients: usize,
+    /// Most connections one user (other than root and the daemon's user) may hold.
+    pub max_clients_per_user: usize,
+    /// A connection that has not said hello within this long is closed, ms.
+    pub hello_timeout_ms: f64,
+    /// A lease holder whose socket stays full this long (it stopped reading) loses the lease,
+    /// and what it set up that makes force ends at its fallback, ms.
+    pub lease_lapse_ms: f64,
+    /// With several arms: one arm's device or safety fault stops them all (false: that arm
+    /// stops, the others go on).
+    pub fail_together: bool,
     /// State messages queued per client before the oldest are dropped (and counted).
     pub client_queue: usize,
     /// Seconds of ticks kept in memory for the fault dump.
@@ -65,6 +76,10 @@ impl Default for ServeConfig {
             read_group: String::new(),
             control_group: String::new(),
             max_clients: 128,
+            max_clients_per_user: 32,
+            hello_timeout_ms: 2000.0,
+            lease_lapse_ms: 1000.0,
+            fail_together: false,
             client_queue: 1024,
             ring_s: 10.0,
             dump_dir: String::new(),
@@ -116,6 +131,27 @@ impl ServeConfig {
                 "1 ..= 1024",
             ));
         }
+        if !(1..=1024).contains(&self.max_clients_per_user) {
+            return Err(check::invalid(
+                "serve.max_clients_per_user",
+                self.max_clients_per_user.to_string(),
+                "1 ..= 1024",
+            ));
+        }
+        check::in_range(
+            "serve.hello_timeout_ms",
+            self.hello_timeout_ms,
+            10.0,
+            60_000.0,
+            "10 ..= 60000 ms",
+        )?;
+        check::in_range(
+            "serve.lease_lapse_ms",
+            self.lease_lapse_ms,
+            50.0,
+            60_000.0,
+            "50 ..= 60000 ms",
+        )?;
         if !(16..=1_000_000).contains(&self.client_queue) {
             return Err(check::invalid(
                 "serve.client_queue",

@@ -6,7 +6,6 @@
 pub(crate) mod access;
 pub mod client;
 pub(crate) mod config;
-pub(crate) mod device_info;
 pub mod hub;
 pub mod protocol;
 pub mod socket;
@@ -30,8 +29,8 @@ pub fn default_socket_dirs() -> Vec<PathBuf> {
     dirs
 }
 
-/// Where the daemon for `device` listens unless told otherwise.
-pub(crate) fn default_socket(device: &str) -> PathBuf {
+/// Where the daemon serves arm `name` unless told otherwise.
+pub(crate) fn default_socket(name: &str) -> PathBuf {
     // SAFETY: geteuid has no arguments and cannot fail.
     let root = unsafe { libc::geteuid() } == 0;
     let dirs = default_socket_dirs();
@@ -40,7 +39,7 @@ pub(crate) fn default_socket(device: &str) -> PathBuf {
         .find(|d| !d.ends_with("run/omnid") || root || d.is_dir())
         .cloned()
         .unwrap_or_else(|| PathBuf::from("/run/omnid"));
-    dir.join(format!("{device}.sock"))
+    dir.join(format!("{name}.sock"))
 }
 
 /// The socket a client connects to when given none: `$OMNID_SOCKET`, else the one socket in
@@ -82,5 +81,54 @@ pub fn find_socket() -> Result<PathBuf, String> {
             .map(|d| d.display().to_string())
             .collect::<Vec<_>>()
             .join(", ")
+    ))
+}
+
+/// The socket of arm `name` (its name or an alias): `<dir>/<name>.sock` in the default
+/// directories, else the daemon whose hello names it (`arm` or `aliases`).
+pub fn find_arm_socket(name: &str) -> Result<PathBuf, String> {
+    let dirs = default_socket_dirs();
+    if crate::arm::check_name(name).is_ok() {
+        if let Some(p) = dirs
+            .iter()
+            .map(|d| d.join(format!("{name}.sock")))
+            .find(|p| p.exists())
+        {
+            return Ok(p);
+        }
+    }
+    let mut served = Vec::new();
+    for dir in &dirs {
+        let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|e| e == "sock"))
+            .collect();
+        found.sort();
+        for p in found {
+            let Ok(c) = client::Client::connect(&p, "omnid (looking for an arm)") else {
+                continue;
+            };
+            let hello = c.hello();
+            if hello.arm == name || hello.aliases.iter().any(|a| a == name) {
+                return Ok(p);
+            }
+            served.push(hello.arm.clone());
+        }
+    }
+    Err(format!(
+        "no arm named `{}` is served in {} (arms served: {}); is `omnid serve` running with it?",
+        crate::text::cut(name),
+        dirs.iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        if served.is_empty() {
+            "none".to_string()
+        } else {
+            served.join(", ")
+        }
     ))
 }

@@ -201,56 +201,10 @@ impl Request {
             | Request::Shutdown { id } => id.as_ref(),
         }
     }
-
-    /// Requests that change the device or write files: they need control access and the
-    /// lease. Everyone admitted may read.
-    pub fn commands(&self) -> bool {
-        !matches!(
-            self,
-            Request::Hello { .. } | Request::Stream { .. } | Request::Status { .. }
-        )
-    }
 }
 
-/// One tick as clients see it (`type: "state"`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct State {
-    /// Tick number since the daemon started: consecutive for a client that keeps up.
-    pub seq: u64,
-    /// Device time since the daemon started, s.
-    pub t: f64,
-    /// Joint angles from the encoders, rad (OpenHaptics convention).
-    pub q: [f64; 3],
-    /// Kalman estimate of the joint velocity, rad/s.
-    pub qd: [f64; 3],
-    /// Stylus tip, mm, OpenHaptics frame (+x right, +y up, +z toward the user).
-    pub tip_mm: [f64; 3],
-    /// Stylus buttons pressed (dark grey, light grey).
-    pub buttons: [bool; 2],
-    /// Whether the stylus sits in its inkwell.
-    pub inkwell: bool,
-    /// Gimbal angles, rad (nominal, uncalibrated: `serve::device_info`; 0 at mid-scale).
-    #[serde(default)]
-    pub gimbal: [f64; 3],
-    /// Torque sent to the motors, N·m.
-    pub tau: [f64; 3],
-    /// The identifier's prediction of the torque that acted, N·m.
-    pub tau_hat: [f64; 3],
-    /// The active controller (`pd`, `nnidc`, `ct`, `off`).
-    pub controller: String,
-    /// idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, stop.
-    pub mode: String,
-    /// Whether the motor amplifiers are on.
-    pub amps: bool,
-    /// Safety and status bits (README, Logs: `flags`).
-    pub flags: u32,
-    /// Sequence number of the last servo_jp/servo_jf/servo_cf command applied.
-    pub cmd_seq: u64,
-    /// Motor heat per joint from the thermal model (1 = steady state at the continuous
-    /// torque; the limit is `[safety] thermal_limit`).
-    #[serde(default)]
-    pub heat: [f64; 3],
-}
+/// One tick as clients see it (`type: "state"`): the station's view of it.
+pub use crate::station::ArmState as State;
 
 /// The daemon's greeting (`type: "hello"`), the first message on every admitted connection.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -261,6 +215,12 @@ pub struct Hello {
     pub server: String,
     /// The device backend: `sim`, `usb`, `firewire` or `replay`.
     pub device: String,
+    /// The arm's name (a daemon serves each arm on its own socket, `<name>.sock`).
+    #[serde(default)]
+    pub arm: String,
+    /// Other names the arm answers to (`[[arm]] aliases`: OpenHaptics' "PHANToM 1", …).
+    #[serde(default)]
+    pub aliases: Vec<String>,
     /// The servo rate, Hz (the fastest a state stream can run).
     pub rate_hz: f64,
     /// What this client may do: "read" or "control".
@@ -307,7 +267,7 @@ mod tests {
                 id: Some(serde_json::json!("a"))
             }
         );
-        assert!(r.commands());
+        assert!(super::super::hub::to_op(r.clone()).unwrap().commands());
         let r: Request =
             serde_json::from_str(r#"{"op":"servo_cf","seq":8,"force":[1.5,0,-0.5],"ttl_ms":20}"#)
                 .unwrap();
@@ -320,10 +280,10 @@ mod tests {
                 id: None
             }
         );
-        assert!(r.commands());
+        assert!(super::super::hub::to_op(r.clone()).unwrap().commands());
         assert_eq!(r.op(), "servo_cf");
         let r: Request = serde_json::from_str(r#"{"op":"status"}"#).unwrap();
-        assert!(!r.commands());
+        assert!(!super::super::hub::to_op(r.clone()).unwrap().commands());
         assert_eq!(r.op(), "status");
     }
 

@@ -381,42 +381,6 @@ impl PathLock {
     }
 }
 
-/// A name in the abstract Unix socket namespace (`@omnid-device-<kind>`): binding it is
-/// exclusive machine-wide and ends with the process, with no file to go stale. Keeps two
-/// daemons (or a `run` and a `serve`) off the same real device.
-#[derive(Debug)]
-pub(crate) struct DeviceLock {
-    _fd: OwnedFd,
-}
-
-impl DeviceLock {
-    pub(crate) fn acquire(kind: &str) -> Result<DeviceLock, String> {
-        let fd = seqpacket().map_err(|e| format!("device lock: {e}"))?;
-        let mut name = vec![0u8];
-        name.extend_from_slice(format!("omnid-device-{kind}").as_bytes());
-        let (addr, len) = address(&name).map_err(|e| format!("device lock: {e}"))?;
-        // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
-        let rc = unsafe {
-            libc::bind(
-                fd.as_raw_fd(),
-                (&addr as *const libc::sockaddr_un).cast(),
-                len,
-            )
-        };
-        if rc != 0 {
-            let e = io::Error::last_os_error();
-            return Err(if e.kind() == io::ErrorKind::AddrInUse {
-                format!(
-                    "the {kind} device is in use by another omnid (run or serve); stop it first"
-                )
-            } else {
-                format!("device lock: {e}")
-            });
-        }
-        Ok(DeviceLock { _fd: fd })
-    }
-}
-
 /// A group's id by name.
 pub(crate) fn group_id(name: &str) -> Option<u32> {
     let c = CString::new(name).ok()?;
@@ -475,9 +439,6 @@ mod tests {
         let _held = PathLock::acquire(&path).unwrap();
         let e = PathLock::acquire(&path).unwrap_err();
         assert!(e.contains(&std::process::id().to_string()), "{e}");
-        let kind = format!("test-{}", std::process::id());
-        let _d = DeviceLock::acquire(&kind).unwrap();
-        assert!(DeviceLock::acquire(&kind).unwrap_err().contains("in use"));
     }
 
     #[test]

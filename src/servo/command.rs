@@ -64,6 +64,18 @@ impl Activity {
     }
 }
 
+/// A command as the station sent it: stamped with the owner epoch it was issued under and the
+/// stop requests issued before it ([`ArmSignals`]), so a command of an owner who has since
+/// left is never applied, and a stop takes effect in its place among the commands.
+pub struct Stamped {
+    /// The owner epoch when the station sent it.
+    pub epoch: u64,
+    /// Stop requests issued before it.
+    pub halts: u64,
+    /// The command.
+    pub command: ServoCommand,
+}
+
 /// A request for the loop, applied at the first tick after it arrives.
 pub enum ServoCommand {
     Idle,
@@ -96,10 +108,6 @@ pub enum ServoCommand {
     },
     /// Turn the passivity controller on or off.
     Passivity(bool),
-    /// The stream's owner is gone: leave a stream mode now.
-    StreamEnded,
-    /// Where a stale or abandoned stream falls back to from now on (`Hold`, `Idle` or `Free`).
-    Fallback(Activity),
     /// Switch the control law (bumpless).
     Controller(ControllerKind),
     /// Resume (`true`) or freeze (`false`) online adaptation.
@@ -210,13 +218,86 @@ impl Wake {
     }
 }
 
+/// What the servo must never miss, held as state it reads every tick rather than as messages
+/// that a full mailbox could drop: who owns the arm's force, where its streams fall back to,
+/// and stop requests.
+#[derive(Debug, Default)]
+pub struct ArmSignals {
+    /// Owner epoch (bits 8..) and the owner's stream fallback (bits 0..8, [`Activity`] code).
+    /// The epoch grows when the lease ends, whichever way: the servo then ends everything the
+    /// owner set up that makes force (streams, effects, free) at the fallback.
+    owner: AtomicU64,
+    /// Stop requests (`mode idle`, the emergency stop): each one leaves the arm idle.
+    halts: AtomicU64,
+}
+
+impl ArmSignals {
+    /// Signals with this initial stream fallback.
+    pub fn new(fallback: Activity) -> ArmSignals {
+        let s = ArmSignals::default();
+        s.owner.store(code(fallback), Ordering::SeqCst);
+        s
+    }
+
+    /// The owner epoch and the fallback in force.
+    pub fn owner(&self) -> (u64, Activity) {
+        let v = self.owner.load(Ordering::Acquire);
+        (v >> 8, activity(v & 0xFF))
+    }
+
+    /// The owner left (lease released, client gone, lease lapsed): a new epoch, keeping the
+    /// leaving owner's fallback for what it leaves behind. Returns the new epoch.
+    pub fn end_owner(&self) -> u64 {
+        let (epoch, fallback) = self.owner();
+        self.owner
+            .store(((epoch + 1) << 8) | code(fallback), Ordering::Release);
+        epoch + 1
+    }
+
+    /// Where streams fall back from now on (same epoch).
+    pub fn set_fallback(&self, fallback: Activity) {
+        let (epoch, _) = self.owner();
+        self.owner
+            .store((epoch << 8) | code(fallback), Ordering::Release);
+    }
+
+    /// Ask for idle; never lost, never refused by a full mailbox. Returns the stop requests
+    /// issued so far.
+    pub fn halt(&self) -> u64 {
+        self.halts.fetch_add(1, Ordering::AcqRel) + 1
+    }
+
+    /// Stop requests so far.
+    pub fn halts(&self) -> u64 {
+        self.halts.load(Ordering::Acquire)
+    }
+}
+
+fn code(a: Activity) -> u64 {
+    match a {
+        Activity::Idle => 0,
+        Activity::Hold => 1,
+        Activity::Free => 2,
+        // Only the three above are fallbacks; anything else is held as hold.
+        _ => 1,
+    }
+}
+
+fn activity(code: u64) -> Activity {
+    match code {
+        0 => Activity::Idle,
+        2 => Activity::Free,
+        _ => Activity::Hold,
+    }
+}
+
 /// The loop's side of `omnid serve`'s connection.
 pub struct ServoLink {
-    pub commands: crossbeam_channel::Receiver<ServoCommand>,
+    pub commands: crossbeam_channel::Receiver<Stamped>,
     pub replies: crossbeam_channel::Sender<ServoReply>,
     pub wake: std::sync::Arc<Wake>,
-    /// Where a stale or abandoned stream falls back to: `Hold` or `Idle`.
-    pub stale_fallback: Activity,
+    /// Ownership, fallback and stop requests, read every tick.
+    pub signals: std::sync::Arc<ArmSignals>,
 }
 
 /// Most commands taken in one tick (the rest wait for the next).

@@ -28,7 +28,9 @@ use crate::omni::Joint3;
 use crate::servo::summary::{FaultEntry, RunStats};
 use crate::telemetry::record::{flags, HapticRecord, Live, Mode, TickRecord};
 pub use command::Activity;
-pub(crate) use command::{ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Wake};
+pub(crate) use command::{
+    ArmSignals, ServoCommand, ServoEvent, ServoLink, ServoReply, Snapshot, Stamped, Wake,
+};
 use crossbeam_channel::{Sender, TrySendError};
 use safety::SafetyConfig;
 use safety::SafetyLayer;
@@ -161,6 +163,9 @@ pub struct Servo {
     cmd_seq: u64,
     stream_deadline: f64,
     event: Option<ServoEvent>,
+    /// The owner epoch and stop count last read from the link's signals.
+    owner_epoch: u64,
+    halts_seen: u64,
     kalman: KalmanBank,
     unwrap: EncoderUnwrap,
     dac: DacScale,
@@ -254,6 +259,8 @@ impl Servo {
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
+            owner_epoch: 0,
+            halts_seen: 0,
             kalman: KalmanBank::new(cfg.kalman),
             unwrap: EncoderUnwrap::new(),
             dac: DacScale {
@@ -294,6 +301,8 @@ impl Servo {
     /// Serve clients: take commands from `link` and start in `Idle` (amplifiers off) instead
     /// of tracking; a safety trip then drops to `Idle` instead of ending the run.
     pub(crate) fn attach(&mut self, link: ServoLink) {
+        self.owner_epoch = link.signals.owner().0;
+        self.halts_seen = link.signals.halts();
         self.link = Some(link);
         self.activity = Activity::Idle;
     }
@@ -350,6 +359,7 @@ impl Servo {
         self.safety.observe(s.t, &s.q);
         // Clients' commands that arrived while the loop waited for this sample.
         if self.link.is_some() {
+            self.read_owner(s.t, &est.q);
             self.take_commands(s.t, &est.q);
             self.expire_stream(s.t, &est.q);
         }
@@ -689,10 +699,39 @@ impl Servo {
     /// [`command::MAX_COMMANDS_PER_TICK`]; the rest wait).
     fn take_commands(&mut self, t: f64, q: &Joint3) {
         for _ in 0..command::MAX_COMMANDS_PER_TICK {
-            let Some(cmd) = self.link.as_ref().and_then(|l| l.commands.try_recv().ok()) else {
-                return;
+            let Some(Stamped {
+                epoch,
+                halts,
+                command,
+            }) = self.link.as_ref().and_then(|l| l.commands.try_recv().ok())
+            else {
+                break;
             };
-            match cmd {
+            // A stop sent before this command comes first; a command that would move the arm,
+            // sent before a stop already applied, is void.
+            let moves = matches!(
+                command,
+                ServoCommand::Hold | ServoCommand::Track(_) | ServoCommand::Free
+            );
+            // Force an owner set up is theirs: once they have left, what they sent is void.
+            let makes_force = matches!(
+                command,
+                ServoCommand::ServoJp { .. }
+                    | ServoCommand::ServoJf { .. }
+                    | ServoCommand::ServoCf { .. }
+                    | ServoCommand::Effect { .. }
+                    | ServoCommand::Free
+            );
+            if halts > self.halts_seen {
+                self.halts_seen = halts;
+                self.enter(Activity::Idle, q);
+            } else if halts < self.halts_seen && (moves || makes_force) {
+                continue;
+            }
+            if makes_force && epoch != self.owner_epoch {
+                continue;
+            }
+            match command {
                 ServoCommand::Idle => self.enter(Activity::Idle, q),
                 ServoCommand::Hold => self.enter(Activity::Hold, q),
                 ServoCommand::Free => self.enter(Activity::Free, q),
@@ -732,17 +771,6 @@ impl Servo {
                 }
                 ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
                 ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
-                ServoCommand::StreamEnded => {
-                    if self.activity.is_stream() {
-                        let fallback = self.stream_fallback(q);
-                        self.event = Some(ServoEvent::StreamEnded { fallback });
-                    }
-                }
-                ServoCommand::Fallback(to) => {
-                    if let Some(link) = self.link.as_mut() {
-                        link.stale_fallback = to;
-                    }
-                }
                 ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
                 ServoCommand::Adapt(on) => {
                     if let Some(id) = self.identifier.as_mut() {
@@ -761,14 +789,46 @@ impl Servo {
                 }
             }
         }
+        self.apply_halts(q);
     }
 
-    /// Leave a stream mode for the configured fallback; returns the mode fallen back to.
+    /// Ownership, read before the commands: an owner who left takes everything they set up
+    /// that makes force with them (streams and free fall back; the effects are removed).
+    fn read_owner(&mut self, t: f64, q: &Joint3) {
+        let Some(link) = self.link.as_ref() else {
+            return;
+        };
+        let (epoch, _) = link.signals.owner();
+        if epoch != self.owner_epoch {
+            self.owner_epoch = epoch;
+            for slot in 0..crate::haptics::MAX_EFFECTS {
+                self.haptics.set_effect(slot, None, t);
+            }
+            if self.activity.is_stream() || self.activity == Activity::Free {
+                let fallback = self.stream_fallback(q);
+                self.event = Some(ServoEvent::StreamEnded { fallback });
+            }
+        }
+    }
+
+    /// Stop requests not yet met among the commands: idle now, whatever is queued.
+    fn apply_halts(&mut self, q: &Joint3) {
+        let Some(link) = self.link.as_ref() else {
+            return;
+        };
+        let halts = link.signals.halts();
+        if halts > self.halts_seen {
+            self.halts_seen = halts;
+            self.enter(Activity::Idle, q);
+        }
+    }
+
+    /// Leave a stream mode for the owner's fallback; returns the mode fallen back to.
     fn stream_fallback(&mut self, q: &Joint3) -> Mode {
         let to = self
             .link
             .as_ref()
-            .map_or(Activity::Hold, |l| l.stale_fallback);
+            .map_or(Activity::Hold, |l| l.signals.owner().1);
         self.stream_tau = Joint3::zeros();
         self.stream_force = Force3::zeros();
         self.enter(to, q);
@@ -999,11 +1059,22 @@ mod tests {
 
     /// A servo on the simulator with `Off` (no compensation, so the commanded torque is the
     /// stream's alone), attached to a link; its record channel and the command sender.
-    fn linked_servo() -> (
-        Servo,
-        crossbeam_channel::Receiver<TickRecord>,
-        crossbeam_channel::Sender<ServoCommand>,
-    ) {
+    /// The station's side of a test link: commands stamped with the current owner epoch.
+    struct Commands(crossbeam_channel::Sender<Stamped>);
+
+    impl Commands {
+        fn send(&self, command: ServoCommand) -> Result<(), ()> {
+            self.0
+                .send(Stamped {
+                    epoch: 0,
+                    halts: 0,
+                    command,
+                })
+                .map_err(|_| ())
+        }
+    }
+
+    fn linked_servo() -> (Servo, crossbeam_channel::Receiver<TickRecord>, Commands) {
         let mut cfg = Config::default();
         cfg.sim.torque_noise_nm = 0.0;
         let (tx, rx) = crossbeam_channel::unbounded();
@@ -1023,9 +1094,9 @@ mod tests {
             commands: crx,
             replies: rtx,
             wake: Arc::new(Wake::new().unwrap()),
-            stale_fallback: Activity::Hold,
+            signals: Arc::new(ArmSignals::new(Activity::Hold)),
         });
-        (servo, rx, ctx)
+        (servo, rx, Commands(ctx))
     }
 
     fn next(servo: &mut Servo, rx: &crossbeam_channel::Receiver<TickRecord>) -> TickRecord {

@@ -1,0 +1,135 @@
+//! One process per arm: a name in the abstract Unix socket namespace (`@omnid-arm-<name>`),
+//! bound and listening while the process drives the arm. Binding it is exclusive machine-wide
+//! and ends with the process, with no file to go stale; a second `run`, `serve` or `probe` of
+//! the same arm connects to it to learn the holder's process id (SO_PEERCRED) and names it.
+
+use std::io;
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+
+/// Held while this process drives the arm.
+#[derive(Debug)]
+pub struct ArmLock {
+    _fd: OwnedFd,
+}
+
+fn seqpacket() -> io::Result<OwnedFd> {
+    // SAFETY: socket has no pointer arguments; the result is checked before use.
+    let fd = unsafe { libc::socket(libc::AF_UNIX, libc::SOCK_SEQPACKET | libc::SOCK_CLOEXEC, 0) };
+    if fd < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    // SAFETY: a fresh descriptor nothing else owns.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
+}
+
+/// The abstract address of arm `name` (a leading NUL byte, no file).
+fn address(name: &str) -> (libc::sockaddr_un, libc::socklen_t) {
+    // SAFETY: sockaddr_un is plain data; all zeros is a valid value.
+    let mut addr: libc::sockaddr_un = unsafe { std::mem::zeroed() };
+    addr.sun_family = libc::AF_UNIX as libc::sa_family_t;
+    let id = format!("omnid-arm-{name}");
+    // Names are checked to at most 32 safe bytes (`arm::check_name`); cut anyway.
+    let bytes = &id.as_bytes()[..id.len().min(addr.sun_path.len() - 1)];
+    for (dst, src) in addr.sun_path[1..].iter_mut().zip(bytes) {
+        *dst = *src as libc::c_char;
+    }
+    let len = std::mem::size_of::<libc::sa_family_t>() + 1 + bytes.len();
+    (addr, len as libc::socklen_t)
+}
+
+impl ArmLock {
+    /// Take arm `name`; refused, naming the holder, while another process has it.
+    pub fn acquire(name: &str) -> Result<ArmLock, String> {
+        let fd = seqpacket().map_err(|e| format!("arm lock: {e}"))?;
+        let (addr, len) = address(name);
+        // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+        let rc = unsafe {
+            libc::bind(
+                fd.as_raw_fd(),
+                (&addr as *const libc::sockaddr_un).cast(),
+                len,
+            )
+        };
+        if rc != 0 {
+            let e = io::Error::last_os_error();
+            return Err(if e.kind() == io::ErrorKind::AddrInUse {
+                format!(
+                    "the arm `{name}` is in use by {}; stop it first",
+                    holder(name).unwrap_or_else(|| "another omnid (run, serve or probe)".into())
+                )
+            } else {
+                format!("arm lock: {e}")
+            });
+        }
+        // Listening lets a contender connect and read our process id.
+        // SAFETY: plain call on an owned descriptor.
+        if unsafe { libc::listen(fd.as_raw_fd(), 8) } != 0 {
+            return Err(format!("arm lock: {}", io::Error::last_os_error()));
+        }
+        Ok(ArmLock { _fd: fd })
+    }
+}
+
+/// `omnid (pid N: COMMAND LINE)` for the process holding arm `name`.
+fn holder(name: &str) -> Option<String> {
+    let fd = seqpacket().ok()?;
+    let (addr, len) = address(name);
+    // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+    let rc = unsafe {
+        libc::connect(
+            fd.as_raw_fd(),
+            (&addr as *const libc::sockaddr_un).cast(),
+            len,
+        )
+    };
+    if rc != 0 {
+        return None;
+    }
+    // SAFETY: ucred is plain data; getsockopt writes at most `size` bytes into it.
+    let mut cred: libc::ucred = unsafe { std::mem::zeroed() };
+    let mut size = std::mem::size_of::<libc::ucred>() as libc::socklen_t;
+    let rc = unsafe {
+        libc::getsockopt(
+            fd.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_PEERCRED,
+            (&mut cred as *mut libc::ucred).cast(),
+            &mut size,
+        )
+    };
+    if rc != 0 || cred.pid <= 0 {
+        return None;
+    }
+    let command = std::fs::read(format!("/proc/{}/cmdline", cred.pid))
+        .map(|raw| {
+            let words: Vec<String> = raw
+                .split(|b| *b == 0)
+                .filter(|w| !w.is_empty())
+                .map(|w| String::from_utf8_lossy(w).into_owned())
+                .collect();
+            crate::text::cut(&words.join(" "))
+        })
+        .unwrap_or_default();
+    Some(if command.is_empty() {
+        format!("omnid (pid {})", cred.pid)
+    } else {
+        format!("omnid (pid {}: {command})", cred.pid)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_second_holder_is_refused_with_the_first_named() {
+        let name = format!("test-{}", std::process::id());
+        let held = ArmLock::acquire(&name).unwrap();
+        let e = ArmLock::acquire(&name).unwrap_err();
+        assert!(e.contains(&format!("pid {}", std::process::id())), "{e}");
+        assert!(e.contains(&name), "{e}");
+        drop(held);
+        // Released with its holder: the next one gets it.
+        ArmLock::acquire(&name).unwrap();
+    }
+}

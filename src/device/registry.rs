@@ -1,0 +1,155 @@
+//! The device registry: every backend `--device` names, opened from one place for `run`,
+//! `serve` and the tests (sim, replay, the USB bridge, FireWire), with the steps real
+//! hardware needs before torque (calibration at the inkwell, measured DAC signs).
+
+use crate::config::Config;
+use crate::device::calibration::{self, CalibrationError};
+use crate::device::firewire::{find_firewire, FirewireConfig};
+use crate::device::replay::{ReplayDevice, ReplayError};
+use crate::device::sim::SimOmni;
+use crate::device::usb::open_usb_with_rate;
+use crate::device::{Device, DeviceError};
+use std::path::PathBuf;
+use std::str::FromStr;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use thiserror::Error;
+
+/// `--device`: which Omni to talk to.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum DeviceSpec {
+    /// The simulated Omni (`sim`).
+    Sim,
+    /// A recorded omnid log played back (`replay:PATH`).
+    Replay(PathBuf),
+    /// A real Omni through the USB bridge (`usb`).
+    Usb,
+    /// A real FireWire Omni on Linux firewire-cdev (`firewire`).
+    Firewire,
+}
+
+impl FromStr for DeviceSpec {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "sim" => Ok(DeviceSpec::Sim),
+            "usb" => Ok(DeviceSpec::Usb),
+            "firewire" => Ok(DeviceSpec::Firewire),
+            _ => match s.strip_prefix("replay:") {
+                Some(p) if !p.is_empty() => Ok(DeviceSpec::Replay(PathBuf::from(p))),
+                _ => Err(format!(
+                    "unknown device `{s}`: expected sim, replay:PATH, usb or firewire"
+                )),
+            },
+        }
+    }
+}
+
+impl DeviceSpec {
+    /// The backend's name: `sim`, `replay`, `usb` or `firewire`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            DeviceSpec::Sim => "sim",
+            DeviceSpec::Replay(_) => "replay",
+            DeviceSpec::Usb => "usb",
+            DeviceSpec::Firewire => "firewire",
+        }
+    }
+}
+
+/// Why a device could not be opened.
+#[derive(Debug, Error)]
+pub enum OpenError {
+    /// A configuration that cannot drive this device; the message says why.
+    #[error("{0}")]
+    BadInput(String),
+    /// The device is missing or failed.
+    #[error(transparent)]
+    Device(#[from] DeviceError),
+    /// The log given to `--device replay:PATH` cannot be replayed.
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
+}
+
+/// How a device is to be opened beyond the config.
+#[derive(Debug, Clone, Copy)]
+pub struct OpenOptions<'a> {
+    /// Paced at the device's rate (not `--fast`).
+    pub paced: bool,
+    /// Replay: skip damaged rows.
+    pub lenient: bool,
+    /// Replay: stop after this much device time.
+    pub duration_s: Option<f64>,
+    /// The operator's stop (ends a wait on a replayed pipe).
+    pub stop: &'a Arc<AtomicBool>,
+}
+
+/// Real hardware gets encoder zero at the inkwell from its stored calibration before the
+/// loop starts; a device without one is refused (the message says how to calibrate).
+fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Device>, OpenError> {
+    calibration::prepare_for_torque(
+        device,
+        calibration::default_dir().as_deref(),
+        cfg.device.rad_per_count(),
+    )
+    .map_err(|e| match e {
+        CalibrationError::Device(d) => OpenError::Device(d),
+        e => OpenError::BadInput(e.to_string()),
+    })
+}
+
+/// The refusal when a motor's DAC sign has not been measured: the first torque on a new Omni
+/// goes through `omnid probe --outputs`, never straight into a controller.
+pub(crate) fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -> Option<String> {
+    let missing = cfg.unmeasured_dac_signs();
+    if missing.is_empty() {
+        return None;
+    }
+    let motors: Vec<String> = missing.iter().map(|j| (j + 1).to_string()).collect();
+    Some(format!(
+        "the DAC sign of motor(s) {} of FireWire Omni {} is not measured (firewire.dac_sign = \
+         {:?}), so omnid applies no torque with it. Run `omnid probe --outputs`: it finds each \
+         motor's sign with a few DAC counts, asking before every step, and prints the \
+         `dac_sign` line to put under [firewire] (docs/BRINGUP.md).",
+        motors.join(", "),
+        serial.unwrap_or("?"),
+        cfg.dac_sign
+    ))
+}
+
+/// Open the device `spec` names (as `--device` gives it); notes for the operator (rows a
+/// lenient replay skipped) go to `warnings`.
+pub fn open(
+    spec: &DeviceSpec,
+    cfg: &Config,
+    how: OpenOptions<'_>,
+    warnings: &mut Vec<String>,
+) -> Result<Box<dyn Device>, OpenError> {
+    match spec {
+        DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, how.paced))),
+        DeviceSpec::Replay(path) => {
+            let device = ReplayDevice::open(path, &cfg.device, how.paced, how.lenient, how.stop)?
+                .with_duration_limit(how.duration_s);
+            if device.info().skipped.count > 0 {
+                warnings.push(format!(
+                    "--lenient: {}: {}",
+                    path.display(),
+                    device.info().skipped
+                ));
+            }
+            Ok(Box::new(device))
+        }
+        DeviceSpec::Usb => ready_for_torque(open_usb_with_rate(&cfg.usb, cfg.device.rate_hz)?, cfg),
+        DeviceSpec::Firewire => {
+            // Identify first (reads only), so that a machine without the Omni hears what was
+            // looked for; then no torque before the motors' signs are known.
+            let mut omni = find_firewire(&cfg.firewire, cfg.device.rate_hz)?;
+            if let Some(why) = unmeasured_dac_signs(&cfg.firewire, omni.serial()) {
+                return Err(OpenError::BadInput(why));
+            }
+            omni.start()?;
+            omni.check_rate()?;
+            ready_for_torque(Box::new(omni), cfg)
+        }
+    }
+}

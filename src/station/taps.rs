@@ -1,0 +1,148 @@
+//! What every tick record flows to on a station: the fault ring (the last seconds, dumped on a
+//! fault), a recording (a writer thread fed through a bounded channel, as `omnid run`'s log),
+//! and any [`Tap`] a transport or recorder adds.
+
+use crate::telemetry::record::{LogSchema, TickRecord};
+use crate::telemetry::writer::dump_rows;
+use crate::telemetry::{spawn_writer, LogError, LogFile, WriterReport};
+use crossbeam_channel::Sender;
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::thread::JoinHandle;
+
+/// A consumer beside the loop: it sees every tick record and every event of its arm, on the
+/// station's thread (never the servo's). It must not block: anything slow goes to a thread of
+/// its own through a bounded channel, as [`Recording`] does.
+pub trait Tap: Send {
+    /// One tick.
+    fn on_tick(&mut self, record: &TickRecord);
+    /// An event every session is told about.
+    fn on_event(&mut self, _event: &super::Event) {}
+    /// The servo has ended: flush, close.
+    fn finish(&mut self) {}
+}
+
+/// The last `cap` ticks, oldest first: what a fault dump writes.
+pub(crate) struct FaultRing {
+    ticks: VecDeque<TickRecord>,
+    cap: usize,
+    schema: LogSchema,
+}
+
+impl FaultRing {
+    pub(crate) fn new(cap: usize, schema: LogSchema) -> FaultRing {
+        FaultRing {
+            ticks: VecDeque::with_capacity(cap),
+            cap,
+            schema,
+        }
+    }
+
+    pub(crate) fn push(&mut self, r: TickRecord) {
+        if self.ticks.len() == self.cap {
+            self.ticks.pop_front();
+        }
+        self.ticks.push_back(r);
+    }
+
+    /// Write the ring to a new file `<dir>/faults/omnid-<arm>-<UTC>-<why>-fault.csv` (a new
+    /// name for every dump: two faults in one second keep both) and say where; `None` when it
+    /// cannot be written (said too).
+    pub(crate) fn dump(&self, dir: &Path, arm: &str, why: &str) -> Option<PathBuf> {
+        let written = crate::output::write_unique(
+            &dir.join("faults"),
+            &format!("omnid-{arm}-{}-{why}-fault", super::utc_stamp()),
+            "csv",
+            |w| dump_rows(w, &self.schema, &self.ticks),
+        );
+        match written {
+            Ok(path) => {
+                crate::errln!(
+                    "omnid serve: {arm}: the last ticks before the fault are in {}",
+                    path.display()
+                );
+                Some(path)
+            }
+            Err(e) => {
+                crate::errln!("omnid serve: {arm}: cannot write the fault dump: {e}");
+                None
+            }
+        }
+    }
+}
+
+/// A recording in progress: every tick to a log file on a writer thread.
+pub(crate) struct Recording {
+    tx: Option<Sender<TickRecord>>,
+    writer: JoinHandle<WriterReport>,
+    path: PathBuf,
+    dropped: u64,
+}
+
+impl Recording {
+    /// Start writing to `path`, or to a new file `<dir>/<stem>.csv` (a default name never
+    /// replaces an earlier recording; a path another omnid writes is refused).
+    pub(crate) fn start(
+        path: Option<&Path>,
+        dir: &Path,
+        stem: &str,
+        schema: LogSchema,
+    ) -> Result<Recording, LogError> {
+        let log = match path {
+            Some(p) => LogFile::create(p)?,
+            None => LogFile::create_unique(dir, stem)?,
+        };
+        let (tx, rx) = crossbeam_channel::bounded(8192);
+        let path = log.path.clone();
+        let writer = spawn_writer(log, schema, rx).map_err(|source| LogError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        Ok(Recording {
+            tx: Some(tx),
+            writer,
+            path,
+            dropped: 0,
+        })
+    }
+
+    pub(crate) fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub(crate) fn dropped(&self) -> u64 {
+        self.dropped
+    }
+
+    /// One tick; dropped and counted when the writer has fallen behind.
+    pub(crate) fn push(&mut self, r: TickRecord) {
+        if let Some(tx) = &self.tx {
+            if tx.try_send(r).is_err() {
+                self.dropped += 1;
+            }
+        }
+    }
+
+    /// End it: (path, rows written, error).
+    pub(crate) fn stop(mut self) -> (PathBuf, u64, Option<String>) {
+        self.tx = None;
+        let report = self.writer.join().ok();
+        let rows = report.as_ref().map_or(0, |w| w.rows);
+        let mut error = report.and_then(|w| {
+            w.error.map(|e| {
+                format!(
+                    "{} of {} rows did not reach the file: {e}",
+                    w.received - w.rows,
+                    w.received
+                )
+            })
+        });
+        if self.dropped > 0 {
+            error.get_or_insert(format!(
+                "{} rows dropped (the disk fell behind)",
+                self.dropped
+            ));
+        }
+        (self.path, rows, error)
+    }
+}
