@@ -325,6 +325,9 @@ struct ProbeArgs {
     /// firewire (a USB bridge has no registers or bus timestamps to probe)
     #[arg(long, default_value = "firewire")]
     device: String,
+    /// A configured arm (`[[arm]]` in --config): its sections, and its lock.
+    #[arg(long, value_name = "NAME")]
+    arm: Option<String>,
     /// Capture file [default: omnid-capture-<UTC time>.txt]; replayable after
     /// `omnid convert --from capture`.
     #[arg(long)]
@@ -345,9 +348,28 @@ struct ProbeArgs {
 
 fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
     use omnid::device::probe::{probe_firewire, ProbeError, ProbePlan, TerminalOperator};
-    let cfg = match load_config(args.config.as_deref(), None) {
+    let mut cfg = match load_config(args.config.as_deref(), None) {
         Ok(cfg) => cfg,
         Err(code) => return Ok(code),
+    };
+    // The arm is this process's while it probes: a daemon or a run on it is refused, and so
+    // is this probe while one of them has it.
+    let arm = args.arm.clone().unwrap_or_else(|| "firewire".into());
+    if args.arm.is_some() {
+        match cfg.arm_named(&arm) {
+            Ok(a) => cfg = a.config,
+            Err(e) => {
+                omnid::errln!("omnid probe: --arm: {e}");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        }
+    }
+    let _lock = match omnid::arm::ArmLock::acquire(&arm) {
+        Ok(l) => l,
+        Err(e) => {
+            omnid::errln!("omnid probe: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
     };
     if args.device != "firewire" {
         omnid::errln!(

@@ -383,11 +383,14 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     assert!(printed.contains("force-set 0.500000 0 0"), "{printed}");
 
     // Where realtime priorities are permitted, the frame's round trip runs on them: the
-    // program's scheduler thread below the daemon's client hub (its main thread), both below
+    // program's scheduler thread below the daemon's client hub (the arm's hub thread), both below
     // the servo (docs/HDAPI.md, Scheduler).
     if hd::may_use_fifo(70) {
         assert_eq!(hd::thread_sched(chai.id(), "omnid-hd-servo"), Some((1, 60)));
-        assert_eq!(hd::thread_sched(daemon.pid(), "omnid"), Some((1, 70)));
+        assert_eq!(
+            hd::thread_sched(daemon.pid(), "omnid-hub-sim"),
+            Some((1, 70))
+        );
     }
 
     // The servo applies Jᵀ F (within a DAC step of 2.2e-4 N·m and the tick's motion) once

@@ -208,7 +208,10 @@ impl ArmEntry {
             config.realtime.cpu = self.cpu;
         }
         config.arm.clear();
-        config.validate().map_err(|e| at(e.to_string()))?;
+        config.validate().map_err(|e| {
+            let e = e.to_string();
+            at(e.strip_prefix("config: ").unwrap_or(&e).to_string())
+        })?;
         Ok(ArmSpec {
             name: self.name.clone(),
             device,

@@ -53,6 +53,10 @@ pub struct ServeConfig {
     /// With several arms: one arm's device or safety fault stops them all (false: that arm
     /// stops, the others go on).
     pub fail_together: bool,
+    /// At most one fault dump per arm this often, s (later trips are counted, not dumped).
+    pub dump_interval_s: f64,
+    /// Fault dumps kept per arm in `<dump_dir>/faults` (the oldest are removed).
+    pub max_dumps: usize,
     /// State messages queued per client before the oldest are dropped (and counted).
     pub client_queue: usize,
     /// Seconds of ticks kept in memory for the fault dump.
@@ -80,6 +84,8 @@ impl Default for ServeConfig {
             hello_timeout_ms: 2000.0,
             lease_lapse_ms: 1000.0,
             fail_together: false,
+            dump_interval_s: 10.0,
+            max_dumps: 20,
             client_queue: 1024,
             ring_s: 10.0,
             dump_dir: String::new(),
@@ -129,6 +135,20 @@ impl ServeConfig {
                 "serve.max_clients",
                 self.max_clients.to_string(),
                 "1 ..= 1024",
+            ));
+        }
+        check::in_range(
+            "serve.dump_interval_s",
+            self.dump_interval_s,
+            0.0,
+            86_400.0,
+            "0 ..= 86400 s",
+        )?;
+        if !(1..=10_000).contains(&self.max_dumps) {
+            return Err(check::invalid(
+                "serve.max_dumps",
+                self.max_dumps.to_string(),
+                "1 ..= 10000",
             ));
         }
         if !(1..=1024).contains(&self.max_clients_per_user) {

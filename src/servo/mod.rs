@@ -804,9 +804,16 @@ impl Servo {
             for slot in 0..crate::haptics::MAX_EFFECTS {
                 self.haptics.set_effect(slot, None, t);
             }
-            if self.activity.is_stream() || self.activity == Activity::Free {
+            if self.activity.is_stream() {
                 let fallback = self.stream_fallback(q);
                 self.event = Some(ServoEvent::StreamEnded { fallback });
+            } else if self.activity == Activity::Free && self.owner_fallback() != Activity::Free {
+                // Free mode is the owner's haptic scene: without its owner the arm rests
+                // (amplifiers off), unless the owner asked to be left in free mode.
+                self.enter(Activity::Idle, q);
+                self.event = Some(ServoEvent::StreamEnded {
+                    fallback: Mode::Idle,
+                });
             }
         }
     }
@@ -823,12 +830,16 @@ impl Servo {
         }
     }
 
+    /// Where the owner's streams fall back to (hold without a link).
+    fn owner_fallback(&self) -> Activity {
+        self.link
+            .as_ref()
+            .map_or(Activity::Hold, |l| l.signals.owner().1)
+    }
+
     /// Leave a stream mode for the owner's fallback; returns the mode fallen back to.
     fn stream_fallback(&mut self, q: &Joint3) -> Mode {
-        let to = self
-            .link
-            .as_ref()
-            .map_or(Activity::Hold, |l| l.signals.owner().1);
+        let to = self.owner_fallback();
         self.stream_tau = Joint3::zeros();
         self.stream_force = Force3::zeros();
         self.enter(to, q);

@@ -14,6 +14,8 @@
 pub mod device_info;
 pub mod ops;
 mod taps;
+#[cfg(test)]
+mod tests;
 mod view;
 
 pub use ops::{ModeRequest, Op, OpError, Reply, SessionId, SessionInfo, Status};
@@ -225,6 +227,11 @@ pub struct Station {
     faults: Vec<FaultEntry>,
     dumps: Vec<PathBuf>,
     shutdown_requested: bool,
+    /// When the last fault dump was written, and trips since that wrote none.
+    last_dump: Option<std::time::Instant>,
+    dumps_skipped: u64,
+    /// A safety trip latched the arm: streams are refused until a mode is asked for.
+    latched: Option<String>,
     /// Events and answers produced by requests, handed out at the next pump.
     pending: Vec<PendingOut>,
 }
@@ -271,6 +278,9 @@ impl Station {
             faults: Vec::new(),
             dumps: Vec::new(),
             shutdown_requested: false,
+            last_dump: None,
+            dumps_skipped: 0,
+            latched: None,
             pending: Vec::new(),
             s,
         }
@@ -365,6 +375,12 @@ impl Station {
                 return self.stop(k, op);
             }
             if op.is_stream() {
+                if let Some(why) = &self.latched {
+                    return Err(OpError::Stopped(format!(
+                        "{why}: a stream does not re-arm it; ask for a mode (hold, track, free) \
+                         to command it again"
+                    )));
+                }
                 if let Some(by) = &self.sessions[k].stopped_by {
                     return Err(OpError::Stopped(format!(
                         "{by}: a stream does not re-arm it; ask for a mode (hold, track, free) \
@@ -412,6 +428,7 @@ impl Station {
             }
             Op::Mode(m) => {
                 self.sessions[k].stopped_by = None;
+                self.latched = None;
                 let command = match m {
                     ModeRequest::Idle => ServoCommand::Idle,
                     ModeRequest::Hold => ServoCommand::Hold,
@@ -816,10 +833,8 @@ impl Station {
                     class: "safety-fault".into(),
                     message: message.clone(),
                 });
-                let dump = self
-                    .ring
-                    .dump(&self.s.state_dir, self.s.arm.file_stem(), "safety");
-                self.dumps.extend(dump);
+                self.latched = Some(format!("the arm tripped the safety layer ({trip})"));
+                self.dump_safety();
                 ("safety-trip", message)
             }
         };
@@ -831,6 +846,24 @@ impl Station {
             message: Some(message),
             ..Event::named(name)
         });
+    }
+
+    /// A trip's dump: at most one every `serve.dump_interval_s` (the others are counted), and
+    /// the arm's oldest dumps removed past `serve.max_dumps`.
+    fn dump_safety(&mut self) {
+        let now = std::time::Instant::now();
+        let interval = std::time::Duration::from_secs_f64(self.s.serve.dump_interval_s);
+        if self.last_dump.is_some_and(|t| now - t < interval) {
+            self.dumps_skipped += 1;
+            return;
+        }
+        self.last_dump = Some(now);
+        let arm = self.s.arm.file_stem().to_string();
+        let dump = self.ring.dump(&self.s.state_dir, &arm, "safety");
+        if dump.is_some() {
+            taps::prune_dumps(&self.s.state_dir, &arm, self.s.serve.max_dumps);
+        }
+        self.dumps.extend(dump);
     }
 
     fn status(&self, snap: &Snapshot) -> Status {

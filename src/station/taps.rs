@@ -71,6 +71,33 @@ impl FaultRing {
     }
 }
 
+/// Keep at most `keep` of arm `arm`'s fault dumps in `<dir>/faults`: the oldest go, so trips
+/// that repeat cannot fill the disk.
+pub(crate) fn prune_dumps(dir: &Path, arm: &str, keep: usize) {
+    let prefix = format!("omnid-{arm}-");
+    let mut dumps: Vec<(std::time::SystemTime, PathBuf)> = std::fs::read_dir(dir.join("faults"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            name.starts_with(&prefix) && name.contains("-fault")
+        })
+        .filter_map(|e| {
+            let m = e.metadata().ok().filter(|m| m.is_file())?;
+            Some((m.modified().ok()?, e.path()))
+        })
+        .collect();
+    if dumps.len() <= keep {
+        return;
+    }
+    dumps.sort();
+    for (_, path) in &dumps[..dumps.len() - keep] {
+        let _ = std::fs::remove_file(path);
+    }
+}
+
 /// A recording in progress: every tick to a log file on a writer thread.
 pub(crate) struct Recording {
     tx: Option<Sender<TickRecord>>,

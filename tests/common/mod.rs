@@ -65,3 +65,97 @@ impl Log {
             .collect()
     }
 }
+
+/// A daemon (`omnid serve ARGS`) in its own directory: its runtime directory (the default
+/// sockets) and state directory are in there; killed if a test fails.
+pub struct Served {
+    pub child: Option<std::process::Child>,
+    pub dir: tempfile::TempDir,
+}
+
+impl Served {
+    /// Start `omnid serve` with `args` (and `config` as its --config), and wait until every
+    /// socket in `sockets` (names in the runtime directory, `<arm>.sock`) answers.
+    pub fn start(args: &[&str], config: Option<&str>, sockets: &[&str]) -> Served {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cmd = omnid();
+        cmd.arg("serve")
+            .args(args)
+            .env("XDG_RUNTIME_DIR", dir.path())
+            .env_remove("RUNTIME_DIRECTORY")
+            .env_remove("OMNID_SOCKET")
+            .env("OMNID_STATE_DIR", dir.path().join("state"))
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped());
+        if let Some(text) = config {
+            let path = dir.path().join("omnid.toml");
+            std::fs::write(&path, text).unwrap();
+            cmd.arg("--config").arg(path);
+        }
+        let served = Served {
+            child: Some(cmd.spawn().expect("omnid serve starts")),
+            dir,
+        };
+        for s in sockets {
+            served.wait_for(&served.socket(s));
+        }
+        served
+    }
+
+    /// The default socket of arm `name`.
+    pub fn socket(&self, name: &str) -> std::path::PathBuf {
+        self.dir.path().join("omnid").join(format!("{name}.sock"))
+    }
+
+    fn wait_for(&self, socket: &Path) {
+        let until = std::time::Instant::now() + std::time::Duration::from_secs(30);
+        while std::time::Instant::now() < until {
+            if omnid::serve::client::Client::connect(socket, "probe").is_ok() {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        panic!("omnid serve did not open {}", socket.display());
+    }
+
+    /// A client of arm `name`.
+    pub fn client(&self, name: &str, who: &str) -> omnid::serve::client::Client {
+        omnid::serve::client::Client::connect(&self.socket(name), who).expect("connects")
+    }
+
+    /// `omnid ARGS` with this daemon's runtime directory.
+    pub fn omnid(&self, args: &[&str]) -> Output {
+        omnid()
+            .args(args)
+            .env("XDG_RUNTIME_DIR", self.dir.path())
+            .env_remove("RUNTIME_DIRECTORY")
+            .env_remove("OMNID_SOCKET")
+            .output()
+            .unwrap()
+    }
+
+    pub fn pid(&self) -> i32 {
+        self.child.as_ref().unwrap().id() as i32
+    }
+
+    /// Stop it (SIGTERM) and wait: exit code and stderr.
+    pub fn stop(&mut self) -> (Option<i32>, String) {
+        let child = self.child.take().unwrap();
+        // SAFETY: kill with a live child's pid.
+        unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+        let out = child.wait_with_output().unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    }
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}

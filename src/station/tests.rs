@@ -1,0 +1,185 @@
+//! A station driven directly, with no socket: a test-only transport and a test-only recorder,
+//! each a few dozen lines over the station's API, as a new transport or recorder would be.
+
+use super::*;
+use crate::daemon::{prepare, ServeOptions};
+use crate::servo::{EndReason, Servo};
+use std::sync::Mutex;
+
+/// A transport of its own: one session, ops called in-process, outputs collected.
+struct Loopback {
+    station: Station,
+    session: SessionId,
+    states: Vec<ArmState>,
+    events: Vec<Event>,
+    done: Vec<(u64, Result<Reply, OpError>)>,
+}
+
+impl Loopback {
+    fn new(mut station: Station, name: &str) -> Loopback {
+        let session = station.open_session(SessionInfo {
+            name: name.into(),
+            pid: 0,
+            uid: 0,
+            control: true,
+            privileged: true,
+            read_only_reason: String::new(),
+        });
+        Loopback {
+            station,
+            session,
+            states: Vec::new(),
+            events: Vec::new(),
+            done: Vec::new(),
+        }
+    }
+
+    fn call(&mut self, op: Op) -> Result<Answer, OpError> {
+        self.station.request(self.session, op)
+    }
+
+    fn pump(&mut self) {
+        let (states, events, done) = (&mut self.states, &mut self.events, &mut self.done);
+        self.station.pump(&mut |o| match o {
+            Output::State(s) => states.push(s.clone()),
+            Output::Event(e) => events.push(e.clone()),
+            Output::Done { ticket, result, .. } => done.push((ticket, result)),
+        });
+    }
+}
+
+/// A recorder of its own: every tick's number and mode.
+struct Counting(Arc<Mutex<Vec<(u64, Mode)>>>);
+
+impl Tap for Counting {
+    fn on_tick(&mut self, r: &TickRecord) {
+        self.0.lock().unwrap().push((r.live.seq, r.mode));
+    }
+}
+
+/// The daemon's pipeline for a simulated arm, and its station's setup (no socket served).
+fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = crate::config::Config::default();
+    cfg.safety.persist_heat = false;
+    cfg.serve.dump_dir = dir.path().display().to_string();
+    let opts = ServeOptions {
+        devices: vec![crate::run::DeviceSpec::Sim],
+        controller: crate::control::ControllerKind::Pd,
+        socket: Some(dir.path().join("unused.sock")),
+        weights: None,
+        no_adapt: false,
+        lenient: false,
+        inject: Vec::new(),
+    };
+    let p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
+    (p.pipeline.servo, p.hub.station, dir)
+}
+
+fn ticks(servo: &mut Servo, t: &mut Loopback, n: usize) {
+    for _ in 0..n {
+        assert!(servo.tick().is_none());
+        t.pump();
+    }
+}
+
+#[test]
+fn a_station_serves_a_transport_and_a_recorder_of_a_few_lines_each() {
+    let (mut servo, setup, _dir) = served_sim();
+    let mut station = Station::new(setup);
+    let recorded = Arc::new(Mutex::new(Vec::new()));
+    station.add_tap(Box::new(Counting(recorded.clone())));
+    let mut t = Loopback::new(station, "loopback");
+    assert!(matches!(
+        t.call(Op::Stream { rate_hz: 500.0 }),
+        Ok(Answer::Now(Reply::Stream { every: 2, .. }))
+    ));
+    assert!(matches!(
+        t.call(Op::Mode(ModeRequest::Hold)),
+        Ok(Answer::Now(Reply::Mode { mode: "hold" }))
+    ));
+    ticks(&mut servo, &mut t, 200);
+    // Every other tick streamed, in order; the recorder saw every one.
+    assert!(t.states.len() >= 99, "{}", t.states.len());
+    assert!(t.states.windows(2).all(|w| w[1].seq == w[0].seq + 2));
+    let seen = recorded.lock().unwrap().clone();
+    assert_eq!(seen.len(), 200);
+    assert!(seen.windows(2).all(|w| w[1].0 == w[0].0 + 1));
+    assert!(t
+        .events
+        .iter()
+        .any(|e| e.event == "mode" && e.mode == Some("hold")));
+    // An op the servo answers later comes back as Done with its ticket.
+    let Ok(Answer::Later(ticket)) = t.call(Op::Status) else {
+        panic!("status is answered later")
+    };
+    ticks(&mut servo, &mut t, 3);
+    let (got, result) = t.done.pop().expect("answered");
+    assert_eq!(got, ticket);
+    let Ok(Reply::Status { status }) = result else {
+        panic!("{result:?}")
+    };
+    assert_eq!((status.arm.as_str(), status.mode), ("sim", Some("hold")));
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
+
+#[test]
+fn what_an_owner_set_up_that_makes_force_ends_when_it_leaves() {
+    let (mut servo, setup, _dir) = served_sim();
+    let station = Station::new(setup);
+    let mut t = Loopback::new(station, "owner");
+    let watcher = t.station.open_session(SessionInfo {
+        name: "watcher".into(),
+        pid: 0,
+        uid: 1000,
+        control: false,
+        privileged: false,
+        read_only_reason: "read-only".into(),
+    });
+    t.call(Op::Stream { rate_hz: 1000.0 }).unwrap();
+    let effect = crate::haptics::Effect::Constant {
+        force_n: [0.0, 1.0, 0.0],
+    };
+    t.call(Op::Effect {
+        slot: 0,
+        effect: Some(effect),
+    })
+    .unwrap();
+    t.call(Op::Mode(ModeRequest::Free)).unwrap();
+    ticks(&mut servo, &mut t, 300);
+    assert_eq!(t.states.last().unwrap().mode, "free");
+    // A read-only session cannot stop it, nor take the arm.
+    assert!(matches!(
+        t.station.request(watcher, Op::Mode(ModeRequest::Idle)),
+        Err(OpError::ReadOnly(_))
+    ));
+    // The owner leaves: the arm rests, amplifiers off, from the next tick.
+    let owner = t.session;
+    t.station.close_session(owner);
+    t.session = t.station.open_session(SessionInfo {
+        name: "next".into(),
+        pid: 0,
+        uid: 0,
+        control: true,
+        privileged: true,
+        read_only_reason: String::new(),
+    });
+    t.call(Op::Stream { rate_hz: 1000.0 }).unwrap();
+    ticks(&mut servo, &mut t, 3);
+    let last = t.states.last().unwrap();
+    assert_eq!((last.mode.as_str(), last.amps), ("idle", false), "{last:?}");
+    // The effect went with its owner: free mode again renders nothing of it.
+    t.call(Op::Mode(ModeRequest::Free)).unwrap();
+    t.states.clear();
+    ticks(&mut servo, &mut t, 600);
+    assert!(t.events.iter().any(|e| e.event == "stream-ended"));
+    let s = t.states.last().unwrap();
+    assert_eq!(s.mode, "free");
+    // PD has no model to compensate with: in free mode only effects (and a soft wall the
+    // falling arm reaches, on joint 3) make torque; the gone effect's pull on joint 2 is not
+    // there.
+    assert_eq!(s.tau[..2], [0.0; 2], "{s:?}");
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}

@@ -1,0 +1,164 @@
+//! Several arms in one daemon (issue "the arm becomes the unit"): each on its own socket with
+//! its own lease and safety, a trip on one leaving the other tracking, clients choosing an arm
+//! by name or alias, and an arm held by one process refused to another, which is named.
+
+mod common;
+
+use common::Served;
+use omnid::serve::client::{Client, Message};
+use serde_json::json;
+use std::time::{Duration, Instant};
+
+/// Arm names unique to this test process: configured arms are locked machine-wide.
+fn unique(name: &str) -> String {
+    format!("{name}-{}", std::process::id())
+}
+
+/// Stream states for `n` ticks while answering each with a setpoint: the sequence numbers
+/// seen, and whether the daemon reported a loss.
+fn stream_and_command(mut c: Client, n: usize) -> (Vec<u64>, bool) {
+    c.request(json!({"op": "mode", "mode": "hold"})).unwrap();
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let (mut seqs, mut lost) = (Vec::with_capacity(n), false);
+    while seqs.len() < n {
+        match c.recv(5000).expect("the daemon keeps streaming") {
+            Message::State(s) => {
+                c.send(&json!({"op": "servo_jp", "seq": s.seq, "q": [0.0, 0.6, 0.3]}))
+                    .unwrap();
+                seqs.push(s.seq);
+            }
+            Message::Other(v) if v["type"] == "lost" => lost = true,
+            Message::Other(_) => {}
+        }
+    }
+    (seqs, lost)
+}
+
+#[test]
+fn two_simulated_arms_are_served_side_by_side_each_with_its_own_client() {
+    let d = Served::start(
+        &["--device", "sim", "--device", "sim"],
+        None,
+        &["sim", "sim-2"],
+    );
+    let hello = d.client("sim-2", "who").hello().clone();
+    assert_eq!(
+        (hello.arm.as_str(), hello.device.as_str()),
+        ("sim-2", "sim")
+    );
+    let workers: Vec<_> = ["sim", "sim-2"]
+        .into_iter()
+        .map(|arm| {
+            let c = d.client(arm, "commander");
+            std::thread::spawn(move || stream_and_command(c, 3000))
+        })
+        .collect();
+    for (arm, w) in ["sim", "sim-2"].into_iter().zip(workers) {
+        let (seqs, lost) = w.join().unwrap();
+        assert!(!lost, "{arm}: the daemon reported lost samples");
+        assert!(
+            seqs.windows(2).all(|p| p[1] == p[0] + 1),
+            "{arm}: a sample is missing"
+        );
+    }
+    // Each arm's own status, through `--arm`.
+    for arm in ["sim", "sim-2"] {
+        let out = d.omnid(&["ctl", "--arm", arm, "status"]);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let status: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(status["arm"], arm, "{text}");
+    }
+}
+
+#[test]
+fn a_trip_on_one_arm_leaves_the_other_tracking() {
+    let (left, right) = (unique("left"), unique("right"));
+    let config = format!(
+        "[[arm]]\nname = \"{left}\"\naliases = [\"PHANToM 1\"]\n\n[[arm]]\nname = \"{right}\"\n\
+         [arm.safety]\nmax_velocity_rad_s = [0.1, 0.1, 0.1]\n"
+    );
+    let mut d = Served::start(&[], Some(&config), &[&left, &right]);
+    // By alias, as an OpenHaptics program names its first device.
+    let out = d.omnid(&["ctl", "--arm", "PHANToM 1", "mode", "track"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut r = d.client(&right, "r");
+    r.request(json!({"op": "mode", "mode": "track"})).unwrap();
+    let mut l = d.client(&left, "l");
+    l.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    r.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    // The right arm's speed limit is far below the trajectory's: it trips and goes idle.
+    let until = Instant::now() + Duration::from_secs(20);
+    loop {
+        assert!(Instant::now() < until, "the right arm never tripped");
+        match r.recv(5000).unwrap() {
+            Message::Other(v) if v["event"] == "safety-trip" => break,
+            _ => {}
+        }
+    }
+    // The left one tracks on, amplifiers on, for seconds after.
+    let start = l.next_state(5000).unwrap().t;
+    loop {
+        let s = l.next_state(5000).unwrap();
+        assert!(s.amps && (s.mode == "track" || s.mode == "blend"), "{s:?}");
+        if s.t - start > 2.0 {
+            break;
+        }
+    }
+    let (code, err) = d.stop();
+    assert_eq!(code, Some(130), "{err}");
+    assert!(
+        err.contains(&format!("arm {left}: stopped by the operator")),
+        "{err}"
+    );
+}
+
+#[test]
+fn an_arm_a_daemon_serves_is_refused_to_run_and_probe_naming_the_holder() {
+    let name = unique("bench");
+    let config = format!("[[arm]]\nname = \"{name}\"\n");
+    let d = Served::start(&[], Some(&config), &[&name]);
+    let cfg = d.dir.path().join("omnid.toml");
+    let cfg = cfg.to_str().unwrap();
+    for args in [
+        vec![
+            "run",
+            "--config",
+            cfg,
+            "--arm",
+            &name,
+            "--fast",
+            "--duration",
+            "1",
+        ],
+        vec!["probe", "--config", cfg, "--arm", &name],
+    ] {
+        let out = d.omnid(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains(&format!("`{name}` is in use by omnid (pid {}", d.pid())),
+            "{args:?}: {err}"
+        );
+        assert!(
+            err.contains("serve"),
+            "the holder's command is named: {err}"
+        );
+    }
+    // A name nobody configured is refused with the ones that are.
+    let out = d.omnid(&["run", "--config", cfg, "--arm", "nobody", "--fast"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("no arm named `nobody`") && err.contains(&name),
+        "{err}"
+    );
+}
