@@ -24,6 +24,10 @@ pub struct ServeOptions {
     /// The devices to serve, one arm each (`--device`, repeatable); empty: the config's
     /// `[[arm]]`s, else one simulated arm.
     pub devices: Vec<DeviceSpec>,
+    /// Configured arms to serve by name (`--arm`, repeatable; a name that no `[[arm]]` has but
+    /// that is a device kind, such as `firewire`, is that device's one arm); empty: see
+    /// `devices`.
+    pub arms: Vec<String>,
     /// The controller the daemon starts with (clients may switch).
     pub controller: crate::control::ControllerKind,
     /// Socket path (one arm only; None: `serve.socket`, else the default for the arm).
@@ -117,7 +121,25 @@ pub struct Prepared {
 /// The arms to serve: the command line's devices, else the config's `[[arm]]`s, else the
 /// simulator.
 pub fn arms(opts: &ServeOptions, cfg: &Config) -> Result<Vec<ArmSpec>, RunError> {
-    let arms = if !opts.devices.is_empty() {
+    let arms = if !opts.arms.is_empty() {
+        if !opts.devices.is_empty() {
+            return Err(RunError::BadInput(
+                "--arm and --device both choose what to serve: give one of them".into(),
+            ));
+        }
+        let mut arms = Vec::new();
+        for name in &opts.arms {
+            let arm = match (cfg.arm_named(name), name.parse::<DeviceSpec>()) {
+                (Ok(arm), _) => arm,
+                (Err(_), Ok(device)) if !matches!(device, DeviceSpec::Replay(_)) => {
+                    ArmSpec::single(device, cfg)
+                }
+                (Err(e), _) => return Err(RunError::BadInput(format!("--arm: {e}"))),
+            };
+            arms.push(arm);
+        }
+        arms
+    } else if !opts.devices.is_empty() {
         ArmSpec::from_devices(&opts.devices, cfg)
     } else {
         let configured = cfg.arms().map_err(|e| RunError::BadInput(e.to_string()))?;

@@ -233,6 +233,10 @@ struct ServeArgs {
     /// named `<kind>-2`) [default: the config's [[arm]]s, else sim]
     #[arg(long)]
     device: Vec<DeviceSpec>,
+    /// A configured arm to serve (`[[arm]]` in --config; repeatable); a device kind (sim, usb,
+    /// firewire) names that device's one arm [default: every configured arm]
+    #[arg(long, value_name = "NAME")]
+    arm: Vec<String>,
     /// The control law in effect when a client asks for hold, track or free (switchable).
     #[arg(long, value_enum, default_value = "nnidc")]
     controller: ControllerKind,
@@ -694,6 +698,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     };
     let opts = omnid::daemon::ServeOptions {
         devices: args.device,
+        arms: args.arm,
         controller: args.controller,
         socket: args.socket,
         weights: args.weights,

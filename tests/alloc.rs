@@ -262,6 +262,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     let socket = dir.path().join("sim.sock");
     let opts = omnid::daemon::ServeOptions {
         devices: vec![omnid::run::DeviceSpec::Sim],
+        arms: Vec::new(),
         controller: ControllerKind::Nnidc,
         socket: Some(socket.clone()),
         weights: None,
