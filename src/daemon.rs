@@ -1,19 +1,20 @@
 //! `omnid serve`: the daemon that lab software connects to (docs/PROTOCOL.md). It serves
 //! every arm it is given — the devices on its command line, else the config's `[[arm]]`s,
 //! else one simulated arm — each as its own unit: the pipeline `omnid run` assembles
-//! (`arm::pipeline`), started idle and fed through its station's mailbox, its own socket
+//! (`pipeline`), started idle and fed through its station's mailbox, its own socket
 //! (`<name>.sock`), lease, safety, heat and fault dumps, and its own threads. One arm's fault
 //! ends that arm only, unless `[serve] fail_together` says the arms stop together.
 
-use crate::arm::pipeline::{assemble, join_servo, Ending, ServoThreadResult};
-use crate::arm::{ArmIdentity, ArmSpec};
+use crate::arm::ArmIdentity;
+use crate::config::ArmSpec;
 use crate::config::Config;
+use crate::pipeline::{assemble, join_servo, Ending, ServoThreadResult};
 use crate::run::{check_device_options, DeviceSpec, RunError, RunOptions};
 use crate::serve::access::Policy;
 use crate::serve::socket::{self, Listener, PathLock};
 use crate::serve::{default_socket, hub};
 use crate::servo::{ArmSignals, EndReason, ServoLink, Wake};
-use crate::station::StationSetup;
+use crate::station::{StationLimits, StationSetup};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -110,7 +111,7 @@ fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, PathLock), 
 /// that will serve its socket, bound and locked.
 pub struct Prepared {
     /// The servo loop, attached to the station's mailbox.
-    pub pipeline: crate::arm::pipeline::Pipeline,
+    pub pipeline: crate::pipeline::Pipeline,
     /// What [`hub::Hub::new`] takes.
     pub hub: hub::HubSetup,
     name: String,
@@ -160,7 +161,7 @@ pub fn arms(opts: &ServeOptions, cfg: &Config) -> Result<Vec<ArmSpec>, RunError>
 }
 
 /// Check the options, lock the arm and its socket, bind it, and assemble the pipeline
-/// (`arm::pipeline::assemble`, the same path as `omnid run`) attached to a new station. The
+/// (`pipeline::assemble`, the same path as `omnid run`) attached to a new station. The
 /// first arm of [`arms`] (the whole daemon when it serves one).
 pub fn prepare(
     opts: &ServeOptions,
@@ -221,7 +222,13 @@ pub fn prepare_arm(
         replies,
         signals,
         stop,
-        serve: global.serve.clone(),
+        limits: StationLimits {
+            stream_ttl_ms: global.serve.stream_ttl_ms,
+            stale_fallback: global.serve.stale_fallback.activity(),
+            ring_s: global.serve.ring_s,
+            dump_interval_s: global.serve.dump_interval_s,
+            max_dumps: global.serve.max_dumps,
+        },
         rate_hz: cfg.device.rate_hz,
         period_ns: (1e9 / cfg.device.rate_hz).round() as u64,
         schema: pipeline.schema,
@@ -239,6 +246,7 @@ pub fn prepare_arm(
         hub: hub::HubSetup {
             listener,
             policy,
+            serve: global.serve.clone(),
             station,
         },
         name: arm.name.clone(),

@@ -85,6 +85,7 @@ pub mod input;
 pub mod log_pretune;
 pub mod omni;
 pub mod output;
+pub mod pipeline;
 pub mod plot;
 pub mod progress;
 pub mod run;

@@ -1,67 +1,19 @@
 //! `omnid run`: build the pipeline (device, controller, reference, servo, log writer) from the
 //! options, run it on its own thread, and turn the result into the run summary.
 
-pub(crate) use crate::arm::pipeline::{
-    assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
-};
-pub use crate::arm::pipeline::{make_identifier, Pipeline, RunError};
 use crate::config::Config;
 pub use crate::control::make_controller;
 use crate::control::{ControllerKind, Trajectory};
 use crate::device::inject::Fault;
 pub use crate::device::registry::DeviceSpec;
+pub(crate) use crate::pipeline::{assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
+pub use crate::pipeline::{make_identifier, Pipeline, RunError, RunOptions};
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, ServoReport};
 use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-
-/// `omnid run`'s options (the rest comes from the config); [`Default`] gives the CLI's
-/// defaults.
-#[derive(Debug, Clone)]
-pub struct RunOptions {
-    /// The device to run on.
-    pub device: DeviceSpec,
-    /// The controller.
-    pub controller: ControllerKind,
-    /// The reference trajectory to track.
-    pub trajectory: Trajectory,
-    /// Seconds of device time; `f64::INFINITY` (replay only): the whole log.
-    pub duration_s: f64,
-    /// The log; `None`: a new file `logs/omnid-<UTC time>.csv` (`-2`, `-3`, … when that name
-    /// is taken).
-    pub log: Option<PathBuf>,
-    /// Where the caller will write the summary as JSON: checked with the run's other outputs
-    /// before the run starts.
-    pub summary_json: Option<PathBuf>,
-    /// Run unpaced, as fast as the host allows (simulator and replay only; no realtime steps).
-    pub fast: bool,
-    /// Replay: skip damaged rows (and report them) instead of refusing the log.
-    pub lenient: bool,
-    /// Faults to inject (from `--inject`; the config's `[inject]` list is added).
-    pub inject: Vec<Fault>,
-    /// Start the identifier from these weights (else: shipped weights for NNIDC, fresh
-    /// small random weights otherwise).
-    pub weights: Option<PathBuf>,
-    /// Freeze the identifier (no online adaptation).
-    pub no_adapt: bool,
-    /// Free mode and a scene of effects (docs/HAPTICS.md).
-    pub haptics: crate::haptics::HapticRun,
-    /// The arm's name (`--arm`, or a configured `[[arm]]`): keys its heat file and its lock.
-    /// `None`: the device kind, as a one-arm set-up has always named it.
-    pub arm: Option<String>,
-    /// The arm is one the config names (`[[arm]]`): a simulated one is locked too, as real
-    /// hardware always is, so a `run` cannot take an arm a `serve` has.
-    pub arm_configured: bool,
-}
-
-impl RunOptions {
-    /// The arm's name: `arm`, else the device kind.
-    pub fn arm_name(&self) -> &str {
-        self.arm.as_deref().unwrap_or(self.device.name())
-    }
-}
 
 impl Default for RunOptions {
     /// `omnid run` with no flags: NNIDC following the sine on the simulator for 10 s, paced.

@@ -67,6 +67,7 @@ __all__ = [
     "MAX_MESSAGE",
     "OmnidError",
     "SocketNotFoundError",
+    "find_arm_socket",
     "ConnectError",
     "RefusedError",
     "ConnectionClosedError",
@@ -254,6 +255,36 @@ def find_socket() -> str:
     )
 
 
+def find_arm_socket(arm: str) -> str:
+    """The socket of the arm named ``arm`` (its name or an alias, e.g. ``"PHANToM 1"``).
+
+    ``<dir>/<arm>.sock`` in the first of :func:`default_socket_dirs` that has it; else the
+    daemon socket whose hello names the arm (``arm`` or ``aliases``). Raises
+    :class:`SocketNotFoundError` naming the arms that are served.
+    """
+    dirs = default_socket_dirs()
+    if arm and "/" not in arm and "\0" not in arm:
+        for d in dirs:
+            p = os.path.join(d, arm + ".sock")
+            if os.path.exists(p):
+                return p
+    served = []
+    for d in dirs:
+        for p in sorted(glob.glob(os.path.join(glob.escape(d), "*.sock"))):
+            try:
+                with Client(p, name="python (looking for an arm)", timeout=2.0) as c:
+                    hello = c.hello
+            except OmnidError:
+                continue
+            if hello.get("arm") == arm or arm in hello.get("aliases", []):
+                return p
+            served.append(hello.get("arm", "?"))
+    raise SocketNotFoundError(
+        "no arm named %r is served in %s (arms served: %s); is `omnid serve` running with it?"
+        % (arm, ", ".join(dirs), ", ".join(served) or "none")
+    )
+
+
 # --------------------------------------------------------------------------------------
 # The client
 
@@ -265,9 +296,10 @@ class Client:
     """A connection to ``omnid serve``.
 
     ``Client(path=None, name="python", timeout=10.0, on_event=None, state_buffer=10000,
-    event_buffer=10000)`` connects to ``path`` (else :func:`find_socket`), sends
+    event_buffer=10000, arm=None)`` connects to ``path`` (else the socket of ``arm``, by
+    name or alias, :func:`find_arm_socket`; else :func:`find_socket`), sends
     ``{"op":"hello","protocol":1,"name":name}`` and waits for the daemon's hello, kept in
-    :attr:`hello` (a dict: ``device``, ``rate_hz``, ``access`` (``read`` or ``control``),
+    :attr:`hello` (a dict: ``device``, ``arm``, ``aliases``, ``rate_hz``, ``access`` (``read`` or ``control``),
     ``client`` (this connection's number), ``stream_ttl_ms``, ``controllers``, ``modes``,
     ``server``, ``protocol``). A refused connection raises :class:`RefusedError` with the
     daemon's reason.
@@ -299,8 +331,14 @@ class Client:
         on_event: Optional[Callable[[Dict[str, Any]], None]] = None,
         state_buffer: int = 10000,
         event_buffer: int = 10000,
+        arm: Optional[str] = None,
     ):
-        self.path = os.fspath(path) if path is not None else find_socket()
+        if path is not None:
+            self.path = os.fspath(path)
+        elif arm is not None:
+            self.path = find_arm_socket(arm)
+        else:
+            self.path = find_socket()
         self.name = name
         self.timeout = timeout
         self.on_event = on_event

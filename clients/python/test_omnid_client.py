@@ -30,6 +30,7 @@ from omnid_client import (  # noqa: E402
     RefusedError,
     SocketNotFoundError,
     State,
+    find_arm_socket,
     find_socket,
 )
 
@@ -638,6 +639,44 @@ class ShutdownTests(DaemonTestCase):
         self.assertEqual(code, 0, d.log())
         self.assertFalse(os.path.exists(d.socket), "the socket should be removed")
         self.assertIn("shut down by a client", d.log())
+
+
+class ArmTests(unittest.TestCase):
+    """Two arms in one daemon, each picked by name or by alias (Client(arm=...))."""
+
+    def test_each_arm_by_name_and_by_alias(self):
+        if not OMNID_BIN:
+            self.skipTest(NEEDS_DAEMON)
+        d = tempfile.mkdtemp(prefix="omnid-arms-")
+        self.addCleanup(shutil.rmtree, d, True)
+        left, right = "left-%d" % os.getpid(), "right-%d" % os.getpid()
+        config = os.path.join(d, "omnid.toml")
+        with open(config, "w") as f:
+            f.write('[[arm]]\nname = "%s"\naliases = ["PHANToM 1"]\n'
+                    '[[arm]]\nname = "%s"\naliases = ["PHANToM 2"]\n' % (left, right))
+        env = dict(os.environ, XDG_RUNTIME_DIR=d, OMNID_STATE_DIR=os.path.join(d, "state"))
+        env.pop("OMNID_SOCKET", None)
+        env.pop("RUNTIME_DIRECTORY", None)
+        proc = subprocess.Popen([OMNID_BIN, "serve", "--config", config], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        self.addCleanup(proc.wait)
+        self.addCleanup(proc.terminate)
+        with mock.patch.dict(os.environ, env, clear=True):
+            deadline = time.monotonic() + 30
+            while not all(os.path.exists(os.path.join(d, "omnid", n + ".sock"))
+                          for n in (left, right)):
+                self.assertLess(time.monotonic(), deadline, "the arms' sockets never appeared")
+                time.sleep(0.05)
+            for asked, arm in ((left, left), (right, right), ("PHANToM 1", left),
+                               ("PHANToM 2", right)):
+                with Client(arm=asked, name="arm test") as c:
+                    self.assertEqual(c.hello["arm"], arm)
+                    c.stream(100)
+                    self.assertGreaterEqual(c.next_state(timeout=5.0).seq, 0)
+            with self.assertRaises(SocketNotFoundError) as cm:
+                find_arm_socket("nobody")
+            self.assertIn(left, str(cm.exception))
 
 
 class FindSocketTests(unittest.TestCase):

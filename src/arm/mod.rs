@@ -6,9 +6,7 @@
 
 pub mod config;
 pub mod lock;
-pub mod pipeline;
 
-pub use config::ArmSpec;
 pub use lock::ArmLock;
 
 /// Who an arm is.

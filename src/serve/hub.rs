@@ -51,6 +51,8 @@ const ACCEPT_PAUSE: Duration = Duration::from_millis(100);
 pub struct HubSetup {
     pub(crate) listener: Listener,
     pub(crate) policy: Policy,
+    /// `[serve]`: connection limits, hello deadline, lease lapse, queues.
+    pub(crate) serve: super::ServeConfig,
     /// The arm this socket serves.
     pub(crate) station: StationSetup,
 }
@@ -168,7 +170,7 @@ pub(crate) fn to_op(request: Request) -> Result<Op, OpError> {
 impl Hub {
     /// A hub over the socket and the arm's station that `daemon::prepare` set up.
     pub fn new(s: HubSetup) -> Hub {
-        let serve = &s.station.serve;
+        let serve = &s.serve;
         Hub {
             hello_timeout: Duration::from_secs_f64(serve.hello_timeout_ms * 1e-3),
             lease_lapse: Duration::from_secs_f64(serve.lease_lapse_ms * 1e-3),

@@ -54,8 +54,8 @@ pub struct StationSetup {
     pub signals: Arc<ArmSignals>,
     /// Ends the daemon (`shutdown`).
     pub stop: Arc<AtomicBool>,
-    /// `[serve]`: time to live, fallback, ring length, …
-    pub serve: crate::serve::ServeConfig,
+    /// Time to live, fallback, fault ring and dumps (from `[serve]`).
+    pub limits: StationLimits,
     /// The servo rate, Hz.
     pub rate_hz: f64,
     /// The servo period, ns.
@@ -78,6 +78,21 @@ pub struct StationSetup {
     pub state_dir: PathBuf,
     /// The realtime steps the servo thread took (set before its first tick).
     pub realtime: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
+}
+
+/// The station's share of `[serve]` (the rest is the transports').
+#[derive(Debug, Clone, PartialEq)]
+pub struct StationLimits {
+    /// A stream command's default time to live, ms.
+    pub stream_ttl_ms: f64,
+    /// Where a stream falls back unless its owner chose: hold or idle.
+    pub stale_fallback: Activity,
+    /// Seconds of ticks kept for a fault dump.
+    pub ring_s: f64,
+    /// At most one fault dump this often, s.
+    pub dump_interval_s: f64,
+    /// Fault dumps kept per arm.
+    pub max_dumps: usize,
 }
 
 /// What [`Station::pump`] hands a transport.
@@ -255,7 +270,7 @@ impl Station {
         )));
         let adapt = s.identifier.config().adapt;
         let ring = FaultRing::new(
-            (s.serve.ring_s * s.rate_hz).round().max(1.0) as usize,
+            (s.limits.ring_s * s.rate_hz).round().max(1.0) as usize,
             s.schema,
         );
         let epoch = s.signals.owner().0;
@@ -298,7 +313,7 @@ impl Station {
 
     /// The default stream time to live, ms.
     pub fn stream_ttl_ms(&self) -> f64 {
-        self.s.serve.stream_ttl_ms
+        self.s.limits.stream_ttl_ms
     }
 
     /// The servo's wake-up signal (a transport polls it).
@@ -575,8 +590,7 @@ impl Station {
 
     /// The fallback in force: the holder's choice, else the config's.
     fn current_fallback(&self) -> Activity {
-        self.lease_fallback
-            .unwrap_or(self.s.serve.stale_fallback.activity())
+        self.lease_fallback.unwrap_or(self.s.limits.stale_fallback)
     }
 
     /// The lease is free again: the owner's streams, effects and free mode end at its
@@ -610,9 +624,7 @@ impl Station {
             None => {
                 self.lease = Some(me);
                 // A new owner starts with the config's fallback (its own once it asks).
-                self.s
-                    .signals
-                    .set_fallback(self.s.serve.stale_fallback.activity());
+                self.s.signals.set_fallback(self.s.limits.stale_fallback);
                 let name = crate::text::cut(&self.sessions[k].info.name);
                 self.announce(Event::lease(
                     Some(me),
@@ -631,7 +643,7 @@ impl Station {
                 j + 1
             )));
         }
-        let ttl = ttl_ms.unwrap_or(self.s.serve.stream_ttl_ms);
+        let ttl = ttl_ms.unwrap_or(self.s.limits.stream_ttl_ms);
         if !(ttl.is_finite() && ttl > 0.0 && ttl <= 10_000.0) {
             return Err(OpError::Invalid(format!(
                 "ttl_ms {ttl}: allowed > 0 and ≤ 10000"
@@ -808,7 +820,7 @@ impl Station {
     }
 
     fn on_servo_event(&mut self, r: &TickRecord, ev: ServoEvent) {
-        let ttl = self.s.serve.stream_ttl_ms;
+        let ttl = self.s.limits.stream_ttl_ms;
         let (name, message) = match ev {
             ServoEvent::StreamStale { fallback } => (
                 "stream-stale",
@@ -852,7 +864,7 @@ impl Station {
     /// the arm's oldest dumps removed past `serve.max_dumps`.
     fn dump_safety(&mut self) {
         let now = std::time::Instant::now();
-        let interval = std::time::Duration::from_secs_f64(self.s.serve.dump_interval_s);
+        let interval = std::time::Duration::from_secs_f64(self.s.limits.dump_interval_s);
         if self.last_dump.is_some_and(|t| now - t < interval) {
             self.dumps_skipped += 1;
             return;
@@ -861,7 +873,7 @@ impl Station {
         let arm = self.s.arm.file_stem().to_string();
         let dump = self.ring.dump(&self.s.state_dir, &arm, "safety");
         if dump.is_some() {
-            taps::prune_dumps(&self.s.state_dir, &arm, self.s.serve.max_dumps);
+            taps::prune_dumps(&self.s.state_dir, &arm, self.s.limits.max_dumps);
         }
         self.dumps.extend(dump);
     }

@@ -4,6 +4,8 @@
 //! Each section is defined and validated beside the component it configures; this module only
 //! gathers them into the file's layout and hands each component the sections it needs.
 
+mod arms;
+
 pub use crate::config_check::ConfigError;
 pub use crate::control::reference::ReferenceConfig;
 pub use crate::control::ControlConfig;
@@ -24,6 +26,7 @@ pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
 pub(crate) use crate::servo::ServoSetup;
 pub use crate::telemetry::TelemetryConfig;
+pub use arms::ArmSpec;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;

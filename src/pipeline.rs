@@ -2,9 +2,10 @@
 //! identifier built, the motors' heat loaded under the arm's name; started on its own thread.
 //! `omnid run` and `omnid serve` both assemble it here.
 
-use super::ArmLock;
+use crate::arm::ArmLock;
 use crate::config::Config;
 use crate::control::NanAfter;
+use crate::control::Trajectory;
 use crate::control::{ControllerKind, ControllerSet, Reference};
 use crate::device::inject::{Fault, FaultyDevice};
 use crate::device::registry::DeviceSpec;
@@ -12,7 +13,6 @@ use crate::device::registry::{self, OpenError, OpenOptions};
 use crate::device::replay::ReplayError;
 use crate::device::DeviceError;
 use crate::identifier::{Identifier, WeightsFile};
-use crate::run::RunOptions;
 use crate::servo::{Servo, ServoReport};
 use crate::telemetry::reader::ReadError;
 use crate::telemetry::{LogError, LogSchema};
@@ -21,9 +21,55 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use thiserror::Error;
 
+/// `omnid run`'s options (the rest comes from the config); [`Default`] gives the CLI's
+/// defaults.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// The device to run on.
+    pub device: DeviceSpec,
+    /// The controller.
+    pub controller: ControllerKind,
+    /// The reference trajectory to track.
+    pub trajectory: Trajectory,
+    /// Seconds of device time; `f64::INFINITY` (replay only): the whole log.
+    pub duration_s: f64,
+    /// The log; `None`: a new file `logs/omnid-<UTC time>.csv` (`-2`, `-3`, … when that name
+    /// is taken).
+    pub log: Option<PathBuf>,
+    /// Where the caller will write the summary as JSON: checked with the run's other outputs
+    /// before the run starts.
+    pub summary_json: Option<PathBuf>,
+    /// Run unpaced, as fast as the host allows (simulator and replay only; no realtime steps).
+    pub fast: bool,
+    /// Replay: skip damaged rows (and report them) instead of refusing the log.
+    pub lenient: bool,
+    /// Faults to inject (from `--inject`; the config's `[inject]` list is added).
+    pub inject: Vec<Fault>,
+    /// Start the identifier from these weights (else: shipped weights for NNIDC, fresh
+    /// small random weights otherwise).
+    pub weights: Option<PathBuf>,
+    /// Freeze the identifier (no online adaptation).
+    pub no_adapt: bool,
+    /// Free mode and a scene of effects (docs/HAPTICS.md).
+    pub haptics: crate::haptics::HapticRun,
+    /// The arm's name (`--arm`, or a configured `[[arm]]`): keys its heat file and its lock.
+    /// `None`: the device kind, as a one-arm set-up has always named it.
+    pub arm: Option<String>,
+    /// The arm is one the config names (`[[arm]]`): a simulated one is locked too, as real
+    /// hardware always is, so a `run` cannot take an arm a `serve` has.
+    pub arm_configured: bool,
+}
+
+impl RunOptions {
+    /// The arm's name: `arm`, else the device kind.
+    pub fn arm_name(&self) -> &str {
+        self.arm.as_deref().unwrap_or(self.device.name())
+    }
+}
+
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
 /// box (see mock/README.md for how they were made).
-pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../../mock/nnidc-pretuned.json");
+pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
 pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
 
 /// The identifier a run starts with, and a label for the summary.
