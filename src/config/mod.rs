@@ -260,6 +260,17 @@ impl<'a> From<&'a Config> for SimSetup<'a> {
     }
 }
 
+impl<'a> From<&'a Config> for crate::device::registry::DeviceSetup<'a> {
+    fn from(cfg: &'a Config) -> Self {
+        crate::device::registry::DeviceSetup {
+            device: &cfg.device,
+            sim: cfg.into(),
+            usb: &cfg.usb,
+            firewire: &cfg.firewire,
+        }
+    }
+}
+
 impl<'a> From<&'a Config> for ControlSetup<'a> {
     fn from(cfg: &'a Config) -> Self {
         ControlSetup {

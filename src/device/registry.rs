@@ -2,11 +2,12 @@
 //! `serve` and the tests (sim, replay, the USB bridge, FireWire), with the steps real
 //! hardware needs before torque (calibration at the inkwell, measured DAC signs).
 
-use crate::config::Config;
 use crate::device::calibration::{self, CalibrationError};
 use crate::device::firewire::{find_firewire, FirewireConfig};
 use crate::device::replay::{ReplayDevice, ReplayError};
-use crate::device::sim::SimOmni;
+use crate::device::sim::{SimOmni, SimSetup};
+use crate::device::usb::UsbConfig;
+use crate::device::DeviceConfig;
 use crate::device::usb::open_usb_with_rate;
 use crate::device::{Device, DeviceError};
 use std::path::PathBuf;
@@ -71,6 +72,19 @@ pub enum OpenError {
     Replay(#[from] ReplayError),
 }
 
+/// The configuration sections the devices are opened from (a `&Config` gives them).
+#[derive(Debug, Clone, Copy)]
+pub struct DeviceSetup<'a> {
+    /// Encoder resolution, DAC scale, servo rate.
+    pub device: &'a DeviceConfig,
+    /// The simulated Omni.
+    pub sim: SimSetup<'a>,
+    /// The USB bridge.
+    pub usb: &'a UsbConfig,
+    /// The FireWire Omni.
+    pub firewire: &'a FirewireConfig,
+}
+
 /// How a device is to be opened beyond the config.
 #[derive(Debug, Clone, Copy)]
 pub struct OpenOptions<'a> {
@@ -86,7 +100,10 @@ pub struct OpenOptions<'a> {
 
 /// Real hardware gets encoder zero at the inkwell from its stored calibration before the
 /// loop starts; a device without one is refused (the message says how to calibrate).
-fn ready_for_torque(device: Box<dyn Device>, cfg: &Config) -> Result<Box<dyn Device>, OpenError> {
+fn ready_for_torque(
+    device: Box<dyn Device>,
+    cfg: &DeviceSetup<'_>,
+) -> Result<Box<dyn Device>, OpenError> {
     calibration::prepare_for_torque(
         device,
         calibration::default_dir().as_deref(),
@@ -119,14 +136,15 @@ pub(crate) fn unmeasured_dac_signs(cfg: &FirewireConfig, serial: Option<&str>) -
 
 /// Open the device `spec` names (as `--device` gives it); notes for the operator (rows a
 /// lenient replay skipped) go to `warnings`.
-pub fn open(
+pub fn open<'a>(
     spec: &DeviceSpec,
-    cfg: &Config,
+    cfg: impl Into<DeviceSetup<'a>>,
     how: OpenOptions<'_>,
     warnings: &mut Vec<String>,
 ) -> Result<Box<dyn Device>, OpenError> {
+    let cfg = cfg.into();
     match spec {
-        DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg, how.paced))),
+        DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg.sim, how.paced))),
         DeviceSpec::Replay(path) => {
             let device = ReplayDevice::open(path, &cfg.device, how.paced, how.lenient, how.stop)?
                 .with_duration_limit(how.duration_s);
@@ -139,17 +157,17 @@ pub fn open(
             }
             Ok(Box::new(device))
         }
-        DeviceSpec::Usb => ready_for_torque(open_usb_with_rate(&cfg.usb, cfg.device.rate_hz)?, cfg),
+        DeviceSpec::Usb => ready_for_torque(open_usb_with_rate(cfg.usb, cfg.device.rate_hz)?, &cfg),
         DeviceSpec::Firewire => {
             // Identify first (reads only), so that a machine without the Omni hears what was
             // looked for; then no torque before the motors' signs are known.
-            let mut omni = find_firewire(&cfg.firewire, cfg.device.rate_hz)?;
-            if let Some(why) = unmeasured_dac_signs(&cfg.firewire, omni.serial()) {
+            let mut omni = find_firewire(cfg.firewire, cfg.device.rate_hz)?;
+            if let Some(why) = unmeasured_dac_signs(cfg.firewire, omni.serial()) {
                 return Err(OpenError::BadInput(why));
             }
             omni.start()?;
             omni.check_rate()?;
-            ready_for_torque(Box::new(omni), cfg)
+            ready_for_torque(Box::new(omni), &cfg)
         }
     }
 }
