@@ -386,6 +386,41 @@ pub fn serve(
     }
 }
 
+/// `omnid devices`: the configured arms, each with its kind, serial, aliases, socket and
+/// whether a daemon serves it now (its socket answers a hello).
+pub fn arms_table(cfg: &Config) -> Result<String, RunError> {
+    let arms = cfg.arms().map_err(|e| RunError::BadInput(e.to_string()))?;
+    if arms.is_empty() {
+        return Ok(String::new());
+    }
+    let mut out = String::from("Configured arms ([[arm]]):\n");
+    for arm in &arms {
+        let socket = arm
+            .socket
+            .clone()
+            .unwrap_or_else(|| default_socket(&arm.name));
+        let served = match crate::serve::client::Client::connect(&socket, "omnid devices") {
+            Ok(c) if c.hello().arm == arm.name => "served".to_string(),
+            Ok(c) => format!("socket answers as arm `{}`", c.hello().arm),
+            Err(_) => "not served".to_string(),
+        };
+        out.push_str(&format!(
+            "  {:<16} {:<9} serial {:<12} {}{}  ({})\n",
+            arm.name,
+            arm.device.name(),
+            arm.serial.as_deref().unwrap_or("any"),
+            socket.display(),
+            if arm.aliases.is_empty() {
+                String::new()
+            } else {
+                format!("  aliases {}", arm.aliases.join(", "))
+            },
+            served
+        ));
+    }
+    Ok(out)
+}
+
 /// What an arm's end needs besides its reports.
 struct ArmEnd {
     name: String,

@@ -1006,7 +1006,16 @@ fn main() -> ExitCode {
         Command::Devices { config } => match load_config(config.as_deref(), None) {
             Ok(cfg) => {
                 omnid::out!("{}", omnid::device::list_devices(&cfg.usb));
-                Ok(0)
+                match omnid::daemon::arms_table(&cfg) {
+                    Ok(table) => {
+                        omnid::out!("{table}");
+                        Ok(0)
+                    }
+                    Err(e) => {
+                        omnid::errln!("omnid devices: {e}");
+                        Ok(EXIT_BAD_INPUT)
+                    }
+                }
             }
             Err(code) => Ok(code),
         },

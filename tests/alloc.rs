@@ -371,3 +371,81 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         "serve: {n} allocations in 3000 ticks with clients connected"
     );
 }
+
+#[test]
+fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
+    use omnid::serve::client::Client;
+    use serde_json::json;
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = Config::default();
+    cfg.safety.persist_heat = false;
+    cfg.serve.dump_dir = dir.path().display().to_string();
+    let opts = omnid::daemon::ServeOptions {
+        devices: vec![omnid::run::DeviceSpec::Sim, omnid::run::DeviceSpec::Sim],
+        arms: Vec::new(),
+        controller: ControllerKind::Nnidc,
+        socket: None,
+        weights: None,
+        no_adapt: false,
+        lenient: false,
+        inject: Vec::new(),
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut servos = Vec::new();
+    let mut hubs = Vec::new();
+    let mut clients = Vec::new();
+    for (k, mut arm) in omnid::daemon::arms(&opts, &cfg)
+        .unwrap()
+        .into_iter()
+        .enumerate()
+    {
+        arm.socket = Some(dir.path().join(format!("arm{k}.sock")));
+        let p = omnid::daemon::prepare_arm(&arm, &opts, &cfg, stop.clone()).unwrap();
+        servos.push(p.pipeline.servo);
+        hubs.push(std::thread::spawn(move || {
+            omnid::serve::hub::Hub::new(p.hub).run()
+        }));
+        let path = arm.socket.clone().unwrap();
+        // A commander per arm: every state answered with a setpoint.
+        clients.push(std::thread::spawn(move || {
+            let mut c = Client::connect(&path, "commander").unwrap();
+            c.request(json!({"op": "mode", "mode": "hold"})).unwrap();
+            c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+            let mut n = 0u64;
+            while let Ok(s) = c.next_state(5000) {
+                let sp = json!({"op": "servo_jp", "seq": s.seq, "q": [s.q[0], 0.6, 0.3]});
+                if c.send(&sp).is_err() {
+                    break;
+                }
+                n += 1;
+            }
+            n
+        }));
+    }
+    for _ in 0..1_000 {
+        for s in servos.iter_mut() {
+            assert!(s.tick().is_none());
+        }
+    }
+    let n = count_allocations(|| {
+        for _ in 0..2_000 {
+            for s in servos.iter_mut() {
+                assert!(s.tick().is_none());
+            }
+        }
+    });
+    for s in &servos {
+        assert_eq!(s.activity(), omnid::servo::Activity::ServoJp);
+    }
+    for s in servos {
+        assert!(s.finish(EndReason::OperatorStop).last_command.is_safe());
+    }
+    for h in hubs {
+        h.join().unwrap();
+    }
+    for c in clients {
+        assert!(c.join().unwrap() > 1_000, "each arm's client was served");
+    }
+    assert_eq!(n, 0, "two arms: {n} allocations in 2 × 2000 ticks");
+}

@@ -113,6 +113,17 @@ fn a_trip_on_one_arm_leaves_the_other_tracking() {
             break;
         }
     }
+    // `omnid devices` lists both, served.
+    let cfg = d.dir.path().join("omnid.toml");
+    let out = d.omnid(&["devices", "--config", cfg.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    for name in [&left, &right] {
+        let line = text
+            .lines()
+            .find(|l| l.contains(name.as_str()))
+            .unwrap_or("");
+        assert!(line.contains("served") && line.contains("sim"), "{text}");
+    }
     let (code, err) = d.stop();
     assert_eq!(code, Some(130), "{err}");
     assert!(
