@@ -146,7 +146,7 @@ pub fn open<'a>(
     match spec {
         DeviceSpec::Sim => Ok(Box::new(SimOmni::new(cfg.sim, how.paced))),
         DeviceSpec::Replay(path) => {
-            let device = ReplayDevice::open(path, &cfg.device, how.paced, how.lenient, how.stop)?
+            let device = ReplayDevice::open(path, cfg.device, how.paced, how.lenient, how.stop)?
                 .with_duration_limit(how.duration_s);
             if device.info().skipped.count > 0 {
                 warnings.push(format!(
