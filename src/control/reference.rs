@@ -24,6 +24,8 @@ pub struct ReferenceConfig {
     pub blend_s: f64,
     /// Tracking statistics start here (after the blend and its transient), s.
     pub settle_s: f64,
+    /// Fastest a setpoint target moves (a `hold` start, a `servo_jp` step), rad/s.
+    pub slew_rad_s: f64,
     /// Multisine: amplitude per joint (sum over components), rad.
     #[serde(deserialize_with = "crate::config_check::exact")]
     pub multisine_amplitude: [f64; 3],
@@ -42,6 +44,7 @@ impl Default for ReferenceConfig {
             frequency_hz: 0.5,
             blend_s: 1.0,
             settle_s: 2.0,
+            slew_rad_s: 2.0,
             multisine_amplitude: [0.45, 0.32, 0.32],
             multisine_band_hz: [0.1, 1.5],
             multisine_components: 6,
@@ -61,6 +64,13 @@ impl ReferenceConfig {
                 "inside model.limit_lower ..= model.limit_upper",
             )?;
         }
+        check::in_range(
+            "reference.slew_rad_s",
+            self.slew_rad_s,
+            0.01,
+            100.0,
+            "0.01 ..= 100 rad/s",
+        )?;
         check::each("reference.amplitude", &self.amplitude, |f, v| {
             check::in_range(f, v, 0.0, 1.0, "0 ..= 1 rad")
         })?;

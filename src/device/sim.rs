@@ -33,6 +33,9 @@ pub struct SimConfig {
     /// Joint angles at power-on, rad (default: stylus in the inkwell).
     #[serde(deserialize_with = "crate::config_check::exact")]
     pub start_pose: [f64; 3],
+    /// The stylus starts docked in the inkwell at `start_pose`, which holds it there as a real
+    /// Omni's does (until the motors or a hand lift it out).
+    pub docked: bool,
 }
 
 impl Default for SimConfig {
@@ -45,6 +48,7 @@ impl Default for SimConfig {
             substeps: 2,
             torque_noise_nm: 2e-4,
             start_pose: [0.0, 0.27, -0.37],
+            docked: true,
         }
     }
 }
@@ -179,6 +183,53 @@ pub struct SimSetup<'a> {
 /// How close to the start pose (rad) counts as "stylus in the inkwell".
 const INKWELL_TOLERANCE: f64 = 0.02;
 
+/// The inkwell's grip on a docked stylus, per joint: stiffness N·m/rad and damping
+/// N·m·s/rad, and the torque beyond gravity's at the docked pose it holds against before the
+/// stylus comes out, N·m.
+const INKWELL_STIFFNESS: f64 = 20.0;
+const INKWELL_DAMPING: f64 = 0.3;
+const INKWELL_MARGIN_NM: f64 = 0.03;
+
+/// The inkwell: while the stylus is docked it holds the arm at the docked pose with a
+/// spring-damper whose torque saturates at a little more than gravity's there, so the
+/// unpowered arm stays put (a real Omni's stylus rests in its inkwell) and anything that
+/// pushes harder — the motors, a hand — lifts it out. It docks again when the arm comes back
+/// to the pose slowly.
+#[derive(Debug, Clone, Copy)]
+struct Inkwell {
+    pose: Joint3,
+    hold: Joint3,
+    docked: bool,
+    /// Undocked, the stylus has been taken away from the pose (it can come back).
+    away: bool,
+}
+
+impl Inkwell {
+    /// The inkwell's torque on the arm at (q, q̇).
+    fn torque(&self, q: &Joint3, qd: &Joint3) -> Joint3 {
+        if !self.docked {
+            return Joint3::zeros();
+        }
+        Joint3::from_fn(|j, _| {
+            let t = -INKWELL_STIFFNESS * (q[j] - self.pose[j]) - INKWELL_DAMPING * qd[j];
+            t.clamp(-self.hold[j], self.hold[j])
+        })
+    }
+
+    /// After a step: out once pulled past the grip's reach, back in when at rest at the pose.
+    fn update(&mut self, q: &Joint3, qd: &Joint3) {
+        let off = q - self.pose;
+        if self.docked {
+            self.docked = (0..3).all(|j| off[j].abs() <= self.hold[j] / INKWELL_STIFFNESS + 0.01);
+            self.away = false;
+        } else if off.amax() > 2.0 * INKWELL_TOLERANCE {
+            self.away = true;
+        } else if self.away {
+            self.docked = off.amax() < INKWELL_TOLERANCE && qd.amax() < 0.05;
+        }
+    }
+}
+
 /// The simulated Omni: the rigid-body model integrated at the servo rate, with encoder
 /// quantisation, sensor and torque noise, an optional payload and a simulated hand, behind
 /// the [`Device`] trait.
@@ -192,7 +243,6 @@ pub struct SimOmni {
     substeps: u32,
     noise_nm: f64,
     rng: ChaCha8Rng,
-    start_pose: Joint3,
     q: Joint3,
     qd: Joint3,
     tick: u64,
@@ -203,6 +253,7 @@ pub struct SimOmni {
     /// at the last sample, N.
     hand: Option<Hand>,
     hand_force: Force3,
+    inkwell: Inkwell,
 }
 
 impl SimOmni {
@@ -215,6 +266,9 @@ impl SimOmni {
         let tip = |q: [f64; 3]| tip_position_mm(cfg.geometry, &q.into()) * 1e-3;
         let hand = (cfg.hand.pattern != HandPattern::None)
             .then(|| Hand::new(cfg.hand, tip(cfg.sim.start_pose), tip(cfg.center)));
+        let hold = plant
+            .gravity(&start_pose)
+            .map(|g| g.abs() + INKWELL_MARGIN_NM);
         SimOmni {
             plant,
             payload_kg: cfg.sim.payload_kg,
@@ -228,7 +282,6 @@ impl SimOmni {
             noise_nm: cfg.sim.torque_noise_nm,
             // A separate stream from the one the reference uses, from the same seed.
             rng: ChaCha8Rng::seed_from_u64(cfg.sim.seed ^ 0x005E_ED0F_0A1D),
-            start_pose,
             q: start_pose,
             qd: Joint3::zeros(),
             tick: 0,
@@ -237,6 +290,12 @@ impl SimOmni {
             start_ns: 0,
             hand,
             hand_force: Force3::zeros(),
+            inkwell: Inkwell {
+                pose: start_pose,
+                hold,
+                docked: cfg.sim.docked,
+                away: false,
+            },
         }
     }
 
@@ -245,8 +304,14 @@ impl SimOmni {
         (self.q, self.qd)
     }
 
-    /// Put the arm at a pose with a velocity (tests).
+    /// Whether the stylus sits in the inkwell.
+    pub fn docked(&self) -> bool {
+        self.inkwell.docked
+    }
+
+    /// Put the arm at a pose with a velocity (tests); out of the inkwell.
     pub fn set_state(&mut self, q: Joint3, qd: Joint3) {
+        self.inkwell.docked = false;
         self.q = q;
         self.qd = qd;
     }
@@ -259,6 +324,7 @@ impl SimOmni {
     /// Advance the plant by `dt` under constant torque `tau` (classic RK4, `substeps` steps).
     pub fn integrate(&mut self, tau: &Joint3, dt: f64) {
         self.integrate_from(0.0, tau, dt);
+        self.inkwell.update(&self.q, &self.qd);
     }
 
     /// The force the hand puts on the tip at (q, q̇), `s` s into the tick starting at `t`.
@@ -276,13 +342,15 @@ impl SimOmni {
     fn integrate_from(&mut self, t: f64, tau: &Joint3, dt: f64) {
         let h = dt / self.substeps as f64;
         let with_hand = self.hand.is_some();
+        let inkwell = self.inkwell;
         let f = |s: f64, q: &Joint3, qd: &Joint3| {
+            let held = tau + inkwell.torque(q, qd);
             if with_hand {
                 let fh = self.hand_force_at(t, s, q, qd);
                 let ext = tip_force_torque(&self.plant.geometry, q, &fh);
-                self.plant.forward_dynamics(q, qd, &(tau + ext))
+                self.plant.forward_dynamics(q, qd, &(held + ext))
             } else {
-                self.plant.forward_dynamics(q, qd, tau)
+                self.plant.forward_dynamics(q, qd, &held)
             }
         };
         let (mut q, mut qd) = (self.q, self.qd);
@@ -310,6 +378,7 @@ impl SimOmni {
             hand.advance(t, self.period_s, &felt);
         }
         self.integrate_from(t, tau, self.period_s);
+        self.inkwell.update(&self.q, &self.qd);
         let (q, qd) = (self.q, self.qd);
         self.hand_force = self.hand_force_at(t, self.period_s, &q, &qd);
     }
@@ -365,7 +434,7 @@ impl Device for SimOmni {
             encoder: self.encoder_words(),
             gimbal: [0x8000; 3],
             buttons: [false; 2],
-            inkwell: (self.q - self.start_pose).amax() < INKWELL_TOLERANCE,
+            inkwell: self.inkwell.docked,
             counter: self.tick as u32,
         };
         let sample = RawSample::new(encode_state(&state), self.tick as f64 * self.period_s);

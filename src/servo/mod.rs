@@ -166,6 +166,14 @@ pub struct Servo {
     /// The owner epoch and stop count last read from the link's signals.
     owner_epoch: u64,
     halts_seen: u64,
+    /// A safety trip left the arm idle: streams do not re-arm it until a mode is asked for.
+    latched: bool,
+    /// A wall or a torque limit acted on the last command: what acted was not the
+    /// controller's, so nothing adapts on it (anti-windup).
+    limited: bool,
+    /// The setpoint a servo_jp stream asked for; the target moves to it at `slew_rad_s`.
+    setpoint: Joint3,
+    slew_rad_s: f64,
     kalman: KalmanBank,
     unwrap: EncoderUnwrap,
     dac: DacScale,
@@ -261,6 +269,10 @@ impl Servo {
             event: None,
             owner_epoch: 0,
             halts_seen: 0,
+            latched: false,
+            limited: false,
+            setpoint: Joint3::zeros(),
+            slew_rad_s: cfg.reference.slew_rad_s,
             kalman: KalmanBank::new(cfg.kalman),
             unwrap: EncoderUnwrap::new(),
             dac: DacScale {
@@ -373,6 +385,7 @@ impl Servo {
             Err(end) => return Some(end),
         };
         let tau_plant = self.actuate(&limited.tau);
+        self.limited = limited.flags & (flags::WALL | flags::CLAMPED | flags::THERMAL) != 0;
         let flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
         self.held = false;
         self.record(
@@ -445,7 +458,9 @@ impl Servo {
             // Amplifiers off, or a hand moving the arm (free, servo_cf): whatever holds or
             // moves it is not in the torque, so there is nothing true to learn from
             // (docs/HAPTICS.md §3). Predict only.
-            Some(_) if !self.activity.learns() => {
+            // A wall or a limit acted: the torque was not the controller's, and learning from a
+            // wall's push teaches the model the wall (anti-windup).
+            Some(_) if !self.activity.learns() || self.limited => {
                 tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
             }
             Some(acting) => {
@@ -505,6 +520,7 @@ impl Servo {
             Ok(l) => Ok(l),
             Err(trip) if self.link.is_some() => {
                 self.enter(Activity::Idle, &est.q);
+                self.latched = true;
                 self.safety.rest();
                 self.event = Some(ServoEvent::SafetyTrip(trip));
                 Ok(rest)
@@ -642,10 +658,21 @@ impl Servo {
             q: est.q,
             ..RefPoint::default()
         };
-        let reference = match &mut self.target {
+        let mut reference = match &mut self.target {
             Target::Trajectory { reference, t0 } => reference.at(t - *t0, &est.q),
-            Target::Point(p) => *p,
+            Target::Point(p) => {
+                // A setpoint is approached at a bounded speed, never as a step.
+                let step = self.slew_rad_s * 1e-9 * self.period_ns as f64;
+                for j in 0..3 {
+                    let d = (self.setpoint[j] - p.q[j]).clamp(-step, step);
+                    p.q[j] += d;
+                }
+                *p
+            }
         };
+        // Never a reference beyond the soft walls (a blend from a pose beyond one starts at
+        // the wall): the controller and the wall pull the same way.
+        reference.q = self.inside_walls(&reference.q);
         let input = ControlInput {
             t,
             estimate: est,
@@ -683,7 +710,18 @@ impl Servo {
         }
         if matches!(activity, Activity::Hold | Activity::Idle) {
             self.target = Target::Point(RefPoint {
-                q: self.inside_walls(q),
+                q: *q,
+                ..RefPoint::default()
+            });
+            self.setpoint = self.inside_walls(q);
+        }
+        if !activity.is_stream() {
+            self.latched = false;
+        }
+        if activity == Activity::ServoJp && self.activity != Activity::ServoJp {
+            // The slew starts from where the arm is.
+            self.target = Target::Point(RefPoint {
+                q: *q,
                 ..RefPoint::default()
             });
         }
@@ -742,13 +780,14 @@ impl Servo {
                         t0: t,
                     };
                 }
+                ServoCommand::ServoJp { .. }
+                | ServoCommand::ServoJf { .. }
+                | ServoCommand::ServoCf { .. }
+                    if self.latched => {}
                 ServoCommand::ServoJp { seq, q: sp, ttl_s } => {
                     if sp.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
                         self.enter(Activity::ServoJp, q);
-                        self.target = Target::Point(RefPoint {
-                            q: self.inside_walls(&sp.into()),
-                            ..RefPoint::default()
-                        });
+                        self.setpoint = self.inside_walls(&sp.into());
                         self.cmd_seq = seq;
                         self.stream_deadline = t + ttl_s;
                     }

@@ -310,7 +310,10 @@ impl SafetyLayer {
         let mut tau = *tau_cmd;
 
         // Soft walls: a spring-damper pushing back into the workspace, from whichever of the
-        // estimate and the encoders is further out.
+        // estimate and the encoders is further out, added to what the controller asks that
+        // points back in (its push further out is dropped). Replacing the controller's torque
+        // would leave only the weak wall spring to lift the arm against gravity, and the
+        // controller would wind up beyond the wall.
         let measured = (self.seen > 0).then(|| self.measured[self.newest].1);
         for j in 0..3 {
             let beyond = |q: f64| {
@@ -333,7 +336,8 @@ impl SafetyLayer {
             }
             // Damp only motion that goes further out.
             let outward = if qd[j] * over > 0.0 { qd[j] } else { 0.0 };
-            tau[j] = -c.wall_stiffness * over - c.wall_damping * outward;
+            let inward = if tau[j] * over < 0.0 { tau[j] } else { 0.0 };
+            tau[j] = inward - c.wall_stiffness * over - c.wall_damping * outward;
             fl |= flags::WALL;
         }
 
@@ -460,6 +464,30 @@ mod tests {
         let out = s.apply(&Joint3::zeros(), &q, &Joint3::zeros()).unwrap();
         assert!(out.tau[0] < 0.0 && out.tau[2] > 0.0 && out.tau[1] == 0.0);
         assert!(out.flags & flags::WALL != 0);
+    }
+
+    #[test]
+    fn beyond_a_wall_the_controllers_pull_back_in_is_kept_and_its_push_out_dropped() {
+        let cfg = SafetyConfig {
+            ramp_s: 0.0,
+            ..Default::default()
+        };
+        let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);
+        // 0.06 rad beyond joint 3's lower wall: the wall spring alone is 0.12 N·m.
+        let q = Joint3::new(0.0, 0.6, -0.61);
+        let spring = cfg.wall_stiffness * 0.06;
+        // The controller lifts the arm back in with 0.3 N·m: both act (the wall used to
+        // replace it, too weak alone to lift the arm against gravity).
+        let out = s
+            .apply(&Joint3::new(0.0, 0.0, 0.3), &q, &Joint3::zeros())
+            .unwrap();
+        assert!((out.tau[2] - (0.3 + spring)).abs() < 1e-9, "{}", out.tau[2]);
+        // A push further out is dropped: only the wall acts.
+        let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);
+        let out = s
+            .apply(&Joint3::new(0.0, 0.0, -0.3), &q, &Joint3::zeros())
+            .unwrap();
+        assert!((out.tau[2] - spring).abs() < 1e-9, "{}", out.tau[2]);
     }
 
     #[test]
