@@ -126,13 +126,25 @@ impl Effect {
         };
         const K_MAX: f64 = 100.0;
         const B_MAX: f64 = 200.0;
+        // A point of an effect within 10 m of the base: a spring or wall anywhere farther
+        // (1e308 mm) would give a force that is not finite at any pose the arm can reach.
+        const REACH_MM: f64 = 10_000.0;
+        let place = |name: &str, v: &[f64; 3]| -> Result<(), String> {
+            finite(name, v)?;
+            match v.iter().find(|x| x.abs() > REACH_MM) {
+                Some(x) => Err(format!(
+                    "{prefix}{name} has {x} mm: allowed within ±{REACH_MM} mm of the base"
+                )),
+                None => Ok(()),
+            }
+        };
         match self {
             Effect::Spring {
                 center_mm,
                 stiffness_n_per_mm,
                 damping_n_s_per_m,
             } => {
-                finite("center_mm", center_mm)?;
+                place("center_mm", center_mm)?;
                 range("stiffness_n_per_mm", *stiffness_n_per_mm, K_MAX, "N/mm")?;
                 range("damping_n_s_per_m", *damping_n_s_per_m, B_MAX, "N·s/m")
             }
@@ -145,7 +157,7 @@ impl Effect {
                 stiffness_n_per_mm,
                 damping_n_s_per_m,
             } => {
-                finite("point_mm", point_mm)?;
+                place("point_mm", point_mm)?;
                 finite("normal", normal)?;
                 let n = Force3::from(*normal).norm();
                 if !(n > 1e-9 && n.is_finite()) {
@@ -160,8 +172,8 @@ impl Effect {
                 stiffness_n_per_mm,
                 damping_n_s_per_m,
             } => {
-                finite("min_mm", min_mm)?;
-                finite("max_mm", max_mm)?;
+                place("min_mm", min_mm)?;
+                place("max_mm", max_mm)?;
                 if let Some(i) = (0..3).find(|&i| min_mm[i] >= max_mm[i]) {
                     return Err(format!(
                         "{prefix}min_mm[{i}] = {} must be below max_mm[{i}] = {}",
@@ -204,6 +216,8 @@ struct Slot {
 pub(crate) struct Scene {
     slots: [Slot; MAX_EFFECTS],
     fade_s: f64,
+    /// An effect's force was not finite at the last tick's pose and was left out.
+    pub(crate) skipped: bool,
 }
 
 impl Scene {
@@ -211,6 +225,7 @@ impl Scene {
         Scene {
             slots: [Slot::default(); MAX_EFFECTS],
             fade_s,
+            skipped: false,
         }
     }
 
@@ -226,11 +241,18 @@ impl Scene {
         s.pending = true;
     }
 
-    /// The sum of every slot's force at `t` with the tip at `p` (m) moving at `v` (m/s).
+    /// The sum of every slot's force at `t` with the tip at `p` (m) moving at `v` (m/s). A
+    /// slot whose force is not finite here is left out (and `skipped` set): one bad effect
+    /// never takes the others with it.
     pub(crate) fn force(&mut self, t: f64, p: &Force3, v: &Force3) -> Force3 {
         let mut total = Force3::zeros();
+        self.skipped = false;
         for s in &mut self.slots {
             let mut f = s.effect.map_or(Force3::zeros(), |e| e.force(p, v));
+            if !f.iter().all(|x| x.is_finite()) {
+                self.skipped = true;
+                f = Force3::zeros();
+            }
             if s.pending {
                 // Start from what the slot rendered at the last tick.
                 s.offset = s.last - f;
@@ -279,6 +301,29 @@ mod tests {
 
     fn v3(x: f64, y: f64, z: f64) -> Force3 {
         Force3::new(x, y, z)
+    }
+
+    #[test]
+    fn an_effect_whose_force_cannot_be_finite_is_refused_and_a_bad_one_never_removes_the_rest() {
+        let far = Effect::Spring {
+            center_mm: [1e308, 0.0, 0.0],
+            stiffness_n_per_mm: 100.0,
+            damping_n_s_per_m: 0.0,
+        };
+        let e = far.validate("effect.").unwrap_err();
+        assert!(e.contains("effect.center_mm") && e.contains("10000"), "{e}");
+        // Were one to get past the check, the scene leaves it out and keeps the others.
+        let near = Effect::Spring {
+            center_mm: [10.0, 0.0, 0.0],
+            stiffness_n_per_mm: 0.5,
+            damping_n_s_per_m: 0.0,
+        };
+        let mut scene = Scene::new(0.0);
+        scene.set(0, Some(near), 0.0);
+        scene.set(1, Some(far), 0.0);
+        let f = scene.force(0.0, &v3(0.006, 0.0, 0.0), &Force3::zeros());
+        assert!((f - v3(2.0, 0.0, 0.0)).norm() < 1e-12, "{f}");
+        assert!(scene.skipped);
     }
 
     #[test]

@@ -20,6 +20,7 @@ struct Continuous {
 }
 
 impl Continuous {
+    /// `f`, held to the continuous force while the mean square is over it.
     fn limit(&mut self, f: &Force3, dt: f64) -> Force3 {
         let out = if self.holding {
             limit_force(f, self.force_n)
@@ -49,6 +50,9 @@ pub(crate) struct HapticLoop {
     /// The tip at the last tick, mm (OpenHaptics frame), and the force commanded there, N.
     pub(crate) tip_mm: [f64; 3],
     pub(crate) force: [f64; 3],
+    /// What acted on this tick's force: `flags::FORCE_LIMIT` (held to the peak or the
+    /// continuous force), `flags::EFFECT_SKIPPED`.
+    pub(crate) flags: u32,
 }
 
 impl HapticLoop {
@@ -70,6 +74,7 @@ impl HapticLoop {
             },
             tip_mm: [0.0; 3],
             force: [0.0; 3],
+            flags: 0,
         }
     }
 
@@ -111,8 +116,18 @@ impl HapticLoop {
             (Force3::zeros(), Force3::zeros())
         };
         let rendered = self.passivity.step(&p, &watched, dt) + constant;
-        let f = limit_force(&(rendered + stream), self.max_force_n);
+        let asked = rendered + stream;
+        let f = limit_force(&asked, self.max_force_n);
         let f = self.continuous.limit(&f, dt);
+        // Visible when it acts: the log's flags, and an event at its start (the servo).
+        use crate::telemetry::record::flags;
+        self.flags = 0;
+        if (f - asked).norm() > 1e-9 * (1.0 + asked.norm()) {
+            self.flags |= flags::FORCE_LIMIT;
+        }
+        if self.scene.skipped {
+            self.flags |= flags::EFFECT_SKIPPED;
+        }
         self.tip_mm = (p * 1e3).into();
         self.force = f.into();
         tip_force_torque(&self.geometry, q, &f)

@@ -157,6 +157,8 @@ pub struct Servo {
     /// `max_force_n`), its last sequence number and its deadline.
     stream_tau: crate::omni::Joint3,
     stream_force: Force3,
+    /// The client's tip force was beyond the peak (held to it).
+    stream_force_limited: bool,
     max_force_n: f64,
     /// Forces at the tip: effects, passivity, Jᵀ F (docs/HAPTICS.md).
     haptics: HapticLoop,
@@ -171,6 +173,9 @@ pub struct Servo {
     /// A wall or a torque limit acted on the last command: what acted was not the
     /// controller's, so nothing adapts on it (anti-windup).
     limited: bool,
+    /// When each announced limit (FORCE_LIMIT, THERMAL, EFFECT_SKIPPED) last acted, s: an
+    /// episode starts after 0.1 s without it.
+    limit_last: [f64; 3],
     /// The setpoint a servo_jp stream asked for; the target moves to it at `slew_rad_s`.
     setpoint: Joint3,
     slew_rad_s: f64,
@@ -262,6 +267,7 @@ impl Servo {
             link: None,
             stream_tau: Joint3::zeros(),
             stream_force: Force3::zeros(),
+            stream_force_limited: false,
             max_force_n: cfg.haptics.max_force_n,
             haptics: HapticLoop::new(cfg.haptics, *cfg.geometry),
             cmd_seq: 0,
@@ -271,6 +277,7 @@ impl Servo {
             halts_seen: 0,
             latched: false,
             limited: false,
+            limit_last: [f64::NEG_INFINITY; 3],
             setpoint: Joint3::zeros(),
             slew_rad_s: cfg.reference.slew_rad_s,
             kalman: KalmanBank::new(cfg.kalman),
@@ -386,7 +393,11 @@ impl Servo {
         };
         let tau_plant = self.actuate(&limited.tau);
         self.limited = limited.flags & (flags::WALL | flags::CLAMPED | flags::THERMAL) != 0;
-        let flags = limited.flags | ident_flag | if self.held { flags::HELD } else { 0 };
+        let flags = limited.flags
+            | ident_flag
+            | self.haptic_flags()
+            | if self.held { flags::HELD } else { 0 };
+        self.announce_limits(s.t, flags);
         self.held = false;
         self.record(
             &s,
@@ -606,6 +617,42 @@ impl Servo {
         self.tick += 1;
     }
 
+    /// What acted on the tip force this tick (the haptic modes only).
+    fn haptic_flags(&self) -> u32 {
+        match self.activity {
+            Activity::Free => self.haptics.flags,
+            Activity::ServoCf if self.stream_force_limited => {
+                self.haptics.flags | flags::FORCE_LIMIT
+            }
+            Activity::ServoCf => self.haptics.flags,
+            _ => 0,
+        }
+    }
+
+    /// A force limit that starts acting (after 0.1 s without it) is said once, as an event,
+    /// and counted for the summary every tick it acts.
+    fn announce_limits(&mut self, t: f64, acted: u32) {
+        const ANNOUNCED: [u32; 3] = [flags::FORCE_LIMIT, flags::THERMAL, flags::EFFECT_SKIPPED];
+        let mut started = 0;
+        for (k, bit) in ANNOUNCED.into_iter().enumerate() {
+            if acted & bit != 0 {
+                if t - self.limit_last[k] > 0.1 {
+                    started |= bit;
+                }
+                self.limit_last[k] = t;
+            }
+        }
+        if acted & flags::FORCE_LIMIT != 0 {
+            self.stats.force_limited_ticks += 1;
+        }
+        if acted & flags::THERMAL != 0 {
+            self.stats.thermal_ticks += 1;
+        }
+        if started != 0 && self.event.is_none() {
+            self.event = Some(ServoEvent::Limit { flags: started });
+        }
+    }
+
     /// This tick's haptic columns: the tip, the force commanded there, the simulated hand's.
     fn haptic_record(&self) -> HapticRecord {
         HapticRecord {
@@ -803,7 +850,9 @@ impl Servo {
                 ServoCommand::ServoCf { seq, force, ttl_s } => {
                     if force.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
                         self.enter(Activity::ServoCf, q);
-                        self.stream_force = limit_force(&force.into(), self.max_force_n);
+                        let asked = Force3::from(force);
+                        self.stream_force = limit_force(&asked, self.max_force_n);
+                        self.stream_force_limited = asked.norm() > self.max_force_n;
                         self.cmd_seq = seq;
                         self.stream_deadline = t + ttl_s;
                     }
@@ -881,6 +930,7 @@ impl Servo {
         let to = self.owner_fallback();
         self.stream_tau = Joint3::zeros();
         self.stream_force = Force3::zeros();
+        self.stream_force_limited = false;
         self.enter(to, q);
         to.mode()
     }
@@ -1220,6 +1270,29 @@ mod tests {
                 r.tau_cmd
             );
         }
+    }
+
+    #[test]
+    fn a_force_held_to_its_limit_is_flagged_every_tick_and_announced_once() {
+        let (mut servo, rx, cmd) = linked_servo();
+        next(&mut servo, &rx);
+        let mut seen = Vec::new();
+        for seq in 1..200 {
+            cmd.send(ServoCommand::ServoCf {
+                seq,
+                force: [0.0, -50.0, 0.0],
+                ttl_s: 1.0,
+            })
+            .unwrap();
+            seen.push(next(&mut servo, &rx));
+        }
+        assert!(seen[1..].iter().all(|r| r.flags & flags::FORCE_LIMIT != 0));
+        let announced: Vec<_> = seen
+            .iter()
+            .filter(|r| matches!(r.live.event, Some(ServoEvent::Limit { .. })))
+            .collect();
+        assert_eq!(announced.len(), 1, "one event per episode");
+        assert!(servo.stats.force_limited_ticks >= 198);
     }
 
     #[test]

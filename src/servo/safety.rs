@@ -470,6 +470,7 @@ mod tests {
     fn beyond_a_wall_the_controllers_pull_back_in_is_kept_and_its_push_out_dropped() {
         let cfg = SafetyConfig {
             ramp_s: 0.0,
+            max_torque_rate_nm_s: [1e6; 3],
             ..Default::default()
         };
         let mut s = SafetyLayer::new(&cfg, 1e-3, [0.0; 3]);

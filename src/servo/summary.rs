@@ -24,6 +24,10 @@ pub struct RunStats {
     pub(crate) oracle: ErrorBins,
     oracle_seen: bool,
     pub(crate) clamped_ticks: u64,
+    /// Ticks the tip force was held to the peak or continuous force.
+    pub(crate) force_limited_ticks: u64,
+    /// Ticks a hot motor was held to its continuous torque.
+    pub(crate) thermal_ticks: u64,
 }
 
 impl RunStats {
@@ -44,6 +48,8 @@ impl RunStats {
             oracle,
             oracle_seen,
             clamped_ticks,
+            force_limited_ticks,
+            thermal_ticks,
         } = other;
         (self.ticks, self.first_t, self.last_t) = (*ticks, *first_t, *last_t);
         (self.tracked, self.track_sq, self.track_max) = (*tracked, *track_sq, *track_max);
@@ -53,6 +59,8 @@ impl RunStats {
         self.oracle.copy_from(oracle);
         self.oracle_seen = *oracle_seen;
         self.clamped_ticks = *clamped_ticks;
+        self.force_limited_ticks = *force_limited_ticks;
+        self.thermal_ticks = *thermal_ticks;
     }
 
     pub(crate) fn record_time(&mut self, t: f64) {
@@ -314,6 +322,12 @@ pub struct RunSummary {
     pub missed_packets: u64,
     /// Ticks on which the safety layer limited the torque.
     pub clamped_ticks: u64,
+    /// Ticks on which the tip force was held to `haptics.max_force_n` or the continuous force.
+    #[serde(default)]
+    pub force_limited_ticks: u64,
+    /// Ticks on which a hot motor was held to its continuous torque.
+    #[serde(default)]
+    pub thermal_ticks: u64,
     /// The log written, if any.
     pub log_path: Option<String>,
     /// Rows that reached the log file.
@@ -428,6 +442,8 @@ impl RunSummary {
             end: "running".to_string(),
             missed_packets,
             clamped_ticks: stats.clamped_ticks,
+            force_limited_ticks: stats.force_limited_ticks,
+            thermal_ticks: stats.thermal_ticks,
             log_path: None,
             log_rows: 0,
             log_complete: None,
@@ -515,6 +531,13 @@ impl RunSummary {
             "  packets missed {}  clamped ticks {}  telemetry dropped {}\n",
             self.missed_packets, self.clamped_ticks, self.telemetry_dropped
         );
+        if self.force_limited_ticks > 0 || self.thermal_ticks > 0 {
+            s += &format!(
+                "  force held      {} ticks at the force limit, {} ticks at a hot motor's \
+                 continuous torque\n",
+                self.force_limited_ticks, self.thermal_ticks
+            );
+        }
         if let Some(rt) = &self.realtime {
             s += &format!(
                 "  realtime        SCHED_FIFO {}  memory locked {}  cpu {}  signals blocked {}\n",

@@ -837,6 +837,20 @@ impl Station {
                     fallback.as_str()
                 ),
             ),
+            ServoEvent::Limit { flags: bits } => {
+                use crate::telemetry::record::flags;
+                let mut what = Vec::new();
+                if bits & flags::FORCE_LIMIT != 0 {
+                    what.push("the tip force is held to the force limit (haptics.max_force_n, or the continuous force after a sustained push)");
+                }
+                if bits & flags::THERMAL != 0 {
+                    what.push("a hot motor is held to its continuous torque (safety.continuous_torque_nm)");
+                }
+                if bits & flags::EFFECT_SKIPPED != 0 {
+                    what.push("an effect whose force is not finite here is left out");
+                }
+                ("limit", what.join("; "))
+            }
             ServoEvent::SafetyTrip(trip) => {
                 let message = format!("safety: {trip}; zero torque, amplifiers off, mode idle");
                 self.faults.push(FaultEntry {

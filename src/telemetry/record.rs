@@ -205,6 +205,12 @@ pub enum ServoEvent {
     },
     /// A safety limit tripped: zero torque, amplifiers off, mode `idle`.
     SafetyTrip(SafetyTrip),
+    /// A limit started holding the force or torque back (`flags` bits newly acting:
+    /// `FORCE_LIMIT`, `THERMAL`, `EFFECT_SKIPPED`); said once per episode, not every tick.
+    Limit {
+        /// The bits that started acting.
+        flags: u32,
+    },
 }
 
 /// Why the safety layer stops a run.
