@@ -368,13 +368,6 @@ fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
             }
         }
     }
-    let _lock = match omnid::arm::ArmLock::acquire(&arm) {
-        Ok(l) => l,
-        Err(e) => {
-            omnid::errln!("omnid probe: {e}");
-            return Ok(EXIT_BAD_INPUT);
-        }
-    };
     if args.device != "firewire" {
         omnid::errln!(
             "omnid probe: --device {}: only firewire can be probed (a USB bridge has no device \
@@ -394,6 +387,23 @@ fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
         seconds: args.seconds,
         outputs: args.outputs,
         counts: args.counts,
+        lock: args.arm.is_none().then(|| arm.clone()),
+    };
+    if let Err(e) = plan.check(&cfg) {
+        omnid::errln!("omnid probe: {e}");
+        return Ok(EXIT_BAD_INPUT);
+    }
+    // A named arm is locked now (it may be a daemon's); the default one once the Omni is found.
+    let _lock = match args
+        .arm
+        .as_ref()
+        .map(|_| omnid::arm::ArmLock::acquire(&arm))
+    {
+        Some(Err(e)) => {
+            omnid::errln!("omnid probe: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+        held => held,
     };
     let mut op = TerminalOperator { stop: &stop };
     match probe_firewire(&cfg, &plan, &mut op, &stop) {

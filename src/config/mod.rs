@@ -140,6 +140,22 @@ impl Config {
         self.safety.validate()?;
         self.identifier.validate()?;
         self.realtime.validate()?;
+        // The hub must stay below the servo: blame whichever of the two moved from its default.
+        let (hub, servo) = (self.serve.hub_fifo_priority, self.realtime.fifo_priority);
+        if hub > 0
+            && servo > 0
+            && hub >= servo
+            && hub == ServeConfig::default().hub_fifo_priority
+            && servo != RealtimeConfig::default().fifo_priority
+        {
+            return Err(crate::config_check::invalid(
+                "realtime.fifo_priority",
+                servo.to_string(),
+                format!(
+                    "above serve.hub_fifo_priority ({hub}), so the client hub never delays a tick"
+                ),
+            ));
+        }
         self.serve.validate(self.realtime.fifo_priority)?;
         self.usb.validate()?;
         self.firewire.validate()?;

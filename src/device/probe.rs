@@ -756,6 +756,9 @@ pub struct ProbePlan {
     pub outputs: bool,
     /// DAC counts of the sign pulses (1..=200).
     pub counts: u16,
+    /// The arm to lock once the Omni is found (`None`: the caller holds it already), so a
+    /// daemon or a run on it refuses to start, and this probe refuses while one of them has it.
+    pub lock: Option<String>,
 }
 
 /// The sections of the configuration a probe reads (a `&Config` gives them).
@@ -768,6 +771,12 @@ pub struct ProbeSetup<'a> {
 }
 
 impl ProbePlan {
+    /// What is wrong with the plan for this configuration, if anything (before any device or
+    /// lock is touched).
+    pub fn check<'a>(&self, cfg: impl Into<ProbeSetup<'a>>) -> Result<(), ProbeError> {
+        self.options(cfg).map(|_| ())
+    }
+
     /// The probe's options for this configuration, or what is wrong with the plan.
     pub(crate) fn options<'a>(
         &self,
@@ -827,6 +836,12 @@ pub fn probe_firewire<'a>(
     let cfg = cfg.into();
     let opts = plan.options(cfg)?;
     let omni = super::firewire::find_firewire(cfg.firewire, cfg.device.rate_hz)?;
+    let _lock = plan
+        .lock
+        .as_deref()
+        .map(crate::arm::ArmLock::acquire)
+        .transpose()
+        .map_err(ProbeError::BadInput)?;
     let path = plan.capture.display().to_string();
     let cap = |source| ProbeError::Capture {
         path: path.clone(),
@@ -1260,6 +1275,7 @@ mod tests {
             seconds,
             outputs: true,
             counts,
+            lock: None,
         };
         assert_eq!(plan(2.0, 40).options(&cfg).unwrap().capture_packets, 2000);
         for (p, says) in [

@@ -33,8 +33,9 @@ pub struct SimConfig {
     /// Joint angles at power-on, rad (default: stylus in the inkwell).
     #[serde(deserialize_with = "crate::config_check::exact")]
     pub start_pose: [f64; 3],
-    /// The stylus starts docked in the inkwell at `start_pose`, which holds it there as a real
-    /// Omni's does (until the motors or a hand lift it out).
+    /// The stylus starts docked in the inkwell (when `start_pose` is the inkwell's pose, the
+    /// default), which holds it there as a real Omni's does until the motors or a hand lift it
+    /// out.
     pub docked: bool,
 }
 
@@ -47,7 +48,7 @@ impl Default for SimConfig {
             payload_at_s: 0.0,
             substeps: 2,
             torque_noise_nm: 2e-4,
-            start_pose: [0.0, 0.27, -0.37],
+            start_pose: INKWELL_POSE,
             docked: true,
         }
     }
@@ -180,7 +181,10 @@ pub struct SimSetup<'a> {
     pub center: [f64; 3],
 }
 
-/// How close to the start pose (rad) counts as "stylus in the inkwell".
+/// Joint angles with the stylus in the inkwell, rad (the default power-on pose).
+const INKWELL_POSE: [f64; 3] = [0.0, 0.27, -0.37];
+
+/// How close to the inkwell's pose (rad) counts as "stylus in the inkwell".
 const INKWELL_TOLERANCE: f64 = 0.02;
 
 /// The inkwell's grip on a docked stylus, per joint: stiffness N·m/rad and damping
@@ -266,9 +270,8 @@ impl SimOmni {
         let tip = |q: [f64; 3]| tip_position_mm(cfg.geometry, &q.into()) * 1e-3;
         let hand = (cfg.hand.pattern != HandPattern::None)
             .then(|| Hand::new(cfg.hand, tip(cfg.sim.start_pose), tip(cfg.center)));
-        let hold = plant
-            .gravity(&start_pose)
-            .map(|g| g.abs() + INKWELL_MARGIN_NM);
+        let ink = Joint3::from(INKWELL_POSE);
+        let hold = plant.gravity(&ink).map(|g| g.abs() + INKWELL_MARGIN_NM);
         SimOmni {
             plant,
             payload_kg: cfg.sim.payload_kg,
@@ -291,10 +294,10 @@ impl SimOmni {
             hand,
             hand_force: Force3::zeros(),
             inkwell: Inkwell {
-                pose: start_pose,
+                pose: ink,
                 hold,
-                docked: cfg.sim.docked,
-                away: false,
+                docked: cfg.sim.docked && (start_pose - ink).amax() < INKWELL_TOLERANCE,
+                away: (start_pose - ink).amax() > 2.0 * INKWELL_TOLERANCE,
             },
         }
     }
