@@ -3,6 +3,7 @@
 //! the SONAME, C programs replaying the call orders of CHAI3D, the ROS driver, the JHU driver
 //! and VRPN, and pyOpenHaptics from PyPI (tests/hdapi_python.rs).
 
+mod common;
 pub mod hd;
 
 use hd::{run, Daemon, HD};
@@ -473,4 +474,38 @@ fn a_failing_test_does_not_leave_its_program_running() {
     assert!(failed.is_err());
     let status = child.wait().unwrap();
     assert_eq!(status.signal(), Some(libc::SIGKILL), "{status:?}");
+}
+
+/// Two arms of one daemon opened by the vendor's dual-device names (`[[arm]] aliases`), forces
+/// rendered on both in one scheduler callback: each arm turns the way its own force pushes.
+#[test]
+fn two_devices_by_their_vendor_names_in_one_scheduler_callback() {
+    let hd = HD::get();
+    let (left, right) = (
+        format!("hdl-{}", std::process::id()),
+        format!("hdr-{}", std::process::id()),
+    );
+    let config = format!(
+        "[[arm]]\nname = \"{left}\"\naliases = [\"PHANToM 1\"]\n\
+         [[arm]]\nname = \"{right}\"\naliases = [\"PHANToM 2\"]\n"
+    );
+    let d = common::Served::start(&["--controller", "off"], Some(&config), &[&left, &right]);
+    let runtime = d.dir.path().display().to_string();
+    let out = run(
+        hd.exe("two"),
+        &[],
+        &[("XDG_RUNTIME_DIR", &runtime), ("RUNTIME_DIRECTORY", "")],
+    );
+    assert!(out.contains("done 1500"), "{out}");
+    let x = |tag: &str| -> f64 {
+        let line = out.lines().find(|l| l.starts_with(tag)).unwrap();
+        line.split_whitespace().nth(2).unwrap().parse().unwrap()
+    };
+    // Both start docked at x = 0 (the base turned to the middle); +0.5 N along x turns the left
+    // arm to +x, -0.5 N the right one to -x.
+    let (xl, xr) = (x("left "), x("right "));
+    assert!(
+        xl > 5.0 && xr < -5.0,
+        "left x {xl} mm, right x {xr} mm\n{out}"
+    );
 }

@@ -87,21 +87,9 @@ pub fn socket_for(name: Option<&str>) -> Result<PathBuf, String> {
             omnid::serve::find_socket()
         }
         Some(n) if n.contains('/') => Ok(PathBuf::from(n)),
-        Some(n) => {
-            let dirs = omnid::serve::default_socket_dirs();
-            dirs.iter()
-                .map(|d| d.join(format!("{n}.sock")))
-                .find(|p| p.exists())
-                .ok_or_else(|| {
-                    format!(
-                        "no socket {n}.sock in {} (is `omnid serve --device {n}` running?)",
-                        dirs.iter()
-                            .map(|d| d.display().to_string())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )
-                })
-        }
+        // An arm by name or alias (`[[arm]] aliases = ["PHANToM 1"]`): `<dir>/<name>.sock`,
+        // else the daemon socket whose hello names it.
+        Some(n) => omnid::serve::find_arm_socket(n),
     }
 }
 
