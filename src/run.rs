@@ -10,7 +10,9 @@ pub(crate) use crate::pipeline::{assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_
 pub use crate::pipeline::{make_identifier, Pipeline, RunError, RunOptions};
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, ServoReport};
-use crate::telemetry::{dump_path, spawn_writer, write_dump, LogError, LogFile, WriterReport};
+use crate::telemetry::{
+    dump_path, spawn_writer, write_dump, DumpTo, LogError, LogFile, WriterReport,
+};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -260,8 +262,8 @@ fn dump_beside(written: &WriterReport) -> (Option<PathBuf>, Option<String>) {
         return (None, Some(why));
     }
     let path = dump_path(&written.path);
-    match write_dump(&path, &written.schema, &written.tail) {
-        Ok(()) => (Some(path), None),
+    match write_dump(DumpTo::File(&path), &written.schema, &written.tail) {
+        Ok(path) => (Some(path), None),
         Err(e) => (None, Some(e.to_string())),
     }
 }

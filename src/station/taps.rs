@@ -3,8 +3,7 @@
 //! and any [`Tap`] a transport or recorder adds.
 
 use crate::telemetry::record::{LogSchema, TickRecord};
-use crate::telemetry::writer::dump_rows;
-use crate::telemetry::{spawn_writer, LogError, LogFile, WriterReport};
+use crate::telemetry::{spawn_writer, write_dump, DumpTo, LogError, LogFile, WriterReport};
 use crossbeam_channel::Sender;
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -49,12 +48,13 @@ impl FaultRing {
     /// name for every dump: two faults in one second keep both) and say where; `None` when it
     /// cannot be written (said too).
     pub(crate) fn dump(&self, dir: &Path, arm: &str, why: &str) -> Option<PathBuf> {
-        let written = crate::output::write_unique(
-            &dir.join("faults"),
-            &format!("omnid-{arm}-{}-{why}-fault", super::utc_stamp()),
-            "csv",
-            |w| dump_rows(w, &self.schema, &self.ticks),
-        );
+        let stem = format!("omnid-{arm}-{}-{why}-fault", super::utc_stamp());
+        let faults = dir.join("faults");
+        let to = DumpTo::Unique {
+            dir: &faults,
+            stem: &stem,
+        };
+        let written = write_dump(to, &self.schema, &self.ticks);
         match written {
             Ok(path) => {
                 crate::errln!(

@@ -4,12 +4,13 @@
 
 pub mod reader;
 pub mod record;
+pub mod recorder;
 pub mod writer;
 
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
 pub use writer::LogError;
-pub(crate) use writer::{dump_path, spawn_writer, write_dump, LogFile, WriterReport};
+pub(crate) use writer::{dump_path, spawn_writer, write_dump, DumpTo, LogFile, WriterReport};
 
 use serde::{Deserialize, Serialize};
 

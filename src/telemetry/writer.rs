@@ -67,84 +67,52 @@ pub(crate) fn dump_path(log: &Path) -> PathBuf {
     log.with_file_name(name)
 }
 
-/// The header and rows of a fault dump: the same columns as the log, the last ticks before
-/// the fault.
+/// The last ticks before a fault, in the log's format (the same recorder as the log, so a
+/// dump reads as a log does).
 pub(crate) fn dump_rows(
     out: &mut impl Write,
     schema: &LogSchema,
     rows: &VecDeque<TickRecord>,
 ) -> io::Result<()> {
-    writeln!(out, "{}", schema.columns().join(","))?;
+    let mut rec = super::recorder::recorder(*schema);
+    let mut bytes = Vec::with_capacity(512);
+    rec.header(&mut bytes);
     for r in rows {
-        write_row(out, r, schema)?;
+        rec.row(r, &mut bytes);
+        out.write_all(&bytes)?;
+        bytes.clear();
     }
-    Ok(())
+    rec.footer(&mut bytes);
+    out.write_all(&bytes)
 }
 
-/// Write the fault dump at `path` (whole, through [`crate::output`]).
+/// Where a fault dump goes.
+pub(crate) enum DumpTo<'a> {
+    /// This file (`run.csv` → `run-fault.csv`, beside a run's log).
+    File(&'a Path),
+    /// A new file `<dir>/<stem>.csv` (`-2`, `-3`, … when taken): a daemon's dumps.
+    Unique { dir: &'a Path, stem: &'a str },
+}
+
+/// Write a fault dump, whole, through [`crate::output`] (a temporary file renamed into
+/// place): `run`'s and `serve`'s dumps take this one path. The file written.
 pub(crate) fn write_dump(
-    path: &Path,
+    to: DumpTo<'_>,
     schema: &LogSchema,
     rows: &VecDeque<TickRecord>,
-) -> Result<(), OutputError> {
-    crate::output::write_with(path, |w| {
-        dump_rows(w, schema, rows).map_err(|source| OutputError::Write {
-            path: path.to_path_buf(),
-            source,
+) -> Result<PathBuf, OutputError> {
+    match to {
+        DumpTo::File(path) => crate::output::write_with(path, |w| {
+            dump_rows(w, schema, rows).map_err(|source| OutputError::Write {
+                path: path.to_path_buf(),
+                source,
+            })
         })
-    })
-}
-
-/// Append one CSV row to `line` (shortest round-trip float formatting, so a parsed log gives
-/// back the exact bits the loop had).
-fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema) {
-    let mut f = ryu::Buffer::new();
-    let mut i = itoa::Buffer::new();
-    line.extend_from_slice(f.format(r.t).as_bytes());
-    let groups = [
-        &r.q,
-        &r.tau,
-        &r.qf,
-        &r.qd,
-        &r.qdd,
-        &r.reference,
-        &r.tau_cmd,
-        &r.tau_hat,
-    ];
-    let model = if schema.model {
-        Some(&r.tau_model)
-    } else {
-        None
-    };
-    let hand = if schema.model {
-        Some(&r.haptic.hand)
-    } else {
-        None
-    };
-    let haptic = [&r.haptic.tip_mm, &r.haptic.force];
-    for group in groups.into_iter().chain(model).chain(haptic).chain(hand) {
-        for v in group {
-            line.push(b',');
-            line.extend_from_slice(f.format(*v).as_bytes());
+        .map(|()| path.to_path_buf()),
+        DumpTo::Unique { dir, stem } => {
+            crate::output::write_unique(dir, stem, "csv", |w| dump_rows(w, schema, rows))
         }
     }
-    for v in &r.enc {
-        line.push(b',');
-        line.extend_from_slice(i.format(*v).as_bytes());
-    }
-    line.push(b',');
-    line.push(if r.amps { b'1' } else { b'0' });
-    line.push(b',');
-    line.extend_from_slice(r.mode.as_str().as_bytes());
-    line.push(b',');
-    line.extend_from_slice(i.format(r.flags).as_bytes());
-    line.push(b'\n');
-}
-
-fn write_row(w: &mut impl Write, r: &TickRecord, schema: &LogSchema) -> io::Result<()> {
-    let mut line = Vec::with_capacity(512);
-    format_row(&mut line, r, schema);
-    w.write_all(&line)
 }
 
 /// Why a log could not be opened.
@@ -415,9 +383,20 @@ pub(crate) fn spawn_writer(
     schema: LogSchema,
     rx: Receiver<TickRecord>,
 ) -> io::Result<JoinHandle<WriterReport>> {
+    spawn_writer_with(log, schema, super::recorder::recorder(schema), rx)
+}
+
+/// [`spawn_writer`] in the format `rec` writes.
+pub(crate) fn spawn_writer_with(
+    log: LogFile,
+    schema: LogSchema,
+    mut rec: Box<dyn super::recorder::Recorder>,
+    rx: Receiver<TickRecord>,
+) -> io::Result<JoinHandle<WriterReport>> {
     let LogFile { path, mut file } = log;
-    let header = format!("{}\n", schema.columns().join(","));
-    file.write_all(header.as_bytes())?;
+    let mut header = Vec::new();
+    rec.header(&mut header);
+    file.write_all(&header)?;
     std::thread::Builder::new()
         .name("omnid-log".into())
         .spawn(move || {
@@ -442,10 +421,18 @@ pub(crate) fn spawn_writer(
                     return; // keep draining: the loop must never block on us
                 }
                 line.clear();
-                format_row(&mut line, &record, &schema);
+                rec.row(&record, &mut line);
                 sink.push(&line);
             });
             sink.flush();
+            // The footer is not a row: written after the last whole one.
+            line.clear();
+            rec.footer(&mut line);
+            if sink.error.is_none() && !line.is_empty() {
+                if let Err(e) = sink.file.write_all(&line) {
+                    sink.error = Some(e);
+                }
+            }
             WriterReport {
                 path,
                 schema,
