@@ -83,7 +83,7 @@ pub enum ConvertError {
     Output(#[from] OutputError),
     /// A probe capture (`--from capture`) could not be read.
     #[error(transparent)]
-    Capture(#[from] crate::device::capture::CaptureError),
+    Capture(#[from] crate::device::firewire::capture::CaptureError),
 }
 
 impl ConvertError {
@@ -279,8 +279,8 @@ fn capture<W: Write>(
     w: &mut csv::Writer<W>,
     out: &Path,
 ) -> Result<ConvertReport, ConvertError> {
-    use crate::device::capture::{CaptureError, CaptureReader};
     use crate::device::codec::{decode_command, decode_state, STATE_LAYOUT, STATE_LEN};
+    use crate::device::firewire::capture::{CaptureError, CaptureReader};
     use crate::device::EncoderUnwrap;
     let path = input.display().to_string();
     let file = std::fs::File::open(input).map_err(|source| CaptureError::Io {

@@ -2,12 +2,12 @@
 //! own timestamp), behind one trait for the simulator, log replay, the USB bridge and FireWire.
 
 pub(crate) mod calibration;
-pub(crate) mod capture;
 pub mod codec;
 pub(crate) mod discovery;
 pub(crate) mod firewire;
 pub mod inject;
-pub mod probe;
+/// The guided first contact with a FireWire Omni (`omnid probe`), part of the FireWire backend.
+pub use firewire::probe;
 pub mod registry;
 pub mod replay;
 pub mod sim;

@@ -10,10 +10,14 @@ use crate::config::Config;
 use crate::device::codec::{
     decode_command, decode_state, encode_command, encode_state, MotorCommand, StatePacket, DAC_ZERO,
 };
+use crate::device::stream::{Byte7, WireFormat};
 use crate::device::testkit::{assert_wire_discipline, run_servo};
+use crate::device::{Device, DeviceError, MissReason};
 use crate::servo::EndReason;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 /// Options with every motor's DAC sign measured (+1), so that commanded torque reaches the
 /// wire.

@@ -21,8 +21,8 @@
 //! `kind`, `encoder_sign`, `counts_per_rev` and `rate_hz` are read back by the converter;
 //! every other `#` line (and `# note` lines between packets) is commentary.
 
-use super::firewire::{PacketInfo, Tapped};
-use super::STATE_LEN;
+use super::{PacketInfo, Tapped};
+use crate::device::STATE_LEN;
 use std::fmt::Write as _;
 use std::io::{self, BufRead, Write};
 use thiserror::Error;

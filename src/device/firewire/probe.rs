@@ -18,10 +18,10 @@
 //! fake bus; the operator is a trait so tests can answer (or refuse) in scripts.
 
 use super::capture::CaptureWriter;
-use super::codec::{decode_state, MotorCommand, DAC_ZERO};
-use super::firewire::rate::RateMeasurement;
-use super::firewire::{FireWireBus, FireWireOmni};
-use super::{DeviceError, EncoderUnwrap};
+use super::rate::RateMeasurement;
+use super::{FireWireBus, FireWireOmni};
+use crate::device::codec::{decode_state, MotorCommand, DAC_ZERO};
+use crate::device::{DeviceError, EncoderUnwrap};
 use std::io::Write;
 use std::sync::atomic::{AtomicBool, Ordering};
 use thiserror::Error;
@@ -144,8 +144,7 @@ impl Window {
     fn add(&mut self, counter: u32, timestamp: u16, byte18: u8) {
         if let Some((c, t, b)) = self.last {
             self.pairs += 1;
-            self.cycles +=
-                u64::from(super::firewire::rate::cycles_between(t, timestamp).unwrap_or(0));
+            self.cycles += u64::from(super::rate::cycles_between(t, timestamp).unwrap_or(0));
             if counter.wrapping_sub(c) != 1 {
                 self.counter_other += 1;
             }
@@ -189,9 +188,9 @@ const JOINT_PLUS: [&str; 3] = [
 impl<B: FireWireBus, W: Write> Session<'_, B, W> {
     fn flush(&mut self) -> Result<(), ProbeError> {
         for t in self.omni.take_tapped() {
-            if let (Some(info), true) = (t.received, t.bytes.len() >= super::STATE_LEN) {
+            if let (Some(info), true) = (t.received, t.bytes.len() >= crate::device::STATE_LEN) {
                 self.window.add(
-                    super::stream::packet_counter(&t.bytes),
+                    crate::device::stream::packet_counter(&t.bytes),
                     info.timestamp,
                     t.bytes[18],
                 );
@@ -233,7 +232,7 @@ impl<B: FireWireBus, W: Write> Session<'_, B, W> {
                     return Ok(None);
                 };
                 self.counts = self.unwrap.update(p.encoder);
-                let sw = sample.packet()[super::codec::STATE_LAYOUT.status];
+                let sw = sample.packet()[crate::device::codec::STATE_LAYOUT.status];
                 self.switches = Some(sw);
                 Ok(Some(sw))
             }
@@ -283,7 +282,7 @@ pub fn probe<B: FireWireBus, W: Write>(
     let mut report = ProbeReport::default();
     let result = run(&mut s, &mut report);
     // Every way out: zero torque, amplifiers off, the stop sequence.
-    let closed = super::Device::close(&mut s.omni);
+    let closed = crate::device::Device::close(&mut s.omni);
     s.flush()?;
     let _ = s.capture.flush();
     report.captured = s.capture.packets();
@@ -321,9 +320,7 @@ fn run<B: FireWireBus, W: Write>(
     if s.omni.stale_stream_cleared() {
         s.say("the stream bit (0x1087 bit 3) was set by an earlier run; cleared before starting")?;
     }
-    let m = s
-        .omni
-        .measure_rate(super::firewire::rate::MEASURE_PACKETS)?;
+    let m = s.omni.measure_rate(super::rate::MEASURE_PACKETS)?;
     report.rate = Some(m);
     let verdict = m
         .mismatch(s.opts.rate_hz)
@@ -765,9 +762,9 @@ pub struct ProbePlan {
 #[derive(Debug, Clone, Copy)]
 pub struct ProbeSetup<'a> {
     /// Encoder resolution and servo rate.
-    pub device: &'a super::DeviceConfig,
+    pub device: &'a crate::device::DeviceConfig,
     /// The FireWire device's ids, timing and DAC signs.
-    pub firewire: &'a super::firewire::FirewireConfig,
+    pub firewire: &'a super::FirewireConfig,
 }
 
 impl ProbePlan {
@@ -835,7 +832,7 @@ pub fn probe_firewire<'a>(
 ) -> Result<ProbeReport, ProbeError> {
     let cfg = cfg.into();
     let opts = plan.options(cfg)?;
-    let omni = super::firewire::find_firewire(cfg.firewire, cfg.device.rate_hz)?;
+    let omni = super::find_firewire(cfg.firewire, cfg.device.rate_hz)?;
     let _lock = plan
         .lock
         .as_deref()
@@ -853,7 +850,7 @@ pub fn probe_firewire<'a>(
     let file = std::fs::File::create(&plan.capture).map_err(cap)?;
     let mut w = CaptureWriter::new(std::io::BufWriter::new(file)).map_err(cap)?;
     let node = omni.name().to_string();
-    let rom = super::firewire::cdev::read_rom(std::path::Path::new(&node))
+    let rom = super::cdev::read_rom(std::path::Path::new(&node))
         .map(|q| {
             q.iter()
                 .map(|v| format!("{v:08x}"))
@@ -938,7 +935,7 @@ fn read_line_unless(stop: &AtomicBool) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::device::capture::CaptureReader;
+    use crate::device::firewire::capture::CaptureReader;
     use crate::device::firewire::fake::{ArmState, FakeBus, Op, WireCommand};
     use crate::device::firewire::FireWireOptions;
     use std::collections::VecDeque;
