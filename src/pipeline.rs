@@ -220,11 +220,7 @@ pub(crate) fn assemble(
     // A replay limits itself in device time (its rows need not come at rate_hz).
     let max_ticks = (!replay && opts.duration_s.is_finite())
         .then(|| (opts.duration_s * cfg.device.rate_hz).round() as u64);
-    // A replay drives no motors: it neither inherits nor leaves heat (and stays reproducible).
-    let heat_path = (cfg.safety.persist_heat && !replay)
-        .then(crate::servo::thermal_store::state_dir)
-        .flatten()
-        .map(|d| crate::servo::thermal_store::heat_file(&d, opts.arm_name()));
+    let heat_path = heat_path(opts, cfg, crate::servo::thermal_store::state_dir());
     let mut servo = Servo::new(
         cfg,
         device,
@@ -255,6 +251,21 @@ pub(crate) fn assemble(
         realtime_taken: Arc::default(),
         lock,
     })
+}
+
+/// Where the motors' heat of the arm `opts` runs persists in `state_dir`: one file per arm
+/// name, so that two arms of one kind (two FireWire Omnis) never share one. A replay drives no
+/// motors: it neither inherits nor leaves heat (and stays reproducible).
+pub(crate) fn heat_path(
+    opts: &RunOptions,
+    cfg: &Config,
+    state_dir: Option<PathBuf>,
+) -> Option<PathBuf> {
+    let replay = matches!(opts.device, DeviceSpec::Replay(_));
+    (cfg.safety.persist_heat && !replay)
+        .then_some(state_dir)
+        .flatten()
+        .map(|d| crate::servo::thermal_store::heat_file(&d, opts.arm_name()))
 }
 
 /// The control laws and the identifier for `opts` (an injected NaN fault wraps the active

@@ -151,10 +151,29 @@ pub(crate) fn find_firewire(
     let nodes = cdev::scan_nodes(Path::new("/dev"), Path::new(cdev::SYSFS_FIREWIRE_DEVICES));
     let candidates = candidate_nodes(&nodes, cfg)?;
     let register_timeout = Duration::from_millis(u64::from(cfg.register_timeout_ms));
+    choose_by_serial(
+        cfg,
+        rate_hz,
+        &candidates,
+        |path| cdev::CdevBus::open(path, register_timeout),
+        || no_omni_hint(&nodes),
+    )
+}
+
+/// Identify the Omni on each candidate node (opened by `open`) and keep the one whose serial
+/// the configuration wants: with several Omnis on the bus, each arm finds its own unit by
+/// `firewire.serial`. `nothing_found` says what to do when no node answers as an Omni.
+pub(crate) fn choose_by_serial<B: FireWireBus>(
+    cfg: &FirewireConfig,
+    rate_hz: f64,
+    candidates: &[PathBuf],
+    mut open: impl FnMut(&Path) -> Result<B, BusError>,
+    nothing_found: impl FnOnce() -> String,
+) -> Result<FireWireOmni<B>, DeviceError> {
     let mut serials = Vec::new();
     let mut chosen = Vec::new();
-    for path in &candidates {
-        let bus = match cdev::CdevBus::open(path, register_timeout) {
+    for path in candidates {
+        let bus = match open(path) {
             Ok(b) => b,
             Err(BusError::Permission) => {
                 return Err(DeviceError::Permission {
@@ -186,7 +205,7 @@ pub(crate) fn find_firewire(
     chosen.pop().ok_or_else(|| DeviceError::NotFound {
         looked_for: cfg.looked_for(),
         hint: if serials.is_empty() {
-            no_omni_hint(&nodes)
+            nothing_found()
         } else {
             format!(
                 "Omnis found: {}; set firewire.serial to one of them.",
