@@ -34,24 +34,7 @@ impl ArmIdentity {
     }
 }
 
-/// Check an arm's name: it names files, sockets and a systemd instance, so it is kept to
-/// letters, digits, `-` and `_`, 1 to 32 characters.
-pub fn check_name(name: &str) -> Result<(), String> {
-    let ok = !name.is_empty()
-        && name.len() <= 32
-        && name
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
-    if ok {
-        Ok(())
-    } else {
-        Err(format!(
-            "arm name `{}`: allowed 1 to 32 letters, digits, `-` or `_` (it names the socket, \
-             the heat file and the fault dumps)",
-            crate::text::cut(name)
-        ))
-    }
-}
+pub use omnid_client::find::check_arm_name as check_name;
 
 #[cfg(test)]
 mod tests {

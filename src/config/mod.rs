@@ -132,7 +132,7 @@ impl Config {
         self.device.validate()?;
         self.sim.validate()?;
         self.model.validate(self.geometry)?;
-        self.geometry.validate()?;
+        crate::omni::kinematics::check_geometry(&self.geometry)?;
         self.kalman.validate(self.device.rate_hz)?;
         self.control.validate()?;
         self.reference

@@ -7,10 +7,8 @@ pub mod kinematics;
 pub use dynamics::{Dynamics, ModelParams};
 pub use kinematics::{jacobian, tip_position_mm, Geometry};
 
-/// Joint vector (three actuated joints, OpenHaptics convention, rad or N·m).
-pub type Joint3 = nalgebra::Vector3<f64>;
-/// 3×3 joint-space matrix.
-pub(crate) type Mat3 = nalgebra::Matrix3<f64>;
+pub use omnid_client::kinematics::Joint3;
+pub(crate) use omnid_client::kinematics::Mat3;
 
 /// Standard gravity, m/s².
 pub(crate) const GRAVITY: f64 = 9.80665;

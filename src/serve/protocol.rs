@@ -2,14 +2,8 @@
 //! SOCK_SEQPACKET message. Clients send requests tagged by `op`; the daemon sends messages
 //! tagged by `type`. serde does every encoding and decoding.
 
+pub use omnid_client::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
 use serde::{Deserialize, Serialize};
-
-/// The protocol version this daemon speaks; a client's hello must name it.
-pub const PROTOCOL_VERSION: u32 = 1;
-
-/// Largest message either side may send, bytes (a longer one is refused and its sender
-/// dropped).
-pub const MAX_MESSAGE: usize = 64 * 1024;
 
 /// A request from a client. `id` (any JSON value) is echoed in the reply.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
@@ -201,51 +195,6 @@ impl Request {
             | Request::Shutdown { id } => id.as_ref(),
         }
     }
-}
-
-/// One tick as clients see it (`type: "state"`): the station's view of it.
-pub use crate::station::ArmState as State;
-
-/// The daemon's greeting (`type: "hello"`), the first message on every admitted connection.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Hello {
-    /// The protocol version the daemon speaks ([`PROTOCOL_VERSION`]).
-    pub protocol: u32,
-    /// The daemon's name and version, e.g. `omnid 0.1.0`.
-    pub server: String,
-    /// The device backend: `sim`, `usb`, `firewire` or `replay`.
-    pub device: String,
-    /// The arm's name (a daemon serves each arm on its own socket, `<name>.sock`).
-    #[serde(default)]
-    pub arm: String,
-    /// Other names the arm answers to (`[[arm]] aliases`: OpenHaptics' "PHANToM 1", …).
-    #[serde(default)]
-    pub aliases: Vec<String>,
-    /// The servo rate, Hz (the fastest a state stream can run).
-    pub rate_hz: f64,
-    /// What this client may do: "read" or "control".
-    pub access: String,
-    /// This connection's number (named in lease messages).
-    pub client: u64,
-    /// How long a streamed command stays in effect without a newer one, ms of device time
-    /// (the default `ttl_ms`).
-    pub stream_ttl_ms: f64,
-    /// Controllers a `controller` request may choose.
-    pub controllers: Vec<String>,
-    /// Modes a `mode` request may choose.
-    pub modes: Vec<String>,
-    /// The device's model name.
-    #[serde(default)]
-    pub model: String,
-    /// The device's vendor.
-    #[serde(default)]
-    pub vendor: String,
-    /// The device's serial number (`null` when the backend does not know it).
-    #[serde(default)]
-    pub serial: Option<String>,
-    /// The device's firmware version (`null` when the backend does not know it).
-    #[serde(default)]
-    pub firmware: Option<String>,
 }
 
 #[cfg(test)]

@@ -815,7 +815,7 @@ impl Station {
             .iter()
             .any(|s| s.every > 0 && seq % s.every == 0)
         {
-            out(Output::State(&ArmState::of(&r, &self.s.geometry)));
+            out(Output::State(&view::arm_state(&r, &self.s.geometry)));
         }
     }
 

@@ -4,8 +4,8 @@
 
 use crate::kin;
 use crate::link::{Link, WaitEnd};
-use omnid::serve::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
-use omnid::serve::socket::Conn;
+use omnid_client::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
+use omnid_client::socket::Conn;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -80,16 +80,16 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 /// socket; another name → `<dir>/<name>.sock` in the default directories.
 pub fn socket_for(name: Option<&str>) -> Result<PathBuf, String> {
     match name.map(str::trim) {
-        None | Some("") => omnid::serve::find_socket(),
+        None | Some("") => omnid_client::find_socket(),
         Some(n)
             if n.eq_ignore_ascii_case("Default Device") || n.eq_ignore_ascii_case("default") =>
         {
-            omnid::serve::find_socket()
+            omnid_client::find_socket()
         }
         Some(n) if n.contains('/') => Ok(PathBuf::from(n)),
         // An arm by name or alias (`[[arm]] aliases = ["PHANToM 1"]`): `<dir>/<name>.sock`,
         // else the daemon socket whose hello names it.
-        Some(n) => omnid::serve::find_arm_socket(n),
+        Some(n) => omnid_client::find_arm_socket(n),
     }
 }
 

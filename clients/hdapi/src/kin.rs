@@ -3,8 +3,8 @@
 //! own forward kinematics and Jacobian with the nominal Omni geometry; the position itself
 //! is the daemon's `tip_mm`.
 
-use omnid::omni::kinematics::{jacobian, Geometry};
-use omnid::omni::Joint3;
+use omnid_client::kinematics::Joint3;
+use omnid_client::kinematics::{jacobian, Geometry};
 
 /// The Omni's nominal peak force, N (docs/HDAPI.md, Device description): larger forces are
 /// clamped here, silently (clients stop on any error).

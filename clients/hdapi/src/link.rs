@@ -4,8 +4,8 @@
 //! hand-over between threads on the way (docs/HDAPI.md, Scheduler). Every other thread waits
 //! on the inbox for what the reader files there.
 
-use omnid::serve::protocol::{State, MAX_MESSAGE};
-use omnid::serve::socket::Conn;
+use omnid_client::protocol::{State, MAX_MESSAGE};
+use omnid_client::socket::Conn;
 use serde_json::Value;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -4,7 +4,7 @@
 use crate::consts::*;
 use crate::device::{Device, Frame};
 use crate::kin;
-use omnid::serve::protocol::State;
+use omnid_client::protocol::State;
 
 /// Omni workspace boxes, mm (min xyz, then max xyz): docs/HDAPI.md, Device description.
 const MAX_WORKSPACE_MM: [f64; 6] = [-210.0, -110.0, -85.0, 210.0, 205.0, 130.0];

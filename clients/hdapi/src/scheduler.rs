@@ -67,7 +67,7 @@ fn raise_priority() {
         .unwrap_or(DEFAULT_FIFO_PRIORITY)
         .clamp(0, 99);
     if priority > 0 {
-        let _ = omnid::servo::realtime::set_fifo_priority(priority);
+        let _ = omnid_client::realtime::set_fifo_priority(priority);
     }
 }
 

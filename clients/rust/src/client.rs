@@ -2,8 +2,8 @@
 //! and the benchmark): connect and greet, send requests, wait for their replies, read the
 //! state stream.
 
-use super::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
-use super::socket::Conn;
+use crate::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
+use crate::socket::Conn;
 use serde_json::{json, Value};
 use std::path::Path;
 use thiserror::Error;

@@ -1,0 +1,137 @@
+//! Where a client finds the daemon: the directories a daemon's sockets go in, the one socket
+//! there, or the socket of an arm by its name or an alias (docs/PROTOCOL.md).
+
+use std::path::PathBuf;
+
+/// The directories a daemon's socket goes in by default, in order of preference:
+/// `$RUNTIME_DIRECTORY` (systemd's `RuntimeDirectory=`), `$XDG_RUNTIME_DIR/omnid`, and
+/// `/run/omnid` for root.
+pub fn default_socket_dirs() -> Vec<PathBuf> {
+    let mut dirs = Vec::new();
+    if let Some(d) = std::env::var_os("RUNTIME_DIRECTORY").filter(|d| !d.is_empty()) {
+        dirs.push(PathBuf::from(d));
+    }
+    if let Some(d) = std::env::var_os("XDG_RUNTIME_DIR").filter(|d| !d.is_empty()) {
+        dirs.push(PathBuf::from(d).join("omnid"));
+    }
+    dirs.push(PathBuf::from("/run/omnid"));
+    dirs
+}
+
+/// Check an arm's name: it names files, sockets and a systemd instance, so it is kept to
+/// letters, digits, `-` and `_`, 1 to 32 characters.
+pub fn check_arm_name(name: &str) -> Result<(), String> {
+    let ok = !name.is_empty()
+        && name.len() <= 32
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+    if ok {
+        Ok(())
+    } else {
+        Err(format!(
+            "arm name `{}`: allowed 1 to 32 letters, digits, `-` or `_` (it names the socket, \
+             the heat file and the fault dumps)",
+            quoted(name)
+        ))
+    }
+}
+
+/// A name as it is quoted back in a message: at most 64 characters.
+fn quoted(name: &str) -> String {
+    match name.char_indices().nth(64) {
+        None => name.to_string(),
+        Some((end, _)) => format!("{}… ({} bytes)", &name[..end], name.len()),
+    }
+}
+
+/// The socket a client connects to when given none: `$OMNID_SOCKET`, else the one socket in
+/// the default directories (an error lists them when there are several or none).
+pub fn find_socket() -> Result<PathBuf, String> {
+    if let Some(p) = std::env::var_os("OMNID_SOCKET").filter(|p| !p.is_empty()) {
+        return Ok(PathBuf::from(p));
+    }
+    let dirs = default_socket_dirs();
+    for dir in &dirs {
+        let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|e| e == "sock"))
+            .collect();
+        found.sort();
+        match found.len() {
+            0 => continue,
+            1 => return Ok(found.remove(0)),
+            _ => {
+                return Err(format!(
+                    "several omnid sockets in {}: {}; pass --socket PATH",
+                    dir.display(),
+                    found
+                        .iter()
+                        .map(|p| p.display().to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ))
+            }
+        }
+    }
+    Err(format!(
+        "no omnid socket found in {}: is `omnid serve` running? (or pass --socket PATH, or set \
+         OMNID_SOCKET)",
+        dirs.iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    ))
+}
+
+/// The socket of arm `name` (its name or an alias): `<dir>/<name>.sock` in the default
+/// directories, else the daemon whose hello names it (`arm` or `aliases`).
+pub fn find_arm_socket(name: &str) -> Result<PathBuf, String> {
+    let dirs = default_socket_dirs();
+    if check_arm_name(name).is_ok() {
+        if let Some(p) = dirs
+            .iter()
+            .map(|d| d.join(format!("{name}.sock")))
+            .find(|p| p.exists())
+        {
+            return Ok(p);
+        }
+    }
+    let mut served = Vec::new();
+    for dir in &dirs {
+        let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|e| e == "sock"))
+            .collect();
+        found.sort();
+        for p in found {
+            let Ok(c) = crate::client::Client::connect(&p, "omnid (looking for an arm)") else {
+                continue;
+            };
+            let hello = c.hello();
+            if hello.arm == name || hello.aliases.iter().any(|a| a == name) {
+                return Ok(p);
+            }
+            served.push(hello.arm.clone());
+        }
+    }
+    Err(format!(
+        "no arm named `{}` is served in {} (arms served: {}); is `omnid serve` running with it?",
+        quoted(name),
+        dirs.iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        if served.is_empty() {
+            "none".to_string()
+        } else {
+            served.join(", ")
+        }
+    ))
+}
