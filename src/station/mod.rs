@@ -14,8 +14,6 @@
 pub mod device_info;
 pub mod ops;
 mod taps;
-#[cfg(test)]
-mod tests;
 mod view;
 
 pub use ops::{ModeRequest, Op, OpError, Reply, SessionId, SessionInfo, Status};

@@ -496,3 +496,6 @@ fn serve_clients(setup: hub::HubSetup, fifo_priority: i32) -> hub::HubReport {
     }
     hub::Hub::new(setup).run()
 }
+
+#[cfg(test)]
+mod station_tests;

@@ -1,9 +1,13 @@
 //! A station driven directly, with no socket: a test-only transport and a test-only recorder,
 //! each a few dozen lines over the station's API, as a new transport or recorder would be.
+//! Here, above the station, because the daemon assembles the stations they drive.
 
-use super::*;
-use crate::daemon::{prepare, ServeOptions};
+use super::{prepare, ServeOptions};
 use crate::servo::{EndReason, Servo};
+use crate::station::*;
+use crate::telemetry::record::{Mode, TickRecord};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use std::sync::Mutex;
 
 /// A transport of its own: one session, ops called in-process, outputs collected.
