@@ -581,6 +581,40 @@ fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
 }
 
 #[test]
+fn a_clean_shutdown_leaves_the_runtime_directory_empty() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let socket = run.join("left.sock");
+    let mut child = omnid()
+        .args(["serve", "--device", "sim", "--socket"])
+        .arg(&socket)
+        .env("OMNID_STATE_DIR", dir.path().join("state"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let until = Instant::now() + Duration::from_secs(20);
+    while Client::connect(&socket, "probe").is_err() {
+        assert!(Instant::now() < until, "no socket");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = omnid()
+        .args(["ctl", "--socket"])
+        .arg(&socket)
+        .arg("shutdown")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(0));
+    let left: Vec<_> = std::fs::read_dir(&run)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert!(left.is_empty(), "left in the runtime directory: {left:?}");
+}
+
+#[test]
 fn a_full_daemon_refuses_with_its_reason() {
     let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
     let _only = d.client("only");

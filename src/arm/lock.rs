@@ -1,7 +1,9 @@
 //! One process per arm: a name in the abstract Unix socket namespace (`@omnid-arm-<name>`),
 //! bound and listening while the process drives the arm. Binding it is exclusive machine-wide
-//! and ends with the process, with no file to go stale; a second `run`, `serve` or `probe` of
-//! the same arm connects to it to learn the holder's process id (SO_PEERCRED) and names it.
+//! and ends with the process, with no file to go stale, be followed through a symlink or be
+//! truncated; a second `run`, `serve` or `probe` of the same arm connects to it to learn the
+//! holder's process id (SO_PEERCRED) and names it. [`hold`] holds any such name (the daemon's
+//! socket paths are held the same way).
 
 use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
@@ -22,13 +24,12 @@ fn seqpacket() -> io::Result<OwnedFd> {
     Ok(unsafe { OwnedFd::from_raw_fd(fd) })
 }
 
-/// The abstract address of arm `name` (a leading NUL byte, no file).
-fn address(name: &str) -> (libc::sockaddr_un, libc::socklen_t) {
+/// The abstract address `id` (a leading NUL byte, no file).
+fn address(id: &str) -> (libc::sockaddr_un, libc::socklen_t) {
     // SAFETY: sockaddr_un is plain data; all zeros is a valid value.
     let mut addr: libc::sockaddr_un = unsafe { std::mem::zeroed() };
     addr.sun_family = libc::AF_UNIX as libc::sa_family_t;
-    let id = format!("omnid-arm-{name}");
-    // Names are checked to at most 32 safe bytes (`arm::check_name`); cut anyway.
+    // Ids are short (an arm name is at most 32 safe bytes); cut anyway.
     let bytes = &id.as_bytes()[..id.len().min(addr.sun_path.len() - 1)];
     for (dst, src) in addr.sun_path[1..].iter_mut().zip(bytes) {
         *dst = *src as libc::c_char;
@@ -40,40 +41,46 @@ fn address(name: &str) -> (libc::sockaddr_un, libc::socklen_t) {
 impl ArmLock {
     /// Take arm `name`; refused, naming the holder, while another process has it.
     pub fn acquire(name: &str) -> Result<ArmLock, String> {
-        let fd = seqpacket().map_err(|e| format!("arm lock: {e}"))?;
-        let (addr, len) = address(name);
-        // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
-        let rc = unsafe {
-            libc::bind(
-                fd.as_raw_fd(),
-                (&addr as *const libc::sockaddr_un).cast(),
-                len,
-            )
-        };
-        if rc != 0 {
-            let e = io::Error::last_os_error();
-            return Err(if e.kind() == io::ErrorKind::AddrInUse {
-                format!(
-                    "the arm `{name}` is in use by {}; stop it first",
-                    holder(name).unwrap_or_else(|| "another omnid (run, serve or probe)".into())
-                )
-            } else {
-                format!("arm lock: {e}")
-            });
-        }
-        // Listening lets a contender connect and read our process id.
-        // SAFETY: plain call on an owned descriptor.
-        if unsafe { libc::listen(fd.as_raw_fd(), 8) } != 0 {
-            return Err(format!("arm lock: {}", io::Error::last_os_error()));
-        }
+        let fd = hold(&format!("omnid-arm-{name}"))
+            .map_err(|holder| format!("the arm `{name}` is in use by {holder}; stop it first"))?;
         Ok(ArmLock { _fd: fd })
     }
 }
 
-/// `omnid (pid N: COMMAND LINE)` for the process holding arm `name`.
-fn holder(name: &str) -> Option<String> {
+/// Hold the abstract name `id` for as long as the returned descriptor lives. Refused while
+/// another process holds it: the error is that process (`omnid (pid N: COMMAND)`), or why
+/// the name could not be taken.
+pub(crate) fn hold(id: &str) -> Result<OwnedFd, String> {
+    let fd = seqpacket().map_err(|e| format!("(lock {id}: {e})"))?;
+    let (addr, len) = address(id);
+    // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+    let rc = unsafe {
+        libc::bind(
+            fd.as_raw_fd(),
+            (&addr as *const libc::sockaddr_un).cast(),
+            len,
+        )
+    };
+    if rc != 0 {
+        let e = io::Error::last_os_error();
+        return Err(if e.kind() == io::ErrorKind::AddrInUse {
+            holder(id).unwrap_or_else(|| "another omnid (run, serve or probe)".into())
+        } else {
+            format!("(lock {id}: {e})")
+        });
+    }
+    // Listening lets a contender connect and read our process id.
+    // SAFETY: plain call on an owned descriptor.
+    if unsafe { libc::listen(fd.as_raw_fd(), 8) } != 0 {
+        return Err(format!("(lock {id}: {})", io::Error::last_os_error()));
+    }
+    Ok(fd)
+}
+
+/// `omnid (pid N: COMMAND LINE)` for the process holding `id`.
+fn holder(id: &str) -> Option<String> {
     let fd = seqpacket().ok()?;
-    let (addr, len) = address(name);
+    let (addr, len) = address(id);
     // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
     let rc = unsafe {
         libc::connect(

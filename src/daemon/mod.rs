@@ -11,7 +11,7 @@ use crate::config::Config;
 use crate::pipeline::{assemble, join_servo, Ending, ServoThreadResult};
 use crate::run::{check_device_options, DeviceSpec, RunError, RunOptions};
 use crate::serve::access::Policy;
-use crate::serve::socket::{self, Listener, PathLock};
+use crate::serve::socket::{self, Listener, SocketLock};
 use crate::serve::{default_socket, hub};
 use crate::servo::{ArmSignals, EndReason, ServoLink, Wake};
 use crate::station::{StationLimits, StationSetup};
@@ -81,8 +81,22 @@ fn group(field: &str, name: &str) -> Result<Option<(String, u32)>, RunError> {
     }
 }
 
-fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, PathLock), RunError> {
+fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, SocketLock), RunError> {
     let bad = |what: String| RunError::BadInput(format!("socket {}: {what}", path.display()));
+    // Refuse what can be refused before anything is created.
+    if path.as_os_str().len() >= 108 {
+        return Err(bad(format!(
+            "the path is {} bytes; a Unix socket's path must be under 108",
+            path.as_os_str().len()
+        )));
+    }
+    if let Ok(m) = std::fs::symlink_metadata(path) {
+        if !std::os::unix::fs::FileTypeExt::is_socket(&m.file_type()) {
+            return Err(bad(
+                "a file that is not a socket is in the way (not replaced)".into(),
+            ));
+        }
+    }
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         if !dir.is_dir() {
             std::fs::create_dir_all(dir).map_err(|e| {
@@ -93,18 +107,23 @@ fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, PathLock), 
             })?;
         }
     }
-    let mut lock_name = path.as_os_str().to_owned();
-    lock_name.push(".lock");
-    let lock = PathLock::acquire(Path::new(&lock_name)).map_err(&bad)?;
-    // The socket belongs to the group that may read (else the one that may command), so
-    // its members can connect through the 0660 mode.
-    let gid = policy
-        .read_group
-        .as_ref()
-        .or(policy.control_group.as_ref())
-        .map(|(_, g)| *g);
-    let listener = Listener::bind(path, gid).map_err(|e| bad(e.to_string()))?;
+    let lock = SocketLock::acquire(path).map_err(&bad)?;
+    let (mode, gid) = socket_permissions(policy);
+    let listener = Listener::bind(path, gid, mode).map_err(|e| bad(e.to_string()))?;
     Ok((listener, lock))
+}
+
+/// The socket file's mode and group. With one group configured, the socket belongs to it
+/// (0660), so its members can connect. With both a read and a control group (and they
+/// differ), no one group can hold the file, so it is open to connect (0666) and admission
+/// rests on the peer's credentials alone (`access::Policy::decide`): everyone else is
+/// answered with the reason and closed.
+pub(crate) fn socket_permissions(policy: &Policy) -> (libc::mode_t, Option<u32>) {
+    match (&policy.read_group, &policy.control_group) {
+        (Some((_, r)), Some((_, c))) if r != c => (0o666, None),
+        (Some((_, g)), _) | (None, Some((_, g))) => (0o660, Some(*g)),
+        (None, None) => (0o660, None),
+    }
 }
 
 /// An arm ready to start: its servo pipeline (started in idle, taking commands) and the hub
@@ -116,7 +135,7 @@ pub struct Prepared {
     pub hub: hub::HubSetup,
     name: String,
     socket: PathBuf,
-    _socket_lock: PathLock,
+    _socket_lock: SocketLock,
 }
 
 /// The arms to serve: the command line's devices, else the config's `[[arm]]`s, else the
@@ -499,3 +518,41 @@ fn serve_clients(setup: hub::HubSetup, fifo_priority: i32) -> hub::HubReport {
 
 #[cfg(test)]
 mod station_tests;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn with_both_groups_both_can_reach_the_socket() {
+        let both = Policy {
+            own_uid: 500,
+            read_group: Some(("lab".into(), 20)),
+            control_group: Some(("omnid".into(), 30)),
+        };
+        // No single group could own the file: it is open to connect, and the credentials
+        // decide (a control member who is not in the read group is admitted to command).
+        assert_eq!(socket_permissions(&both), (0o666, None));
+        let member = crate::serve::socket::Peer {
+            pid: 1,
+            uid: 7,
+            gid: 7,
+            groups: vec![30],
+        };
+        assert_eq!(
+            both.decide(&member),
+            Ok(crate::serve::access::Access::Control)
+        );
+        let read_only = Policy {
+            control_group: None,
+            ..both.clone()
+        };
+        assert_eq!(socket_permissions(&read_only), (0o660, Some(20)));
+        let control_only = Policy {
+            read_group: None,
+            ..both.clone()
+        };
+        assert_eq!(socket_permissions(&control_only), (0o660, Some(30)));
+        assert_eq!(socket_permissions(&Policy::default()), (0o660, None));
+    }
+}

@@ -2,7 +2,7 @@
 //! clients, is `omnid_client::socket`): the listener, and the locks that keep a second daemon
 //! off the same socket or device.
 
-use omnid_client::socket::{address, check, seqpacket, set_nonblocking};
+use omnid_client::socket::{address, check, is_live, seqpacket, set_nonblocking};
 pub use omnid_client::socket::{Conn, Peer};
 use std::ffi::CString;
 use std::io;
@@ -15,6 +15,8 @@ use std::path::{Path, PathBuf};
 pub(crate) struct Listener {
     fd: OwnedFd,
     path: PathBuf,
+    /// The socket file's device and inode: removed at the end only while it is still ours.
+    file_id: (u64, u64),
     /// A descriptor held in reserve (on /dev/null) for [`Listener::shed_one`].
     reserve: std::sync::Mutex<Option<OwnedFd>>,
 }
@@ -25,14 +27,26 @@ fn reserve_fd() -> Option<OwnedFd> {
 }
 
 impl Listener {
-    /// Bind `path` (mode 0660, group `group` when given) and listen, non-blocking. A file
-    /// left at `path` by a daemon that died is replaced; the caller holds the path's lock.
-    pub(crate) fn bind(path: &Path, group: Option<u32>) -> io::Result<Listener> {
+    /// Bind `path` (permission bits `mode`, group `group` when given) and listen,
+    /// non-blocking. A socket left at `path` by a daemon that died is replaced; a live one
+    /// (another program's: the caller holds the path's lock) and any other file are left alone
+    /// and refused.
+    pub(crate) fn bind(
+        path: &Path,
+        group: Option<u32>,
+        mode: libc::mode_t,
+    ) -> io::Result<Listener> {
         let fd = seqpacket()?;
         let bytes = path.as_os_str().as_bytes();
         let (addr, len) = address(bytes)?;
         match std::fs::symlink_metadata(path) {
             Ok(m) if std::os::unix::fs::FileTypeExt::is_socket(&m.file_type()) => {
+                if is_live(path) {
+                    return Err(io::Error::new(
+                        io::ErrorKind::AddrInUse,
+                        "another program is listening on this socket (not replaced)",
+                    ));
+                }
                 std::fs::remove_file(path)?
             }
             Ok(_) => {
@@ -51,15 +65,20 @@ impl Listener {
                 len,
             )
         })?;
+        let meta = std::fs::symlink_metadata(path)?;
         let listener = Listener {
             fd,
             path: path.to_path_buf(),
+            file_id: (
+                std::os::unix::fs::MetadataExt::dev(&meta),
+                std::os::unix::fs::MetadataExt::ino(&meta),
+            ),
             reserve: std::sync::Mutex::new(reserve_fd()),
         };
         // Before listen(): nobody can connect yet, so nobody ever sees wider permissions.
         let c = CString::new(bytes).map_err(|_| io::ErrorKind::InvalidInput)?;
         // SAFETY: `c` is a valid NUL-terminated path.
-        check(unsafe { libc::chmod(c.as_ptr(), 0o660) })?;
+        check(unsafe { libc::chmod(c.as_ptr(), mode) })?;
         if let Some(gid) = group {
             // SAFETY: as above; uid -1 leaves the owner.
             check(unsafe { libc::chown(c.as_ptr(), u32::MAX, gid) })?;
@@ -124,44 +143,50 @@ impl Listener {
 }
 
 impl Drop for Listener {
+    /// Remove the socket file, unless something else has taken its place meanwhile.
     fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.path);
-    }
-}
-
-/// An exclusive `flock` on `<socket>.lock`, holding the daemon's pid: released by the kernel
-/// when the process dies, so a crashed daemon never leaves a stale lock.
-#[derive(Debug)]
-pub(crate) struct PathLock {
-    _file: std::fs::File,
-}
-
-impl PathLock {
-    /// Lock `path`, or say which process holds it.
-    pub(crate) fn acquire(path: &Path) -> Result<PathLock, String> {
-        use std::io::{Read, Seek, Write};
-        let mut file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(path)
-            .map_err(|e| format!("cannot open the lock file {}: {e}", path.display()))?;
-        // SAFETY: flock on an owned descriptor; no pointers.
-        if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
-            let mut pid = String::new();
-            let _ = file.read_to_string(&mut pid);
-            return Err(format!(
-                "another omnid serve holds {} (pid {})",
-                path.display(),
-                pid.trim()
-            ));
+        if let Ok(m) = std::fs::symlink_metadata(&self.path) {
+            use std::os::unix::fs::MetadataExt;
+            if (m.dev(), m.ino()) == self.file_id {
+                let _ = std::fs::remove_file(&self.path);
+            }
         }
-        let _ = file.set_len(0);
-        let _ = file.rewind();
-        let _ = write!(file, "{}", std::process::id());
-        Ok(PathLock { _file: file })
     }
+}
+
+/// Held while this daemon serves a socket path, so that a second daemon asked for the same
+/// path is refused with the first one named. A name in the abstract namespace derived from
+/// the path's canonical form (`crate::arm::lock::hold`): no lock file to create beside the
+/// socket, follow through a symlink, truncate, or leave behind.
+#[derive(Debug)]
+pub(crate) struct SocketLock {
+    _held: OwnedFd,
+}
+
+impl SocketLock {
+    /// Lock the socket path `path` (its directory must exist), or say which process holds it.
+    pub(crate) fn acquire(path: &Path) -> Result<SocketLock, String> {
+        let dir = match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            Some(d) => d.canonicalize(),
+            None => std::env::current_dir(),
+        }
+        .map_err(|e| format!("cannot resolve its directory: {e}"))?;
+        let name = path.file_name().ok_or("the path names no file")?;
+        let id = format!(
+            "omnid-sock-{:016x}",
+            fnv1a(dir.join(name).as_os_str().as_bytes())
+        );
+        let held = crate::arm::lock::hold(&id)
+            .map_err(|holder| format!("already served by {holder}; stop it first"))?;
+        Ok(SocketLock { _held: held })
+    }
+}
+
+/// 64-bit FNV-1a: a short, stable name for a path of any length.
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ u64::from(*b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
 }
 
 /// A group's id by name.
@@ -184,7 +209,7 @@ mod tests {
     fn messages_keep_their_boundaries_and_oversize_is_seen() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("t.sock");
-        let listener = Listener::bind(&path, None).unwrap();
+        let listener = Listener::bind(&path, None, 0o660).unwrap();
         let mode = std::fs::metadata(&path).unwrap();
         assert_eq!(
             std::os::unix::fs::PermissionsExt::mode(&mode.permissions()) & 0o777,
@@ -216,12 +241,44 @@ mod tests {
     }
 
     #[test]
-    fn a_second_lock_is_refused_naming_the_holder() {
+    fn a_second_lock_is_refused_naming_the_holder_and_no_file_is_made() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("x.lock");
-        let _held = PathLock::acquire(&path).unwrap();
-        let e = PathLock::acquire(&path).unwrap_err();
+        // The file a lock beside `Cargo` would have been (and truncated).
+        std::fs::write(dir.path().join("Cargo.lock"), "keep").unwrap();
+        let path = dir.path().join("Cargo");
+        let held = SocketLock::acquire(&path).unwrap();
+        // The same place by another spelling is the same lock.
+        let other = dir.path().join(".").join("Cargo");
+        let e = SocketLock::acquire(&other).unwrap_err();
         assert!(e.contains(&std::process::id().to_string()), "{e}");
+        drop(held);
+        SocketLock::acquire(&other).unwrap();
+        let files: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(files.len(), 1, "only Cargo.lock: {files:?}");
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("Cargo.lock")).unwrap(),
+            "keep"
+        );
+    }
+
+    #[test]
+    fn a_live_socket_of_another_program_is_refused_and_a_stale_one_replaced() {
+        use std::os::unix::net::UnixListener;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("s.sock");
+        let theirs = UnixListener::bind(&path).unwrap();
+        let e = Listener::bind(&path, None, 0o660).unwrap_err();
+        assert!(e.to_string().contains("another program"), "{e}");
+        assert!(is_live(&path), "their socket still works");
+        drop(theirs);
+        // Now stale: replaced.
+        let ours = Listener::bind(&path, None, 0o660).unwrap();
+        assert!(Conn::connect(&path).is_ok());
+        // Something else takes the path while we serve: ours goes, theirs stays.
+        std::fs::remove_file(&path).unwrap();
+        let _theirs = UnixListener::bind(&path).unwrap();
+        drop(ours);
+        assert!(is_live(&path), "their socket was left in place");
     }
 
     #[test]
@@ -229,7 +286,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("f");
         std::fs::write(&path, "keep").unwrap();
-        assert!(Listener::bind(&path, None).is_err());
+        assert!(Listener::bind(&path, None, 0o660).is_err());
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "keep");
     }
 }

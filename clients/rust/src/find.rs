@@ -45,20 +45,27 @@ fn quoted(name: &str) -> String {
     }
 }
 
-/// The socket a client connects to when given none: `$OMNID_SOCKET`, else the one socket in
-/// the default directories (an error lists them when there are several or none).
+/// The socket a client connects to when given none: `$OMNID_SOCKET`, else the one live
+/// socket in the default directories (an error lists them when there are several or none).
 pub fn find_socket() -> Result<PathBuf, String> {
     if let Some(p) = std::env::var_os("OMNID_SOCKET").filter(|p| !p.is_empty()) {
         return Ok(PathBuf::from(p));
     }
-    let dirs = default_socket_dirs();
-    for dir in &dirs {
+    find_socket_in(&default_socket_dirs())
+}
+
+/// The one live socket in the first of `dirs` that has any; sockets left by a daemon that
+/// died are passed over.
+pub fn find_socket_in(dirs: &[PathBuf]) -> Result<PathBuf, String> {
+    for dir in dirs {
         let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
             .into_iter()
             .flatten()
             .flatten()
             .map(|e| e.path())
             .filter(|p| p.extension().is_some_and(|e| e == "sock"))
+            // A daemon that crashed left its socket: not one to choose between.
+            .filter(|p| crate::socket::is_live(p))
             .collect();
         found.sort();
         match found.len() {
@@ -95,7 +102,7 @@ pub fn find_arm_socket(name: &str) -> Result<PathBuf, String> {
         if let Some(p) = dirs
             .iter()
             .map(|d| d.join(format!("{name}.sock")))
-            .find(|p| p.exists())
+            .find(|p| crate::socket::is_live(p))
         {
             return Ok(p);
         }
@@ -134,4 +141,23 @@ pub fn find_arm_socket(name: &str) -> Result<PathBuf, String> {
             served.join(", ")
         }
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::net::UnixListener;
+
+    #[test]
+    fn a_socket_left_by_a_dead_daemon_is_passed_over() {
+        let dir = tempfile::tempdir().unwrap();
+        // A daemon that died: its socket file stays, nobody listens.
+        drop(UnixListener::bind(dir.path().join("a.sock")).unwrap());
+        assert!(dir.path().join("a.sock").exists());
+        let dirs = [dir.path().to_path_buf()];
+        let e = find_socket_in(&dirs).unwrap_err();
+        assert!(e.contains("no omnid socket"), "{e}");
+        let _live = UnixListener::bind(dir.path().join("b.sock")).unwrap();
+        assert_eq!(find_socket_in(&dirs).unwrap(), dir.path().join("b.sock"));
+    }
 }

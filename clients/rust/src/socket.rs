@@ -63,6 +63,34 @@ pub fn set_nonblocking(fd: RawFd) -> io::Result<()> {
 #[derive(Debug)]
 pub struct Conn(OwnedFd);
 
+/// Whether a program is listening on the Unix socket at `path`. A socket file whose program
+/// died refuses connections (stale); a live one accepts, or is busy, or is of another type
+/// (a stream socket). Tried without blocking, and the connection is closed at once.
+pub fn is_live(path: &Path) -> bool {
+    let Ok(fd) = seqpacket() else {
+        return false;
+    };
+    let Ok((addr, len)) = address(path.as_os_str().as_bytes()) else {
+        return false;
+    };
+    if set_nonblocking(fd.as_raw_fd()).is_err() {
+        return false;
+    }
+    // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
+    let rc = unsafe {
+        libc::connect(
+            fd.as_raw_fd(),
+            (&addr as *const libc::sockaddr_un).cast(),
+            len,
+        )
+    };
+    rc == 0
+        || !matches!(
+            io::Error::last_os_error().raw_os_error(),
+            Some(libc::ECONNREFUSED) | Some(libc::ENOENT) | Some(libc::ENOTDIR)
+        )
+}
+
 impl From<OwnedFd> for Conn {
     /// A connected SOCK_SEQPACKET socket (the daemon's listener hands its accepted ones over
     /// this way).
