@@ -615,6 +615,42 @@ fn a_clean_shutdown_leaves_the_runtime_directory_empty() {
 }
 
 #[test]
+fn client_named_files_replace_nothing_follow_nothing_and_quote_nothing() {
+    let d = Daemon::start(&[]);
+    let mut c = d.client("files");
+    // An existing file, a symlink to one, a FIFO: refused, untouched, nothing blocks.
+    let existing = d.path("notes.txt");
+    std::fs::write(&existing, "keep me").unwrap();
+    let link = d.path("link.csv");
+    std::os::unix::fs::symlink(&existing, &link).unwrap();
+    let fifo = d.path("pipe.csv");
+    let c_fifo = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+    // SAFETY: a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c_fifo.as_ptr(), 0o600) }, 0);
+    for path in [&existing, &link, &fifo] {
+        let e = refused(c.request(json!({"op": "record_start", "path": path})));
+        assert!(
+            e.contains("exists") || e.contains("symbolic") || e.contains("link"),
+            "{e}"
+        );
+    }
+    assert_eq!(std::fs::read_to_string(&existing).unwrap(), "keep me");
+    // A new file is fine.
+    c.request(json!({"op": "record_start", "path": d.path("new.csv")}))
+        .unwrap();
+    c.request(json!({"op": "record_stop"})).unwrap();
+    // A file's contents never come back in an error.
+    let secret = d.path("secret.json");
+    std::fs::write(&secret, r#"{"format": "the-secret-value", "version": 1}"#).unwrap();
+    let e = refused(c.request(json!({"op": "weights_load", "path": secret})));
+    assert!(!e.contains("the-secret-value"), "{e}");
+    std::fs::write(&secret, r#"["the-secret-value"]"#).unwrap();
+    let e = refused(c.request(json!({"op": "weights_load", "path": secret})));
+    assert!(!e.contains("the-secret-value"), "{e}");
+    assert!(e.contains("line 1"), "{e}");
+}
+
+#[test]
 fn a_full_daemon_refuses_with_its_reason() {
     let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
     let _only = d.client("only");

@@ -28,6 +28,7 @@ impl Loopback {
             control: true,
             privileged: true,
             read_only_reason: String::new(),
+            files: FileRights::Daemon,
         });
         Loopback {
             station,
@@ -141,6 +142,7 @@ fn what_an_owner_set_up_that_makes_force_ends_when_it_leaves() {
         control: false,
         privileged: false,
         read_only_reason: "read-only".into(),
+        files: FileRights::Daemon,
     });
     t.call(Op::Stream { rate_hz: 1000.0 }).unwrap();
     let effect = crate::haptics::Effect::Constant {
@@ -169,6 +171,7 @@ fn what_an_owner_set_up_that_makes_force_ends_when_it_leaves() {
         control: true,
         privileged: true,
         read_only_reason: String::new(),
+        files: FileRights::Daemon,
     });
     t.call(Op::Stream { rate_hz: 1000.0 }).unwrap();
     ticks(&mut servo, &mut t, 3);

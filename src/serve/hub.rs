@@ -11,8 +11,8 @@ use super::protocol::{Hello, Request, MAX_MESSAGE, PROTOCOL_VERSION};
 use super::socket::{Conn, Listener, Peer};
 use crate::control::ControllerKind;
 use crate::station::{
-    ops, Answer, ModeRequest, Op, OpError, Output, Reply, SessionId, SessionInfo, Station,
-    StationReport, StationSetup,
+    ops, Answer, FileRights, ModeRequest, Op, OpError, Output, Reply, SessionId, SessionInfo,
+    Station, StationReport, StationSetup,
 };
 use serde_json::{json, Value};
 use std::collections::{HashMap, VecDeque};
@@ -555,6 +555,12 @@ impl Hub {
                     control: c.access == Access::Control,
                     privileged: c.privileged,
                     read_only_reason: self.policy.read_only_reason(&c.peer),
+                    files: FileRights::for_peer(
+                        self.policy.own_uid,
+                        c.peer.uid,
+                        c.peer.gid,
+                        &c.peer.groups,
+                    ),
                 };
                 let session = self.station.open_session(info);
                 let c = &mut self.clients[i];

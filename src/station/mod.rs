@@ -12,10 +12,12 @@
 //! tick ([`ArmSignals`]), not a message a full mailbox could drop.
 
 pub mod device_info;
+pub mod files;
 pub mod ops;
 mod taps;
 mod view;
 
+pub use files::FileRights;
 pub use ops::{ModeRequest, Op, OpError, Reply, SessionId, SessionInfo, Status};
 pub use taps::Tap;
 pub use view::ArmState;
@@ -29,6 +31,7 @@ use crate::servo::{
     Activity, ArmSignals, ServoCommand, ServoEvent, ServoReply, Snapshot, Stamped, Wake,
 };
 use crate::telemetry::record::{LogSchema, Mode, TickRecord};
+use crate::telemetry::{LogError, LogFile};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
 use ops::{LeaseHolder, RecordingStatus};
 use std::path::PathBuf;
@@ -211,6 +214,7 @@ enum Waiting {
         ticket: u64,
         session: SessionId,
         path: PathBuf,
+        rights: FileRights,
     },
 }
 
@@ -488,15 +492,23 @@ impl Station {
             }
             Op::WeightsSave(path) => {
                 let ticket = self.ticket();
+                let rights = self.sessions[k].info.files.clone();
                 self.ask_snapshot(Waiting::Save {
                     ticket,
                     session: id,
                     path,
+                    rights,
                 });
                 Ok(Answer::Later(ticket))
             }
-            Op::WeightsLoad(path) => self.weights_load(id, path),
-            Op::RecordStart(path) => self.record_start(path).map(Answer::Now),
+            Op::WeightsLoad(path) => {
+                let rights = self.sessions[k].info.files.clone();
+                self.weights_load(id, path, &rights)
+            }
+            Op::RecordStart(path) => {
+                let rights = self.sessions[k].info.files.clone();
+                self.record_start(path, &rights).map(Answer::Now)
+            }
             Op::RecordStop => match self.record_stop() {
                 Some((path, rows, error)) => now(Reply::RecordStop { path, rows, error }),
                 None => Err(OpError::Failed("not recording".into())),
@@ -663,10 +675,18 @@ impl Station {
     }
 
     /// Read a weights file here, off the servo thread, and hand the servo a ready identifier.
-    fn weights_load(&mut self, session: SessionId, path: PathBuf) -> Result<Answer, OpError> {
+    fn weights_load(
+        &mut self,
+        session: SessionId,
+        path: PathBuf,
+        rights: &FileRights,
+    ) -> Result<Answer, OpError> {
         // No stop flag: the station never waits on a client's pipe (it is refused).
-        let mut loaded = Identifier::from_weights_file(&self.s.identifier_cfg, &path, None)
-            .map_err(|e| OpError::Failed(e.to_string()))?;
+        let mut loaded = files::with_rights(rights, || {
+            Identifier::from_weights_file(&self.s.identifier_cfg, &path, None)
+        })
+        .map_err(OpError::Failed)?
+        .map_err(|e| OpError::Failed(files::quoting_nothing(e)))?;
         loaded.set_adapt(self.adapt);
         self.send(ServoCommand::LoadIdentifier(Box::new(loaded)))?;
         let ticket = self.ticket();
@@ -690,17 +710,30 @@ impl Station {
         }
     }
 
-    fn record_start(&mut self, path: Option<PathBuf>) -> Result<Reply, OpError> {
+    fn record_start(
+        &mut self,
+        path: Option<PathBuf>,
+        rights: &FileRights,
+    ) -> Result<Reply, OpError> {
         if let Some(r) = &self.recording {
             return Err(OpError::Failed(format!(
                 "already recording to {}",
                 r.path().display()
             )));
         }
-        let dir = self.s.state_dir.join("recordings");
-        let stem = format!("omnid-{}-{}", self.s.arm.file_stem(), utc_stamp());
-        let r = Recording::start(path.as_deref(), &dir, &stem, self.s.schema)
-            .map_err(|e| OpError::Failed(e.to_string()))?;
+        let failed = |e: LogError| OpError::Failed(e.to_string());
+        let log = match path {
+            // A client's path: opened with its rights, and only ever a new file.
+            Some(p) => files::with_rights(rights, || LogFile::create_new(&p))
+                .map_err(OpError::Failed)?
+                .map_err(failed)?,
+            None => {
+                let dir = self.s.state_dir.join("recordings");
+                let stem = format!("omnid-{}-{}", self.s.arm.file_stem(), utc_stamp());
+                LogFile::create_unique(&dir, &stem).map_err(failed)?
+            }
+        };
+        let r = Recording::start(log, self.s.schema).map_err(failed)?;
         let path = r.path().to_path_buf();
         self.recording = Some(r);
         Ok(Reply::Path { path })
@@ -957,11 +990,18 @@ impl Station {
                     ticket,
                     session,
                     path,
+                    rights,
                 } => {
                     let result = match (&snap.weights, snap.weights_copied) {
-                        (Some(w), true) => crate::identifier::weights::save(w, &path)
-                            .map(|()| Reply::Path { path })
-                            .map_err(|e| OpError::Failed(e.to_string())),
+                        (Some(w), true) => files::with_rights(&rights, || {
+                            crate::identifier::weights::save(w, &path)
+                        })
+                        .map_err(OpError::Failed)
+                        .and_then(|saved| {
+                            saved
+                                .map(|()| Reply::Path { path })
+                                .map_err(|e| OpError::Failed(e.to_string()))
+                        }),
                         _ => Err(OpError::Failed(
                             "the servo has no identifier of the configured sizes".into(),
                         )),

@@ -195,6 +195,8 @@ pub struct SessionInfo {
     pub privileged: bool,
     /// Why it may not command (the read-only reason), when it may not.
     pub read_only_reason: String,
+    /// Whose rights open the files it names.
+    pub files: super::FileRights,
 }
 
 /// A successful answer.

@@ -107,18 +107,8 @@ pub(crate) struct Recording {
 }
 
 impl Recording {
-    /// Start writing to `path`, or to a new file `<dir>/<stem>.csv` (a default name never
-    /// replaces an earlier recording; a path another omnid writes is refused).
-    pub(crate) fn start(
-        path: Option<&Path>,
-        dir: &Path,
-        stem: &str,
-        schema: LogSchema,
-    ) -> Result<Recording, LogError> {
-        let log = match path {
-            Some(p) => LogFile::create(p)?,
-            None => LogFile::create_unique(dir, stem)?,
-        };
+    /// Start writing to `log` (opened by the caller, with the rights of whoever named it).
+    pub(crate) fn start(log: LogFile, schema: LogSchema) -> Result<Recording, LogError> {
         let (tx, rx) = crossbeam_channel::bounded(8192);
         let path = log.path.clone();
         let writer = spawn_writer(log, schema, rx).map_err(|source| LogError::Io {

@@ -134,6 +134,12 @@ pub enum LogError {
         /// What it is instead, in words.
         what: &'static str,
     },
+    /// A client's recording names a file that exists (or a symlink).
+    #[error("cannot record to {}: it exists; a recording goes to a new file (nothing is replaced)", path.display())]
+    Exists {
+        /// The path given.
+        path: PathBuf,
+    },
     /// Another omnid process holds the log's lock.
     #[error("log {} is in use: another omnid writes it", path.display())]
     InUse {
@@ -307,6 +313,36 @@ impl LogFile {
             });
         }
         Err(in_use())
+    }
+
+    /// A new regular file at `path`, for a log a client names: never an existing file (nothing
+    /// is replaced), never through a symlink, never a FIFO or device (nothing a stalled reader
+    /// could block).
+    pub(crate) fn create_new(path: &Path) -> Result<LogFile, LogError> {
+        use std::os::unix::fs::OpenOptionsExt;
+        let file = OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(path)
+            .map_err(|source| match source.kind() {
+                io::ErrorKind::AlreadyExists => LogError::Exists {
+                    path: path.to_path_buf(),
+                },
+                _ => LogError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                },
+            })?;
+        if !try_lock(&file) {
+            return Err(LogError::InUse {
+                path: path.to_path_buf(),
+            });
+        }
+        Ok(LogFile {
+            path: path.to_path_buf(),
+            file,
+        })
     }
 
     /// A new log under a default name in `dir`: `stem.csv`, else `stem-2.csv`, … (never
