@@ -651,6 +651,49 @@ fn client_named_files_replace_nothing_follow_nothing_and_quote_nothing() {
 }
 
 #[test]
+fn a_client_that_does_not_read_is_held_to_a_byte_budget() {
+    let d = Daemon::start(&[]);
+    // An id is a tag, not a payload: a long one is refused, not echoed.
+    let mut c = d.client("long id");
+    let long = "x".repeat(60_000);
+    c.send(&json!({"op": "status", "id": long})).unwrap();
+    let reply = match c.recv(5000).unwrap() {
+        omnid::Message::Other(v) => v,
+        other => panic!("{other:?}"),
+    };
+    let text = reply.to_string();
+    assert_eq!(reply["type"], "error", "{}", &text[..text.len().min(300)]);
+    assert!(reply.get("id").is_none() && !text.contains(&long), "echoed");
+    assert!(text.contains("`id`"), "{text}");
+    // How large a status reply is.
+    let one = c
+        .request(json!({"op": "status"}))
+        .unwrap()
+        .to_string()
+        .len();
+    assert!(one > 500, "status reply of {one} bytes");
+    // A client that asks and never reads is cut off once its unread replies pass the budget
+    // (1 MiB, plus what the socket itself holds), not after thousands of replies.
+    let flood = d.client("flood");
+    let mut sent = 0usize;
+    while sent < 20_000 {
+        match flood.send(&json!({"op": "status", "id": sent})) {
+            Ok(()) => sent += 1,
+            Err(_) => break,
+        }
+    }
+    assert!(sent < 20_000, "never disconnected");
+    let queued = sent * one;
+    eprintln!("flood cut off after {sent} replies of {one} bytes");
+    assert!(
+        queued < 4 << 20,
+        "disconnected after {sent} replies of {one} bytes ({queued} bytes)"
+    );
+    // Everyone else is served.
+    c.request(json!({"op": "status"})).unwrap();
+}
+
+#[test]
 fn a_full_daemon_refuses_with_its_reason() {
     let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
     let _only = d.client("only");

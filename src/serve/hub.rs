@@ -28,9 +28,15 @@ const POLL_MS: i32 = 50;
 /// Requests taken from one client per wake-up, so a flooding client cannot starve the rest.
 const READS_PER_WAKE: usize = 64;
 
-/// Replies and events a client may leave unread (states are bounded separately and dropped
-/// oldest first); past this the client is not reading and is disconnected.
-const MAX_UNREAD_REPLIES: usize = 4096;
+/// Bytes of replies and events a client may leave unread, counted as they are queued
+/// (states are shared between clients, bounded by `serve.client_queue` and dropped oldest
+/// first); past this the client is not reading and is disconnected. With every slot taken,
+/// the hub holds at most (max_clients + reserved) × this.
+const MAX_UNREAD_BYTES: usize = 1 << 20;
+
+/// The longest request `id` echoed back, bytes of JSON: a longer one is refused (an id is a
+/// tag to match a reply, not a payload).
+const MAX_ID_BYTES: usize = 256;
 
 /// Connections taken per wake-up: clients already connected are read before more are let in,
 /// so a flood of new connections cannot push out one that has just said hello.
@@ -88,6 +94,8 @@ struct Client {
     connected: Instant,
     queue: VecDeque<Out>,
     states: usize,
+    /// Bytes of the replies and events in `queue`.
+    unread_bytes: usize,
     lost_total: u64,
     lost_unreported: u64,
     /// Since when its socket has been full with messages waiting (it is not reading).
@@ -245,7 +253,7 @@ impl Hub {
                     .iter_mut()
                     .filter(|c| c.session.is_some() && !c.dead)
                 {
-                    c.queue.push_back(Out::Msg(bytes.clone()));
+                    push_msg(c, bytes.clone());
                 }
             }
             Output::Done {
@@ -254,7 +262,7 @@ impl Hub {
                 if let Some((session, id)) = later.remove(&ticket) {
                     if let Some(c) = clients.iter_mut().find(|c| c.session == Some(session)) {
                         let v = answer(op, id.as_ref(), result, socket);
-                        c.queue.push_back(Out::Msg(encode(&v)));
+                        push_msg(c, encode(&v));
                     }
                 }
             }
@@ -381,6 +389,7 @@ impl Hub {
                 privileged,
                 connected: Instant::now(),
                 queue: VecDeque::new(),
+                unread_bytes: 0,
                 states: 0,
                 lost_total: 0,
                 lost_unreported: 0,
@@ -500,16 +509,7 @@ impl Hub {
                 }
             };
             self.handle(i, request);
-            let c = &mut self.clients[i];
-            if c.queue.len() - c.states > MAX_UNREAD_REPLIES && !c.closing {
-                let message = format!(
-                    "more than {MAX_UNREAD_REPLIES} replies unread: disconnecting a client that \
-                     does not read"
-                );
-                crate::errln!("omnid serve: client {:?}: {message}", c.session);
-                self.fail(i, None, "message", message);
-                // Its socket is full: what cannot be sent now is not waited for.
-                self.clients[i].dead = true;
+            if self.clients[i].dead {
                 return;
             }
         }
@@ -519,6 +519,15 @@ impl Hub {
     fn handle(&mut self, i: usize, request: Request) {
         let op_name = request.op();
         let id = request.id().cloned();
+        if let Some(long) = id.as_ref().map(|v| v.to_string().len()) {
+            if long > MAX_ID_BYTES {
+                let message = format!(
+                    "`id` is {long} bytes of JSON; at most {MAX_ID_BYTES} are echoed (an id \
+                     tags a reply)"
+                );
+                return self.fail(i, None, op_name, message);
+            }
+        }
         let Some(session) = self.clients[i].session else {
             return self.greet(i, id.as_ref(), op_name, request);
         };
@@ -619,7 +628,7 @@ impl Hub {
     }
 
     fn queue_msg(&mut self, i: usize, v: Value) {
-        self.clients[i].queue.push_back(Out::Msg(encode(&v)));
+        push_msg(&mut self.clients[i], encode(&v));
     }
 
     fn fail(&mut self, i: usize, id: Option<&Value>, op: &str, message: String) {
@@ -667,11 +676,11 @@ impl Hub {
                     Out::Msg(b) => b,
                 };
                 match c.conn.send(bytes) {
-                    Ok(()) => {
-                        if let Some(Out::State(_)) = c.queue.pop_front() {
-                            c.states -= 1;
-                        }
-                    }
+                    Ok(()) => match c.queue.pop_front() {
+                        Some(Out::State(_)) => c.states -= 1,
+                        Some(Out::Msg(b)) => c.unread_bytes -= b.len(),
+                        None => {}
+                    },
                     Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
                         blocked = true;
                         break;
@@ -699,7 +708,7 @@ impl Hub {
     fn finish(mut self) -> HubReport {
         let bye = encode(&json!({ "type": "bye", "message": "omnid serve is stopping" }));
         for c in self.clients.iter_mut().filter(|c| c.session.is_some()) {
-            c.queue.push_back(Out::Msg(bye.clone()));
+            push_msg(c, bye.clone());
         }
         // A moment for the goodbye to leave, never blocking on a stuck client.
         let until = Instant::now() + Duration::from_millis(100);
@@ -716,6 +725,29 @@ impl Hub {
             _clients: clients,
         }
     }
+}
+
+/// Queue a reply or an event for a client, counted in bytes: a client that leaves more than
+/// [`MAX_UNREAD_BYTES`] unread is not reading, and is disconnected (its queue freed at once).
+fn push_msg(c: &mut Client, bytes: Vec<u8>) {
+    if c.dead {
+        return;
+    }
+    if c.unread_bytes + bytes.len() > MAX_UNREAD_BYTES {
+        crate::errln!(
+            "omnid serve: client {:?} (pid {}): more than {MAX_UNREAD_BYTES} bytes of replies \
+             and events unread: disconnecting a client that does not read",
+            c.session,
+            c.peer.pid
+        );
+        c.queue.clear();
+        c.states = 0;
+        c.unread_bytes = 0;
+        c.dead = true;
+        return;
+    }
+    c.unread_bytes += bytes.len();
+    c.queue.push_back(Out::Msg(bytes));
 }
 
 /// Queue a state for a client, dropping its oldest state (never a reply or an event) when
