@@ -59,12 +59,14 @@ macro_rules! outln {
     }};
 }
 
-/// `eprintln!` that never panics (see [`out!`]).
+/// `eprintln!` that never panics (see [`out!`]) and never blocks: the line goes to stderr
+/// through its own thread ([`diag`]).
 #[macro_export]
 macro_rules! errln {
     ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stderr(), $($arg)*);
+        let mut line = format!($($arg)*);
+        line.push('\n');
+        $crate::diag::line(line);
     }};
 }
 
@@ -76,6 +78,7 @@ pub mod control;
 pub mod convert;
 pub mod daemon;
 pub mod device;
+pub mod diag;
 pub mod estimate;
 pub mod experiment;
 pub(crate) mod fast_tanh;

@@ -995,6 +995,14 @@ fn load_config(
 }
 
 fn main() -> ExitCode {
+    let code = run_cli();
+    // Diagnostics leave through their own thread: a bounded wait for the last of them (a
+    // stderr nobody drains cannot hold the exit).
+    omnid::diag::flush(std::time::Duration::from_secs(2));
+    code
+}
+
+fn run_cli() -> ExitCode {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
         Err(e) if !e.use_stderr() => e.exit(), // --help, --version
