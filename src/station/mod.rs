@@ -120,7 +120,7 @@ pub enum Output<'a> {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Event {
     /// Its name: `mode`, `controller`, `lease`, `weights`, `stream-stale`, `stream-ended`,
-    /// `safety-trip`, `stopped`.
+    /// `safety-trip`, `stopped`, `recording-failed`.
     pub event: &'static str,
     /// The mode after it, where it concerns the mode.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -810,6 +810,19 @@ impl Station {
         self.ring.push(r);
         if let Some(rec) = &mut self.recording {
             rec.push(r);
+            if let Some(why) = rec.newly_failed() {
+                let message = format!(
+                    "the recording to {} stopped taking rows ({why}); what follows is lost \
+                     until record_stop, which says how many rows reached the file",
+                    rec.path().display()
+                );
+                crate::errln!("omnid serve: {}: {message}", self.s.arm.name);
+                self.announce(Event {
+                    seq: Some(r.live.seq),
+                    message: Some(message),
+                    ..Event::named("recording-failed")
+                });
+            }
         }
         for tap in &mut self.taps {
             tap.on_tick(&r);

@@ -3,7 +3,9 @@
 //! and any [`Tap`] a transport or recorder adds.
 
 use crate::telemetry::record::{LogSchema, TickRecord};
-use crate::telemetry::{spawn_writer, write_dump, DumpTo, LogError, LogFile, WriterReport};
+use crate::telemetry::{
+    spawn_writer_with, write_dump, DumpTo, LogError, LogFile, WriterFault, WriterReport,
+};
 use crossbeam_channel::Sender;
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
@@ -104,6 +106,9 @@ pub(crate) struct Recording {
     writer: JoinHandle<WriterReport>,
     path: PathBuf,
     dropped: u64,
+    /// The writer's first error, the moment it happens; `told` once it has been announced.
+    fault: WriterFault,
+    told: bool,
 }
 
 impl Recording {
@@ -111,15 +116,21 @@ impl Recording {
     pub(crate) fn start(log: LogFile, schema: LogSchema) -> Result<Recording, LogError> {
         let (tx, rx) = crossbeam_channel::bounded(8192);
         let path = log.path.clone();
-        let writer = spawn_writer(log, schema, rx).map_err(|source| LogError::Io {
-            path: path.clone(),
-            source,
-        })?;
+        let fault = WriterFault::default();
+        let recorder = crate::telemetry::recorder::recorder(schema);
+        let writer = spawn_writer_with(log, schema, recorder, rx, Some(fault.clone())).map_err(
+            |source| LogError::Io {
+                path: path.clone(),
+                source,
+            },
+        )?;
         Ok(Recording {
             tx: Some(tx),
             writer,
             path,
             dropped: 0,
+            fault,
+            told: false,
         })
     }
 
@@ -138,6 +149,17 @@ impl Recording {
                 self.dropped += 1;
             }
         }
+    }
+
+    /// The writer's error, once, when it has just failed (so that it is announced while the
+    /// recording runs, not only at `record_stop`).
+    pub(crate) fn newly_failed(&mut self) -> Option<String> {
+        if self.told {
+            return None;
+        }
+        let why = self.fault.get()?.clone();
+        self.told = true;
+        Some(why)
     }
 
     /// End it: (path, rows written, error).
@@ -161,5 +183,41 @@ impl Recording {
             ));
         }
         (self.path, rows, error)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::fd::{FromRawFd, OwnedFd};
+
+    /// A recording whose file stops taking rows says so while it runs, once, not only when
+    /// it is stopped.
+    #[test]
+    fn a_recording_that_fails_says_so_at_once() {
+        let mut fds = [0; 2];
+        // SAFETY: `fds` has room for the two descriptors.
+        assert_eq!(unsafe { libc::pipe(fds.as_mut_ptr()) }, 0);
+        // SAFETY: both are new and owned here alone.
+        let (reader, writer) =
+            unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
+        let log = LogFile::on("pipe".into(), std::fs::File::from(writer));
+        let mut rec = Recording::start(log, LogSchema { model: false }).unwrap();
+        // The reader goes away: every write from now on fails (EPIPE).
+        drop(reader);
+        let mut said = Vec::new();
+        for seq in 0..20_000u64 {
+            rec.push(TickRecord::at(seq, crate::telemetry::record::Mode::Hold));
+            said.extend(rec.newly_failed());
+            if !said.is_empty() && seq % 1000 == 0 {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_micros(50));
+        }
+        assert_eq!(said.len(), 1, "{said:?}");
+        assert!(said[0].to_lowercase().contains("pipe"), "{said:?}");
+        assert_eq!(rec.newly_failed(), None, "said once");
+        let (_, _, error) = rec.stop();
+        assert!(error.is_some());
     }
 }

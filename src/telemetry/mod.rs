@@ -10,7 +10,10 @@ pub mod writer;
 pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
 pub use writer::LogError;
-pub(crate) use writer::{dump_path, spawn_writer, write_dump, DumpTo, LogFile, WriterReport};
+pub(crate) use writer::{
+    dump_path, spawn_writer, spawn_writer_with, write_dump, DumpTo, LogFile, WriterFault,
+    WriterReport,
+};
 
 use serde::{Deserialize, Serialize};
 

@@ -123,6 +123,33 @@ pub struct TickRecord {
     pub(crate) live: Live,
 }
 
+#[cfg(test)]
+impl TickRecord {
+    /// A record at tick `seq` in `mode`, every value zero (tests of what carries records).
+    pub(crate) fn at(seq: u64, mode: Mode) -> TickRecord {
+        let mut r = TickRecord {
+            t: seq as f64 * 1e-3,
+            q: [0.0; 3],
+            tau: [0.0; 3],
+            qf: [0.0; 3],
+            qd: [0.0; 3],
+            qdd: [0.0; 3],
+            reference: [0.0; 3],
+            tau_cmd: [0.0; 3],
+            tau_hat: [0.0; 3],
+            tau_model: [0.0; 3],
+            enc: [0; 3],
+            amps: true,
+            mode,
+            flags: 0,
+            haptic: HapticRecord::default(),
+            live: Default::default(),
+        };
+        r.live.seq = seq;
+        r
+    }
+}
+
 /// The log's haptic columns.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub(crate) struct HapticRecord {

@@ -88,7 +88,7 @@ pub(crate) fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema)
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::telemetry::record::{HapticRecord, Mode};
+    use crate::telemetry::record::Mode;
     use crate::telemetry::writer::spawn_writer_with;
     use crate::telemetry::LogFile;
 
@@ -113,28 +113,16 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let log = LogFile::create(&dir.path().join("run.seq")).unwrap();
         let (tx, rx) = crossbeam_channel::bounded(16);
-        let writer =
-            spawn_writer_with(log, LogSchema { model: false }, Box::new(SeqLines), rx).unwrap();
+        let writer = spawn_writer_with(
+            log,
+            LogSchema { model: false },
+            Box::new(SeqLines),
+            rx,
+            None,
+        )
+        .unwrap();
         for seq in 0..3 {
-            let mut r = TickRecord {
-                t: seq as f64 * 1e-3,
-                q: [0.0; 3],
-                tau: [0.0; 3],
-                qf: [0.0; 3],
-                qd: [0.0; 3],
-                qdd: [0.0; 3],
-                reference: [0.0; 3],
-                tau_cmd: [0.0; 3],
-                tau_hat: [0.0; 3],
-                tau_model: [0.0; 3],
-                enc: [0; 3],
-                amps: true,
-                mode: if seq == 2 { Mode::Stop } else { Mode::Hold },
-                flags: 0,
-                haptic: HapticRecord::default(),
-                live: Default::default(),
-            };
-            r.live.seq = seq;
+            let r = TickRecord::at(seq, if seq == 2 { Mode::Stop } else { Mode::Hold });
             tx.send(r).unwrap();
         }
         drop(tx);

@@ -217,6 +217,12 @@ fn open_special(path: &Path) -> io::Result<File> {
 }
 
 impl LogFile {
+    /// A log on an already open file (tests of what a writer does when its file fails).
+    #[cfg(test)]
+    pub(crate) fn on(path: PathBuf, file: File) -> LogFile {
+        LogFile { path, file }
+    }
+
     /// Check `path` as a log before the work starts: a suitable kind, its directory made, a
     /// file can be created there, and no other omnid writes it.
     pub(crate) fn check(path: &Path) -> Result<(), LogError> {
@@ -419,8 +425,12 @@ pub(crate) fn spawn_writer(
     schema: LogSchema,
     rx: Receiver<TickRecord>,
 ) -> io::Result<JoinHandle<WriterReport>> {
-    spawn_writer_with(log, schema, super::recorder::recorder(schema), rx)
+    spawn_writer_with(log, schema, super::recorder::recorder(schema), rx, None)
 }
+
+/// Where a writer says, the moment it happens, that its file stopped taking rows (a disk that
+/// filled, a reader that went away): set once, read by whoever should tell someone.
+pub(crate) type WriterFault = std::sync::Arc<std::sync::OnceLock<String>>;
 
 /// [`spawn_writer`] in the format `rec` writes.
 pub(crate) fn spawn_writer_with(
@@ -428,6 +438,7 @@ pub(crate) fn spawn_writer_with(
     schema: LogSchema,
     mut rec: Box<dyn super::recorder::Recorder>,
     rx: Receiver<TickRecord>,
+    fault: Option<WriterFault>,
 ) -> io::Result<JoinHandle<WriterReport>> {
     let LogFile { path, mut file } = log;
     let mut header = Vec::new();
@@ -459,6 +470,9 @@ pub(crate) fn spawn_writer_with(
                 line.clear();
                 rec.row(&record, &mut line);
                 sink.push(&line);
+                if let (Some(e), Some(f)) = (&sink.error, &fault) {
+                    let _ = f.set(e.to_string());
+                }
             });
             sink.flush();
             // The footer is not a row: written after the last whole one.
