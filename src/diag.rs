@@ -2,7 +2,8 @@
 //! stderr nobody drains (a paused pager, a stalled log collector) blocks that thread only,
 //! never the hub, a writer or the stop path. Lines beyond what the queue holds are counted and
 //! the count is written when stderr moves again; at exit the CLI waits a bounded time for the
-//! lines still queued ([`flush`]).
+//! lines still queued ([`flush`]). Failed writes to stdout are kept here too, so that output
+//! lost to a full disk is not a success.
 
 use crossbeam_channel::{bounded, Sender};
 use std::io::Write as _;
@@ -17,6 +18,7 @@ static LINES: OnceLock<Option<Sender<String>>> = OnceLock::new();
 static QUEUED: AtomicU64 = AtomicU64::new(0);
 static WRITTEN: AtomicU64 = AtomicU64::new(0);
 static DROPPED: AtomicU64 = AtomicU64::new(0);
+static STDOUT_FAILED: OnceLock<String> = OnceLock::new();
 
 fn writer() -> Option<Sender<String>> {
     let (tx, rx) = bounded::<String>(QUEUE);
@@ -69,4 +71,17 @@ pub fn flush(timeout: Duration) -> bool {
         std::thread::sleep(Duration::from_millis(1));
     }
     true
+}
+
+/// Note a failed write to stdout (`out!`, `outln!`). A closed pipe is the reader's choice and
+/// not kept; anything else (a full disk) is, the first one only.
+pub fn stdout_error(e: std::io::Error) {
+    if e.kind() != std::io::ErrorKind::BrokenPipe {
+        let _ = STDOUT_FAILED.set(e.to_string());
+    }
+}
+
+/// Why output to stdout was lost, if it was (for the exit code).
+pub fn stdout_failed() -> Option<&'static str> {
+    STDOUT_FAILED.get().map(String::as_str)
 }

@@ -41,12 +41,16 @@
 
 /// Terminal output that never panics. `print!` and `eprintln!` panic when the stream is a
 /// closed pipe or a hung-up terminal, which would lose the exit code, the summary JSON and the
-/// fault path after a run; these lose only the text (README, Exit codes).
+/// fault path after a run; these lose only the text (README, Exit codes). A failure other than
+/// a closed pipe is kept ([`diag::stdout_failed`]): the CLI then exits non-zero.
 #[macro_export]
 macro_rules! out {
     ($($arg:tt)*) => {{
         use std::io::Write as _;
-        let _ = write!(std::io::stdout(), $($arg)*);
+        let mut out = std::io::stdout().lock();
+        if let Err(e) = write!(out, $($arg)*).and_then(|()| out.flush()) {
+            $crate::diag::stdout_error(e);
+        }
     }};
 }
 
@@ -55,7 +59,10 @@ macro_rules! out {
 macro_rules! outln {
     ($($arg:tt)*) => {{
         use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
+        let mut out = std::io::stdout().lock();
+        if let Err(e) = writeln!(out, $($arg)*).and_then(|()| out.flush()) {
+            $crate::diag::stdout_error(e);
+        }
     }};
 }
 

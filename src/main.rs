@@ -735,11 +735,10 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
     // Each arm's summary; a closed stdout loses nothing else.
     let several = outcome.arms.len() > 1;
     for arm in &outcome.arms {
-        use std::io::Write;
         if several {
-            let _ = writeln!(std::io::stdout(), "arm {}:", arm.name);
+            omnid::outln!("arm {}:", arm.name);
         }
-        let _ = write!(std::io::stdout(), "{}", arm.summary.human());
+        omnid::out!("{}", arm.summary.human());
     }
     // The worst ending decides the exit code (an operator's stop only when nothing failed).
     let codes: Vec<u8> = outcome
@@ -895,9 +894,14 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
                 return Ok(EXIT_INTERNAL);
             }
         };
-        // A closed or full stdout (`| head`) ends the watch quietly.
-        if writeln!(out, "{line}").and_then(|()| out.flush()).is_err() {
-            return Ok(0);
+        // A closed stdout (`| head`) ends the watch quietly; any other failure (a full disk
+        // under `> file`) is an error: the data did not arrive.
+        if let Err(e) = writeln!(out, "{line}").and_then(|()| out.flush()) {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                return Ok(0);
+            }
+            omnid::errln!("omnid watch: cannot write to stdout: {e}; stopped");
+            return Ok(EXIT_INTERNAL);
         }
     }
     Ok(0)
@@ -948,7 +952,6 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     };
     match client.request(request) {
         Ok(reply) => {
-            use std::io::Write;
             let text = match &args.command {
                 CtlCommand::Status => serde_json::to_string_pretty(&reply["status"])?,
                 _ => {
@@ -960,7 +963,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
                     r.to_string()
                 }
             };
-            let _ = writeln!(std::io::stdout(), "{text}");
+            omnid::outln!("{text}");
             Ok(0)
         }
         Err(e) => {
@@ -995,7 +998,15 @@ fn load_config(
 }
 
 fn main() -> ExitCode {
-    let code = run_cli();
+    let mut code = run_cli();
+    // Output that did not arrive (a full disk under `> file`) is not a success; a closed pipe
+    // (`| head`) is the reader's choice.
+    if let Some(e) = omnid::diag::stdout_failed() {
+        omnid::errln!("omnid: cannot write to stdout: {e}; output was lost");
+        if code == ExitCode::SUCCESS {
+            code = ExitCode::from(EXIT_INTERNAL);
+        }
+    }
     // Diagnostics leave through their own thread: a bounded wait for the last of them (a
     // stderr nobody drains cannot hold the exit).
     omnid::diag::flush(std::time::Duration::from_secs(2));

@@ -546,3 +546,35 @@ fn identify_refuses_a_joint_without_torque() {
     assert!(err.contains("joint 2") && err.contains(s(&flat)), "{err}");
     assert!(!err.contains("NaN") && !weights.exists(), "{err}");
 }
+
+/// Output lost to a full disk (`> file` on a full file system) is not a success; a closed pipe
+/// (`| head`) is the reader's choice and stays quiet.
+#[test]
+fn stdout_on_a_full_disk_fails_the_command_and_says_so() {
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let out = omnid()
+        .args(["config", "--print-default"])
+        .stdout(Stdio::from(full))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("cannot write to stdout"),
+        "{}",
+        stderr(&out)
+    );
+    // A closed pipe: quiet, and the command's own exit code.
+    let mut child = omnid()
+        .args(["config", "--print-default"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
+    assert!(!stderr(&out).contains("cannot write"), "{}", stderr(&out));
+}
