@@ -11,7 +11,8 @@ pub use crate::pipeline::{make_identifier, Pipeline, RunError, RunOptions};
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, ServoReport};
 use crate::telemetry::{
-    dump_path, spawn_writer, write_dump, DumpTo, LogError, LogFile, WriterReport,
+    dump_path, recorder::recorder, spawn_writer_with, write_dump, DumpTo, LogError, LogFile, Watch,
+    WriterReport,
 };
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -180,10 +181,16 @@ pub fn execute(
     let faults = check_options(opts, cfg)?;
     check_outputs(opts)?;
     let (tx, rx) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
-    let pipeline = assemble(opts, cfg, &faults, tx, stop)?;
+    let pipeline = assemble(opts, cfg, &faults, tx, stop.clone())?;
     let log = open_log(opts)?;
     let path = log.path.clone();
-    let writer = spawn_writer(log, pipeline.schema, rx)
+    // The operator's stop reaches the writer too: a log whose reader stopped reading cannot
+    // hold the run past it.
+    let watch = Watch {
+        fault: None,
+        stop: Some(stop),
+    };
+    let writer = spawn_writer_with(log, pipeline.schema, recorder(pipeline.schema), rx, watch)
         .map_err(|source| RunError::Log(LogError::Io { path, source }))?;
     let (handle, ending) = pipeline.spawn()?;
     let (report, realtime) = join_servo(handle)?;

@@ -345,3 +345,28 @@ fn a_log_fifo_that_nobody_reads_is_refused_at_once() {
     assert_eq!(status.code(), Some(2), "{err}");
     assert!(err.contains("no process reads"), "{err}");
 }
+
+/// A log on a FIFO whose reader stops reading: the run still ends on the signal, paced or
+/// `--fast`, and says that its log is incomplete.
+#[test]
+fn a_log_whose_reader_stopped_reading() {
+    for (signal, fast) in [(libc::SIGINT, false), (libc::SIGTERM, true)] {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = mkfifo(dir.path(), "log.fifo");
+        // A reader that opens the FIFO and never reads.
+        let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        let reader = unsafe { libc::open(c.as_ptr(), libc::O_RDONLY | libc::O_NONBLOCK) };
+        assert!(reader >= 0);
+        let mut args = vec!["run", "--duration", "600", "--log", fifo.to_str().unwrap()];
+        if fast {
+            args.push("--fast");
+        }
+        let child = spawn(&args, dir.path());
+        let (code, stderr) = stop_with(child, signal, SIGNAL_AFTER, dir.path());
+        // SAFETY: our own descriptor.
+        unsafe { libc::close(reader) };
+        assert_eq!(code, 130, "{stderr}");
+        assert!(stderr.contains("stopped reading"), "{stderr}");
+    }
+}

@@ -4,7 +4,7 @@
 
 use crate::telemetry::record::{LogSchema, TickRecord};
 use crate::telemetry::{
-    spawn_writer_with, write_dump, DumpTo, LogError, LogFile, WriterFault, WriterReport,
+    spawn_writer_with, write_dump, DumpTo, LogError, LogFile, Watch, WriterFault, WriterReport,
 };
 use crossbeam_channel::Sender;
 use std::collections::VecDeque;
@@ -118,12 +118,20 @@ impl Recording {
         let path = log.path.clone();
         let fault = WriterFault::default();
         let recorder = crate::telemetry::recorder::recorder(schema);
-        let writer = spawn_writer_with(log, schema, recorder, rx, Some(fault.clone())).map_err(
-            |source| LogError::Io {
-                path: path.clone(),
-                source,
+        let writer = spawn_writer_with(
+            log,
+            schema,
+            recorder,
+            rx,
+            Watch {
+                fault: Some(fault.clone()),
+                stop: None,
             },
-        )?;
+        )
+        .map_err(|source| LogError::Io {
+            path: path.clone(),
+            source,
+        })?;
         Ok(Recording {
             tx: Some(tx),
             writer,

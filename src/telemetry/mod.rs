@@ -11,8 +11,7 @@ pub use reader::{LogReader, LogRow, ReadError, SkipReport};
 pub use record::{LogSchema, Mode, TickRecord};
 pub use writer::LogError;
 pub(crate) use writer::{
-    dump_path, spawn_writer, spawn_writer_with, write_dump, DumpTo, LogFile, WriterFault,
-    WriterReport,
+    dump_path, spawn_writer_with, write_dump, DumpTo, LogFile, Watch, WriterFault, WriterReport,
 };
 
 use serde::{Deserialize, Serialize};

@@ -118,7 +118,7 @@ mod tests {
             LogSchema { model: false },
             Box::new(SeqLines),
             rx,
-            None,
+            Default::default(),
         )
         .unwrap();
         for seq in 0..3 {

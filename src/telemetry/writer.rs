@@ -15,7 +15,10 @@ use std::io::{self, Write};
 use std::os::fd::AsRawFd;
 use std::os::unix::fs::{FileTypeExt, MetadataExt};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 use thiserror::Error;
 
 /// Ticks kept for the fault dump.
@@ -193,7 +196,6 @@ pub(crate) struct LogFile {
 /// block until someone does (and no signal would end the wait), so it fails at once instead;
 /// once open, writes block as usual.
 fn open_special(path: &Path) -> io::Result<File> {
-    use std::os::fd::AsRawFd;
     use std::os::unix::fs::OpenOptionsExt;
     let file = OpenOptions::new()
         .write(true)
@@ -206,13 +208,8 @@ fn open_special(path: &Path) -> io::Result<File> {
             ),
             _ => e,
         })?;
-    // SAFETY: fcntl on a descriptor we own; no pointers.
-    unsafe {
-        let flags = libc::fcntl(file.as_raw_fd(), libc::F_GETFL);
-        if flags >= 0 {
-            libc::fcntl(file.as_raw_fd(), libc::F_SETFL, flags & !libc::O_NONBLOCK);
-        }
-    }
+    // It stays non-blocking: the writer waits for it in `poll`, where the operator's stop is
+    // seen (a reader that stops reading cannot hold the run past a Ctrl-C).
     Ok(file)
 }
 
@@ -378,6 +375,65 @@ struct RowSink {
     whole: u64,
     rows: u64,
     error: Option<io::Error>,
+    /// The operator's stop, and since when a stopped run has waited on a sink that takes
+    /// nothing.
+    stop: Option<Arc<AtomicBool>>,
+    stalled: Option<Instant>,
+}
+
+/// How long a stopped run waits for a log's reader that takes nothing.
+const STOPPED_GRACE: Duration = Duration::from_secs(1);
+
+/// Wait (100 ms at most) for `file`, a FIFO or device opened non-blocking, to take bytes. An
+/// error once the operator has stopped the run and the file has taken nothing for
+/// [`STOPPED_GRACE`] (`stalled`: since when).
+fn wait_writable(
+    file: &File,
+    stop: Option<&AtomicBool>,
+    stalled: &mut Option<Instant>,
+) -> io::Result<()> {
+    use std::os::fd::AsRawFd;
+    let mut pfd = libc::pollfd {
+        fd: file.as_raw_fd(),
+        events: libc::POLLOUT,
+        revents: 0,
+    };
+    // SAFETY: one valid pollfd.
+    unsafe { libc::poll(&mut pfd, 1, 100) };
+    if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+        let since = *stalled.get_or_insert_with(Instant::now);
+        if since.elapsed() > STOPPED_GRACE {
+            return Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                "its reader stopped reading, and the run was stopped",
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// `write_all` that waits for a non-blocking FIFO or device as [`wait_writable`] does.
+fn write_all_waiting(
+    file: &mut File,
+    mut bytes: &[u8],
+    stop: Option<&AtomicBool>,
+) -> io::Result<()> {
+    let mut stalled = None;
+    while !bytes.is_empty() {
+        match file.write(bytes) {
+            Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
+            Ok(n) => {
+                bytes = &bytes[n..];
+                stalled = None;
+            }
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                wait_writable(file, stop, &mut stalled)?
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
 }
 
 impl RowSink {
@@ -403,8 +459,16 @@ impl RowSink {
                     }
                     self.written += n as u64;
                     done += n;
+                    self.stalled = None;
                 }
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    if let Err(e) =
+                        wait_writable(&self.file, self.stop.as_deref(), &mut self.stalled)
+                    {
+                        self.error = Some(e);
+                    }
+                }
                 Err(e) => self.error = Some(e),
             }
         }
@@ -419,31 +483,48 @@ impl RowSink {
 }
 
 /// Write the header now (so an unwritable log fails before torque is enabled) and start the
-/// thread that fills the log.
+/// thread that fills the log (CSV, unwatched: the tests' writer).
+#[cfg(test)]
 pub(crate) fn spawn_writer(
     log: LogFile,
     schema: LogSchema,
     rx: Receiver<TickRecord>,
 ) -> io::Result<JoinHandle<WriterReport>> {
-    spawn_writer_with(log, schema, super::recorder::recorder(schema), rx, None)
+    spawn_writer_with(
+        log,
+        schema,
+        super::recorder::recorder(schema),
+        rx,
+        Watch::default(),
+    )
+}
+
+/// What a writer is watched by: where it reports its first error as it happens, and the
+/// operator's stop (after which it waits only briefly for a sink that takes nothing).
+#[derive(Default)]
+pub(crate) struct Watch {
+    pub(crate) fault: Option<WriterFault>,
+    pub(crate) stop: Option<Arc<AtomicBool>>,
 }
 
 /// Where a writer says, the moment it happens, that its file stopped taking rows (a disk that
 /// filled, a reader that went away): set once, read by whoever should tell someone.
 pub(crate) type WriterFault = std::sync::Arc<std::sync::OnceLock<String>>;
 
-/// [`spawn_writer`] in the format `rec` writes.
+/// Write the header now (so an unwritable log fails before torque is enabled) and start the
+/// thread that fills the log in the format `rec` writes, watched by `watch`.
 pub(crate) fn spawn_writer_with(
     log: LogFile,
     schema: LogSchema,
     mut rec: Box<dyn super::recorder::Recorder>,
     rx: Receiver<TickRecord>,
-    fault: Option<WriterFault>,
+    watch: Watch,
 ) -> io::Result<JoinHandle<WriterReport>> {
     let LogFile { path, mut file } = log;
+    let Watch { fault, stop } = watch;
     let mut header = Vec::new();
     rec.header(&mut header);
-    file.write_all(&header)?;
+    write_all_waiting(&mut file, &header, stop.as_deref())?;
     std::thread::Builder::new()
         .name("omnid-log".into())
         .spawn(move || {
@@ -454,6 +535,8 @@ pub(crate) fn spawn_writer_with(
                 whole: header.len() as u64,
                 rows: 0,
                 error: None,
+                stop,
+                stalled: None,
             };
             let mut tail = VecDeque::with_capacity(DUMP_TICKS);
             let mut received = 0;
@@ -479,7 +562,7 @@ pub(crate) fn spawn_writer_with(
             line.clear();
             rec.footer(&mut line);
             if sink.error.is_none() && !line.is_empty() {
-                if let Err(e) = sink.file.write_all(&line) {
+                if let Err(e) = write_all_waiting(&mut sink.file, &line, sink.stop.as_deref()) {
                     sink.error = Some(e);
                 }
             }
@@ -576,6 +659,8 @@ mod tests {
             whole: 0,
             rows: 0,
             error: None,
+            stop: None,
+            stalled: None,
         };
         sink.push(b"1,2,3\n");
         sink.push(b"4,5,6\n");
