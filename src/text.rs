@@ -24,9 +24,31 @@ pub fn cut_lines(text: &str, max: usize) -> String {
         .join("\n")
 }
 
+/// `s` with what a terminal would act on instead of showing — control characters (escape
+/// sequences) and the marks that reorder text — each replaced by `?`: a value one client gave
+/// reaches other users' terminals (in events, in `omnid watch`).
+pub fn printable(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            let reorders = matches!(c, '\u{200e}' | '\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}');
+            if c.is_control() || reorders {
+                '?'
+            } else {
+                c
+            }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn what_a_terminal_would_act_on_is_shown_as_question_marks() {
+        assert_eq!(printable("lab \u{1b}[2J\u{202e}arm\tx"), "lab ?[2J?arm?x");
+        assert_eq!(printable("PHANToM 1 ü"), "PHANToM 1 ü");
+    }
 
     #[test]
     fn short_values_stay_long_ones_are_cut_on_a_character_boundary() {

@@ -317,6 +317,53 @@ fn a_stale_stream_holds_within_its_time_to_live() {
 }
 
 #[test]
+fn what_clients_are_told_is_exact_printable_and_meaningful() {
+    let d = Daemon::start(&[]);
+    let mut w = d.client("watcher");
+    let mut c = d.client("jp \u{1b}[2J\u{202e}");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    let s = c.next_state(5000).unwrap();
+    let q = [s.q[0], 0.6, 0.3];
+    for _ in 0..100 {
+        let s = c.next_state(5000).unwrap();
+        c.send(&json!({"op": "servo_jp", "seq": s.seq, "q": q, "ttl_ms": 35}))
+            .unwrap();
+    }
+    // The stale stream is told with its own time to live, not the default.
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        match c.recv(5000).unwrap() {
+            Message::Other(v) if v["event"] == "stream-stale" => {
+                let m = v["message"].as_str().unwrap();
+                assert!(m.contains("(35 ms)"), "{m}");
+                break;
+            }
+            _ => assert!(Instant::now() < until, "no stream-stale event"),
+        }
+    }
+    // Another client hears this one's name with nothing a terminal would act on.
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        match w.recv(5000).unwrap() {
+            Message::Other(v) if v["event"] == "lease" && v["message"].as_str().is_some() => {
+                let m = v["message"].as_str().unwrap();
+                assert!(m.contains("jp ?[2J?"), "{m:?}");
+                assert!(!m.contains('\u{1b}') && !m.contains('\u{202e}'), "{m:?}");
+                break;
+            }
+            _ => assert!(Instant::now() < until, "no lease event"),
+        }
+    }
+    // Inputs that parse but cannot mean anything are refused.
+    let e = refused(c.request(json!({"op": "weights_save", "path": "rel.json"})));
+    assert!(e.contains("relative"), "{e}");
+    let e = refused(c.request(json!({"op": "record_start", "path": "rec.csv"})));
+    assert!(e.contains("relative"), "{e}");
+    let e = refused(c.request(json!({"op": "stream", "rate_hz": 0.001})));
+    assert!(e.contains("≥ 1"), "{e}");
+}
+
+#[test]
 fn a_killed_commander_leaves_the_arm_holding() {
     let d = Daemon::start(&[]);
     let mut watcher = d.client("watcher");

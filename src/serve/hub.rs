@@ -558,7 +558,14 @@ impl Hub {
             Request::Hello { protocol, name, .. } if protocol == PROTOCOL_VERSION => {
                 let c = &self.clients[i];
                 let info = SessionInfo {
-                    name: name.unwrap_or_default().chars().take(64).collect(),
+                    // Shown to other clients (events, `omnid watch`): printable, cut.
+                    name: crate::text::printable(
+                        &name
+                            .unwrap_or_default()
+                            .chars()
+                            .take(64)
+                            .collect::<String>(),
+                    ),
                     pid: c.peer.pid,
                     uid: c.peer.uid,
                     control: c.access == Access::Control,

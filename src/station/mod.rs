@@ -237,6 +237,9 @@ pub struct Station {
     /// Weight loads sent to the servo, answered when the old identifier comes back.
     loads: std::collections::VecDeque<(u64, SessionId, PathBuf)>,
     adapt: bool,
+    /// The time to live of the last stream command sent, ms (named when the stream goes
+    /// stale).
+    stream_ttl_ms: f64,
     last: Option<TickRecord>,
     ring: FaultRing,
     recording: Option<Recording>,
@@ -288,6 +291,7 @@ impl Station {
             waiting: Vec::new(),
             loads: Default::default(),
             adapt,
+            stream_ttl_ms: s.limits.stream_ttl_ms,
             last: None,
             ring,
             recording: None,
@@ -491,6 +495,7 @@ impl Station {
                 now(Reply::Adapt { adapt: on })
             }
             Op::WeightsSave(path) => {
+                absolute(&path)?;
                 let ticket = self.ticket();
                 let rights = self.sessions[k].info.files.clone();
                 self.ask_snapshot(Waiting::Save {
@@ -502,10 +507,14 @@ impl Station {
                 Ok(Answer::Later(ticket))
             }
             Op::WeightsLoad(path) => {
+                absolute(&path)?;
                 let rights = self.sessions[k].info.files.clone();
                 self.weights_load(id, path, &rights)
             }
             Op::RecordStart(path) => {
+                if let Some(p) = &path {
+                    absolute(p)?;
+                }
                 let rights = self.sessions[k].info.files.clone();
                 self.record_start(path, &rights).map(Answer::Now)
             }
@@ -560,8 +569,11 @@ impl Station {
 
     /// Start (every `rate / rate_hz`-th tick) or stop (0) a session's state stream.
     fn subscribe(&mut self, k: usize, rate_hz: f64) -> Result<Reply, OpError> {
-        if !(rate_hz.is_finite() && rate_hz >= 0.0) {
-            return Err(OpError::Invalid(format!("rate_hz {rate_hz}: allowed ≥ 0")));
+        // A stream slower than one state a second would look like a dead one.
+        if !(rate_hz.is_finite() && (rate_hz == 0.0 || rate_hz >= 1.0)) {
+            return Err(OpError::Invalid(format!(
+                "rate_hz {rate_hz}: allowed 0 (stop) or ≥ 1"
+            )));
         }
         let every = if rate_hz == 0.0 {
             0
@@ -646,7 +658,7 @@ impl Station {
     }
 
     /// A stream command's values; its time to live in seconds.
-    fn stream_check(&self, values: &[f64; 3], ttl_ms: Option<f64>) -> Result<f64, OpError> {
+    fn stream_check(&mut self, values: &[f64; 3], ttl_ms: Option<f64>) -> Result<f64, OpError> {
         if let Some(j) = values.iter().position(|v| !v.is_finite()) {
             return Err(OpError::Invalid(format!(
                 "value {} is not a finite number",
@@ -659,6 +671,7 @@ impl Station {
                 "ttl_ms {ttl}: allowed > 0 and ≤ 10000"
             )));
         }
+        self.stream_ttl_ms = ttl;
         Ok(ttl * 1e-3)
     }
 
@@ -864,12 +877,12 @@ impl Station {
     }
 
     fn on_servo_event(&mut self, r: &TickRecord, ev: ServoEvent) {
-        let ttl = self.s.limits.stream_ttl_ms;
+        let ttl = self.stream_ttl_ms;
         let (name, message) = match ev {
             ServoEvent::StreamStale { fallback } => (
                 "stream-stale",
                 format!(
-                    "no servo_jp/servo_jf/servo_cf command within its time to live (default {ttl} ms): \
+                    "no servo_jp/servo_jf/servo_cf command within its time to live ({ttl} ms): \
                      now {}",
                     fallback.as_str()
                 ),
@@ -1049,6 +1062,19 @@ impl Station {
 }
 
 /// A session as a lease message names it.
+/// A path a client names must be absolute: the daemon's working directory is not the client's.
+fn absolute(path: &std::path::Path) -> Result<(), OpError> {
+    if path.is_absolute() {
+        Ok(())
+    } else {
+        Err(OpError::Invalid(format!(
+            "path `{}` is relative: give an absolute path (the daemon's working directory is not \
+             yours)",
+            crate::text::cut(&path.to_string_lossy())
+        )))
+    }
+}
+
 fn describe(id: SessionId, info: &SessionInfo) -> String {
     format!(
         "client {id} `{}` (pid {}, uid {})",
