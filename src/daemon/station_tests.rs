@@ -191,3 +191,23 @@ fn what_an_owner_set_up_that_makes_force_ends_when_it_leaves() {
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
 }
+
+#[test]
+fn an_identifier_that_stops_is_announced_once() {
+    let (mut servo, setup, _dir) = served_sim();
+    let mut t = Loopback::new(Station::new(setup), "loopback");
+    // Holding: the identifier learns (it does not in idle).
+    assert!(t.call(Op::Mode(ModeRequest::Hold)).is_ok());
+    ticks(&mut servo, &mut t, 20);
+    let mut stopped = servo.identifier().unwrap().clone();
+    stopped.trip_for_test();
+    servo.set_identifier(stopped);
+    ticks(&mut servo, &mut t, 50);
+    let told: Vec<&Event> = t
+        .events
+        .iter()
+        .filter(|e| e.event == "identifier-fault")
+        .collect();
+    assert_eq!(told.len(), 1, "{:?}", t.events);
+    assert!(told[0].message.as_deref().unwrap().contains("PD fallback"));
+}

@@ -362,6 +362,12 @@ impl Identifier {
         true
     }
 
+    /// Stop as a non-finite prediction would (the tests of what is told when it happens).
+    #[cfg(test)]
+    pub(crate) fn trip_for_test(&mut self) {
+        self.trip(Fault::NonFiniteOutput);
+    }
+
     /// Clear the fault: adapt again from the current (last good) weights. Only the tests
     /// need it; a run never resumes a stopped identifier.
     #[cfg(test)]

@@ -120,7 +120,7 @@ pub enum Output<'a> {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Event {
     /// Its name: `mode`, `controller`, `lease`, `weights`, `stream-stale`, `stream-ended`,
-    /// `safety-trip`, `stopped`, `recording-failed`.
+    /// `safety-trip`, `stopped`, `recording-failed`, `identifier-fault`.
     pub event: &'static str,
     /// The mode after it, where it concerns the mode.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -842,10 +842,23 @@ impl Station {
         }
         // Changes are against the state the servo started in (idle, the configured law), so
         // one applied at the very first tick is announced too.
-        let (mode_before, controller_before) = match self.last.replace(r) {
-            Some(b) => (b.mode, b.live.controller),
-            None => (Mode::Idle, Some(self.s.controller)),
+        let (mode_before, controller_before, flags_before) = match self.last.replace(r) {
+            Some(b) => (b.mode, b.live.controller, b.flags),
+            None => (Mode::Idle, Some(self.s.controller), 0),
         };
+        let ident_fault = crate::telemetry::record::flags::IDENT_FAULT;
+        if r.flags & ident_fault != 0 && flags_before & ident_fault == 0 {
+            let message = "the identifier stopped on a non-finite value: it no longer learns, \
+                           and NNIDC runs on its PD fallback (load weights or restart to resume)"
+                .to_string();
+            crate::errln!("omnid serve: {}: {message}", self.s.arm.name);
+            self.announce(Event {
+                seq: Some(r.live.seq),
+                t: Some(r.t),
+                message: Some(message),
+                ..Event::named("identifier-fault")
+            });
+        }
         if let Some(ev) = r.live.event {
             self.on_servo_event(&r, ev);
         }
