@@ -194,6 +194,15 @@ impl WeightsFile {
                     nw.params[i]
                 )));
             }
+            // Finite is not enough: a weight this large saturates every neuron it feeds (a
+            // trained network's are tens at most), and its predictions are torques no arm has.
+            if let Some(i) = nw.params.iter().position(|p| p.abs() > MAX_PARAMETER) {
+                return Err(invalid(format!(
+                    "{name}-net parameter {i} is {:e}: allowed magnitude ≤ {MAX_PARAMETER:e} \
+                     (a trained network's weights are tens at most)",
+                    nw.params[i]
+                )));
+            }
             // Mlp::new checks the scaling's lengths and values.
             Mlp::new(nw.inputs, nw.hidden, nw.outputs, nw.scaling.clone())
                 .map_err(|e| invalid(format!("{name}-net scaling: {e}")))?;
@@ -234,6 +243,10 @@ impl WeightsFile {
         serde_json::to_string_pretty(self).unwrap_or_default()
     }
 }
+
+/// The largest weight magnitude a weights file may hold (the shipped pre-tuned networks'
+/// largest is about 11).
+const MAX_PARAMETER: f64 = 1e4;
 
 /// Write the identifier's weights to `path`, whole (see [`crate::output`]: a failed write
 /// leaves the old file; only a regular file or a new path is written).
@@ -425,6 +438,13 @@ mod tests {
             .to_string();
         assert!(e.contains("\"other\""), "{e}");
         assert!(WeightsFile::from_json(&good.replacen("{", "{\"extra\": 1,", 1), "u").is_err());
+        // Finite but absurd.
+        let mut w = WeightsFile::from_json(&good, "g").unwrap();
+        w.nets[2].params[3] = 1e300;
+        let e = WeightsFile::from_json(&w.to_json(), "a")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("G-net parameter 3") && e.contains("magnitude"), "{e}");
         let mut w = WeightsFile::from_json(&good, "g").unwrap();
         w.nets[1].scaling.in_scale[4] = -1.0;
         let e = WeightsFile::from_json(&w.to_json(), "s")
