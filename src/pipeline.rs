@@ -300,12 +300,12 @@ fn laws(
     Ok((controllers, identifier, weights_label))
 }
 
-/// The motors' heat left by the last run on this device (cold, with a warning, if it cannot
-/// be read).
+/// The motors' heat left by the last run on this arm (at the thermal limit, with a warning, if
+/// the file cannot be believed).
 fn load_heat(path: &std::path::Path, cfg: &Config) -> [f64; 3] {
     let (heat, note) = crate::servo::thermal_store::load(path, &cfg.safety);
     if let Some(note) = note {
-        crate::errln!("omnid: warning: {note}; starting with cold motors");
+        crate::errln!("omnid: warning: {note}");
     }
     heat
 }

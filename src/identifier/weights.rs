@@ -444,7 +444,10 @@ mod tests {
         let e = WeightsFile::from_json(&w.to_json(), "a")
             .unwrap_err()
             .to_string();
-        assert!(e.contains("G-net parameter 3") && e.contains("magnitude"), "{e}");
+        assert!(
+            e.contains("G-net parameter 3") && e.contains("magnitude"),
+            "{e}"
+        );
         let mut w = WeightsFile::from_json(&good, "g").unwrap();
         w.nets[1].scaling.in_scale[4] = -1.0;
         let e = WeightsFile::from_json(&w.to_json(), "s")

@@ -46,7 +46,8 @@ pub struct SafetyConfig {
     pub thermal_limit: f64,
     /// Heat level below which the thermal clamp releases.
     pub thermal_release: f64,
-    /// Carry motor heat over between runs (a small file in the user's state directory).
+    /// Carry motor heat over between runs (a small file in the user's state directory; one
+    /// that cannot be believed means motors at the thermal limit, never cold ones).
     pub persist_heat: bool,
 }
 

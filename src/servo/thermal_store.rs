@@ -44,20 +44,29 @@ pub fn max_heat(safety: &SafetyConfig, joint: usize) -> f64 {
     (safety.max_torque_nm[joint] / safety.continuous_torque_nm[joint]).powi(2)
 }
 
+/// What a run assumes when the heat file cannot be believed: motors at the thermal limit, so
+/// torque is held to the continuous torque until they cool as modelled. A file that lies
+/// must not make hot motors look cold.
+pub fn assumed_hot(safety: &SafetyConfig) -> [f64; 3] {
+    [0, 1, 2].map(|j| safety.thermal_limit.min(max_heat(safety, j)))
+}
+
 /// Heat at start: the saved heat cooled over the elapsed time (`safety`'s time constant). A
-/// missing, unreadable or malformed file, or one whose heat is outside 0 ..= [`max_heat`] or
-/// whose time is not a time, means cold motors (the file is a convenience, not a safety
-/// mechanism of its own: the clamp still applies), reported through the returned note, which
-/// names the file and the value.
+/// missing file means cold motors (a first run). An unreadable or malformed file, or one whose
+/// heat is outside 0 ..= [`max_heat`] or whose time is not a time, fails closed: motors
+/// [`assumed_hot`], reported through the returned note, which names the file and the value.
 pub fn load(path: &Path, safety: &SafetyConfig) -> ([f64; 3], Option<String>) {
+    let hot = assumed_hot(safety);
+    let assuming = "; assuming the motors at the thermal limit (torque held to the continuous \
+                    torque until they cool as modelled; delete the file if they are known cold)";
     // A regular file of at most 64 KiB (it is under 100 bytes): never a wait, never a big read.
     let text = match crate::input::read_capped(path, 64 << 10, None) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return ([0.0; 3], None),
         Err(e) => {
             return (
-                [0.0; 3],
-                Some(format!("cannot read {}: {e}", path.display())),
+                hot,
+                Some(format!("cannot read {}: {e}{assuming}", path.display())),
             )
         }
     };
@@ -65,9 +74,9 @@ pub fn load(path: &Path, safety: &SafetyConfig) -> ([f64; 3], Option<String>) {
         Ok(s) => s,
         Err(e) => {
             return (
-                [0.0; 3],
+                hot,
                 Some(format!(
-                    "ignoring malformed motor heat file {}: {e}",
+                    "ignoring malformed motor heat file {}: {e}{assuming}",
                     path.display()
                 )),
             )
@@ -75,7 +84,8 @@ pub fn load(path: &Path, safety: &SafetyConfig) -> ([f64; 3], Option<String>) {
     };
     let out_of_range = |field: String, value: f64, allowed: String| {
         Some(format!(
-            "ignoring motor heat file {}: `{field}` = {value:?} is out of range: allowed {allowed}",
+            "ignoring motor heat file {}: `{field}` = {value:?} is out of range: allowed \
+             {allowed}{assuming}",
             path.display()
         ))
     };
@@ -83,13 +93,13 @@ pub fn load(path: &Path, safety: &SafetyConfig) -> ([f64; 3], Option<String>) {
         let most = max_heat(safety, j);
         if !(h.is_finite() && (0.0..=most).contains(&h)) {
             let allowed = format!("0 ..= {most} (the steady state at safety.max_torque_nm)");
-            return ([0.0; 3], out_of_range(format!("heat[{j}]"), h, allowed));
+            return (hot, out_of_range(format!("heat[{j}]"), h, allowed));
         }
     }
     let t = saved.unix_time_s;
     if !(t.is_finite() && t >= 0.0) {
         let allowed = "a time in seconds since 1970".to_string();
-        return ([0.0; 3], out_of_range("unix_time_s".into(), t, allowed));
+        return (hot, out_of_range("unix_time_s".into(), t, allowed));
     }
     let elapsed = (now_s() - t).max(0.0);
     let cool = (-elapsed / safety.thermal_time_constant_s).exp();
@@ -145,7 +155,7 @@ mod tests {
     }
 
     #[test]
-    fn malformed_file_is_cold_with_a_note() {
+    fn a_malformed_file_fails_closed_with_a_note() {
         let dir = tempfile::tempdir().unwrap();
         let path = heat_file(dir.path(), "sim");
         for bad in [
@@ -156,8 +166,13 @@ mod tests {
         ] {
             std::fs::write(&path, bad).unwrap();
             let (h, note) = load(&path, &safety(30.0));
-            assert_eq!(h, [0.0; 3]);
-            assert!(note.unwrap().contains("malformed"), "{bad}");
+            assert_eq!(h, assumed_hot(&safety(30.0)));
+            assert!(h.iter().all(|&h| h > 0.0));
+            let note = note.unwrap();
+            assert!(
+                note.contains("malformed") && note.contains("assuming"),
+                "{bad}"
+            );
         }
     }
 
@@ -178,7 +193,7 @@ mod tests {
             let text = format!("{{\"heat\":{heat},\"unix_time_s\":{now}}}");
             std::fs::write(&path, text).unwrap();
             let (h, note) = load(&path, &cfg);
-            assert_eq!(h, [0.0; 3], "{heat}");
+            assert_eq!(h, assumed_hot(&cfg), "{heat}");
             let note = note.unwrap();
             assert!(
                 note.contains(&path.display().to_string())
@@ -189,7 +204,7 @@ mod tests {
         }
         std::fs::write(&path, "{\"heat\":[1,0,0],\"unix_time_s\":-5}").unwrap();
         let (h, note) = load(&path, &cfg);
-        assert_eq!(h, [0.0; 3]);
+        assert_eq!(h, assumed_hot(&cfg));
         assert!(note.unwrap().contains("`unix_time_s` = -5.0"));
         // At the ceiling is fine: a motor held at the clamp long enough gets there.
         std::fs::write(
