@@ -147,3 +147,52 @@ fn quoted_bad_values_are_cut_to_a_readable_length() {
         );
     }
 }
+
+/// A simulated hand whose grip the simulator cannot resolve is refused, naming the field and
+/// the remedy, instead of tripping the safety layer a tick into the run; one it can is fine.
+#[test]
+fn a_simulated_hand_the_simulator_cannot_resolve_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    for (damping, substeps, ok) in [(200, 2, true), (400, 2, false), (400, 4, true)] {
+        let cfg = dir.path().join(format!("hand-{damping}-{substeps}.toml"));
+        std::fs::write(
+            &cfg,
+            format!(
+                "[sim]\nsubsteps = {substeps}\n[haptics.hand]\npattern = \"hold\"\n\
+                 damping_n_s_per_m = {damping}\n"
+            ),
+        )
+        .unwrap();
+        let log = dir.path().join(format!("hand-{damping}-{substeps}.csv"));
+        let out = omnid()
+            .args([
+                "run",
+                "--fast",
+                "--duration",
+                "1",
+                "--mode",
+                "free",
+                "--config",
+            ])
+            .arg(&cfg)
+            .arg("--log")
+            .arg(&log)
+            .env("OMNID_STATE_DIR", dir.path())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        if ok {
+            assert_eq!(
+                out.status.code(),
+                Some(0),
+                "b = {damping}, {substeps} substeps: {err}"
+            );
+        } else {
+            assert_eq!(out.status.code(), Some(2), "b = {damping}: {err}");
+            assert!(
+                err.contains("haptics.hand.damping_n_s_per_m") && err.contains("sim.substeps"),
+                "{err}"
+            );
+        }
+    }
+}

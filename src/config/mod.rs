@@ -123,8 +123,10 @@ impl Config {
     /// What the simulated Omni needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
     pub(crate) fn check_sim(&self) -> Result<(), ConfigError> {
+        let hand = (self.haptics.hand.pattern != crate::haptics::HandPattern::None)
+            .then_some(&self.haptics.hand);
         self.sim
-            .check_plant(&self.device, &self.model, self.geometry)
+            .check_plant(&self.device, &self.model, self.geometry, hand)
     }
 
     /// Check every section; the first problem is returned naming its field.

@@ -86,6 +86,7 @@ impl SimConfig {
         d: &DeviceConfig,
         m: &ModelParams,
         geometry: Geometry,
+        hand: Option<&HandConfig>,
     ) -> Result<(), ConfigError> {
         let s = self;
         let least_inertia = m
@@ -160,8 +161,60 @@ impl SimConfig {
                 )
             });
         }
+        if let Some(h) = hand {
+            check_hand(h, d, s.substeps, m, geometry)?;
+        }
         Ok(())
     }
+}
+
+/// A hand on the stylus is a spring and a damper at the tip: through the Jacobian it adds
+/// the joint-space rates b·λ and √(k·λ), λ the largest eigenvalue of M⁻¹JᵀJ over the joint
+/// range. RK4 on a damping mode is stable while h·rate stays under 2.78; we ask for ≤ 2.
+fn check_hand(
+    h: &HandConfig,
+    d: &DeviceConfig,
+    substeps: u32,
+    m: &ModelParams,
+    geometry: Geometry,
+) -> Result<(), ConfigError> {
+    let gain = m
+        .mass_over_joint_range(geometry)
+        .filter_map(|((q2, q3), mass)| {
+            let j = jacobian(&geometry, &Joint3::new(0.0, q2, q3));
+            let l_inv = mass.cholesky()?.l().try_inverse()?;
+            let a = l_inv * (j.transpose() * j) * l_inv.transpose();
+            Some(a.symmetric_eigenvalues().max())
+        })
+        .fold(0.0, f64::max);
+    let step = 1.0 / (d.rate_hz * f64::from(substeps));
+    // The largest values the step resolves: b·λ·h ≤ 2 and √(k·λ)·h ≤ 2.
+    let (max_b, max_k) = (2.0 / (step * gain), (2.0 / step).powi(2) / gain);
+    for (field, value, most) in [
+        ("haptics.hand.damping_n_s_per_m", h.damping_n_s_per_m, max_b),
+        ("haptics.hand.stiffness_n_per_m", h.stiffness_n_per_m, max_k),
+    ] {
+        if value > most {
+            // Substeps scale the step: the damping bound with them, the stiffness bound with
+            // their square.
+            let over = if field.contains("damping") {
+                value / most
+            } else {
+                (value / most).sqrt()
+            };
+            let needed = (f64::from(substeps) * over).ceil();
+            return Err(check::invalid(
+                field,
+                value,
+                format!(
+                    "at most {most:.0} with sim.substeps = {substeps} at {} Hz, or sim.substeps \
+                     ≥ {needed} (faster than that the simulator diverges)",
+                    d.rate_hz
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The sections of the configuration the simulator is built from.
