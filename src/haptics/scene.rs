@@ -12,8 +12,9 @@ struct SceneFile {
     effect: Vec<Effect>,
 }
 
-/// The effects of the scene in `text` (`name` for messages).
-pub(crate) fn parse_scene(text: &str, name: &str) -> Result<Vec<Effect>, String> {
+/// The effects of the scene in `text` (`name` for messages); a refusal is one line naming
+/// the scene and where.
+pub fn parse_scene(text: &str, name: &str) -> Result<Vec<Effect>, String> {
     let file: SceneFile = toml::from_str(text).map_err(|e| {
         let line = e
             .span()

@@ -139,6 +139,15 @@ fn encode(v: &Value) -> Vec<u8> {
     serde_json::to_vec(v).unwrap_or_default()
 }
 
+/// One client message as the hub reads it, up to the station: the JSON request decoded and
+/// turned into the station's op, or the one-line refusal the client gets. The same two steps
+/// the hub takes (public for the fuzz target and its smoke test).
+pub fn decode_request(bytes: &[u8]) -> Result<Op, String> {
+    let request = serde_json::from_slice::<Request>(bytes)
+        .map_err(|e| format!("bad request: {}", crate::text::cut(&e.to_string())))?;
+    to_op(request).map_err(|e| e.to_string())
+}
+
 /// A request as the station's op (names parsed, with the station's messages).
 pub(crate) fn to_op(request: Request) -> Result<Op, OpError> {
     Ok(match request {
