@@ -509,3 +509,54 @@ fn two_devices_by_their_vendor_names_in_one_scheduler_callback() {
         "left x {xl} mm, right x {xr} mm\n{out}"
     );
 }
+
+/// A servo callback slower than the force's 20 ms time to live: the force holds between its
+/// frames (the amplifiers do not cycle), and frames further apart than a force can be held
+/// (100 ms) raise HD_TIMER_ERROR instead of losing the force silently.
+#[test]
+fn a_slow_servo_callback_keeps_its_force_or_is_told() {
+    let hd = HD::get();
+    for (frame_ms, told) in [(40, false), (150, true)] {
+        let daemon = Daemon::start(&[]);
+        let mut watch = daemon.client("watch");
+        watch
+            .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))
+            .unwrap();
+        let slow = std::process::Command::new(hd.exe("slow"))
+            .arg(frame_ms.to_string())
+            .env("OMNID_SOCKET", &daemon.socket)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("slow starts");
+        let _watchdog = hd::Watchdog::new(&slow, Duration::from_secs(60));
+        // Amplifier drops while the program pushes: from its first force to its end.
+        let (mut pushing, mut drops) = (false, 0);
+        let until = Instant::now() + Duration::from_millis(2300);
+        while Instant::now() < until {
+            let Ok(s) = watch.next_state(500) else {
+                continue;
+            };
+            if s.mode.starts_with("servo_") && s.amps {
+                pushing = true;
+            } else if pushing && s.mode == "idle" {
+                drops += 1;
+                pushing = false;
+            }
+        }
+        let out = slow.wait_with_output().unwrap();
+        let printed = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{printed}");
+        let errors: u32 = field(&printed, "timer-errors").parse().unwrap();
+        if told {
+            assert!(errors >= 1, "{frame_ms} ms frames: {printed}");
+        } else {
+            assert_eq!(errors, 0, "{frame_ms} ms frames: {printed}");
+            // The last frame's force lapses once when the program stops: at most that drop.
+            assert!(
+                drops <= 1,
+                "{frame_ms} ms frames: the amplifiers dropped {drops} times"
+            );
+        }
+    }
+}

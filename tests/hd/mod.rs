@@ -73,7 +73,7 @@ impl HD {
                 bin,
             };
             for name in [
-                "abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench", "gone", "two",
+                "abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench", "gone", "two", "slow",
             ] {
                 hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
             }

@@ -11,12 +11,26 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use thiserror::Error;
 
 /// How long a stream command stays in effect at the daemon: a client that stops sending
 /// (crash, stopped scheduler) loses its force within this (docs/HDAPI.md, Safety).
 pub const FORCE_TTL_MS: f64 = 20.0;
+
+/// The longest a committed force is kept between frames: a program whose callback is slower
+/// (its frames come less often) gets a time to live of 2.5 frames, up to this, so its force
+/// does not lapse (and the amplifiers do not cycle) between its frames.
+pub const MAX_FORCE_TTL_MS: f64 = 100.0;
+
+/// The time to live of a force committed `interval_ms` after the previous frame's. The first
+/// frame's pace is unknown: the longest, so that a slow program's first force does not lapse
+/// before its second frame (from the second on it follows the program's pace).
+pub fn force_ttl_ms(interval_ms: Option<f64>) -> f64 {
+    interval_ms.map_or(MAX_FORCE_TTL_MS, |i| {
+        (2.5 * i).clamp(FORCE_TTL_MS, MAX_FORCE_TTL_MS)
+    })
+}
 
 /// How long we wait for the daemon's first sample or a reply.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(5);
@@ -52,6 +66,12 @@ pub struct Frame {
     pub last_joint_torque: [f64; 3],
     pub last_gimbal_torque: [f64; 3],
     pub last_torque: [f64; 3],
+    /// When the last frame was committed (its force's time to live follows the interval).
+    pub committed_at: Option<Instant>,
+    /// Frames that push come further apart than [`MAX_FORCE_TTL_MS`]: the interval, ms, to be
+    /// reported once (`slow` holds while the episode lasts).
+    pub too_slow: Option<f64>,
+    pub slow: bool,
 }
 
 pub struct Device {
@@ -243,9 +263,25 @@ impl Device {
         } else {
             ([0.0; 3], [0.0; 3])
         };
+        let now = Instant::now();
+        let interval_ms = f
+            .committed_at
+            .replace(now)
+            .map(|t| (now - t).as_secs_f64() * 1e3);
+        let pushes = force != [0.0; 3] || joint_torque != [0.0; 3];
+        match interval_ms {
+            Some(i) if pushes && i > MAX_FORCE_TTL_MS => {
+                if !f.slow {
+                    f.slow = true;
+                    f.too_slow = Some(i);
+                }
+            }
+            _ => f.slow = false,
+        }
         drop(f);
         if self.commanding.load(Ordering::Relaxed) {
-            self.send(&self.command(&state, force, joint_torque))?;
+            let ttl = force_ttl_ms(interval_ms);
+            self.send(&self.command(&state, force, joint_torque, ttl))?;
         }
         Ok(true)
     }
@@ -254,15 +290,27 @@ impl Device {
     /// no joint torque was set, else everything as one joint torque `servo_jf` (τ = Jᵀ F +
     /// joint torque). `seq` is the sample's tick, so the state stream's `cmd_seq` tells when
     /// it was applied.
-    fn command(&self, state: &State, force: [f64; 3], joint_torque_mnm: [f64; 3]) -> Value {
+    fn command(
+        &self,
+        state: &State,
+        force: [f64; 3],
+        joint_torque_mnm: [f64; 3],
+        ttl_ms: f64,
+    ) -> Value {
         let force = kin::clamp_force(force);
         if self.servo_cf && joint_torque_mnm == [0.0; 3] {
             return json!({"op": "servo_cf", "seq": state.seq, "force": force,
-                          "ttl_ms": FORCE_TTL_MS});
+                          "ttl_ms": ttl_ms});
         }
         let jt = kin::joint_torque(&state.q, &force);
         let tau: [f64; 3] = std::array::from_fn(|j| jt[j] + joint_torque_mnm[j] * 1e-3);
-        json!({"op": "servo_jf", "seq": state.seq, "tau": tau, "ttl_ms": FORCE_TTL_MS})
+        json!({"op": "servo_jf", "seq": state.seq, "tau": tau, "ttl_ms": ttl_ms})
+    }
+
+    /// Once per episode: the interval, ms, of frames that push but come further apart than
+    /// the longest time to live (their force lapses between them).
+    pub fn take_too_slow(&self) -> Option<f64> {
+        lock(&self.frame).too_slow.take()
     }
 
     /// Take the command lease (the scheduler starts).

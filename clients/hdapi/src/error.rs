@@ -66,6 +66,9 @@ pub enum Internal {
     Timeout = 5,
     /// A panic inside the library, caught at the C boundary.
     Panic = 6,
+    /// Frames that set a force come further apart than its longest time to live (100 ms): the
+    /// force lapses between them (`HD_TIMER_ERROR`).
+    SlowFrames = 7,
 }
 
 /// `hdGetErrorString`: a static, NUL-terminated description of `code`.

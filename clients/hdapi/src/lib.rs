@@ -157,7 +157,11 @@ pub extern "C" fn hdEndFrame(hhd: u32) {
         };
         let force_output = REGISTRY.caps.load(Ordering::Relaxed) & 1 != 0;
         match d.end_frame(force_output) {
-            Ok(true) => {}
+            Ok(true) => {
+                if d.take_too_slow().is_some() {
+                    error::push(HD_TIMER_ERROR, Internal::SlowFrames, hhd);
+                }
+            }
             Ok(false) => error::push(HD_ILLEGAL_END, Internal::None, hhd),
             Err(e) => {
                 let (code, internal) = device_error(&e);
