@@ -54,20 +54,26 @@ pub fn find_socket() -> Result<PathBuf, String> {
     find_socket_in(&default_socket_dirs())
 }
 
+/// The `*.sock` files in `dir`, sorted (none when it cannot be read).
+fn sockets_in(dir: &std::path::Path) -> Vec<PathBuf> {
+    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "sock"))
+        .collect();
+    found.sort();
+    found
+}
+
 /// The one live socket in the first of `dirs` that has any; sockets left by a daemon that
 /// died are passed over.
 pub fn find_socket_in(dirs: &[PathBuf]) -> Result<PathBuf, String> {
     for dir in dirs {
-        let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-            .into_iter()
-            .flatten()
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| p.extension().is_some_and(|e| e == "sock"))
-            // A daemon that crashed left its socket: not one to choose between.
-            .filter(|p| crate::socket::is_live(p))
-            .collect();
-        found.sort();
+        // A daemon that crashed left its socket: not one to choose between.
+        let mut found = sockets_in(dir);
+        found.retain(|p| crate::socket::is_live(p));
         match found.len() {
             0 => continue,
             1 => return Ok(found.remove(0)),
@@ -109,15 +115,7 @@ pub fn find_arm_socket(name: &str) -> Result<PathBuf, String> {
     }
     let mut served = Vec::new();
     for dir in &dirs {
-        let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-            .into_iter()
-            .flatten()
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| p.extension().is_some_and(|e| e == "sock"))
-            .collect();
-        found.sort();
-        for p in found {
+        for p in sockets_in(dir) {
             let Ok(c) = crate::client::Client::connect(&p, "omnid (looking for an arm)") else {
                 continue;
             };
