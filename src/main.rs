@@ -67,10 +67,11 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Reproduce the paper's experiments on the simulator (`validation`, `alpha`, `payload`):
-    /// runs, `DIR/report.md` with the tables, and the figures.
+    /// Reproduce the paper's experiments on the simulator, and the haptics experiment: runs,
+    /// `DIR/report.md` with the tables, and the figures.
     Experiment {
-        /// validation, alpha or payload.
+        /// Which experiment.
+        #[arg(value_parser = experiment_names())]
         kind: omnid::experiment::Experiment,
         /// Directory for the report, logs and figures (created if needed).
         #[arg(long)]
@@ -995,6 +996,15 @@ fn load_config(
             })
         }
     }
+}
+
+/// The experiments' names as clap lists them in `--help` and checks them.
+fn experiment_names() -> impl clap::builder::TypedValueParser<Value = omnid::experiment::Experiment>
+{
+    use clap::builder::TypedValueParser;
+    use omnid::experiment::Experiment;
+    clap::builder::PossibleValuesParser::new(Experiment::ALL.map(Experiment::as_str))
+        .try_map(|name| name.parse::<Experiment>())
 }
 
 fn main() -> ExitCode {

@@ -284,7 +284,9 @@ fn laws(
         opts.no_adapt,
         Some(stop),
     )?;
-    if weights_label == "shipped" {
+    // Said once per command: an experiment assembles many pipelines.
+    static TOLD: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if weights_label == "shipped" && !TOLD.swap(true, std::sync::atomic::Ordering::Relaxed) {
         crate::errln!(
             "omnid: nnidc starts from the weights shipped in {SHIPPED_WEIGHTS_NAME} (pre-tuned on \
              the simulator); pass --weights FILE for your own (`omnid identify`)"

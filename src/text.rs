@@ -24,6 +24,32 @@ pub fn cut_lines(text: &str, max: usize) -> String {
         .join("\n")
 }
 
+/// A parser's message about a user's input with each quoted value in it (between backticks
+/// or double quotes) cut as [`cut`] does, and the rest kept whole: the user's value is cut,
+/// never omnid's own list of choices (`expected one of ...`).
+pub fn cut_quoted(message: &str) -> String {
+    let mut out = String::with_capacity(message.len().min(4096));
+    let mut rest = message;
+    while let Some(open) = rest.find(['`', '"']) {
+        let quote = &rest[open..open + 1];
+        out.push_str(&rest[..=open]);
+        rest = &rest[open + 1..];
+        match rest.find(quote) {
+            Some(close) => {
+                out.push_str(&cut(&rest[..close]));
+                out.push_str(quote);
+                rest = &rest[close + 1..];
+            }
+            None => {
+                out.push_str(&cut(rest));
+                rest = "";
+            }
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
 /// `s` with what a terminal would act on instead of showing — control characters (escape
 /// sequences) and the marks that reorder text — each replaced by `?`: a value one client gave
 /// reaches other users' terminals (in events, in `omnid watch`).
@@ -43,6 +69,24 @@ pub fn printable(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_quoted_value_is_cut_and_the_choices_are_kept() {
+        let long = "x".repeat(5000);
+        let m = format!(
+            "unknown variant `{long}`, expected one of `spring`, `damper`, `plane`, `box`, \
+             `constant` at line 1 column 5020"
+        );
+        let c = cut_quoted(&m);
+        assert!(c.len() < 300, "{c}");
+        assert!(c.contains("(5000 bytes)") && c.ends_with("`constant` at line 1 column 5020"));
+        assert_eq!(
+            cut_quoted("invalid type: string \"ab\", expected f64"),
+            "invalid type: string \"ab\", expected f64"
+        );
+        // An unclosed quote cuts what follows it.
+        assert!(cut_quoted(&format!("bad `{long}")).len() < 200);
+    }
 
     #[test]
     fn what_a_terminal_would_act_on_is_shown_as_question_marks() {

@@ -196,3 +196,35 @@ fn a_simulated_hand_the_simulator_cannot_resolve_is_refused() {
         }
     }
 }
+
+/// One list of experiments: what `--help` offers, the README's Options block and DESIGN §2's
+/// command table all name every experiment the library has (none forgotten in one place).
+#[test]
+fn every_experiment_is_listed_where_users_look() {
+    let names = omnid::experiment::Experiment::ALL.map(|e| e.as_str());
+    let help = omnid().args(["experiment", "--help"]).output().unwrap();
+    let help = String::from_utf8_lossy(&help.stdout);
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let design = std::fs::read_to_string(root.join("docs/DESIGN.md")).unwrap();
+    assert!(
+        help.contains(&format!("[possible values: {}]", names.join(", "))),
+        "{help}"
+    );
+    assert!(
+        readme.contains(&format!("omnid experiment {} --out DIR", names.join("|"))),
+        "README's Options block"
+    );
+    assert!(
+        design.contains(&format!("`{}`", names.join("\\|"))),
+        "DESIGN §2's command table"
+    );
+    // A wrong name is refused with the whole list.
+    let out = omnid()
+        .args(["experiment", "fly", "--out", "x"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(names.iter().all(|n| err.contains(n)), "{err}");
+}

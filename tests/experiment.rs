@@ -136,3 +136,22 @@ fn cli_refuses_bad_input_with_exit_2() {
     assert_eq!(out.status.code(), Some(2), "{out:?}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("output directory"));
 }
+
+/// A notice is said once per command, not once per run an experiment makes.
+#[test]
+fn the_shipped_weights_notice_is_said_once() {
+    state_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_omnid"))
+        .args(["experiment", "haptics", "--quick", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert_eq!(
+        err.matches("starts from the weights shipped").count(),
+        1,
+        "{err}"
+    );
+}

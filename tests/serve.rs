@@ -361,6 +361,11 @@ fn what_clients_are_told_is_exact_printable_and_meaningful() {
     assert!(e.contains("relative"), "{e}");
     let e = refused(c.request(json!({"op": "stream", "rate_hz": 0.001})));
     assert!(e.contains("≥ 1"), "{e}");
+    // A wrong effect type hears every valid one (the user's value is what gets cut).
+    let e = refused(c.request(json!({"op": "effect", "slot": 0, "effect": {"type": "fly"}})));
+    for kind in ["spring", "damper", "plane", "box", "constant"] {
+        assert!(e.contains(&format!("`{kind}`")), "{e}");
+    }
 }
 
 #[test]

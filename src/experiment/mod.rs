@@ -52,13 +52,23 @@ impl FromStr for Experiment {
             "payload" => Ok(Experiment::Payload),
             "haptics" => Ok(Experiment::Haptics),
             _ => Err(format!(
-                "unknown experiment `{s}`: expected validation, alpha, payload or haptics"
+                "unknown experiment `{}`: expected one of {}",
+                crate::text::cut(s),
+                Experiment::ALL.map(Experiment::as_str).join(", ")
             )),
         }
     }
 }
 
 impl Experiment {
+    /// Every experiment, in the order help and docs list them (the one source of that list).
+    pub const ALL: [Experiment; 4] = [
+        Experiment::Validation,
+        Experiment::Alpha,
+        Experiment::Payload,
+        Experiment::Haptics,
+    ];
+
     /// The name the command line takes.
     pub fn as_str(self) -> &'static str {
         match self {

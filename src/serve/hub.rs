@@ -144,7 +144,7 @@ fn encode(v: &Value) -> Vec<u8> {
 /// the hub takes (public for the fuzz target and its smoke test).
 pub fn decode_request(bytes: &[u8]) -> Result<Op, String> {
     let request = serde_json::from_slice::<Request>(bytes)
-        .map_err(|e| format!("bad request: {}", crate::text::cut(&e.to_string())))?;
+        .map_err(|e| format!("bad request: {}", crate::text::cut_quoted(&e.to_string())))?;
     to_op(request).map_err(|e| e.to_string())
 }
 
@@ -504,7 +504,7 @@ impl Hub {
                         .and_then(|v| v.get("op").and_then(|o| o.as_str()).map(String::from))
                         .unwrap_or_else(|| "?".into());
                     let greeted = self.clients[i].session.is_some();
-                    let why = crate::text::cut(&e.to_string());
+                    let why = crate::text::cut_quoted(&e.to_string());
                     self.fail(
                         i,
                         None,
