@@ -2,7 +2,7 @@
 //! bound and listening while the process drives the arm. Binding it is exclusive machine-wide
 //! and ends with the process, with no file to go stale, be followed through a symlink or be
 //! truncated; a second `run`, `serve` or `probe` of the same arm connects to it to learn the
-//! holder's process id (SO_PEERCRED) and names it. [`hold`] holds any such name (the daemon's
+//! holder's process id (SO_PEERCRED) and names it. `hold` holds any such name (the daemon's
 //! socket paths are held the same way).
 
 use std::io;

@@ -9,7 +9,7 @@
 //!
 //! Everything that allocates happens here or in a transport, never on the servo thread. What
 //! the servo must never miss (who owns the force, the emergency stop) is state it reads every
-//! tick ([`ArmSignals`]), not a message a full mailbox could drop.
+//! tick (`servo::ArmSignals`), not a message a full mailbox could drop.
 
 pub mod device_info;
 pub mod files;

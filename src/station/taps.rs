@@ -13,7 +13,7 @@ use std::thread::JoinHandle;
 
 /// A consumer beside the loop: it sees every tick record and every event of its arm, on the
 /// station's thread (never the servo's). It must not block: anything slow goes to a thread of
-/// its own through a bounded channel, as [`Recording`] does.
+/// its own through a bounded channel, as `Recording` does.
 pub trait Tap: Send {
     /// One tick.
     fn on_tick(&mut self, record: &TickRecord);

@@ -2,7 +2,7 @@
 //! one file per format — CSV (docs/DESIGN.md §2.2) is the first, in this file. The writer
 //! thread (`writer::spawn_writer`, for `omnid run`'s log and `omnid serve`'s recordings) and
 //! every fault dump (`writer::write_dump`, for both) write through it, so a new format is a new
-//! implementation here and a new arm of [`recorder`].
+//! implementation here and a new arm of `recorder`.
 
 use super::record::{LogSchema, TickRecord};
 
