@@ -19,17 +19,22 @@ struct Loopback {
     done: Vec<(u64, Result<Reply, OpError>)>,
 }
 
+/// A session of the daemon's own user, which may command.
+fn commander(name: &str) -> SessionInfo {
+    SessionInfo {
+        name: name.into(),
+        pid: 0,
+        uid: 0,
+        control: true,
+        privileged: true,
+        read_only_reason: String::new(),
+        files: FileRights::Daemon,
+    }
+}
+
 impl Loopback {
     fn new(mut station: Station, name: &str) -> Loopback {
-        let session = station.open_session(SessionInfo {
-            name: name.into(),
-            pid: 0,
-            uid: 0,
-            control: true,
-            privileged: true,
-            read_only_reason: String::new(),
-            files: FileRights::Daemon,
-        });
+        let session = station.open_session(commander(name));
         Loopback {
             station,
             session,
@@ -164,15 +169,7 @@ fn what_an_owner_set_up_that_makes_force_ends_when_it_leaves() {
     // The owner leaves: the arm rests, amplifiers off, from the next tick.
     let owner = t.session;
     t.station.close_session(owner);
-    t.session = t.station.open_session(SessionInfo {
-        name: "next".into(),
-        pid: 0,
-        uid: 0,
-        control: true,
-        privileged: true,
-        read_only_reason: String::new(),
-        files: FileRights::Daemon,
-    });
+    t.session = t.station.open_session(commander("next"));
     t.call(Op::Stream { rate_hz: 1000.0 }).unwrap();
     ticks(&mut servo, &mut t, 3);
     let last = t.states.last().unwrap();

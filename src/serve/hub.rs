@@ -139,13 +139,18 @@ fn encode(v: &Value) -> Vec<u8> {
     serde_json::to_vec(v).unwrap_or_default()
 }
 
-/// One client message as the hub reads it, up to the station: the JSON request decoded and
-/// turned into the station's op, or the one-line refusal the client gets. The same two steps
-/// the hub takes (public for the fuzz target and its smoke test).
+/// One client message decoded, or the one-line refusal the client gets (the user's quoted
+/// value cut, the list of choices kept).
+fn parse_request(bytes: &[u8]) -> Result<Request, String> {
+    serde_json::from_slice::<Request>(bytes)
+        .map_err(|e| format!("bad request: {}", crate::text::cut_quoted(&e.to_string())))
+}
+
+/// One client message as the hub reads it, up to the station: [`parse_request`] and its turn
+/// into the station's op, the same two steps the hub takes (public for the fuzz target and its
+/// smoke test).
 pub fn decode_request(bytes: &[u8]) -> Result<Op, String> {
-    let request = serde_json::from_slice::<Request>(bytes)
-        .map_err(|e| format!("bad request: {}", crate::text::cut_quoted(&e.to_string())))?;
-    to_op(request).map_err(|e| e.to_string())
+    to_op(parse_request(bytes)?).map_err(|e| e.to_string())
 }
 
 /// A request as the station's op (names parsed, with the station's messages).
@@ -496,21 +501,15 @@ impl Hub {
                 self.clients[i].closing = true;
                 return;
             }
-            let request = match serde_json::from_slice::<Request>(&self.buf[..n]) {
+            let request = match parse_request(&self.buf[..n]) {
                 Ok(r) => r,
-                Err(e) => {
+                Err(why) => {
                     let op = serde_json::from_slice::<Value>(&self.buf[..n])
                         .ok()
                         .and_then(|v| v.get("op").and_then(|o| o.as_str()).map(String::from))
                         .unwrap_or_else(|| "?".into());
                     let greeted = self.clients[i].session.is_some();
-                    let why = crate::text::cut_quoted(&e.to_string());
-                    self.fail(
-                        i,
-                        None,
-                        &crate::text::cut(&op),
-                        format!("bad request: {why}"),
-                    );
+                    self.fail(i, None, &crate::text::cut(&op), why);
                     if !greeted {
                         self.clients[i].closing = true;
                     }

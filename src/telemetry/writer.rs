@@ -684,26 +684,17 @@ mod tests {
         let schema = LogSchema { model: true };
         let handle = spawn_writer(LogFile::create(&path).unwrap(), schema, rx).unwrap();
         let rec = TickRecord {
-            t: 0.001,
             q: [0.1, 0.2, 1.0 / 3.0],
             tau: [1e-17, -0.0, 0.45],
-            qf: [0.0; 3],
-            qd: [0.0; 3],
-            qdd: [0.0; 3],
-            reference: [0.0; 3],
-            tau_cmd: [0.0; 3],
-            tau_hat: [0.0; 3],
             tau_model: [f64::NAN; 3],
             enc: [-5, 0, 70000],
-            amps: true,
-            mode: Mode::Track,
             flags: 1,
             haptic: crate::telemetry::record::HapticRecord {
                 tip_mm: [1.5, -2.0, 3.0],
                 force: [0.25, 0.0, -1.0],
                 hand: [0.0, 0.75, 0.0],
             },
-            live: Default::default(),
+            ..TickRecord::at(1, Mode::Track)
         };
         tx.send(rec).unwrap();
         drop(tx);

@@ -65,16 +65,17 @@ pub struct Conn(OwnedFd);
 
 /// Whether a program is listening on the Unix socket at `path`. A socket file whose program
 /// died refuses connections (stale); a live one accepts, or is busy, or is of another type
-/// (a stream socket). Tried without blocking, and the connection is closed at once.
+/// (a stream socket). Tried without blocking, and the connection is closed at once. When it
+/// cannot be tried, it counts as live: a socket is only ever removed when it is known stale.
 pub fn is_live(path: &Path) -> bool {
     let Ok(fd) = seqpacket() else {
-        return false;
+        return true;
     };
     let Ok((addr, len)) = address(path.as_os_str().as_bytes()) else {
-        return false;
+        return true;
     };
     if set_nonblocking(fd.as_raw_fd()).is_err() {
-        return false;
+        return true;
     }
     // SAFETY: `addr` is a valid sockaddr_un of `len` bytes.
     let rc = unsafe {
