@@ -98,6 +98,7 @@ pub mod output;
 pub mod pipeline;
 pub mod plot;
 pub mod progress;
+pub mod ros2;
 pub mod run;
 pub mod serve;
 pub mod servo;

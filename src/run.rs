@@ -6,10 +6,12 @@ pub use crate::control::make_controller;
 use crate::control::{ControllerKind, Trajectory};
 use crate::device::inject::Fault;
 pub use crate::device::registry::DeviceSpec;
+use crate::omni::kinematics::Geometry;
 pub(crate) use crate::pipeline::{assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 pub use crate::pipeline::{make_identifier, Pipeline, RunError, RunOptions};
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, ServoReport};
+use crate::telemetry::mcap_log::LogFormat;
 use crate::telemetry::{
     dump_path, recorder::recorder, spawn_writer_with, write_dump, DumpTo, LogError, LogFile, Watch,
     WriterReport,
@@ -190,7 +192,9 @@ pub fn execute(
         fault: None,
         stop: Some(stop),
     };
-    let writer = spawn_writer_with(log, pipeline.schema, recorder(pipeline.schema), rx, watch)
+    let format = LogFormat::for_path(&path, cfg.geometry);
+    let rec = recorder(pipeline.schema, format);
+    let writer = spawn_writer_with(log, pipeline.schema, rec, rx, watch)
         .map_err(|source| RunError::Log(LogError::Io { path, source }))?;
     let (handle, ending) = pipeline.spawn()?;
     let (report, realtime) = join_servo(handle)?;
@@ -204,7 +208,7 @@ pub fn execute(
         EndReason::DeviceFault(_) | EndReason::SafetyFault(_)
     );
     let (dump, dump_error) = if is_fault {
-        dump_beside(&written)
+        dump_beside(&written, cfg.geometry)
     } else {
         (None, None)
     };
@@ -240,6 +244,7 @@ fn open_log(opts: &RunOptions) -> Result<LogFile, RunError> {
                 "omnid-{}",
                 crate::telemetry::utc_stamp(std::time::SystemTime::now())
             ),
+            "csv",
         )?,
     })
 }
@@ -259,7 +264,7 @@ fn log_shortfall(written: &WriterReport, dropped: u64) -> Option<String> {
 }
 
 /// After a fault: the last ticks written beside the log (the dump's path, or why not).
-fn dump_beside(written: &WriterReport) -> (Option<PathBuf>, Option<String>) {
+fn dump_beside(written: &WriterReport, geometry: Geometry) -> (Option<PathBuf>, Option<String>) {
     if !written.file.metadata().is_ok_and(|m| m.is_file()) {
         // Not beside /dev/null or a FIFO: /dev is no place for our files.
         let why = format!(
@@ -269,7 +274,8 @@ fn dump_beside(written: &WriterReport) -> (Option<PathBuf>, Option<String>) {
         return (None, Some(why));
     }
     let path = dump_path(&written.path);
-    match write_dump(DumpTo::File(&path), &written.schema, &written.tail) {
+    let format = LogFormat::for_path(&path, geometry);
+    match write_dump(DumpTo::File(&path), &written.schema, format, &written.tail) {
         Ok(path) => (Some(path), None),
         Err(e) => (None, Some(e.to_string())),
     }

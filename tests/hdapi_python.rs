@@ -3,6 +3,7 @@
 //! spring (clients/hdapi/tests/pyopenhaptics_spring.py). Skipped, loudly, only when the
 //! package registry cannot be reached.
 
+mod common;
 pub mod hd;
 
 use hd::{wait_output, Daemon, HD};
@@ -16,58 +17,7 @@ const PACKAGE: &str = "pyopenhaptics==1.0.1";
 /// A venv with pyOpenHaptics under target/ (kept between runs); None when PyPI is out of
 /// reach.
 fn venv() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/hdapi-venv");
-    let python = dir.join("bin/python");
-    if !python.exists() {
-        let made = Command::new("python3")
-            .args(["-m", "venv"])
-            .arg(&dir)
-            .output()
-            .expect("python3 runs");
-        assert!(
-            made.status.success(),
-            "python3 -m venv failed (install python3-venv; .ci/run does): {}",
-            String::from_utf8_lossy(&made.stderr)
-        );
-    }
-    let site = Command::new(&python)
-        .args([
-            "-c",
-            "import importlib.util as u; print(u.find_spec('pyOpenHaptics') is not None)",
-        ])
-        .output()
-        .expect("venv python runs");
-    if String::from_utf8_lossy(&site.stdout).trim() == "True" {
-        return Some(python);
-    }
-    let pip = Command::new(&python)
-        .args([
-            "-m",
-            "pip",
-            "install",
-            "--disable-pip-version-check",
-            "-q",
-            PACKAGE,
-        ])
-        .output()
-        .expect("pip runs");
-    if pip.status.success() {
-        return Some(python);
-    }
-    let err = String::from_utf8_lossy(&pip.stderr);
-    let unreachable = [
-        "Could not fetch",
-        "NewConnectionError",
-        "Temporary failure in name resolution",
-        "Network is unreachable",
-        "No matching distribution found",
-        "ConnectTimeout",
-        "Failed to establish",
-    ];
-    if unreachable.iter().any(|s| err.contains(s)) {
-        return None;
-    }
-    panic!("pip install {PACKAGE} failed:\n{err}");
+    common::venv("hdapi-venv", &[PACKAGE], "pyOpenHaptics")
 }
 
 #[test]

@@ -247,6 +247,7 @@ pub fn prepare_arm(
             ring_s: global.serve.ring_s,
             dump_interval_s: global.serve.dump_interval_s,
             max_dumps: global.serve.max_dumps,
+            log_format: global.serve.log_format,
         },
         rate_hz: cfg.device.rate_hz,
         period_ns: (1e9 / cfg.device.rate_hz).round() as u64,

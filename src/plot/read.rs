@@ -10,7 +10,7 @@
 //! finite number, and a `mode` field, when present and not empty, one omnid writes.
 
 use super::decimate::{Decimated, Decimator};
-use crate::input::Input;
+use crate::telemetry::reader::LogInput;
 use crate::telemetry::reader::{ColumnReader, ReadError, Row, RowFault};
 use crate::telemetry::record::Mode;
 use std::path::Path;
@@ -64,7 +64,7 @@ pub(crate) struct LogData {
 
 /// An open log whose header has been read.
 pub(crate) struct LogReader {
-    reader: ColumnReader<Input>,
+    reader: ColumnReader<LogInput>,
     header: Header,
     bytes: u64,
 }

@@ -61,6 +61,9 @@ pub struct ServeConfig {
     pub client_queue: usize,
     /// Seconds of ticks kept in memory for the fault dump.
     pub ring_s: f64,
+    /// Format of fault dumps and of recordings started without a path: `csv` or `mcap`
+    /// (a recording given a path follows its extension).
+    pub log_format: crate::telemetry::mcap_log::LogKind,
     /// Directory for fault dumps; empty: $OMNID_STATE_DIR or ~/.local/state/omnid.
     pub dump_dir: String,
     /// SCHED_FIFO priority of the thread that serves clients (1..=98, below
@@ -88,6 +91,7 @@ impl Default for ServeConfig {
             max_dumps: 20,
             client_queue: 1024,
             ring_s: 10.0,
+            log_format: Default::default(),
             dump_dir: String::new(),
             hub_fifo_priority: 70,
         }

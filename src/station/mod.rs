@@ -30,6 +30,7 @@ use crate::servo::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabe
 use crate::servo::{
     Activity, ArmSignals, ServoCommand, ServoEvent, ServoReply, Snapshot, Stamped, Wake,
 };
+use crate::telemetry::mcap_log::LogFormat;
 use crate::telemetry::record::{LogSchema, Mode, TickRecord};
 use crate::telemetry::{LogError, LogFile};
 use crossbeam_channel::{Receiver, Sender, TryRecvError};
@@ -94,6 +95,8 @@ pub struct StationLimits {
     pub dump_interval_s: f64,
     /// Fault dumps kept per arm.
     pub max_dumps: usize,
+    /// Format of fault dumps and of recordings started without a path.
+    pub log_format: crate::telemetry::mcap_log::LogKind,
 }
 
 /// What [`Station::pump`] hands a transport.
@@ -277,6 +280,7 @@ impl Station {
         let ring = FaultRing::new(
             (s.limits.ring_s * s.rate_hz).round().max(1.0) as usize,
             s.schema,
+            s.limits.log_format.format(s.geometry),
         );
         let epoch = s.signals.owner().0;
         Station {
@@ -743,10 +747,12 @@ impl Station {
             None => {
                 let dir = self.s.state_dir.join("recordings");
                 let stem = format!("omnid-{}-{}", self.s.arm.file_stem(), utc_stamp());
-                LogFile::create_unique(&dir, &stem).map_err(failed)?
+                let ext = self.s.limits.log_format.format(self.s.geometry).extension();
+                LogFile::create_unique(&dir, &stem, ext).map_err(failed)?
             }
         };
-        let r = Recording::start(log, self.s.schema).map_err(failed)?;
+        let format = LogFormat::for_path(&log.path, self.s.geometry);
+        let r = Recording::start(log, self.s.schema, format).map_err(failed)?;
         let path = r.path().to_path_buf();
         self.recording = Some(r);
         Ok(Reply::Path { path })

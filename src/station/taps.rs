@@ -2,6 +2,7 @@
 //! fault), a recording (a writer thread fed through a bounded channel, as `omnid run`'s log),
 //! and any [`Tap`] a transport or recorder adds.
 
+use crate::telemetry::mcap_log::LogFormat;
 use crate::telemetry::record::{LogSchema, TickRecord};
 use crate::telemetry::{
     spawn_writer_with, write_dump, DumpTo, LogError, LogFile, Watch, WriterFault, WriterReport,
@@ -28,14 +29,16 @@ pub(crate) struct FaultRing {
     ticks: VecDeque<TickRecord>,
     cap: usize,
     schema: LogSchema,
+    format: LogFormat,
 }
 
 impl FaultRing {
-    pub(crate) fn new(cap: usize, schema: LogSchema) -> FaultRing {
+    pub(crate) fn new(cap: usize, schema: LogSchema, format: LogFormat) -> FaultRing {
         FaultRing {
             ticks: VecDeque::with_capacity(cap),
             cap,
             schema,
+            format,
         }
     }
 
@@ -56,7 +59,7 @@ impl FaultRing {
             dir: &faults,
             stem: &stem,
         };
-        let written = write_dump(to, &self.schema, &self.ticks);
+        let written = write_dump(to, &self.schema, self.format, &self.ticks);
         match written {
             Ok(path) => {
                 crate::errln!(
@@ -113,11 +116,15 @@ pub(crate) struct Recording {
 
 impl Recording {
     /// Start writing to `log` (opened by the caller, with the rights of whoever named it).
-    pub(crate) fn start(log: LogFile, schema: LogSchema) -> Result<Recording, LogError> {
+    pub(crate) fn start(
+        log: LogFile,
+        schema: LogSchema,
+        format: LogFormat,
+    ) -> Result<Recording, LogError> {
         let (tx, rx) = crossbeam_channel::bounded(8192);
         let path = log.path.clone();
         let fault = WriterFault::default();
-        let recorder = crate::telemetry::recorder::recorder(schema);
+        let recorder = crate::telemetry::recorder::recorder(schema, format);
         let writer = spawn_writer_with(
             log,
             schema,
@@ -210,7 +217,7 @@ mod tests {
         let (reader, writer) =
             unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
         let log = LogFile::on("pipe".into(), std::fs::File::from(writer));
-        let mut rec = Recording::start(log, LogSchema { model: false }).unwrap();
+        let mut rec = Recording::start(log, LogSchema { model: false }, LogFormat::Csv).unwrap();
         // The reader goes away: every write from now on fails (EPIPE).
         drop(reader);
         let mut said = Vec::new();

@@ -2,6 +2,7 @@
 //! docs/DESIGN.md §2.2, the streaming reader that reads such logs back (for replay), and the
 //! run summary of docs/DESIGN.md §2.3.
 
+pub mod mcap_log;
 pub mod reader;
 pub mod record;
 pub mod recorder;

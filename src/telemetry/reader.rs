@@ -31,6 +31,7 @@
 //! [`SkipReport`]: how many and the first few line numbers. Time order is checked against the
 //! last *accepted* row.
 
+use super::mcap_log::read::{is_mcap, mcap_error, McapAsCsv, McapReadError};
 use super::record::Mode;
 pub use crate::input::MAX_ROW_BYTES;
 use crate::input::{self, Input, RowBound};
@@ -63,6 +64,14 @@ pub enum ReadError {
         path: String,
         /// What the operating system said.
         source: io::Error,
+    },
+    /// An MCAP log that cannot be read (damaged, cut short, or not omnid's).
+    #[error("{path}: {source}")]
+    Mcap {
+        /// The file, as given.
+        path: String,
+        /// What is wrong, and in which record.
+        source: McapReadError,
     },
     /// The operator's stop flag ended the read.
     #[error("{path}: reading stopped by the operator")]
@@ -293,7 +302,7 @@ impl ReadError {
     pub fn line(&self) -> Option<u64> {
         use ReadError::*;
         match self {
-            Io { .. } | Stopped { .. } | NoRows { .. } => None,
+            Io { .. } | Mcap { .. } | Stopped { .. } | NoRows { .. } => None,
             Empty { .. } | MissingColumn { .. } | DuplicateColumn { .. } => Some(1),
             FieldCount { line, .. }
             | Truncated { line, .. }
@@ -649,10 +658,78 @@ pub(crate) struct ColumnReader<R: Read> {
     skipped: SkipReport,
 }
 
-impl ColumnReader<Input> {
-    /// Open a file; `required` columns must all be present (the first is the time column).
-    /// `stop`: the operator's stop flag, which ends any read (without one, only a regular file
-    /// is accepted: see [`crate::input::open`]).
+/// A log file as the CSV layer reads it: a CSV file as it is, an omnid MCAP log (known by its
+/// first bytes) as the CSV text of the same rows ([`McapAsCsv`]), so every reader and check
+/// serves both formats.
+pub enum LogInput {
+    /// A CSV file (or any text).
+    Csv(Sniffed),
+    /// An MCAP log.
+    Mcap(Box<McapAsCsv<Sniffed>>),
+}
+
+impl LogInput {
+    /// Open `path` (as [`crate::input::open`]) and look at its first bytes.
+    pub fn open(
+        path: &Path,
+        lenient: bool,
+        stop: Option<&Arc<AtomicBool>>,
+    ) -> io::Result<LogInput> {
+        let mut file = Sniffed {
+            head: [0; 8],
+            len: 0,
+            at: 0,
+            inner: input::open(path, stop)?,
+        };
+        while file.len < file.head.len() {
+            match file.inner.read(&mut file.head[file.len..]) {
+                Ok(0) => break,
+                Ok(n) => file.len += n,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(if is_mcap(&file.head[..file.len]) {
+            LogInput::Mcap(Box::new(McapAsCsv::new(file, lenient)))
+        } else {
+            LogInput::Csv(file)
+        })
+    }
+}
+
+impl Read for LogInput {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        match self {
+            LogInput::Csv(f) => f.read(buf),
+            LogInput::Mcap(m) => m.read(buf),
+        }
+    }
+}
+
+/// An input whose first bytes were read to tell its format, and are read again first.
+pub struct Sniffed {
+    head: [u8; 8],
+    len: usize,
+    at: usize,
+    inner: Input,
+}
+
+impl Read for Sniffed {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        if self.at < self.len {
+            let n = buf.len().min(self.len - self.at);
+            buf[..n].copy_from_slice(&self.head[self.at..self.at + n]);
+            self.at += n;
+            return Ok(n);
+        }
+        self.inner.read(buf)
+    }
+}
+
+impl ColumnReader<LogInput> {
+    /// Open a file (CSV or MCAP); `required` columns must all be present (the first is the
+    /// time column). `stop`: the operator's stop flag, which ends any read (without one, only
+    /// a regular file is accepted: see [`crate::input::open`]).
     pub fn open(
         path: &Path,
         required: &[&str],
@@ -660,7 +737,7 @@ impl ColumnReader<Input> {
         stop: Option<&Arc<AtomicBool>>,
     ) -> Result<Self, ReadError> {
         let name = path.display().to_string();
-        let file = input::open(path, stop).map_err(|source| io_error(source, &name))?;
+        let file = LogInput::open(path, lenient, stop).map_err(|source| io_error(source, &name))?;
         Self::new(file, &name, required, lenient)
     }
 }
@@ -974,6 +1051,16 @@ fn io_error(source: io::Error, path: &str) -> ReadError {
         ReadError::Stopped {
             path: path.to_string(),
         }
+    } else if mcap_error(&source).is_some() {
+        let source = source
+            .into_inner()
+            .and_then(|e| e.downcast::<McapReadError>().ok())
+            .map(|e| *e)
+            .expect("checked above");
+        ReadError::Mcap {
+            path: path.to_string(),
+            source,
+        }
     } else {
         ReadError::Io {
             path: path.to_string(),
@@ -1042,13 +1129,13 @@ pub struct LogColumns {
 }
 
 /// Streaming reader of a replayable log.
-pub struct LogReader<R: Read = Input> {
+pub struct LogReader<R: Read = LogInput> {
     core: ColumnReader<R>,
     cols: LogColumns,
     stop_line: Option<u64>,
 }
 
-impl LogReader<Input> {
+impl LogReader<LogInput> {
     /// Open a log file. `stop`: the operator's stop flag, which ends any read (without one,
     /// only a regular file is accepted: see [`crate::input::open`]).
     pub fn open(

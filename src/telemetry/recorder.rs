@@ -1,25 +1,39 @@
 //! Recorders: what turns the servo's tick records into a log file's bytes. One trait, and
-//! one file per format — CSV (docs/DESIGN.md §2.2) is the first, in this file. The writer
-//! thread (`writer::spawn_writer`, for `omnid run`'s log and `omnid serve`'s recordings) and
-//! every fault dump (`writer::write_dump`, for both) write through it, so a new format is a new
-//! implementation here and a new arm of `recorder`.
+//! one implementation per format — CSV (docs/DESIGN.md §2.2) in this file, MCAP
+//! (docs/MCAP.md) in `mcap_log::write`. The writer thread (`writer::spawn_writer`, for `omnid
+//! run`'s log and `omnid serve`'s recordings) and every fault dump (`writer::write_dump`, for
+//! both) write through it, so a new format is a new implementation and a new arm of
+//! `recorder`.
 
+use super::mcap_log::LogFormat;
 use super::record::{LogSchema, TickRecord};
+use std::io;
 
-/// A log format. Each call appends whole units to `out`: the writer counts a `row` as the unit
-/// a failed write takes back, so a log cut by a full disk still ends on a whole row.
+/// A log format. Each call appends bytes to `out` and says how many rows those bytes complete:
+/// the writer counts rows as they reach the file and, when a write fails, cuts the file back
+/// to the end of the last whole row, so a log cut by a full disk still reads to its end.
 pub trait Recorder: Send {
     /// What the file starts with.
-    fn header(&mut self, out: &mut Vec<u8>);
-    /// One tick.
-    fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>);
-    /// What the file ends with (indexes, a summary); nothing by default.
-    fn footer(&mut self, _out: &mut Vec<u8>) {}
+    fn header(&mut self, out: &mut Vec<u8>) -> io::Result<()>;
+    /// One tick; the rows `out` completes (a format that gathers rows into blocks completes
+    /// none until a block closes, then all of its rows).
+    fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>) -> io::Result<u64>;
+    /// The rows still held back (an open block), after the last tick.
+    fn finish_rows(&mut self, _out: &mut Vec<u8>) -> io::Result<u64> {
+        Ok(0)
+    }
+    /// What the file ends with after its rows (indexes, a summary); nothing by default.
+    fn footer(&mut self, _out: &mut Vec<u8>) -> io::Result<()> {
+        Ok(())
+    }
 }
 
-/// The recorder for logs of `schema`.
-pub(crate) fn recorder(schema: LogSchema) -> Box<dyn Recorder> {
-    Box::new(Csv { schema })
+/// The recorder for logs of `schema` in `format`.
+pub(crate) fn recorder(schema: LogSchema, format: LogFormat) -> Box<dyn Recorder> {
+    match super::mcap_log::write::for_format(schema, format) {
+        Some(mcap) => Box::new(mcap),
+        None => Box::new(Csv { schema }),
+    }
 }
 
 /// CSV: the header of `schema`'s columns, one line a tick, floats in their shortest
@@ -29,13 +43,15 @@ pub(crate) struct Csv {
 }
 
 impl Recorder for Csv {
-    fn header(&mut self, out: &mut Vec<u8>) {
+    fn header(&mut self, out: &mut Vec<u8>) -> io::Result<()> {
         out.extend_from_slice(self.schema.columns().join(",").as_bytes());
         out.push(b'\n');
+        Ok(())
     }
 
-    fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>) {
+    fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>) -> io::Result<u64> {
         format_row(out, r, &self.schema);
+        Ok(1)
     }
 }
 
@@ -97,14 +113,17 @@ mod tests {
     struct SeqLines;
 
     impl Recorder for SeqLines {
-        fn header(&mut self, out: &mut Vec<u8>) {
+        fn header(&mut self, out: &mut Vec<u8>) -> io::Result<()> {
             out.extend_from_slice(b"# seq mode\n");
+            Ok(())
         }
-        fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>) {
+        fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>) -> io::Result<u64> {
             out.extend_from_slice(format!("{} {}\n", r.live.seq, r.mode.as_str()).as_bytes());
+            Ok(1)
         }
-        fn footer(&mut self, out: &mut Vec<u8>) {
+        fn footer(&mut self, out: &mut Vec<u8>) -> io::Result<()> {
             out.extend_from_slice(b"# end\n");
+            Ok(())
         }
     }
 
@@ -131,9 +150,9 @@ mod tests {
         let text = std::fs::read_to_string(dir.path().join("run.seq")).unwrap();
         assert_eq!(text, "# seq mode\n0 hold\n1 hold\n2 stop\n# end\n");
         // CSV, the format every log has: its header is the schema's columns.
-        let mut csv = recorder(LogSchema { model: false });
+        let mut csv = recorder(LogSchema { model: false }, LogFormat::Csv);
         let mut out = Vec::new();
-        csv.header(&mut out);
+        csv.header(&mut out).unwrap();
         assert!(String::from_utf8(out)
             .unwrap()
             .starts_with("t,q1,q2,q3,tau1"));

@@ -6,6 +6,7 @@
 //! a receiver parked in `recv` must be woken by the sender, which would put a futex
 //! syscall into every servo tick.
 
+use super::mcap_log::LogFormat;
 use super::record::{LogSchema, TickRecord};
 use crate::output::{describe, OutputError};
 use crossbeam_channel::{Receiver, TryRecvError};
@@ -75,17 +76,19 @@ pub(crate) fn dump_path(log: &Path) -> PathBuf {
 pub(crate) fn dump_rows(
     out: &mut impl Write,
     schema: &LogSchema,
+    format: LogFormat,
     rows: &VecDeque<TickRecord>,
 ) -> io::Result<()> {
-    let mut rec = super::recorder::recorder(*schema);
+    let mut rec = super::recorder::recorder(*schema, format);
     let mut bytes = Vec::with_capacity(512);
-    rec.header(&mut bytes);
+    rec.header(&mut bytes)?;
     for r in rows {
-        rec.row(r, &mut bytes);
+        rec.row(r, &mut bytes)?;
         out.write_all(&bytes)?;
         bytes.clear();
     }
-    rec.footer(&mut bytes);
+    rec.finish_rows(&mut bytes)?;
+    rec.footer(&mut bytes)?;
     out.write_all(&bytes)
 }
 
@@ -102,18 +105,21 @@ pub(crate) enum DumpTo<'a> {
 pub(crate) fn write_dump(
     to: DumpTo<'_>,
     schema: &LogSchema,
+    format: LogFormat,
     rows: &VecDeque<TickRecord>,
 ) -> Result<PathBuf, OutputError> {
     match to {
         DumpTo::File(path) => crate::output::write_with(path, |w| {
-            dump_rows(w, schema, rows).map_err(|source| OutputError::Write {
+            dump_rows(w, schema, format, rows).map_err(|source| OutputError::Write {
                 path: path.to_path_buf(),
                 source,
             })
         })
         .map(|()| path.to_path_buf()),
         DumpTo::Unique { dir, stem } => {
-            crate::output::write_unique(dir, stem, "csv", |w| dump_rows(w, schema, rows))
+            crate::output::write_unique(dir, stem, format.extension(), |w| {
+                dump_rows(w, schema, format, rows)
+            })
         }
     }
 }
@@ -350,8 +356,8 @@ impl LogFile {
 
     /// A new log under a default name in `dir`: `stem.csv`, else `stem-2.csv`, … (never
     /// another run's file, even for runs started in the same second).
-    pub(crate) fn create_unique(dir: &Path, stem: &str) -> Result<LogFile, LogError> {
-        let (path, file) = crate::output::create_unique(dir, stem, "csv").map_err(|e| match e {
+    pub(crate) fn create_unique(dir: &Path, stem: &str, ext: &str) -> Result<LogFile, LogError> {
+        let (path, file) = crate::output::create_unique(dir, stem, ext).map_err(|e| match e {
             OutputError::Unwritable { path, source } | OutputError::Write { path, source } => {
                 LogError::Io { path, source }
             }
@@ -370,6 +376,8 @@ impl LogFile {
 struct RowSink {
     file: File,
     buf: Vec<u8>,
+    /// Where rows end in `buf`, and how many rows end there.
+    ends: Vec<(usize, u64)>,
     /// Bytes in the file, and where its last whole row ends.
     written: u64,
     whole: u64,
@@ -439,26 +447,35 @@ fn write_all_waiting(
 impl RowSink {
     const BLOCK: usize = 1 << 16;
 
-    fn push(&mut self, line: &[u8]) {
-        if self.buf.len() + line.len() > Self::BLOCK {
+    /// Queue `bytes`, which complete `rows` rows (0: they end inside one).
+    fn push(&mut self, bytes: &[u8], rows: u64) {
+        if !self.buf.is_empty() && self.buf.len() + bytes.len() > Self::BLOCK {
             self.flush();
         }
-        self.buf.extend_from_slice(line);
+        self.buf.extend_from_slice(bytes);
+        if rows > 0 {
+            self.ends.push((self.buf.len(), rows));
+        }
     }
 
     fn flush(&mut self) {
+        let base = self.written;
         let mut done = 0;
+        let mut next_end = 0;
         while done < self.buf.len() && self.error.is_none() {
             match self.file.write(&self.buf[done..]) {
                 Ok(0) => self.error = Some(io::ErrorKind::WriteZero.into()),
                 Ok(n) => {
-                    let chunk = &self.buf[done..done + n];
-                    if let Some(last) = chunk.iter().rposition(|&b| b == b'\n') {
-                        self.rows += chunk.iter().filter(|&&b| b == b'\n').count() as u64;
-                        self.whole = self.written + last as u64 + 1;
-                    }
-                    self.written += n as u64;
                     done += n;
+                    self.written += n as u64;
+                    while let Some(&(end, rows)) = self.ends.get(next_end) {
+                        if end > done {
+                            break;
+                        }
+                        self.rows += rows;
+                        self.whole = base + end as u64;
+                        next_end += 1;
+                    }
                     self.stalled = None;
                 }
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
@@ -473,11 +490,18 @@ impl RowSink {
             }
         }
         self.buf.clear();
+        self.ends.clear();
         if self.error.is_some() && self.whole < self.written {
             // Best effort (a device cannot be cut): the log then ends with its last whole row.
             if self.file.set_len(self.whole).is_ok() {
                 self.written = self.whole;
             }
+        }
+    }
+
+    fn fail(&mut self, e: io::Error) {
+        if self.error.is_none() {
+            self.error = Some(e);
         }
     }
 }
@@ -493,7 +517,7 @@ pub(crate) fn spawn_writer(
     spawn_writer_with(
         log,
         schema,
-        super::recorder::recorder(schema),
+        super::recorder::recorder(schema, super::mcap_log::LogFormat::Csv),
         rx,
         Watch::default(),
     )
@@ -523,7 +547,7 @@ pub(crate) fn spawn_writer_with(
     let LogFile { path, mut file } = log;
     let Watch { fault, stop } = watch;
     let mut header = Vec::new();
-    rec.header(&mut header);
+    rec.header(&mut header)?;
     write_all_waiting(&mut file, &header, stop.as_deref())?;
     std::thread::Builder::new()
         .name("omnid-log".into())
@@ -531,6 +555,7 @@ pub(crate) fn spawn_writer_with(
             let mut sink = RowSink {
                 file,
                 buf: Vec::with_capacity(RowSink::BLOCK),
+                ends: Vec::with_capacity(1024),
                 written: header.len() as u64,
                 whole: header.len() as u64,
                 rows: 0,
@@ -551,18 +576,29 @@ pub(crate) fn spawn_writer_with(
                     return; // keep draining: the loop must never block on us
                 }
                 line.clear();
-                rec.row(&record, &mut line);
-                sink.push(&line);
+                match rec.row(&record, &mut line) {
+                    Ok(rows) => sink.push(&line, rows),
+                    Err(e) => sink.fail(e),
+                }
                 if let (Some(e), Some(f)) = (&sink.error, &fault) {
                     let _ = f.set(e.to_string());
                 }
             });
+            if sink.error.is_none() {
+                line.clear();
+                match rec.finish_rows(&mut line) {
+                    Ok(rows) => sink.push(&line, rows),
+                    Err(e) => sink.fail(e),
+                }
+            }
             sink.flush();
             // The footer is not a row: written after the last whole one.
             line.clear();
-            rec.footer(&mut line);
-            if sink.error.is_none() && !line.is_empty() {
-                if let Err(e) = write_all_waiting(&mut sink.file, &line, sink.stop.as_deref()) {
+            if sink.error.is_none() {
+                let footer = rec
+                    .footer(&mut line)
+                    .and_then(|()| write_all_waiting(&mut sink.file, &line, sink.stop.as_deref()));
+                if let Err(e) = footer {
                     sink.error = Some(e);
                 }
             }
@@ -655,6 +691,7 @@ mod tests {
         let mut sink = RowSink {
             file,
             buf: Vec::new(),
+            ends: Vec::new(),
             written: 0,
             whole: 0,
             rows: 0,
@@ -662,8 +699,8 @@ mod tests {
             stop: None,
             stalled: None,
         };
-        sink.push(b"1,2,3\n");
-        sink.push(b"4,5,6\n");
+        sink.push(b"1,2,3\n", 1);
+        sink.push(b"4,5,6\n", 1);
         sink.flush();
         assert_eq!(sink.rows, 0);
         assert_eq!(

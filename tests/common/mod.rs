@@ -159,3 +159,55 @@ impl Drop for Served {
         }
     }
 }
+
+/// A virtual environment under target/`name` (kept between runs) with `packages` from PyPI
+/// installed; `probe` is a module whose presence means they are. None when PyPI is out of
+/// reach (the caller skips, loudly); a failed install for any other reason fails the test.
+pub fn venv(name: &str, packages: &[&str], probe: &str) -> Option<std::path::PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("target")
+        .join(name);
+    let python = dir.join("bin/python");
+    if !python.exists() {
+        let made = Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&dir)
+            .output()
+            .expect("python3 runs");
+        assert!(
+            made.status.success(),
+            "python3 -m venv failed (install python3-venv; .ci/run does): {}",
+            String::from_utf8_lossy(&made.stderr)
+        );
+    }
+    let check = format!("import importlib.util as u; print(u.find_spec('{probe}') is not None)");
+    let site = Command::new(&python)
+        .args(["-c", &check])
+        .output()
+        .expect("venv python runs");
+    if String::from_utf8_lossy(&site.stdout).trim() == "True" {
+        return Some(python);
+    }
+    let pip = Command::new(&python)
+        .args(["-m", "pip", "install", "--disable-pip-version-check", "-q"])
+        .args(packages)
+        .output()
+        .expect("pip runs");
+    if pip.status.success() {
+        return Some(python);
+    }
+    let err = String::from_utf8_lossy(&pip.stderr);
+    let unreachable = [
+        "Could not fetch",
+        "NewConnectionError",
+        "Temporary failure in name resolution",
+        "Network is unreachable",
+        "No matching distribution found",
+        "ConnectTimeout",
+        "Failed to establish",
+    ];
+    if unreachable.iter().any(|s| err.contains(s)) {
+        return None;
+    }
+    panic!("pip install {packages:?} failed:\n{err}");
+}

@@ -1,0 +1,270 @@
+//! Plain CDR (XCDR1, little-endian), the encoding of ROS 2 messages in MCAP files and on
+//! rmw_zenoh (docs/ROS2.md, CDR): a 4-byte encapsulation header `00 01 00 00`, then the
+//! fields in order, each primitive aligned to its size counted from the end of the header;
+//! strings as a u32 length (bytes + 1) followed by the bytes and a NUL; sequences as a u32
+//! count followed by the elements (no element alignment when the sequence is empty).
+
+// One method per CDR type, named for it: documenting each would repeat its name.
+#![allow(missing_docs)]
+
+use thiserror::Error;
+
+/// Encapsulation header: CDR, little-endian, no options.
+pub const HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
+
+/// Appends one CDR message to a byte buffer.
+pub struct CdrWriter<'a> {
+    out: &'a mut Vec<u8>,
+    /// Where alignment is counted from (just after the encapsulation header).
+    origin: usize,
+}
+
+impl<'a> CdrWriter<'a> {
+    /// Start a message at the end of `out` (the header is written now).
+    pub fn new(out: &'a mut Vec<u8>) -> Self {
+        out.extend_from_slice(&HEADER);
+        let origin = out.len();
+        CdrWriter { out, origin }
+    }
+
+    fn align(&mut self, n: usize) {
+        let pad = (n - (self.out.len() - self.origin) % n) % n;
+        self.out.resize(self.out.len() + pad, 0);
+    }
+
+    pub fn u8(&mut self, v: u8) {
+        self.out.push(v);
+    }
+    pub fn bool(&mut self, v: bool) {
+        self.out.push(u8::from(v));
+    }
+    pub fn i32(&mut self, v: i32) {
+        self.align(4);
+        self.out.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn u32(&mut self, v: u32) {
+        self.align(4);
+        self.out.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn f32(&mut self, v: f32) {
+        self.align(4);
+        self.out.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn i64(&mut self, v: i64) {
+        self.align(8);
+        self.out.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn f64(&mut self, v: f64) {
+        self.align(8);
+        self.out.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn string(&mut self, s: &str) {
+        self.u32(s.len() as u32 + 1);
+        self.out.extend_from_slice(s.as_bytes());
+        self.out.push(0);
+    }
+    /// A sequence's element count.
+    pub fn count(&mut self, n: usize) {
+        self.u32(n as u32);
+    }
+    pub fn f64s(&mut self, v: &[f64]) {
+        self.count(v.len());
+        for x in v {
+            self.f64(*x);
+        }
+    }
+    pub fn i64s(&mut self, v: &[i64]) {
+        self.count(v.len());
+        for x in v {
+            self.i64(*x);
+        }
+    }
+    pub fn f32s(&mut self, v: &[f32]) {
+        self.count(v.len());
+        for x in v {
+            self.f32(*x);
+        }
+    }
+    pub fn i32s(&mut self, v: &[i32]) {
+        self.count(v.len());
+        for x in v {
+            self.i32(*x);
+        }
+    }
+    pub fn strings(&mut self, v: &[&str]) {
+        self.count(v.len());
+        for s in v {
+            self.string(s);
+        }
+    }
+}
+
+/// Why a CDR message could not be read. Offsets count from the message's first byte.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum CdrError {
+    /// Not the little-endian plain CDR header.
+    #[error("encapsulation header {found:02x?} is not plain little-endian CDR (00 01 00 00)")]
+    Header {
+        /// The first bytes found.
+        found: Vec<u8>,
+    },
+    /// The message ended inside a field.
+    #[error("ends at byte {len}, inside {what} at byte {at}")]
+    Short {
+        /// What was being read.
+        what: &'static str,
+        /// Where it starts.
+        at: usize,
+        /// The message's length.
+        len: usize,
+    },
+    /// A string without its NUL, or not UTF-8.
+    #[error("the string at byte {at} is {why}")]
+    BadString {
+        /// Where its length starts.
+        at: usize,
+        /// What is wrong with it.
+        why: &'static str,
+    },
+    /// A sequence longer than its message could hold.
+    #[error("the sequence at byte {at} claims {count} elements, more than the message holds")]
+    Count {
+        /// Where its count starts.
+        at: usize,
+        /// The count read.
+        count: u32,
+    },
+    /// Bytes left after the last field.
+    #[error("{extra} bytes after the last field")]
+    Trailing {
+        /// How many.
+        extra: usize,
+    },
+}
+
+/// Reads one CDR message field by field.
+pub struct CdrReader<'a> {
+    buf: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> CdrReader<'a> {
+    /// Check the header of `buf` and start after it.
+    pub fn new(buf: &'a [u8]) -> Result<Self, CdrError> {
+        if buf.len() < 4 || buf[..4] != HEADER {
+            return Err(CdrError::Header {
+                found: buf[..buf.len().min(4)].to_vec(),
+            });
+        }
+        Ok(CdrReader { buf, pos: 4 })
+    }
+
+    fn take(&mut self, n: usize, align: usize, what: &'static str) -> Result<&'a [u8], CdrError> {
+        let pad = (align - (self.pos - 4) % align) % align;
+        let at = self.pos + pad;
+        let end = at.checked_add(n).filter(|&e| e <= self.buf.len());
+        let Some(end) = end else {
+            return Err(CdrError::Short {
+                what,
+                at,
+                len: self.buf.len(),
+            });
+        };
+        self.pos = end;
+        Ok(&self.buf[at..end])
+    }
+
+    pub fn u8(&mut self) -> Result<u8, CdrError> {
+        Ok(self.take(1, 1, "a byte")?[0])
+    }
+    pub fn bool(&mut self) -> Result<bool, CdrError> {
+        Ok(self.take(1, 1, "a bool")?[0] != 0)
+    }
+    pub fn i32(&mut self) -> Result<i32, CdrError> {
+        Ok(i32::from_le_bytes(
+            self.take(4, 4, "an int32")?.try_into().unwrap(),
+        ))
+    }
+    pub fn u32(&mut self) -> Result<u32, CdrError> {
+        Ok(u32::from_le_bytes(
+            self.take(4, 4, "a uint32")?.try_into().unwrap(),
+        ))
+    }
+    pub fn f32(&mut self) -> Result<f32, CdrError> {
+        Ok(f32::from_le_bytes(
+            self.take(4, 4, "a float32")?.try_into().unwrap(),
+        ))
+    }
+    pub fn i64(&mut self) -> Result<i64, CdrError> {
+        Ok(i64::from_le_bytes(
+            self.take(8, 8, "an int64")?.try_into().unwrap(),
+        ))
+    }
+    pub fn f64(&mut self) -> Result<f64, CdrError> {
+        Ok(f64::from_le_bytes(
+            self.take(8, 8, "a float64")?.try_into().unwrap(),
+        ))
+    }
+    pub fn string(&mut self) -> Result<&'a str, CdrError> {
+        let at = self.pos;
+        let n = self.u32()? as usize;
+        if n == 0 {
+            return Err(CdrError::BadString {
+                at,
+                why: "of length 0 (no room for its NUL)",
+            });
+        }
+        let bytes = self.take(n, 1, "a string")?;
+        if bytes[n - 1] != 0 {
+            return Err(CdrError::BadString {
+                at,
+                why: "not NUL-terminated",
+            });
+        }
+        std::str::from_utf8(&bytes[..n - 1]).map_err(|_| CdrError::BadString {
+            at,
+            why: "not UTF-8",
+        })
+    }
+    /// A sequence's element count, checked against what the rest of the message can hold
+    /// (`min_size`: the least bytes one element takes), so a lying count never allocates.
+    pub fn count(&mut self, min_size: usize) -> Result<usize, CdrError> {
+        let at = self.pos;
+        let count = self.u32()?;
+        let left = self.buf.len() - self.pos;
+        if (count as usize).saturating_mul(min_size.max(1)) > left {
+            return Err(CdrError::Count { at, count });
+        }
+        Ok(count as usize)
+    }
+    pub fn f64s(&mut self) -> Result<Vec<f64>, CdrError> {
+        let n = self.count(8)?;
+        (0..n).map(|_| self.f64()).collect()
+    }
+    pub fn i64s(&mut self) -> Result<Vec<i64>, CdrError> {
+        let n = self.count(8)?;
+        (0..n).map(|_| self.i64()).collect()
+    }
+    pub fn f32s(&mut self) -> Result<Vec<f32>, CdrError> {
+        let n = self.count(4)?;
+        (0..n).map(|_| self.f32()).collect()
+    }
+    pub fn i32s(&mut self) -> Result<Vec<i32>, CdrError> {
+        let n = self.count(4)?;
+        (0..n).map(|_| self.i32()).collect()
+    }
+    pub fn strings(&mut self) -> Result<Vec<&'a str>, CdrError> {
+        let n = self.count(5)?;
+        (0..n).map(|_| self.string()).collect()
+    }
+    /// The message must end here (up to 3 zero bytes of padding to a 4-byte boundary, which
+    /// some writers add, are allowed).
+    pub fn end(&self) -> Result<(), CdrError> {
+        let rest = &self.buf[self.pos..];
+        if rest.len() < 4 && rest.iter().all(|&b| b == 0) {
+            Ok(())
+        } else {
+            Err(CdrError::Trailing { extra: rest.len() })
+        }
+    }
+}
