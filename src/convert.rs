@@ -40,6 +40,9 @@ pub enum SourceFormat {
     Omnid,
     /// An `omnid probe` capture (raw packets): one row per received state packet.
     Capture,
+    /// An omnid log whole, CSV or MCAP, to the format `--out`'s extension names (`.mcap`:
+    /// MCAP, else CSV); every column kept.
+    Log,
 }
 
 /// The ROS driver's columns (the first is the time).
@@ -128,12 +131,16 @@ pub fn convert(
         return Err(ConvertError::SameFile(out.display().to_string()));
     }
     crate::output::check_file(out)?;
+    if from == SourceFormat::Log {
+        return crate::output::write_with(out, |file| whole_log(input, file, out, lenient, stop));
+    }
     crate::output::write_with(out, |file| {
         let mut w = csv::WriterBuilder::new().from_writer(file);
         let report = match from {
             SourceFormat::RosTouch => ros_touch(input, &mut w, lenient, out, stop)?,
             SourceFormat::Omnid => omnid(input, &mut w, lenient, out, stop)?,
             SourceFormat::Capture => capture(input, &mut w, out)?,
+            SourceFormat::Log => unreachable!("converted above"),
         };
         w.flush().map_err(|source| ConvertError::Write {
             path: out.display().to_string(),
@@ -271,6 +278,107 @@ fn omnid<W: Write>(
         w.write_record(None::<&[u8]>).map_err(&werr)?;
         rows += 1;
     }
+    finish(rows, columns, reader.skipped().clone(), reader.path())
+}
+
+/// A whole omnid log (CSV or MCAP, read through the one log reader) to `out` in the format its
+/// extension names. Every value passes as its exact bits (shortest round-trip text in CSV,
+/// binary in MCAP), so CSV → MCAP → CSV gives the same file back.
+fn whole_log<W: Write>(
+    input: &Path,
+    file: &mut W,
+    out: &Path,
+    lenient: bool,
+    stop: Option<&Arc<AtomicBool>>,
+) -> Result<ConvertReport, ConvertError> {
+    use crate::telemetry::mcap_log::LogFormat;
+    use crate::telemetry::reader::RowFault;
+    use crate::telemetry::record::{HapticRecord, LogSchema, Mode, TickRecord};
+    let mut reader = ColumnReader::open(input, &["t"], lenient, stop)?;
+    let schema = LogSchema {
+        model: reader.header().iter().any(|h| h == "tau_model1"),
+    };
+    let columns = schema.columns();
+    let names: Vec<&str> = columns.iter().map(String::as_str).collect();
+    let idx: Vec<usize> = names
+        .iter()
+        .map(|c| reader.require(c, &names))
+        .collect::<Result<_, _>>()?;
+    let col = |name: &str| idx[names.iter().position(|n| *n == name).expect("a log column")];
+    let three = |group: &str| [1, 2, 3].map(|j| col(&format!("{group}{j}")));
+    let (q, tau, qf, qd, qdd) = (
+        three("q"),
+        three("tau"),
+        three("qf"),
+        three("qd"),
+        three("qdd"),
+    );
+    let (reference, tau_cmd, tau_hat) = (three("ref"), three("tau_cmd"), three("tau_hat"));
+    let (tip, fcmd, enc) = (three("tip"), three("fcmd"), three("enc"));
+    let model = schema.model.then(|| (three("tau_model"), three("fhand")));
+    let (amps, mode, flags) = (col("amps"), col("mode"), col("flags"));
+    let format = LogFormat::for_path(out, crate::omni::kinematics::Geometry::default());
+    let mut rec = crate::telemetry::recorder::recorder(schema, format);
+    let werr = |source: io::Error| ConvertError::Write {
+        path: out.display().to_string(),
+        source,
+    };
+    let mut bytes = Vec::with_capacity(1 << 16);
+    rec.header(&mut bytes).map_err(werr)?;
+    let mut rows = 0u64;
+    loop {
+        let next = reader.next_with(|row| {
+            let nums = |c: [usize; 3]| -> Result<[f64; 3], RowFault> {
+                Ok([
+                    row.number_or_gap(c[0])?,
+                    row.number_or_gap(c[1])?,
+                    row.number_or_gap(c[2])?,
+                ])
+            };
+            let m = std::str::from_utf8(row.field(mode))
+                .ok()
+                .and_then(Mode::parse)
+                .ok_or(RowFault::UnknownMode { col: mode })?;
+            row.check_time(m == Mode::Stop)?;
+            let (tau_model, hand) = match model {
+                Some((tm, fh)) => (nums(tm)?, nums(fh)?),
+                None => ([f64::NAN; 3], [f64::NAN; 3]),
+            };
+            Ok(TickRecord {
+                t: row.t,
+                q: nums(q)?,
+                tau: nums(tau)?,
+                qf: nums(qf)?,
+                qd: nums(qd)?,
+                qdd: nums(qdd)?,
+                reference: nums(reference)?,
+                tau_cmd: nums(tau_cmd)?,
+                tau_hat: nums(tau_hat)?,
+                tau_model,
+                enc: [row.i64(enc[0])?, row.i64(enc[1])?, row.i64(enc[2])?],
+                amps: row.i64(amps)? != 0,
+                mode: m,
+                flags: u32::try_from(row.i64(flags)?)
+                    .map_err(|_| RowFault::NotAnInteger { col: flags })?,
+                haptic: HapticRecord {
+                    tip_mm: nums(tip)?,
+                    force: nums(fcmd)?,
+                    hand,
+                },
+                live: Default::default(),
+            })
+        })?;
+        let Some(r) = next else { break };
+        rec.row(&r, &mut bytes).map_err(werr)?;
+        rows += 1;
+        if bytes.len() >= 1 << 16 {
+            file.write_all(&bytes).map_err(werr)?;
+            bytes.clear();
+        }
+    }
+    rec.finish_rows(&mut bytes).map_err(werr)?;
+    rec.footer(&mut bytes).map_err(werr)?;
+    file.write_all(&bytes).map_err(werr)?;
     finish(rows, columns, reader.skipped().clone(), reader.path())
 }
 

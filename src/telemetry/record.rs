@@ -123,6 +123,13 @@ pub struct TickRecord {
     pub(crate) live: Live,
 }
 
+impl TickRecord {
+    /// Device time since start, s.
+    pub fn t(&self) -> f64 {
+        self.t
+    }
+}
+
 #[cfg(test)]
 impl TickRecord {
     /// A record at tick `seq` in `mode`, every value zero (tests of what carries records).

@@ -168,6 +168,15 @@ pub fn venv(name: &str, packages: &[&str], probe: &str) -> Option<std::path::Pat
         .join("target")
         .join(name);
     let python = dir.join("bin/python");
+    // One maker at a time (tests run in parallel, and in several processes): the others wait
+    // here and then find it made.
+    std::fs::create_dir_all(dir.parent().unwrap()).unwrap();
+    let lock = std::fs::File::create(dir.with_extension("lock")).unwrap();
+    // SAFETY: a valid descriptor; the lock is released when `lock` is dropped (closed).
+    assert_eq!(
+        unsafe { libc::flock(std::os::fd::AsRawFd::as_raw_fd(&lock), libc::LOCK_EX) },
+        0
+    );
     if !python.exists() {
         let made = Command::new("python3")
             .args(["-m", "venv"])

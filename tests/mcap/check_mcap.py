@@ -1,6 +1,10 @@
 """Check an omnid MCAP log with readers that are not omnid's (PyPI `mcap`, `mcap-ros2-support`).
 
     python check_mcap.py LOG.mcap LOG.csv
+    python check_mcap.py --stream LOG.mcap
+
+The second form streams a file that may be cut short and prints, as JSON, how many
+`/joint_states` messages its complete chunks hold and whether the stream ended in an error.
 
 LOG.csv is the CSV log of the same run (a simulator run is deterministic). Checks: every record
 streams with CRCs validated; the summary has statistics, the `ros2` profile and a `ros2msg`
@@ -141,5 +145,22 @@ def main(mcap_path, csv_path):
                       "max_gap_ns": max_gap, "topics": topics}))
 
 
+def stream(mcap_path):
+    topics, n, error = {}, 0, None
+    with open(mcap_path, "rb") as f:
+        try:
+            for r in StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True).records:
+                if isinstance(r, Channel):
+                    topics[r.id] = r.topic
+                elif isinstance(r, Message) and topics.get(r.channel_id) == "/joint_states":
+                    n += 1
+        except Exception as e:  # the cut: whatever the reader raises there
+            error = type(e).__name__
+    print(json.dumps({"joint_states": n, "error": error}))
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2])
+    if sys.argv[1] == "--stream":
+        stream(sys.argv[2])
+    else:
+        main(sys.argv[1], sys.argv[2])

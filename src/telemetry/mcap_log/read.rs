@@ -107,7 +107,13 @@ impl<R: Read> McapTicks<R> {
     /// Read from `input` (its first bytes must be the MCAP magic). `lenient`: a file that ends
     /// early ends after its last whole row instead of being an error.
     pub fn new(input: R, lenient: bool) -> Self {
-        let options = LinearReaderOptions::default().with_record_length_limit(MAX_RECORD_BYTES);
+        // A chunk's CRC is checked before any of its messages is taken, so a chunk cut short
+        // or damaged yields nothing rather than unchecked rows.
+        let options = LinearReaderOptions::default()
+            .with_prevalidate_chunk_crcs(true)
+            .with_validate_data_section_crc(true)
+            .with_validate_summary_section_crc(true)
+            .with_record_length_limit(MAX_RECORD_BYTES);
         McapTicks {
             input,
             reader: LinearReader::new_with_options(options),
