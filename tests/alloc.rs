@@ -205,11 +205,22 @@ fn free_mode_with_every_effect_and_each_hand_allocates_nothing() {
 
 #[test]
 fn replay_allocates_nothing_per_tick() {
+    replay_ticks_allocate_nothing("sim.csv");
+}
+
+#[test]
+fn replay_of_an_mcap_log_allocates_nothing_per_tick() {
+    // Decoded chunk by chunk on the servo thread: the chunks' CRC checks and decompression
+    // reuse their buffers too (6000 ticks span several chunks).
+    replay_ticks_allocate_nothing("sim.mcap");
+}
+
+fn replay_ticks_allocate_nothing(name: &str) {
     // The replay device reads the next row of the file inside `exchange`: that must reuse its
     // buffers too. Record a simulator log first (outside the watched window).
     let cfg = Config::default();
     let dir = tempfile::tempdir().unwrap();
-    let log = dir.path().join("sim.csv");
+    let log = dir.path().join(name);
     let opts = omnid::run::RunOptions {
         controller: ControllerKind::Pd,
         trajectory: Trajectory::Multisine,
@@ -243,7 +254,7 @@ fn replay_allocates_nothing_per_tick() {
             assert!(servo.tick().is_none());
         }
     });
-    assert_eq!(n, 0, "replay: {n} allocations in 6000 ticks");
+    assert_eq!(n, 0, "replay of {name}: {n} allocations in 6000 ticks");
     let report = servo.finish(EndReason::Completed);
     assert!(report.last_command.is_safe());
     assert!(consumer.join().unwrap() > 0);

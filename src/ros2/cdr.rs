@@ -134,6 +134,16 @@ pub enum CdrError {
         /// The count read.
         count: u32,
     },
+    /// A sequence of another length than the reader needs.
+    #[error("the sequence at byte {at} has {count} elements, expected {want}")]
+    Length {
+        /// Where its count starts.
+        at: usize,
+        /// The count read.
+        count: u32,
+        /// The count needed.
+        want: usize,
+    },
     /// Bytes left after the last field.
     #[error("{extra} bytes after the last field")]
     Trailing {
@@ -236,6 +246,56 @@ impl<'a> CdrReader<'a> {
             return Err(CdrError::Count { at, count });
         }
         Ok(count as usize)
+    }
+    /// A sequence of exactly `N` elements (`min_size`: as for [`Self::count`]), checked and
+    /// taken without allocating.
+    fn exactly<const N: usize>(&mut self, min_size: usize) -> Result<(), CdrError> {
+        let at = self.pos;
+        let n = self.count(min_size)?;
+        if n != N {
+            return Err(CdrError::Length {
+                at,
+                count: n as u32,
+                want: N,
+            });
+        }
+        Ok(())
+    }
+    pub fn f64_array<const N: usize>(&mut self) -> Result<[f64; N], CdrError> {
+        self.exactly::<N>(8)?;
+        let mut v = [0.0; N];
+        for x in &mut v {
+            *x = self.f64()?;
+        }
+        Ok(v)
+    }
+    pub fn i64_array<const N: usize>(&mut self) -> Result<[i64; N], CdrError> {
+        self.exactly::<N>(8)?;
+        let mut v = [0; N];
+        for x in &mut v {
+            *x = self.i64()?;
+        }
+        Ok(v)
+    }
+    pub fn i32_array<const N: usize>(&mut self) -> Result<[i32; N], CdrError> {
+        self.exactly::<N>(4)?;
+        let mut v = [0; N];
+        for x in &mut v {
+            *x = self.i32()?;
+        }
+        Ok(v)
+    }
+    /// `N` float64 in a row (a fixed array or a struct of them: no count).
+    pub fn f64_array_fixed<const N: usize>(&mut self) -> Result<[f64; N], CdrError> {
+        let mut v = [0.0; N];
+        for x in &mut v {
+            *x = self.f64()?;
+        }
+        Ok(v)
+    }
+    /// A float32 sequence that must be empty.
+    pub fn f32_array_empty(&mut self) -> Result<(), CdrError> {
+        self.exactly::<0>(4)
     }
     pub fn f64s(&mut self) -> Result<Vec<f64>, CdrError> {
         let n = self.count(8)?;

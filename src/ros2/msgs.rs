@@ -238,6 +238,22 @@ pub fn read_joint_state(buf: &[u8]) -> Result<JointState<'_>, CdrError> {
     Ok(m)
 }
 
+/// Position, velocity and effort of `N` joints.
+pub type Joints<const N: usize> = ([f64; N], [f64; N], [f64; N]);
+
+/// A `JointState` of `N` joints, read without allocating.
+pub fn read_joint_state_n<const N: usize>(buf: &[u8]) -> Result<Joints<N>, CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    read_header(&mut r)?;
+    let n = r.count(5)?;
+    for _ in 0..n {
+        r.string()?;
+    }
+    let v = (r.f64_array()?, r.f64_array()?, r.f64_array()?);
+    r.end()?;
+    Ok(v)
+}
+
 /// `geometry_msgs/msg/PoseStamped`: position (x, y, z) and orientation (x, y, z, w).
 pub fn write_pose_stamped(out: &mut Vec<u8>, header: &Header, p: [f64; 3], q: [f64; 4]) {
     let mut w = CdrWriter::new(out);
@@ -282,6 +298,16 @@ pub fn write_joy(out: &mut Vec<u8>, header: &Header, axes: &[f32], buttons: &[i3
     w.i32s(buttons);
 }
 
+/// A `Joy`'s `N` buttons (no axes expected), read without allocating.
+pub fn read_joy_buttons<const N: usize>(buf: &[u8]) -> Result<[i32; N], CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    read_header(&mut r)?;
+    r.f32_array_empty()?;
+    let b = r.i32_array()?;
+    r.end()?;
+    Ok(b)
+}
+
 pub fn read_joy(buf: &[u8]) -> Result<(Header<'_>, Vec<f32>, Vec<i32>), CdrError> {
     let mut r = CdrReader::new(buf)?;
     let h = read_header(&mut r)?;
@@ -312,6 +338,19 @@ pub fn write_tf(out: &mut Vec<u8>, transforms: &[Transform]) {
             w.f64(*v);
         }
     }
+}
+
+/// Check a `TFMessage` decodes, without keeping it: the number of transforms.
+pub fn check_tf(buf: &[u8]) -> Result<usize, CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    let n = r.count(12 + 5 + 56)?;
+    for _ in 0..n {
+        read_header(&mut r)?;
+        r.string()?;
+        r.f64_array_fixed::<7>()?;
+    }
+    r.end()?;
+    Ok(n)
 }
 
 pub fn read_tf(buf: &[u8]) -> Result<Vec<Transform<'_>>, CdrError> {
@@ -408,6 +447,15 @@ pub fn write_f64_array(out: &mut Vec<u8>, label: &str, data: &[f64]) {
     w.f64s(data);
 }
 
+/// A `Float64MultiArray` of exactly `N` values, read without allocating.
+pub fn read_f64_array_n<const N: usize>(buf: &[u8]) -> Result<[f64; N], CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    read_layout(&mut r)?;
+    let v = r.f64_array()?;
+    r.end()?;
+    Ok(v)
+}
+
 pub fn read_f64_array(buf: &[u8]) -> Result<Vec<f64>, CdrError> {
     let mut r = CdrReader::new(buf)?;
     read_layout(&mut r)?;
@@ -421,6 +469,15 @@ pub fn write_i64_array(out: &mut Vec<u8>, label: &str, data: &[i64]) {
     let mut w = CdrWriter::new(out);
     write_layout(&mut w, label, data.len());
     w.i64s(data);
+}
+
+/// An `Int64MultiArray` of exactly `N` values, read without allocating.
+pub fn read_i64_array_n<const N: usize>(buf: &[u8]) -> Result<[i64; N], CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    read_layout(&mut r)?;
+    let v = r.i64_array()?;
+    r.end()?;
+    Ok(v)
 }
 
 pub fn read_i64_array(buf: &[u8]) -> Result<Vec<i64>, CdrError> {

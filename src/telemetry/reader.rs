@@ -31,7 +31,7 @@
 //! [`SkipReport`]: how many and the first few line numbers. Time order is checked against the
 //! last *accepted* row.
 
-use super::mcap_log::read::{is_mcap, mcap_error, McapAsCsv, McapReadError};
+use super::mcap_log::read::{is_mcap, mcap_error, McapPrefetch, McapReadError};
 use super::record::Mode;
 pub use crate::input::MAX_ROW_BYTES;
 use crate::input::{self, Input, RowBound};
@@ -659,13 +659,13 @@ pub(crate) struct ColumnReader<R: Read> {
 }
 
 /// A log file as the CSV layer reads it: a CSV file as it is, an omnid MCAP log (known by its
-/// first bytes) as the CSV text of the same rows ([`McapAsCsv`]), so every reader and check
+/// first bytes) as the CSV text of the same rows ([`McapPrefetch`]), so every reader and check
 /// serves both formats.
 pub enum LogInput {
     /// A CSV file (or any text).
     Csv(Sniffed),
-    /// An MCAP log.
-    Mcap(Box<McapAsCsv<Sniffed>>),
+    /// An MCAP log, decoded on a thread of its own.
+    Mcap(McapPrefetch),
 }
 
 impl LogInput {
@@ -690,7 +690,7 @@ impl LogInput {
             }
         }
         Ok(if is_mcap(&file.head[..file.len]) {
-            LogInput::Mcap(Box::new(McapAsCsv::new(file, lenient)))
+            LogInput::Mcap(McapPrefetch::new(file, lenient)?)
         } else {
             LogInput::Csv(file)
         })

@@ -53,20 +53,27 @@ struct Channels {
     present: [bool; TOPICS.len()],
 }
 
-/// Streams the tick records of an omnid MCAP log.
+/// Streams the tick records of an omnid MCAP log. After the first chunk it allocates nothing
+/// per row (a replay reads it on the servo thread).
 pub struct McapTicks<R: Read> {
     input: R,
     reader: LinearReader,
+    state: State,
+    lenient: bool,
+    done: bool,
+}
+
+/// Everything but the byte source: borrowed apart from the reader, so a record can be taken
+/// while the reader still holds its bytes.
+struct State {
     channels: Channels,
     record: u64,
     rows: u64,
-    lenient: bool,
     /// The row being put together, and which of its per-tick topics have come.
     row: TickRecord,
     seen: u32,
-    /// Carried values (mode, amplifiers, flags) have all been seen once.
+    /// Carried values (flags 1, mode 2, amplifiers 4) have all been seen once.
     carried: u32,
-    done: bool,
 }
 
 fn blank() -> TickRecord {
@@ -98,11 +105,6 @@ fn index_of(t: Topic) -> usize {
     TOPICS.iter().position(|x| *x == t).expect("a known topic")
 }
 
-fn three(v: Vec<f64>, what: &str) -> Result<[f64; 3], String> {
-    <[f64; 3]>::try_from(v.as_slice())
-        .map_err(|_| format!("{what} has {} values, expected 3", v.len()))
-}
-
 impl<R: Read> McapTicks<R> {
     /// Read from `input` (its first bytes must be the MCAP magic). `lenient`: a file that ends
     /// early ends after its last whole row instead of being an error.
@@ -117,34 +119,27 @@ impl<R: Read> McapTicks<R> {
         McapTicks {
             input,
             reader: LinearReader::new_with_options(options),
-            channels: Channels::default(),
-            record: 0,
-            rows: 0,
+            state: State {
+                channels: Channels::default(),
+                record: 0,
+                rows: 0,
+                row: blank(),
+                seen: 0,
+                carried: 0,
+            },
             lenient,
-            row: blank(),
-            seen: 0,
-            carried: 0,
             done: false,
         }
     }
 
     /// The columns the log carries (known once the first row is read, or at the end).
     pub fn schema(&self) -> LogSchema {
-        LogSchema {
-            model: self.channels.present[index_of(super::TORQUE_MODEL)],
-        }
+        self.state.schema()
     }
 
     /// Rows read so far.
     pub fn rows(&self) -> u64 {
-        self.rows
-    }
-
-    fn bad(&self, reason: impl Into<String>) -> McapReadError {
-        McapReadError::Bad {
-            record: self.record,
-            reason: reason.into(),
-        }
+        self.state.rows
     }
 
     /// The next tick, `None` at the end of the file.
@@ -163,7 +158,7 @@ impl<R: Read> McapTicks<R> {
             let event = match self.reader.next_event() {
                 None => {
                     self.done = true;
-                    self.check_is_omnid()?;
+                    self.state.check_is_omnid().map_err(Next::Read)?;
                     return Ok(None);
                 }
                 Some(e) => e,
@@ -181,50 +176,92 @@ impl<R: Read> McapTicks<R> {
                     self.reader.notify_read(got);
                 }
                 Ok(LinearReadEvent::Record { data, opcode }) => {
-                    let number = self.record + 1;
-                    let record = mcap::parse_record(opcode, data)
-                        .map(|r| r.into_owned())
-                        .map_err(|e| {
-                            Next::Read(McapReadError::Bad {
-                                record: number,
-                                reason: e.to_string(),
-                            })
-                        })?;
-                    self.record = number;
-                    if let Some(row) = self.take(record).map_err(Next::Read)? {
-                        return Ok(Some(row));
+                    let state = &mut self.state;
+                    state.record += 1;
+                    // Only schemas, channels and messages say anything about the rows; the
+                    // rest (indexes, statistics, metadata) is not parsed (that would allocate).
+                    use mcap::records::op;
+                    if ![op::SCHEMA, op::CHANNEL, op::MESSAGE].contains(&opcode)
+                        || state.known_again(opcode, data)
+                    {
+                        continue;
+                    }
+                    let record = match mcap::parse_record(opcode, data) {
+                        Ok(r) => r,
+                        Err(e) => {
+                            self.done = true;
+                            return Err(Next::Read(state.bad(e.to_string())));
+                        }
+                    };
+                    match state.take(record) {
+                        Ok(Some(row)) => return Ok(Some(row)),
+                        Ok(None) => {}
+                        Err(e) => {
+                            self.done = true;
+                            return Err(Next::Read(e));
+                        }
                     }
                 }
                 Err(mcap::McapError::UnexpectedEof) => {
                     self.done = true;
                     if self.lenient {
-                        self.check_is_omnid()?;
+                        self.state.check_is_omnid().map_err(Next::Read)?;
                         return Ok(None);
                     }
                     return Err(Next::Read(McapReadError::Truncated {
-                        record: self.record + 1,
-                        rows: self.rows,
+                        record: self.state.record + 1,
+                        rows: self.state.rows,
                     }));
                 }
                 Err(e) => {
                     self.done = true;
                     return Err(Next::Read(McapReadError::Bad {
-                        record: self.record + 1,
+                        record: self.state.record + 1,
                         reason: e.to_string(),
                     }));
                 }
             }
         }
     }
+}
 
-    fn check_is_omnid(&self) -> Result<(), Next> {
+impl State {
+    fn schema(&self) -> LogSchema {
+        LogSchema {
+            model: self.channels.present[index_of(super::TORQUE_MODEL)],
+        }
+    }
+
+    /// A Schema or Channel record whose id is already known: writers repeat them in every
+    /// chunk (so a chunk reads alone), and parsing one again would allocate its strings.
+    fn known_again(&self, opcode: u8, data: &[u8]) -> bool {
+        let id = || data.get(..2).map(|b| u16::from_le_bytes([b[0], b[1]]));
+        match opcode {
+            mcap::records::op::SCHEMA => {
+                id().is_some_and(|id| self.channels.schema_names.contains_key(&id))
+            }
+            mcap::records::op::CHANNEL => {
+                id().is_some_and(|id| self.channels.by_id.contains_key(&id))
+            }
+            _ => false,
+        }
+    }
+
+    fn bad(&self, reason: impl Into<String>) -> McapReadError {
+        McapReadError::Bad {
+            record: self.record,
+            reason: reason.into(),
+        }
+    }
+
+    fn check_is_omnid(&self) -> Result<(), McapReadError> {
         for t in [super::JOINT_STATES, super::TIME] {
             if !self.channels.present[index_of(t)] {
-                return Err(Next::Read(McapReadError::Foreign(format!(
+                return Err(McapReadError::Foreign(format!(
                     "no {} channel ({} channels in all)",
                     t.name,
                     self.channels.by_id.len()
-                ))));
+                )));
             }
         }
         Ok(())
@@ -233,7 +270,7 @@ impl<R: Read> McapTicks<R> {
     /// Take one record; a whole row when it completes one.
     fn take(
         &mut self,
-        record: mcap::records::Record<'static>,
+        record: mcap::records::Record<'_>,
     ) -> Result<Option<TickRecord>, McapReadError> {
         use mcap::records::Record;
         match record {
@@ -291,7 +328,7 @@ impl<R: Read> McapTicks<R> {
                 return Ok(None);
             }
             t if t == super::TF => {
-                msgs::read_tf(data).map_err(cdr)?;
+                msgs::check_tf(data).map_err(cdr)?;
                 return Ok(None);
             }
             _ => {}
@@ -299,28 +336,16 @@ impl<R: Read> McapTicks<R> {
         if self.seen & (1 << index_of(super::TIME)) == 0 {
             return Err("comes before its tick's /omnid/time".into());
         }
+        let arr = |data: &[u8]| msgs::read_f64_array_n::<3>(data).map_err(cdr);
         match topic {
-            t if t == super::ESTIMATE_POSITION => {
-                r.qf = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
-            t if t == super::ESTIMATE_ACCELERATION => {
-                r.qdd = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
-            t if t == super::REFERENCE => {
-                r.reference = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
-            t if t == super::TORQUE_CONTROLLER => {
-                r.tau_cmd = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
-            t if t == super::TORQUE_PREDICTED => {
-                r.tau_hat = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
-            t if t == super::TORQUE_MODEL => {
-                r.tau_model = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
-            t if t == super::TIP_MM => {
-                r.haptic.tip_mm = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
-            }
+            t if t == super::ESTIMATE_POSITION => r.qf = arr(data)?,
+            t if t == super::ESTIMATE_ACCELERATION => r.qdd = arr(data)?,
+            t if t == super::REFERENCE => r.reference = arr(data)?,
+            t if t == super::TORQUE_CONTROLLER => r.tau_cmd = arr(data)?,
+            t if t == super::TORQUE_PREDICTED => r.tau_hat = arr(data)?,
+            t if t == super::TORQUE_MODEL => r.tau_model = arr(data)?,
+            t if t == super::TIP_MM => r.haptic.tip_mm = arr(data)?,
+            t if t == super::HEAT => r.live.heat = arr(data)?,
             t if t == super::TIP_POSE => {
                 msgs::read_pose_stamped(data).map_err(cdr)?;
             }
@@ -330,11 +355,7 @@ impl<R: Read> McapTicks<R> {
             t if t == super::HAND_FORCE => {
                 r.haptic.hand = msgs::read_wrench_stamped(data).map_err(cdr)?.1
             }
-            t if t == super::ENCODERS => {
-                let v = msgs::read_i64_array(data).map_err(cdr)?;
-                r.enc = <[i64; 3]>::try_from(v.as_slice())
-                    .map_err(|_| format!("it has {} values, expected 3", v.len()))?;
-            }
+            t if t == super::ENCODERS => r.enc = msgs::read_i64_array_n::<3>(data).map_err(cdr)?,
             t if t == super::FLAGS => {
                 r.flags = msgs::read_uint32(data).map_err(cdr)?;
                 self.carried |= 1;
@@ -350,18 +371,12 @@ impl<R: Read> McapTicks<R> {
                 self.carried |= 4;
             }
             t if t == super::BUTTONS => {
-                let (_, _, b) = msgs::read_joy(data).map_err(cdr)?;
-                r.live.buttons = [b.first() == Some(&1), b.get(1) == Some(&1)];
-                r.live.inkwell = b.get(2) == Some(&1);
-            }
-            t if t == super::HEAT => {
-                r.live.heat = three(msgs::read_f64_array(data).map_err(cdr)?, "it")?
+                let b = msgs::read_joy_buttons::<3>(data).map_err(cdr)?;
+                r.live.buttons = [b[0] == 1, b[1] == 1];
+                r.live.inkwell = b[2] == 1;
             }
             t if t == super::JOINT_STATES => {
-                let js = msgs::read_joint_state(data).map_err(cdr)?;
-                r.q = three(js.position, "its position")?;
-                r.qd = three(js.velocity, "its velocity")?;
-                r.tau = three(js.effort, "its effort")?;
+                (r.q, r.qd, r.tau) = msgs::read_joint_state_n::<3>(data).map_err(cdr)?;
                 return self.complete().map(Some);
             }
             _ => {}
@@ -485,4 +500,93 @@ impl<R: Read> Read for McapAsCsv<R> {
 /// Whether `head` (a file's first bytes) is the MCAP magic.
 pub fn is_mcap(head: &[u8]) -> bool {
     head.len() >= MAGIC.len() && head[..MAGIC.len()] == MAGIC[..]
+}
+
+/// [`McapAsCsv`] on a thread of its own, handing over the text in blocks: a replay's servo
+/// thread then only copies bytes (no chunk decompression, which takes milliseconds, and no
+/// allocation: the blocks go back and forth).
+pub struct McapPrefetch {
+    blocks: crossbeam_channel::Receiver<io::Result<Vec<u8>>>,
+    spent: crossbeam_channel::Sender<Vec<u8>>,
+    current: Vec<u8>,
+    at: usize,
+    done: bool,
+}
+
+/// Text per block, and blocks in flight.
+const BLOCK: usize = 1 << 16;
+const BLOCKS: usize = 4;
+
+impl McapPrefetch {
+    /// Start decoding `input` (see [`McapTicks::new`] for `lenient`).
+    pub fn new<R: Read + Send + 'static>(input: R, lenient: bool) -> io::Result<Self> {
+        let (block_tx, blocks) = crossbeam_channel::bounded(BLOCKS);
+        let (spent, spent_rx) = crossbeam_channel::bounded::<Vec<u8>>(BLOCKS + 2);
+        for _ in 0..BLOCKS + 1 {
+            let _ = spent.try_send(vec![0; BLOCK]);
+        }
+        std::thread::Builder::new()
+            .name("omnid-mcap-read".into())
+            .spawn(move || {
+                let mut text = McapAsCsv::new(input, lenient);
+                // Ends when the file does, on an error, or when the reader is gone.
+                while let Ok(mut block) = spent_rx.recv() {
+                    block.resize(BLOCK, 0);
+                    let mut filled = 0;
+                    let result = loop {
+                        match text.read(&mut block[filled..]) {
+                            Ok(0) => break Ok(()),
+                            Ok(n) => {
+                                filled += n;
+                                if filled == BLOCK {
+                                    break Ok(());
+                                }
+                            }
+                            Err(e) => break Err(e),
+                        }
+                    };
+                    block.truncate(filled);
+                    let last = filled == 0 || result.is_err();
+                    let sent = match result {
+                        Ok(()) => block_tx.send(Ok(block)),
+                        Err(e) if filled == 0 => block_tx.send(Err(e)),
+                        // The text before the error first, then the error.
+                        Err(e) => block_tx
+                            .send(Ok(block))
+                            .and_then(|()| block_tx.send(Err(e))),
+                    };
+                    if sent.is_err() || last {
+                        return;
+                    }
+                }
+            })?;
+        Ok(McapPrefetch {
+            blocks,
+            spent,
+            current: Vec::new(),
+            at: 0,
+            done: false,
+        })
+    }
+}
+
+impl Read for McapPrefetch {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        while self.at == self.current.len() {
+            if self.done {
+                return Ok(0);
+            }
+            let next = self.blocks.recv().unwrap_or_else(|_| Ok(Vec::new()))?;
+            let old = std::mem::replace(&mut self.current, next);
+            if old.capacity() > 0 {
+                let _ = self.spent.try_send(old);
+            }
+            self.at = 0;
+            self.done = self.current.is_empty();
+        }
+        let n = buf.len().min(self.current.len() - self.at);
+        buf[..n].copy_from_slice(&self.current[self.at..self.at + n]);
+        self.at += n;
+        Ok(n)
+    }
 }
