@@ -183,7 +183,7 @@ struct RunArgs {
     /// Run length, seconds of device time [default: 10; replay: the whole log].
     #[arg(long)]
     duration: Option<f64>,
-    /// CSV log path (default: logs/omnid-<UTC time>.csv).
+    /// Log path: CSV, or MCAP when it ends in .mcap (default: logs/omnid-<UTC time>.csv).
     #[arg(long)]
     log: Option<PathBuf>,
     /// Write the run summary as JSON here.
@@ -449,9 +449,9 @@ struct ConvertArgs {
     /// Format of the input.
     #[arg(long, value_enum)]
     from: SourceFormat,
-    /// The recording to convert (CSV).
+    /// The recording to convert (CSV; `--from log`: CSV or MCAP).
     input: PathBuf,
-    /// Where to write the replayable log (CSV).
+    /// Where to write the replayable log (CSV; `--from log`: MCAP when it ends in .mcap).
     #[arg(long)]
     out: PathBuf,
     /// Skip damaged rows (reported) instead of refusing the file.
