@@ -94,7 +94,7 @@ impl HD {
             .arg(self.exe(name))
             .arg(format!("-L{}", lib.display()))
             .arg(format!("-Wl,-rpath,{}", lib.display()))
-            .args(["-lHD", "-lpthread"])
+            .args(["-lHDU", "-lHD", "-lpthread"])
             .output()
             .unwrap_or_else(|e| panic!("{compiler}: {e} (a C/C++ compiler is needed)"));
         assert!(
