@@ -872,3 +872,31 @@ fn hdu_cpp_vectors_matrices_and_quaternions_agree_with_nalgebra() {
     assert_close(&out, "error-kind", &[1.0, 0.0, 0.0], 0.0);
     assert!(out.ends_with("done\n"), "{out}");
 }
+
+#[test]
+fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
+    use nalgebra::Vector3;
+    let hd = HD::get();
+    // As the SDK's CommandJointTorque builds: gcc on a .cpp, "-lHDU -lHD -lrt", no libstdc++.
+    hd.compile_with(
+        "hdu_gcc",
+        "hdu_gcc.cpp",
+        "cc",
+        &["-std=c++11", "-Wextra"],
+        &["-lHDU", "-lHD", "-lrt"],
+    );
+    let out = run(hd.exe("hdu_gcc"), &[], &[]);
+    let f = (Vector3::new(10.0, -20.0, 5.0) - Vector3::new(12.0, -18.0, 4.0)) * 0.25;
+    let max_torque = Vector3::new(188.0, 188.0, 48.0);
+    let expected = [
+        f.x,
+        f.y,
+        f.z,
+        f.dot(&max_torque),
+        f.cross(&max_torque).z,
+        2.0 * f.x,
+        f.norm_squared(),
+        1.0,
+    ];
+    assert_close(&out, "gcc", &expected, 1e-9);
+}

@@ -16,8 +16,16 @@
 template <typename T> class hduVector3D {
 public:
     typedef T EltType;
+#if __cplusplus >= 201103L
+    /* constexpr: a function-local `static const hduVector3Dd v(1, 2, 3);` is then initialized
+     * at compile time, with no guard variable, so a C++ program linked with gcc without the
+     * C++ runtime (the SDK's CommandJointTorque) links. */
+    constexpr hduVector3D() : v_{T(0), T(0), T(0)} {}
+    constexpr hduVector3D(T x, T y, T z) : v_{x, y, z} {}
+#else
     hduVector3D() { v_[0] = v_[1] = v_[2] = T(0); }
     hduVector3D(T x, T y, T z) { set(x, y, z); }
+#endif
     explicit hduVector3D(const T *p) { set(p[0], p[1], p[2]); }
     template <typename U> hduVector3D(const hduVector3D<U> &o) { set(T(o[0]), T(o[1]), T(o[2])); }
 
