@@ -560,3 +560,343 @@ fn a_slow_servo_callback_keeps_its_force_or_is_told() {
         }
     }
 }
+
+/// The HDU headers install.sh lays out (docs/HDAPI.md, libHDU).
+const HDU_HEADERS: [&str; 7] = [
+    "hdu.h",
+    "hduError.h",
+    "hduLineSegment.h",
+    "hduMath.h",
+    "hduMatrix.h",
+    "hduQuaternion.h",
+    "hduVector.h",
+];
+
+/// Compile `source` (given on stdin, in `lang`) with `flags` against the installed headers:
+/// whether it compiled, and the compiler's messages.
+fn compile_snippet(compiler: &str, lang: &str, flags: &[&str], source: &str) -> (bool, String) {
+    use std::io::Write;
+    let hd = HD::get();
+    let mut child = std::process::Command::new(compiler)
+        .args(["-x", lang])
+        .args(flags)
+        .arg("-I")
+        .arg(hd.prefix.join("include"))
+        .args(["-fsyntax-only", "-"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{compiler}: {e} (a C/C++ compiler is needed)"));
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(source.as_bytes())
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn every_hdu_header_compiles_alone_in_c_and_in_cpp() {
+    let hd = HD::get();
+    let mut installed: Vec<String> = std::fs::read_dir(hd.prefix.join("include/HDU"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    installed.sort();
+    assert_eq!(installed, HDU_HEADERS, "the installed HDU headers");
+    for header in HDU_HEADERS {
+        // Twice: the include guard holds.
+        let source = format!(
+            "#include <HDU/{header}>\n#include <HDU/{header}>\nint main(void) {{ return 0; }}\n"
+        );
+        for (compiler, lang, std) in [
+            ("cc", "c", "-std=c99"),
+            ("cc", "c", "-std=c11"),
+            ("c++", "c++", "-std=c++11"),
+            ("c++", "c++", "-std=c++17"),
+        ] {
+            let (ok, messages) = compile_snippet(
+                compiler,
+                lang,
+                &[std, "-Wall", "-Wextra", "-Wpedantic", "-Werror"],
+                &source,
+            );
+            assert!(ok, "{header} alone as {lang} ({std}):\n{messages}");
+        }
+    }
+}
+
+#[test]
+fn hl_stops_the_build_with_one_error_naming_hd_hdu_and_the_docs() {
+    let source = "#include <HL/hl.h>\nint main(void) { return 0; }\n";
+    for (compiler, lang) in [("cc", "c"), ("c++", "c++")] {
+        let (ok, messages) = compile_snippet(compiler, lang, &[], source);
+        assert!(!ok, "HL/hl.h compiled as {lang}");
+        // Diagnostics are "file:line:col: error: …" (the quoted source lines after them are not).
+        let errors: Vec<&str> = messages
+            .lines()
+            .filter(|l| l.contains(": error:"))
+            .collect();
+        assert_eq!(errors.len(), 1, "exactly one error as {lang}:\n{messages}");
+        for needle in ["HL", "HDU", "Haptic Library API", "docs/HDAPI.md"] {
+            assert!(errors[0].contains(needle), "{needle} in: {}", errors[0]);
+        }
+        // The ROS driver includes it and calls nothing of HL: the opt-in lets it build.
+        let (ok, messages) = compile_snippet(compiler, lang, &["-DOMNID_HL_INCLUDE_ONLY"], source);
+        assert!(ok, "with OMNID_HL_INCLUDE_ONLY as {lang}:\n{messages}");
+    }
+}
+
+/// A program's "key v1 v2 ..." lines: the numbers after `key` (panics if absent).
+fn numbers(out: &str, key: &str) -> Vec<f64> {
+    let line = out
+        .lines()
+        .find(|l| l.split_whitespace().next() == Some(key))
+        .unwrap_or_else(|| panic!("no {key} in:\n{out}"));
+    line.split_whitespace()
+        .skip(1)
+        .filter_map(|w| w.parse().ok())
+        .collect()
+}
+
+fn assert_close(out: &str, key: &str, expected: &[f64], tol: f64) {
+    let got = numbers(out, key);
+    assert_eq!(got.len(), expected.len(), "{key}: {got:?} vs {expected:?}");
+    for (g, e) in got.iter().zip(expected) {
+        assert!((g - e).abs() <= tol, "{key}: {got:?} vs {expected:?}");
+    }
+}
+
+/// Link flags of the SDK's HD console examples' Makefiles, and nothing else.
+const SDK_LIBS: [&str; 4] = ["-lHDU", "-lHD", "-lrt", "-lncurses"];
+
+#[test]
+fn hdu_c_functions_and_error_helpers_link_as_the_sdk_examples_do() {
+    use nalgebra::Vector3;
+    let hd = HD::get();
+    hd.compile_with("hdu_c", "hdu.c", "cc", &["-std=c11", "-Wextra"], &SDK_LIBS);
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("none.sock");
+    let out = run(
+        hd.exe("hdu_c"),
+        &[],
+        &[("OMNID_SOCKET", missing.to_str().unwrap())],
+    );
+    let v = |x: Vector3<f64>| [x.x, x.y, x.z];
+    let a = Vector3::new(1.0, 2.0, 3.0);
+    let b = Vector3::new(-4.0, 0.5, 2.0);
+    let eps = 1e-12;
+    assert_close(&out, "add", &v(a + b), eps);
+    assert_close(&out, "sub", &v(a - b), eps);
+    assert_close(&out, "scale", &v(a * 2.5), eps);
+    assert_close(&out, "scale-in-place", &v(b * -3.0), eps);
+    assert_close(&out, "scale-non-uniform", &v(a.component_mul(&b)), eps);
+    assert_close(
+        &out,
+        "scale-non-uniform-in-place",
+        &v(a.component_mul(&b)),
+        eps,
+    );
+    assert_close(&out, "negate", &v(-b), eps);
+    assert_close(&out, "cross", &v(a.cross(&b)), eps);
+    assert_close(&out, "cross-aliased", &v(a.cross(&b)), eps);
+    assert_close(&out, "normalize", &v(b.normalize()), eps);
+    assert_close(&out, "normalize-in-place", &v(a.normalize()), eps);
+    assert_close(&out, "normalize-zero", &[0.0; 3], 0.0);
+    assert_close(&out, "magnitude", &[a.norm()], eps);
+    assert_close(&out, "dot", &[a.dot(&b)], eps);
+    assert_close(&out, "distance", &[(a - b).norm()], eps);
+    assert_close(&out, "equal", &[1.0, 0.0, 0.0], 0.0);
+    let spring = (Vector3::new(10.0, -20.0, 5.0) - Vector3::new(12.0, -18.0, 4.0)) * 0.25;
+    assert_close(&out, "spring", &v(spring), eps);
+    let pi = std::f64::consts::PI;
+    assert_close(&out, "math", &[pi / 2.0, 45.0, 3.0, 0.0, -7.0, 2.0], eps);
+
+    // Which codes are which kind (docs/HDAPI.md, libHDU), from the table's names.
+    let code = |name: &str| TABLE.iter().find(|(n, _)| *n == name).unwrap().1;
+    let scheduler = [
+        "HD_COMM_ERROR",
+        "HD_COMM_CONFIG_ERROR",
+        "HD_TIMER_ERROR",
+        "HD_DEVICE_FAULT",
+        "HD_INVALID_PRIORITY",
+        "HD_SCHEDULER_FULL",
+    ]
+    .map(code);
+    let force = [
+        "HD_WARM_MOTORS",
+        "HD_EXCEEDED_MAX_FORCE",
+        "HD_EXCEEDED_MAX_FORCE_IMPULSE",
+        "HD_EXCEEDED_MAX_VELOCITY",
+        "HD_FORCE_ERROR",
+    ]
+    .map(code);
+    let com = ["HD_COMM_ERROR", "HD_COMM_CONFIG_ERROR"].map(code);
+    let kinds: Vec<&str> = out.lines().filter(|l| l.starts_with("kind ")).collect();
+    assert_eq!(kinds.len(), 22, "every error code:\n{out}");
+    for line in kinds {
+        let n: Vec<u64> = line[5..]
+            .split_whitespace()
+            .map(|w| w.parse().unwrap())
+            .collect();
+        let flag = |set: &[u64]| u64::from(set.contains(&n[0]));
+        assert_eq!(
+            n[1..],
+            [flag(&scheduler), flag(&force), flag(&com)],
+            "{line}"
+        );
+    }
+    assert!(out.contains("kind-null 0 0 0"), "{out}");
+
+    // hduPrintError on the real error of hdInitDevice without a daemon.
+    let printed: Vec<&str> = out
+        .split("print-begin\n")
+        .skip(1)
+        .map(|s| s.split("print-end").next().unwrap())
+        .collect();
+    assert_eq!(printed.len(), 2, "{out}");
+    for needle in [
+        "HD_COMM_ERROR",
+        "0x0302",
+        "Communication error",
+        "internal error code: 1",
+        "Failed to initialize haptic device",
+    ] {
+        assert!(printed[0].contains(needle), "{needle} in:\n{}", printed[0]);
+    }
+    assert!(printed[1].contains("0x0777"), "{}", printed[1]);
+    assert!(
+        out.contains(&format!("init-error {} 1", code("HD_COMM_ERROR"))),
+        "{out}"
+    );
+    assert!(
+        !out.contains("no error given") && !out.contains("no stream"),
+        "NULL error or stream prints nothing:\n{out}"
+    );
+    assert!(out.ends_with("done\n"), "{out}");
+}
+
+#[test]
+fn hdu_cpp_vectors_matrices_and_quaternions_agree_with_nalgebra() {
+    use nalgebra::{Matrix4, Rotation3, Unit, UnitQuaternion, Vector3};
+    let hd = HD::get();
+    hd.compile_with(
+        "hdu_cpp",
+        "hdu.cpp",
+        "c++",
+        &["-std=c++11", "-Wextra"],
+        &SDK_LIBS,
+    );
+    let out = run(hd.exe("hdu_cpp"), &[], &[]);
+    let v = |x: Vector3<f64>| [x.x, x.y, x.z];
+    let eps = 1e-12;
+    let a = Vector3::new(1.0, 2.0, 3.0);
+    let b = Vector3::new(-4.0, 0.5, 2.0);
+    assert_close(&out, "ops", &v((a + b) * 2.0 - b / 4.0), eps);
+    assert_close(&out, "neg", &v(-a), eps);
+    assert_close(&out, "cross", &v(a.cross(&b)), eps);
+    assert_close(&out, "cross-free", &v(a.cross(&b)), eps);
+    assert_close(&out, "dot", &[a.dot(&b), a.dot(&b)], eps);
+    assert_close(&out, "magnitude", &[a.norm()], eps);
+    assert_close(&out, "distance", &[(a - b).norm()], eps);
+    assert_close(&out, "normalize-free", &v(b.normalize()), eps);
+    assert_close(&out, "normalize", &v(b.normalize()), eps);
+    assert_close(&out, "unchanged", &[1.0], 0.0);
+    assert_close(&out, "stream", &[1.0], 0.0);
+    assert_close(&out, "c-add", &v(a + b), eps);
+
+    // A quarter turn about each axis, right-handed: x to y, y to z, z to x.
+    assert_close(&out, "rz-x", &[0.0, 1.0, 0.0], eps);
+    assert_close(&out, "rx-y", &[0.0, 0.0, 1.0], eps);
+    assert_close(&out, "ry-z", &[1.0, 0.0, 0.0], eps);
+
+    let axis = Vector3::new(1.0, 2.0, 3.0);
+    let angle = 0.7;
+    let r = Rotation3::from_axis_angle(&Unit::new_normalize(axis), angle);
+    let p = Vector3::new(0.3, -1.0, 2.0);
+    // hduMatrix holds points as rows (p' = p M): its m[row][col] is R(col, row).
+    let mut rows = Vec::new();
+    let rt = Matrix4::from(r).transpose();
+    for row in 0..4 {
+        for col in 0..4 {
+            rows.push(rt[(row, col)]);
+        }
+    }
+    assert_close(&out, "rot", &rows, eps);
+    assert_close(&out, "rot-p", &v(r * p), eps);
+    // s * rot * t: scale, then rotate, then translate.
+    let scaled = p.component_mul(&Vector3::new(2.0, 3.0, 4.0));
+    assert_close(
+        &out,
+        "srt-p",
+        &v(r * scaled + Vector3::new(10.0, 20.0, 30.0)),
+        1e-9,
+    );
+    assert_close(&out, "srt-dir", &v(r * scaled), 1e-9);
+    assert_close(&out, "mult", &[0.0, 0.0], 0.0);
+    assert_close(&out, "inverse", &[0.0, 0.0], 1e-9);
+    assert_close(&out, "invert", &[1.0, 0.0, 1.0], 0.0);
+    assert_close(&out, "transpose", &[0.0, 0.0], 1e-12);
+    assert_close(&out, "determinant", &[24.0, 1.0], 1e-9);
+    assert_close(&out, "storage", &[10.0, 20.0, 30.0, 10.0, 1.0], 0.0);
+    assert_close(&out, "translation", &[10.0, 20.0, 30.0], 0.0);
+    assert_close(&out, "rotation-part", &[0.0, 0.0, 0.0], 0.0);
+    assert_close(&out, "matrix-stream", &[1.0], 0.0);
+
+    let q = UnitQuaternion::from_axis_angle(&Unit::new_normalize(axis), angle);
+    assert_close(&out, "q", &[q.w, q.i, q.j, q.k, 1.0], eps);
+    for key in [
+        "q-matrix",
+        "q-rotate",
+        "q-from-matrix",
+        "q-round-trip",
+        "q-compose",
+        "q-inverse",
+        "q-slerp",
+    ] {
+        assert_close(&out, key, &[0.0], 1e-12);
+    }
+    assert_close(&out, "q-axis-angle", &[0.0, angle], 1e-12);
+
+    assert_close(&out, "seg-project", &[5.0, 0.0, 0.0], eps);
+    assert_close(&out, "seg-t", &[0.5, 3.0, 5f64.sqrt(), 10.0], eps);
+    assert_close(&out, "seg-beyond", &[10.0, 0.0, 0.0], eps);
+    assert_close(&out, "math", &[5.0, std::f64::consts::PI, 0.5, 1.0], eps);
+    assert!(out.contains("error-stream names"), "{out}");
+    assert_close(&out, "error-kind", &[1.0, 0.0, 0.0], 0.0);
+    assert!(out.ends_with("done\n"), "{out}");
+}
+
+#[test]
+fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
+    use nalgebra::Vector3;
+    let hd = HD::get();
+    // As the SDK's CommandJointTorque builds: gcc on a .cpp, "-lHDU -lHD -lrt", no libstdc++.
+    hd.compile_with(
+        "hdu_gcc",
+        "hdu_gcc.cpp",
+        "cc",
+        &["-std=c++11", "-Wextra"],
+        &["-lHDU", "-lHD", "-lrt"],
+    );
+    let out = run(hd.exe("hdu_gcc"), &[], &[]);
+    let f = (Vector3::new(10.0, -20.0, 5.0) - Vector3::new(12.0, -18.0, 4.0)) * 0.25;
+    let max_torque = Vector3::new(188.0, 188.0, 48.0);
+    let expected = [
+        f.x,
+        f.y,
+        f.z,
+        f.dot(&max_torque),
+        f.cross(&max_torque).z,
+        2.0 * f.x,
+        f.norm_squared(),
+        1.0,
+    ];
+    assert_close(&out, "gcc", &expected, 1e-9);
+}

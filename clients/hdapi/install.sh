@@ -1,7 +1,9 @@
 #!/bin/sh
 # Install omnid's libHD: the library as libHD.so.3.4.0 with the links programs look for
 # (libHD.so.3.4, its SONAME; libHD.so.3.0, the 3.0 SDK's; libHD.so, what dlopen users ask
-# for) and the headers (HD/, HDU/, HL/). docs/HDAPI.md, Install.
+# for), the utility library libHDU.a (built here from hdu/ with ${CXX:-c++}) and the
+# headers (HD/, HDU/, HL/). Programs link with -lHDU -lHD (the SDK examples' Makefiles:
+# -lHDU -lHD -lrt -lncurses). docs/HDAPI.md, Build and install, and libHDU.
 #
 #   clients/hdapi/install.sh [--lib PATH/libomnid_hd.so] PREFIX
 #
@@ -30,5 +32,6 @@ mv -f "$prefix/lib/libHD.so.3.4.0.tmp" "$prefix/lib/libHD.so.3.4.0"
 for name in libHD.so.3.4 libHD.so.3.0 libHD.so; do
   ln -sfn libHD.so.3.4.0 "$prefix/lib/$name"
 done
+sh "$here/hdu/build.sh" "$prefix/lib/libHDU.a"
 cp -R "$here/include/HD" "$here/include/HDU" "$here/include/HL" "$prefix/include/"
-echo "libHD (omnid) installed in $prefix/lib, headers in $prefix/include"
+echo "libHD and libHDU (omnid) installed in $prefix/lib, headers in $prefix/include"

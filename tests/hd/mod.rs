@@ -84,6 +84,19 @@ impl HD {
 
     /// Compile `tests/c/<src>` against the installed headers and library.
     fn compile(&self, name: &str, src: &str, compiler: &str, flags: &[&str]) {
+        self.compile_with(name, src, compiler, flags, &["-lHDU", "-lHD", "-lpthread"]);
+    }
+
+    /// Compile `tests/c/<src>` against the installed headers, linking `libs` from the
+    /// installed `lib/` (panics with the compiler's messages if it fails).
+    pub fn compile_with(
+        &self,
+        name: &str,
+        src: &str,
+        compiler: &str,
+        flags: &[&str],
+        libs: &[&str],
+    ) {
         let lib = self.prefix.join("lib");
         let out = Command::new(compiler)
             .args(flags)
@@ -94,7 +107,7 @@ impl HD {
             .arg(self.exe(name))
             .arg(format!("-L{}", lib.display()))
             .arg(format!("-Wl,-rpath,{}", lib.display()))
-            .args(["-lHD", "-lpthread"])
+            .args(libs)
             .output()
             .unwrap_or_else(|e| panic!("{compiler}: {e} (a C/C++ compiler is needed)"));
         assert!(

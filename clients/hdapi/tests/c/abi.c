@@ -3,7 +3,6 @@
  * tests/hdapi.rs. Also compiled as C++ (the HDU helpers). */
 #include <HD/hd.h>
 #include <HDU/hduError.h>
-#include <HL/hl.h>
 #include <stddef.h>
 #include <stdio.h>
 #ifdef __cplusplus

@@ -2,6 +2,8 @@
  * scheduler, calibrate on the main thread (inkwell style; start-up blocks until OK), then
  * schedule the state callback after the start. */
 #include "hdtest.h"
+/* The ROS driver includes HL/hl.h and calls nothing of HL: the opt-in that lets it build. */
+#define OMNID_HL_INCLUDE_ONLY
 #include <HL/hl.h>
 
 #define TICKS 200
