@@ -260,6 +260,16 @@ struct ServeArgs {
     /// Inject a fault (repeatable; as `run --inject`).
     #[arg(long, value_name = "SPEC")]
     inject: Vec<Fault>,
+    /// Show every arm live in Foxglove or Lichtblick: a Foxglove WebSocket server on ADDR
+    /// [default without ADDR: 127.0.0.1:8765, this machine only].
+    #[arg(long, value_name = "ADDR", num_args = 0..=1,
+          default_missing_value = omnid::serve::foxglove::DEFAULT_ADDR,
+          value_parser = parse_view_addr)]
+    foxglove: Option<std::net::SocketAddr>,
+}
+
+fn parse_view_addr(s: &str) -> Result<std::net::SocketAddr, String> {
+    omnid::serve::foxglove::parse_addr(s).map_err(|e| e.to_string())
 }
 
 #[derive(clap::Args)]
@@ -716,6 +726,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         no_adapt: args.no_adapt,
         lenient: args.lenient,
         inject: args.inject,
+        foxglove: args.foxglove,
     };
     let outcome = match omnid::daemon::serve(&opts, &cfg, stop) {
         Ok(o) => o,

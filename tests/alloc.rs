@@ -76,7 +76,7 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
         let mut n = 0u64;
         for _ in rx.iter() {
             n += 1;
-            if n % 512 == 0 {
+            if n.is_multiple_of(512) {
                 std::thread::yield_now();
             }
         }
@@ -280,6 +280,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         no_adapt: false,
         lenient: false,
         inject: Vec::new(),
+        foxglove: None,
     };
     let stop = Arc::new(AtomicBool::new(false));
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
@@ -401,6 +402,7 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
         no_adapt: false,
         lenient: false,
         inject: Vec::new(),
+        foxglove: None,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let mut servos = Vec::new();

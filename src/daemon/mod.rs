@@ -41,6 +41,8 @@ pub struct ServeOptions {
     pub lenient: bool,
     /// Faults to inject (`--inject`).
     pub inject: Vec<crate::device::inject::Fault>,
+    /// Serve the live view (Foxglove WebSocket) on this address (`--foxglove`).
+    pub foxglove: Option<std::net::SocketAddr>,
 }
 
 /// How one arm ended.
@@ -329,6 +331,28 @@ pub fn serve(
             crate::errln!("omnid: warning: {}: {w}", p.name);
         }
     }
+    // The live view is up before any arm starts: a port that cannot be had serves nothing.
+    let view = match opts.foxglove {
+        Some(addr) => {
+            let view = crate::serve::foxglove::LiveView::start(addr)
+                .map_err(|e| RunError::BadInput(e.to_string()))?;
+            crate::errln!(
+                "omnid serve: live view on ws://{} (Foxglove, or Lichtblick 1.22.1 or later: open \
+                 a connection, Foxglove WebSocket; layout in docs/omnid-layout.json)",
+                view.addr()
+            );
+            if !view.addr().ip().is_loopback() {
+                crate::errln!(
+                    "omnid: warning: the live view on {} can be reached from other machines and \
+                     asks no one who they are (it only sends; it takes no commands)",
+                    view.addr()
+                );
+            }
+            Some(view)
+        }
+        None => None,
+    };
+    let several = prepared.len() > 1;
     let mut threads = Vec::new();
     for p in prepared {
         let Prepared {
@@ -345,10 +369,13 @@ pub fn serve(
         let stop = stop.clone();
         let seed = cfg.sim.seed;
         let controller = opts.controller;
+        let tap = view
+            .as_ref()
+            .map(|v| v.tap(&name, several, setup.station.schema, setup.station.geometry));
         let thread = std::thread::Builder::new()
             .name(format!("omnid-hub-{name}"))
             .spawn(move || {
-                let report = serve_clients(setup, priority);
+                let report = serve_clients(setup, priority, tap);
                 let outcome = end_arm(
                     ArmEnd {
                         name,
@@ -508,13 +535,21 @@ fn end_arm(
 
 /// Run the hub on this thread until the servo ends, at the configured realtime priority (the
 /// hub is on every stream client's round trip) and back on the normal scheduler afterwards.
-fn serve_clients(setup: hub::HubSetup, fifo_priority: i32) -> hub::HubReport {
+fn serve_clients(
+    setup: hub::HubSetup,
+    fifo_priority: i32,
+    tap: Option<Box<dyn crate::station::Tap>>,
+) -> hub::HubReport {
     if fifo_priority > 0 {
         if let Err(w) = crate::servo::realtime::set_fifo_priority(fifo_priority) {
             crate::errln!("omnid: warning: the client hub: {w}");
         }
     }
-    hub::Hub::new(setup).run()
+    let mut hub = hub::Hub::new(setup);
+    if let Some(tap) = tap {
+        hub.add_tap(tap);
+    }
+    hub.run()
 }
 
 #[cfg(test)]

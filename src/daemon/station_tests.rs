@@ -82,6 +82,7 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
         no_adapt: false,
         lenient: false,
         inject: Vec::new(),
+        foxglove: None,
     };
     let p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
     (p.pipeline.servo, p.hub.station, dir)

@@ -109,7 +109,7 @@ impl LogReader {
     ) -> Result<LogData, ReadError> {
         let mut pass = RowPass::new(formulas, &self.header, buckets);
         while let Some(byte) = self.reader.next_with(|row| pass.take(row))? {
-            if pass.decimator.rows() % PROGRESS_EVERY_ROWS == 0 {
+            if pass.decimator.rows().is_multiple_of(PROGRESS_EVERY_ROWS) {
                 progress(byte);
             }
         }

@@ -8,6 +8,7 @@ pub(crate) mod access;
 /// and the benchmarks.
 pub use omnid_client::client;
 pub(crate) mod config;
+pub mod foxglove;
 pub mod hub;
 pub mod protocol;
 pub mod socket;

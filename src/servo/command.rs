@@ -193,7 +193,7 @@ impl Wake {
     /// Signal if tick `seq` is wanted at once.
     pub fn tick(&self, seq: u64) {
         let every = self.every.load(Ordering::Relaxed);
-        if every != 0 && seq % every == 0 {
+        if every != 0 && seq.is_multiple_of(every) {
             self.notify();
         }
     }

@@ -378,7 +378,7 @@ impl Station {
     pub fn streams(&self, id: SessionId, seq: u64) -> bool {
         self.sessions
             .iter()
-            .any(|s| s.id == id && s.every > 0 && seq % s.every == 0)
+            .any(|s| s.id == id && s.every > 0 && seq.is_multiple_of(s.every))
     }
 
     /// The lease holder, if any.
@@ -889,7 +889,7 @@ impl Station {
         if self
             .sessions
             .iter()
-            .any(|s| s.every > 0 && seq % s.every == 0)
+            .any(|s| s.every > 0 && seq.is_multiple_of(s.every))
         {
             out(Output::State(&view::arm_state(&r, &self.s.geometry)));
         }

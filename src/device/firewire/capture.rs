@@ -302,7 +302,7 @@ impl<R: BufRead> CaptureReader<R> {
                 .ok_or_else(|| self.err(format!("{name} `{v}` is not a hex number 0x0..={max:#x}")))
         };
         let bytes = f[5];
-        if bytes.len() % 2 != 0 || !bytes.bytes().all(|b| b.is_ascii_hexdigit()) {
+        if !bytes.len().is_multiple_of(2) || !bytes.bytes().all(|b| b.is_ascii_hexdigit()) {
             return Err(self.err(format!(
                 "bytes `{}`: expected an even number of hex digits",
                 truncate(bytes)

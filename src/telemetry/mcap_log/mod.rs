@@ -93,9 +93,6 @@ pub(crate) const TOPICS: [Topic; 22] = [
 /// URDF's joints follow the ROS driver's; see [`arm3d`]).
 pub(crate) const JOINT_NAMES: [&str; 3] = ["joint1", "joint2", "joint3"];
 
-/// The frame of the tip pose and forces: the OpenHaptics frame.
-pub(crate) const BASE_FRAME: &str = "omni_base";
-
 /// The file's first bytes.
 pub const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
 

@@ -2,7 +2,7 @@
 //! runs on the log writer's thread, never on the servo's: a chunk's compression takes
 //! milliseconds.
 
-use super::{arm3d, LogFormat, Topic, BASE_FRAME, JOINT_NAMES, TOPICS};
+use super::{arm3d, LogFormat, Topic, JOINT_NAMES, TOPICS};
 use crate::omni::kinematics::Geometry;
 use crate::ros2::msgs::{self, Header, Stamp};
 use crate::telemetry::record::{LogSchema, Mode, ServoEvent, TickRecord};
@@ -54,23 +54,183 @@ struct Carried {
     controller: Option<crate::control::ControllerKind>,
 }
 
+/// Where [`TickEncoder::encode`] hands each message: its topic, log time and bytes.
+pub(crate) type Put<'a> = dyn FnMut(Topic, u64, &[u8]) -> io::Result<()> + 'a;
+
+/// Turns tick records into the messages of an omnid log, in channel order (docs/MCAP.md): the
+/// MCAP recorder writes them to a file, the live view sends them to viewers.
+pub(crate) struct TickEncoder {
+    schema: LogSchema,
+    arm: arm3d::Arm3d,
+    /// Wall-clock time of device time 0, ns since the Unix epoch (set at the first tick).
+    epoch_ns: Option<u64>,
+    last: Option<Carried>,
+    ticks: u64,
+    /// Send the URDF with the next tick.
+    describe: bool,
+    msg: Vec<u8>,
+}
+
+impl TickEncoder {
+    /// For logs of `schema`, the arm of `geometry` with its frames under `prefix` (empty: one
+    /// arm, frames as ROS names them).
+    pub(crate) fn new(schema: LogSchema, geometry: Geometry, prefix: &str) -> TickEncoder {
+        TickEncoder {
+            schema,
+            arm: arm3d::Arm3d::new(geometry, prefix),
+            epoch_ns: None,
+            last: None,
+            ticks: 0,
+            describe: true,
+            msg: Vec::with_capacity(512),
+        }
+    }
+
+    /// Send everything that is sent once or on change (the URDF, mode, flags, amplifiers,
+    /// buttons, controller) again with the next tick: for viewers that join late.
+    pub(crate) fn repeat(&mut self) {
+        self.last = None;
+        self.describe = true;
+    }
+
+    /// Whether logs of this schema have `topic`.
+    pub(crate) fn writes(&self, topic: &Topic) -> bool {
+        !topic.model_only || self.schema.model
+    }
+
+    /// The tick's messages, each handed to `put` with its topic and log time (ns since the
+    /// Unix epoch); `/robot_description` before the first tick.
+    pub(crate) fn encode(
+        &mut self,
+        r: &TickRecord,
+        put: &mut Put<'_>,
+    ) -> io::Result<()> {
+        let epoch = *self.epoch_ns.get_or_insert_with(|| {
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_nanos() as u64)
+                .unwrap_or(0);
+            now.saturating_sub(device_ns(r.t))
+        });
+        let time = epoch.saturating_add(device_ns(r.t));
+        let header = Header {
+            stamp: Stamp::from_nanos(time),
+            frame_id: "",
+        };
+        let based = Header {
+            frame_id: self.arm.base_frame(),
+            ..header
+        };
+        let m = &mut self.msg;
+        if std::mem::take(&mut self.describe) {
+            m.clear();
+            msgs::write_string(m, &self.arm.urdf());
+            put(super::ROBOT_DESCRIPTION, time, m)?;
+        }
+        m.clear();
+        msgs::write_float64(m, r.t);
+        put(super::TIME, time, m)?;
+        let arrays = [
+            (super::ESTIMATE_POSITION, &r.qf),
+            (super::ESTIMATE_ACCELERATION, &r.qdd),
+            (super::REFERENCE, &r.reference),
+            (super::TORQUE_CONTROLLER, &r.tau_cmd),
+            (super::TORQUE_PREDICTED, &r.tau_hat),
+            (super::TORQUE_MODEL, &r.tau_model),
+        ];
+        for (topic, v) in arrays {
+            if !topic.model_only || self.schema.model {
+                m.clear();
+                msgs::write_f64_array(m, "joint", v);
+                put(topic, time, m)?;
+            }
+        }
+        let tip = r.haptic.tip_mm;
+        m.clear();
+        msgs::write_f64_array(m, "xyz_mm", &tip);
+        put(super::TIP_MM, time, m)?;
+        m.clear();
+        msgs::write_pose_stamped(m, &based, tip.map(|v| v * 1e-3), [0.0, 0.0, 0.0, 1.0]);
+        put(super::TIP_POSE, time, m)?;
+        m.clear();
+        msgs::write_wrench_stamped(m, &based, r.haptic.force, [0.0; 3]);
+        put(super::TIP_FORCE, time, m)?;
+        if self.schema.model {
+            m.clear();
+            msgs::write_wrench_stamped(m, &based, r.haptic.hand, [0.0; 3]);
+            put(super::HAND_FORCE, time, m)?;
+        }
+        m.clear();
+        msgs::write_i64_array(m, "joint", &r.enc);
+        put(super::ENCODERS, time, m)?;
+
+        let now = Carried {
+            mode: r.mode,
+            amps: r.amps,
+            flags: r.flags,
+            buttons: [r.live.buttons[0], r.live.buttons[1], r.live.inkwell],
+            controller: r.live.controller,
+        };
+        let last = self.last.replace(now);
+        if last.is_none_or(|l| l.flags != now.flags) {
+            m.clear();
+            msgs::write_uint32(m, now.flags);
+            put(super::FLAGS, time, m)?;
+        }
+        if last.is_none_or(|l| l.mode != now.mode) {
+            m.clear();
+            msgs::write_string(m, now.mode.as_str());
+            put(super::MODE, time, m)?;
+        }
+        if last.is_none_or(|l| l.amps != now.amps) {
+            m.clear();
+            msgs::write_bool(m, now.amps);
+            put(super::AMPLIFIERS, time, m)?;
+        }
+        if last.is_none_or(|l| l.buttons != now.buttons) {
+            m.clear();
+            msgs::write_joy(m, &header, &[], &now.buttons.map(i32::from));
+            put(super::BUTTONS, time, m)?;
+        }
+        if let Some(c) = now.controller {
+            if last.is_none_or(|l| l.controller != now.controller) {
+                m.clear();
+                msgs::write_string(m, c.as_str());
+                put(super::CONTROLLER, time, m)?;
+            }
+        }
+        if let Some(ev) = r.live.event {
+            m.clear();
+            msgs::write_string(m, &event_text(ev));
+            put(super::EVENTS, time, m)?;
+        }
+        if self.ticks.is_multiple_of(TF_EVERY) {
+            m.clear();
+            msgs::write_f64_array(m, "joint", &r.live.heat);
+            put(super::HEAT, time, m)?;
+            m.clear();
+            msgs::write_tf(m, &self.arm.transforms(&r.q, header));
+            put(super::TF, time, m)?;
+        }
+        m.clear();
+        msgs::write_joint_state(m, &header, &JOINT_NAMES, &r.q, &r.qd, &r.tau);
+        put(super::JOINT_STATES, time, m)?;
+        self.ticks += 1;
+        Ok(())
+    }
+}
+
 /// Writes tick records as an MCAP log.
 pub(crate) struct McapRecorder {
-    schema: LogSchema,
-    geometry: Geometry,
+    encoder: TickEncoder,
     writer: Option<mcap::Writer<mcap::write::NoSeek<Pending>>>,
     pending: Pending,
     channels: [u16; TOPICS.len()],
     sequence: u32,
-    /// Wall-clock time of device time 0, ns since the Unix epoch (set at the first row).
-    epoch_ns: Option<u64>,
-    last: Option<Carried>,
-    ticks: u64,
     /// Rows in the open chunk, its bytes so far, and the device time it began at.
     chunk_rows: u64,
     chunk_bytes: usize,
     chunk_t0: f64,
-    msg: Vec<u8>,
 }
 
 fn mcap_error(e: mcap::McapError) -> io::Error {
@@ -80,47 +240,15 @@ fn mcap_error(e: mcap::McapError) -> io::Error {
 impl McapRecorder {
     pub(crate) fn new(schema: LogSchema, geometry: Geometry) -> Self {
         McapRecorder {
-            schema,
-            geometry,
+            encoder: TickEncoder::new(schema, geometry, ""),
             writer: None,
             pending: Pending::default(),
             channels: [0; TOPICS.len()],
             sequence: 0,
-            epoch_ns: None,
-            last: None,
-            ticks: 0,
             chunk_rows: 0,
             chunk_bytes: 0,
             chunk_t0: 0.0,
-            msg: Vec::with_capacity(512),
         }
-    }
-
-    fn writes(&self, topic: &Topic) -> bool {
-        !topic.model_only || self.schema.model
-    }
-
-    /// Write `self.msg` on `topic` at `log_time`.
-    fn put(&mut self, topic: Topic, log_time: u64) -> io::Result<()> {
-        let index = TOPICS
-            .iter()
-            .position(|t| *t == topic)
-            .expect("a known topic");
-        let writer = self.writer.as_mut().expect("header written first");
-        self.sequence = self.sequence.wrapping_add(1);
-        writer
-            .write_to_known_channel(
-                &mcap::records::MessageHeader {
-                    channel_id: self.channels[index],
-                    sequence: self.sequence,
-                    log_time,
-                    publish_time: log_time,
-                },
-                &self.msg,
-            )
-            .map_err(mcap_error)?;
-        self.chunk_bytes += self.msg.len() + 31;
-        Ok(())
     }
 
     fn close_chunk(&mut self, out: &mut Vec<u8>) -> io::Result<u64> {
@@ -161,7 +289,7 @@ impl Recorder for McapRecorder {
             .create(mcap::write::NoSeek::new(self.pending.clone()))
             .map_err(mcap_error)?;
         for (i, t) in TOPICS.iter().enumerate() {
-            if !self.writes(t) {
+            if !self.encoder.writes(t) {
                 continue;
             }
             let schema = writer
@@ -177,129 +305,31 @@ impl Recorder for McapRecorder {
     }
 
     fn row(&mut self, r: &TickRecord, out: &mut Vec<u8>) -> io::Result<u64> {
-        let epoch = *self.epoch_ns.get_or_insert_with(|| {
-            let now = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_nanos() as u64)
-                .unwrap_or(0);
-            now.saturating_sub(device_ns(r.t))
-        });
-        let time = epoch.saturating_add(device_ns(r.t));
-        let header = Header {
-            stamp: Stamp::from_nanos(time),
-            frame_id: "",
-        };
-        let based = Header {
-            frame_id: BASE_FRAME,
-            ..header
-        };
-        if self.ticks == 0 {
-            self.msg.clear();
-            msgs::write_string(&mut self.msg, &arm3d::urdf(&self.geometry));
-            self.put(super::ROBOT_DESCRIPTION, time)?;
-        }
         if self.chunk_rows == 0 {
             self.chunk_t0 = r.t;
         }
-        self.msg.clear();
-        msgs::write_float64(&mut self.msg, r.t);
-        self.put(super::TIME, time)?;
-        let arrays = [
-            (super::ESTIMATE_POSITION, &r.qf),
-            (super::ESTIMATE_ACCELERATION, &r.qdd),
-            (super::REFERENCE, &r.reference),
-            (super::TORQUE_CONTROLLER, &r.tau_cmd),
-            (super::TORQUE_PREDICTED, &r.tau_hat),
-            (super::TORQUE_MODEL, &r.tau_model),
-        ];
-        for (topic, v) in arrays {
-            if self.writes(&topic) {
-                self.msg.clear();
-                msgs::write_f64_array(&mut self.msg, "joint", v);
-                self.put(topic, time)?;
-            }
-        }
-        let tip = r.haptic.tip_mm;
-        self.msg.clear();
-        msgs::write_f64_array(&mut self.msg, "xyz_mm", &tip);
-        self.put(super::TIP_MM, time)?;
-        self.msg.clear();
-        msgs::write_pose_stamped(
-            &mut self.msg,
-            &based,
-            tip.map(|v| v * 1e-3),
-            [0.0, 0.0, 0.0, 1.0],
-        );
-        self.put(super::TIP_POSE, time)?;
-        self.msg.clear();
-        msgs::write_wrench_stamped(&mut self.msg, &based, r.haptic.force, [0.0; 3]);
-        self.put(super::TIP_FORCE, time)?;
-        if self.schema.model {
-            self.msg.clear();
-            msgs::write_wrench_stamped(&mut self.msg, &based, r.haptic.hand, [0.0; 3]);
-            self.put(super::HAND_FORCE, time)?;
-        }
-        self.msg.clear();
-        msgs::write_i64_array(&mut self.msg, "joint", &r.enc);
-        self.put(super::ENCODERS, time)?;
-
-        let now = Carried {
-            mode: r.mode,
-            amps: r.amps,
-            flags: r.flags,
-            buttons: [r.live.buttons[0], r.live.buttons[1], r.live.inkwell],
-            controller: r.live.controller,
-        };
-        let last = self.last.replace(now);
-        let changed = |f: fn(&Carried) -> bool| last.is_none_or(|l| f(&l) != f(&now));
-        if last.is_none_or(|l| l.flags != now.flags) {
-            self.msg.clear();
-            msgs::write_uint32(&mut self.msg, now.flags);
-            self.put(super::FLAGS, time)?;
-        }
-        if last.is_none_or(|l| l.mode != now.mode) {
-            self.msg.clear();
-            msgs::write_string(&mut self.msg, now.mode.as_str());
-            self.put(super::MODE, time)?;
-        }
-        if changed(|c| c.amps) {
-            self.msg.clear();
-            msgs::write_bool(&mut self.msg, now.amps);
-            self.put(super::AMPLIFIERS, time)?;
-        }
-        if last.is_none_or(|l| l.buttons != now.buttons) {
-            self.msg.clear();
-            msgs::write_joy(&mut self.msg, &header, &[], &now.buttons.map(i32::from));
-            self.put(super::BUTTONS, time)?;
-        }
-        if let Some(c) = now
-            .controller
-            .filter(|_| last.is_none_or(|l| l.controller != now.controller))
-        {
-            self.msg.clear();
-            msgs::write_string(&mut self.msg, c.as_str());
-            self.put(super::CONTROLLER, time)?;
-        }
-        if let Some(ev) = r.live.event {
-            self.msg.clear();
-            msgs::write_string(&mut self.msg, &event_text(ev));
-            self.put(super::EVENTS, time)?;
-        }
-        if self.ticks % TF_EVERY == 0 {
-            self.msg.clear();
-            msgs::write_f64_array(&mut self.msg, "joint", &r.live.heat);
-            self.put(super::HEAT, time)?;
-            self.msg.clear();
-            msgs::write_tf(
-                &mut self.msg,
-                &arm3d::transforms(&self.geometry, &r.q, header),
-            );
-            self.put(super::TF, time)?;
-        }
-        self.msg.clear();
-        msgs::write_joint_state(&mut self.msg, &header, &JOINT_NAMES, &r.q, &r.qd, &r.tau);
-        self.put(super::JOINT_STATES, time)?;
-        self.ticks += 1;
+        let writer = self.writer.as_mut().expect("header written first");
+        let (channels, sequence, bytes) =
+            (&self.channels, &mut self.sequence, &mut self.chunk_bytes);
+        self.encoder.encode(r, &mut |topic, log_time, msg| {
+            let index = TOPICS
+                .iter()
+                .position(|t| *t == topic)
+                .expect("a known topic");
+            *sequence = sequence.wrapping_add(1);
+            *bytes += msg.len() + 31;
+            writer
+                .write_to_known_channel(
+                    &mcap::records::MessageHeader {
+                        channel_id: channels[index],
+                        sequence: *sequence,
+                        log_time,
+                        publish_time: log_time,
+                    },
+                    msg,
+                )
+                .map_err(mcap_error)
+        })?;
         self.chunk_rows += 1;
         if self.chunk_bytes >= CHUNK_BYTES || r.t - self.chunk_t0 >= CHUNK_SECONDS {
             return self.close_chunk(out);
