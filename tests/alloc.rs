@@ -286,7 +286,14 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
     let prepared = omnid::daemon::prepare(&opts, &cfg, stop).unwrap();
     let mut servo = prepared.pipeline.servo;
-    let hub = std::thread::spawn(move || omnid::serve::hub::Hub::new(prepared.hub).run());
+    // The live view's tap on the hub too: its encoder thread works on every tick.
+    let view = omnid::serve::foxglove::LiveView::start("127.0.0.1:0".parse().unwrap()).unwrap();
+    let tap = view.tap_for(&prepared.hub, false);
+    let hub = std::thread::spawn(move || {
+        let mut hub = omnid::serve::hub::Hub::new(prepared.hub);
+        hub.add_tap(tap);
+        hub.run()
+    });
 
     let readers: Vec<_> = (0..3)
         .map(|k| {
@@ -312,6 +319,10 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         std::thread::spawn(move || {
             let mut c = Client::connect(&path, "commander").unwrap();
             c.request(json!({"op": "mode", "mode": "hold"})).unwrap();
+            // Recording MCAP all along (chunks compressed on the writer's thread).
+            let rec = path.with_file_name("session.mcap");
+            c.request(json!({"op": "record_start", "path": rec}))
+                .unwrap();
             c.request(json!({"op": "weights_save", "path": weights}))
                 .unwrap();
             c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();

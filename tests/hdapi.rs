@@ -900,3 +900,40 @@ fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
     ];
     assert_close(&out, "gcc", &expected, 1e-9);
 }
+
+#[test]
+fn motor_temperature_comes_from_the_thermal_model_and_an_unsupported_parameter_is_refused_once() {
+    let hd = HD::get();
+    let daemon = Daemon::start(&[]);
+    let out = std::process::Command::new(hd.exe("temp"))
+        .env("OMNID_SOCKET", &daemon.socket)
+        .output()
+        .unwrap();
+    let printed = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{printed}");
+    let ticks: u32 = field(&printed, "ticks").parse().unwrap();
+    assert!(ticks > 500, "{printed}");
+    // Read every tick, refused once: one HD_INVALID_ENUM in the whole run.
+    assert_eq!(field(&printed, "invalid-enum"), "1", "{printed}");
+    assert_eq!(field(&printed, "other-errors"), "0", "{printed}");
+    let temps = |key: &str| -> Vec<f64> {
+        field(&printed, key)
+            .split_whitespace()
+            .map(|v| v.parse().unwrap())
+            .collect()
+    };
+    let (first, last) = (temps("temp-first"), temps("temp-last"));
+    assert_eq!((first.len(), last.len()), (3, 3));
+    for k in 0..3 {
+        assert!((0.0..=1.0).contains(&last[k]), "{printed}");
+        assert!(
+            last[k] >= first[k],
+            "motor {k} cooled while pushing: {printed}"
+        );
+    }
+    // The motors that carry the push warm up (the model integrates τ²).
+    assert!(
+        (0..3).any(|k| last[k] > first[k]),
+        "no motor warmed: {printed}"
+    );
+}

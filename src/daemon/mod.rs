@@ -369,9 +369,7 @@ pub fn serve(
         let stop = stop.clone();
         let seed = cfg.sim.seed;
         let controller = opts.controller;
-        let tap = view
-            .as_ref()
-            .map(|v| v.tap(&name, several, setup.station.schema, setup.station.geometry));
+        let tap = view.as_ref().map(|v| v.tap_for(&setup, several));
         let thread = std::thread::Builder::new()
             .name(format!("omnid-hub-{name}"))
             .spawn(move || {

@@ -136,9 +136,14 @@ impl LiveView {
             .expect("a new topic with a schema")
     }
 
-    /// The tap that shows arm `arm` (its topics under `/<arm>` and frames under `<arm>/`
-    /// when `prefixed`, as with several arms; else the plain names of an MCAP log).
-    pub fn tap(
+    /// The tap that shows the arm a hub serves (its topics under `/<arm>` and frames under
+    /// `<arm>/` when `prefixed`, as with several arms; else the plain names of an MCAP log).
+    pub fn tap_for(&self, hub: &super::hub::HubSetup, prefixed: bool) -> Box<dyn Tap> {
+        let s = &hub.station;
+        self.tap(&s.arm.name, prefixed, s.schema, s.geometry)
+    }
+
+    fn tap(
         &self,
         arm: &str,
         prefixed: bool,

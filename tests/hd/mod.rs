@@ -74,6 +74,7 @@ impl HD {
             };
             for name in [
                 "abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench", "gone", "two", "slow",
+                "temp",
             ] {
                 hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
             }

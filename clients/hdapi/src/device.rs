@@ -2,6 +2,7 @@
 //! reads outside a frame and before the scheduler starts are fresh, and our requests'
 //! answers) and the frame (snapshot in, force out). docs/HDAPI.md, Devices and Frames.
 
+use crate::consts::{HD_EXCEEDED_MAX_FORCE, HD_WARM_MOTORS};
 use crate::kin;
 use crate::link::{Link, WaitEnd};
 use omnid_client::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
@@ -72,6 +73,25 @@ pub struct Frame {
     /// reported once (`slow` holds while the episode lasts).
     pub too_slow: Option<f64>,
     pub slow: bool,
+    /// The daemon's limit flags at the last committed frame, and those that began acting
+    /// since (to be raised as HD errors once per episode: [`limit_errors`]).
+    pub limit_flags: u32,
+    pub new_limits: u32,
+}
+
+/// The daemon's `flags` bits a program is told about (docs/HDAPI.md, Errors), with the HD
+/// error each raises: the tip force held to the force limit or the continuous force, and a hot
+/// motor held to its continuous torque. The kick (torque-rate) limit is not among them: it
+/// shapes most force onsets, and programs stop on any error.
+const LIMITS: [(u32, u32); 2] = [(1 << 9, HD_EXCEEDED_MAX_FORCE), (1 << 6, HD_WARM_MOTORS)];
+
+/// The HD errors for the limits that began acting between two samples' `flags`.
+pub fn limit_errors(before: u32, now: u32) -> impl Iterator<Item = u32> {
+    let began = now & !before;
+    LIMITS
+        .into_iter()
+        .filter(move |(bit, _)| began & bit != 0)
+        .map(|(_, code)| code)
 }
 
 pub struct Device {
@@ -258,6 +278,9 @@ impl Device {
         let Some(state) = f.current.clone() else {
             return Ok(true);
         };
+        let watched = LIMITS.iter().fold(0, |m, (bit, _)| m | bit);
+        f.new_limits |= state.flags & !f.limit_flags & watched;
+        f.limit_flags = state.flags & watched;
         let (force, joint_torque) = if force_output {
             (f.force, f.joint_torque)
         } else {
@@ -311,6 +334,12 @@ impl Device {
     /// the longest time to live (their force lapses between them).
     pub fn take_too_slow(&self) -> Option<f64> {
         lock(&self.frame).too_slow.take()
+    }
+
+    /// The HD errors for limits that began acting since the last call.
+    pub fn take_limit_errors(&self) -> Vec<u32> {
+        let bits = std::mem::take(&mut lock(&self.frame).new_limits);
+        limit_errors(0, bits).collect()
     }
 
     /// Take the command lease (the scheduler starts).
@@ -368,5 +397,29 @@ fn greet(conn: &Conn) -> Result<Hello, DeviceError> {
             _ if sent.is_err() => return Err(DeviceError::Closed),
             _ => {}
         }
+    }
+}
+
+#[cfg(test)]
+mod limit_tests {
+    use super::*;
+
+    #[test]
+    fn a_limit_is_an_error_when_it_begins_not_while_it_lasts() {
+        let force = 1 << 9;
+        let warm = 1 << 6;
+        let kick = 1 << 3;
+        assert_eq!(
+            limit_errors(0, force).collect::<Vec<_>>(),
+            [HD_EXCEEDED_MAX_FORCE]
+        );
+        assert_eq!(limit_errors(force, force).count(), 0);
+        assert_eq!(
+            limit_errors(force, force | warm | kick).collect::<Vec<_>>(),
+            [HD_WARM_MOTORS]
+        );
+        // Bits the library does not raise (a clamp, the kick limit, the ramp, a wall) raise
+        // nothing.
+        assert_eq!(limit_errors(0, 1 | kick | 16 | 32).count(), 0);
     }
 }

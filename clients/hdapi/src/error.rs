@@ -69,6 +69,9 @@ pub enum Internal {
     /// Frames that set a force come further apart than its longest time to live (100 ms): the
     /// force lapses between them (`HD_TIMER_ERROR`).
     SlowFrames = 7,
+    /// The daemon's safety layer held the force or torque back (`HD_EXCEEDED_MAX_FORCE`,
+    /// `HD_WARM_MOTORS`), once per episode.
+    DaemonLimit = 8,
 }
 
 /// `hdGetErrorString`: a static, NUL-terminated description of `code`.

@@ -161,6 +161,9 @@ pub extern "C" fn hdEndFrame(hhd: u32) {
                 if d.take_too_slow().is_some() {
                     error::push(HD_TIMER_ERROR, Internal::SlowFrames, hhd);
                 }
+                for code in d.take_limit_errors() {
+                    error::push(code, Internal::DaemonLimit, hhd);
+                }
             }
             Ok(false) => error::push(HD_ILLEGAL_END, Internal::None, hhd),
             Err(e) => {
@@ -246,10 +249,30 @@ fn get_nums(param: u32) -> Option<Vec<f64>> {
             push(HD_INVALID_INPUT_TYPE, Internal::None);
             None
         }
+        Err(HD_INVALID_ENUM) => {
+            refuse_once(param);
+            None
+        }
         Err(code) => {
             push(code, Internal::None);
             None
         }
+    }
+}
+
+/// Parameters already refused as unsupported.
+static REFUSED: LazyLock<Mutex<std::collections::HashSet<u32>>> = LazyLock::new(Default::default);
+
+/// An unsupported parameter is an `HD_INVALID_ENUM` the first time a program asks for it, and
+/// left alone after that (its output untouched): a servo callback that reads it every tick
+/// gets one error, not a thousand a second (docs/HDAPI.md, Parameters).
+fn refuse_once(param: u32) {
+    let first = REFUSED
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .insert(param);
+    if first {
+        push(HD_INVALID_ENUM, Internal::None);
     }
 }
 

@@ -70,6 +70,9 @@ pub fn get(d: &Device, param: u32) -> Result<Value, u32> {
         HD_CURRENT_JACOBIAN => return nums(kin::jacobian6(&sample(d, &f, last)?.q)),
         HD_CURRENT_JOINT_ANGLES => return nums(sample(d, &f, last)?.q),
         HD_CURRENT_GIMBAL_ANGLES => return nums(sample(d, &f, last)?.gimbal),
+        // The daemon's thermal model: 0 cold, 1 at the steady state of the continuous torque,
+        // where the safety layer starts holding the motor (docs/HDAPI.md, Parameters).
+        HD_MOTOR_TEMPERATURE => return nums(sample(d, &f, false)?.heat.map(|h| h.clamp(0.0, 1.0))),
         _ => {}
     }
     match param {

@@ -100,11 +100,7 @@ impl TickEncoder {
 
     /// The tick's messages, each handed to `put` with its topic and log time (ns since the
     /// Unix epoch); `/robot_description` before the first tick.
-    pub(crate) fn encode(
-        &mut self,
-        r: &TickRecord,
-        put: &mut Put<'_>,
-    ) -> io::Result<()> {
+    pub(crate) fn encode(&mut self, r: &TickRecord, put: &mut Put<'_>) -> io::Result<()> {
         let epoch = *self.epoch_ns.get_or_insert_with(|| {
             let now = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
