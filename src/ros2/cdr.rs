@@ -216,8 +216,8 @@ impl<'a> CdrReader<'a> {
         ))
     }
     pub fn string(&mut self) -> Result<&'a str, CdrError> {
-        let at = self.pos;
         let n = self.u32()? as usize;
+        let at = self.pos - 4;
         if n == 0 {
             return Err(CdrError::BadString {
                 at,
@@ -239,8 +239,8 @@ impl<'a> CdrReader<'a> {
     /// A sequence's element count, checked against what the rest of the message can hold
     /// (`min_size`: the least bytes one element takes), so a lying count never allocates.
     pub fn count(&mut self, min_size: usize) -> Result<usize, CdrError> {
-        let at = self.pos;
         let count = self.u32()?;
+        let at = self.pos - 4;
         let left = self.buf.len() - self.pos;
         if (count as usize).saturating_mul(min_size.max(1)) > left {
             return Err(CdrError::Count { at, count });
@@ -250,8 +250,8 @@ impl<'a> CdrReader<'a> {
     /// A sequence of exactly `N` elements (`min_size`: as for [`Self::count`]), checked and
     /// taken without allocating.
     fn exactly<const N: usize>(&mut self, min_size: usize) -> Result<(), CdrError> {
-        let at = self.pos;
         let n = self.count(min_size)?;
+        let at = self.pos - 4;
         if n != N {
             return Err(CdrError::Length {
                 at,

@@ -302,7 +302,13 @@ impl Device {
             _ => f.slow = false,
         }
         drop(f);
-        if self.commanding.load(Ordering::Relaxed) {
+        // A frame that pushes nothing, from a program whose frames are occasional (a
+        // calibration loop committing once a second), commands nothing: the arm stays as the
+        // daemon holds it, instead of its amplifiers toggling on for each frame and off when
+        // the command lapses. A servo loop's zero-force frames still go (they keep its stream,
+        // and the amplifiers, steady between contacts).
+        let occasional = interval_ms.is_none_or(|i| i > MAX_FORCE_TTL_MS);
+        if self.commanding.load(Ordering::Relaxed) && (pushes || !occasional) {
             let ttl = force_ttl_ms(interval_ms);
             self.send(&self.command(&state, force, joint_torque, ttl))?;
         }

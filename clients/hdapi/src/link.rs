@@ -26,8 +26,11 @@ pub struct Inbox {
     pub latest: Option<State>,
     /// Samples received (the scheduler runs one frame per sample).
     pub samples: u64,
-    /// The device time between the last two samples, s.
+    /// The time between the last two samples' arrival on this host, s (what a program's
+    /// servo loop sees, jitter included).
     pub dt: f64,
+    /// When the last sample arrived.
+    pub received_at: Option<Instant>,
     /// The stylus has been seen in its inkwell since the device was opened.
     pub inkwell_seen: bool,
     pub replies: HashMap<u64, Value>,
@@ -202,9 +205,12 @@ impl Link {
         match v["type"].as_str() {
             Some("state") => {
                 if let Ok(s) = serde_json::from_value::<State>(v) {
-                    if let Some(prev) = &i.latest {
-                        let dt = s.t - prev.t;
-                        if dt > 0.0 {
+                    let now = Instant::now();
+                    if let Some(prev) = i.received_at.replace(now) {
+                        // Samples read in one batch (within 50 µs) arrived together: keep the
+                        // last real interval.
+                        let dt = (now - prev).as_secs_f64();
+                        if dt > 50e-6 {
                             i.dt = dt;
                         }
                     }
