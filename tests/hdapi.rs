@@ -516,7 +516,8 @@ fn two_devices_by_their_vendor_names_in_one_scheduler_callback() {
 #[test]
 fn a_slow_servo_callback_keeps_its_force_or_is_told() {
     let hd = HD::get();
-    for (frame_ms, told) in [(40, false), (150, true)] {
+    // 30 ms frames: slower than the default time to live (20 ms), 70 ms inside the longest.
+    for (frame_ms, told) in [(30, false), (150, true)] {
         let daemon = Daemon::start(&[]);
         let mut watch = daemon.client("watch");
         watch
@@ -936,4 +937,43 @@ fn motor_temperature_comes_from_the_thermal_model_and_an_unsupported_parameter_i
         (0..3).any(|k| last[k] > first[k]),
         "no motor warmed: {printed}"
     );
+}
+
+#[test]
+fn occasional_frames_that_push_nothing_leave_the_arm_alone() {
+    let hd = HD::get();
+    let daemon = Daemon::start(&[]);
+    let mut watch = daemon.client("watch");
+    watch
+        .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))
+        .unwrap();
+    let program = std::process::Command::new(hd.exe("occasional"))
+        .arg("300")
+        .env("OMNID_SOCKET", &daemon.socket)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("occasional starts");
+    let _watchdog = hd::Watchdog::new(&program, Duration::from_secs(60));
+    // Every state while it runs: the amplifiers never come on, the mode never leaves idle.
+    let (mut states, mut amps_on, mut modes) = (0, 0, std::collections::BTreeSet::new());
+    let until = Instant::now() + Duration::from_millis(2200);
+    while Instant::now() < until {
+        let Ok(s) = watch.next_state(500) else {
+            continue;
+        };
+        states += 1;
+        amps_on += usize::from(s.amps);
+        modes.insert(s.mode.clone());
+    }
+    let out = program.wait_with_output().unwrap();
+    let printed = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{printed}");
+    assert!(
+        field(&printed, "frames").parse::<u32>().unwrap() >= 6,
+        "{printed}"
+    );
+    assert!(states > 1000, "{states} states watched");
+    assert_eq!(amps_on, 0, "the amplifiers came on; modes {modes:?}");
+    assert_eq!(modes.into_iter().collect::<Vec<_>>(), ["idle"]);
 }

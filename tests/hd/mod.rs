@@ -73,8 +73,18 @@ impl HD {
                 bin,
             };
             for name in [
-                "abi", "chai", "ros", "jhu", "vrpn", "nodaemon", "bench", "gone", "two", "slow",
+                "abi",
+                "chai",
+                "ros",
+                "jhu",
+                "vrpn",
+                "nodaemon",
+                "bench",
+                "gone",
+                "two",
+                "slow",
                 "temp",
+                "occasional",
             ] {
                 hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
             }
