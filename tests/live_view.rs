@@ -144,7 +144,7 @@ fn a_viewer_that_never_reads_costs_the_other_viewers_nothing() {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/mcap/check_live.py");
     let mut stuck = Command::new(&py)
         .arg(&script)
-        .args(["--stuck", &d.url, "15"])
+        .args(["--stuck", &d.url, "120"])
         .stdout(Stdio::piped())
         .spawn()
         .unwrap();
@@ -156,14 +156,32 @@ fn a_viewer_that_never_reads_costs_the_other_viewers_nothing() {
     // Let its queue on the server fill (1024 messages: about a tenth of a second).
     std::thread::sleep(Duration::from_secs(2));
     let report = viewer(&py, &[&d.url, "5"]);
-    let _ = stuck.kill();
-    let _ = stuck.wait();
     assert_all_decode(&report);
     let hz = rate(&report, "/joint_states");
     assert!(
         (950.0..=1050.0).contains(&hz),
         "beside a stuck viewer: {hz} Hz"
     );
+    // SIGTERM with the stuck viewer still connected: the daemon still ends (its viewer never
+    // closes; the live view waits a second for it, no longer).
+    let mut d = d;
+    // SAFETY: kill with a live child's pid.
+    unsafe { libc::kill(d.child.id() as i32, libc::SIGTERM) };
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    let status = loop {
+        if let Some(s) = d.child.try_wait().unwrap() {
+            break Some(s);
+        }
+        if std::time::Instant::now() > deadline {
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let _ = stuck.kill();
+    let _ = stuck.wait();
+    let status = status.expect("omnid serve did not end on SIGTERM beside a stuck viewer");
+    // An operator's stop: its documented exit code.
+    assert_eq!(status.code(), Some(130), "{status:?}");
 }
 
 #[test]

@@ -23,6 +23,9 @@ use thiserror::Error;
 /// Where the live view listens unless told: loopback only.
 pub const DEFAULT_ADDR: &str = "127.0.0.1:8765";
 
+/// How long a stopping live view waits for its viewers to close.
+const STOP_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Ticks queued between an arm's station and its encoder thread (a quarter second at 1 kHz).
 const QUEUE_TICKS: usize = 256;
 
@@ -97,9 +100,11 @@ impl LiveView {
                         }
                     };
                     let _ = ready_tx.send(Ok(handle.port()));
-                    // Serve until told to stop (or the LiveView is gone).
+                    // Serve until told to stop (or the LiveView is gone). The graceful stop
+                    // waits for each viewer's close; one that stopped reading never closes, so
+                    // it gets a second, and then the runtime's end drops its connection.
                     let _ = stop_rx.await;
-                    handle.stop().wait().await;
+                    let _ = tokio::time::timeout(STOP_GRACE, handle.stop().wait()).await;
                 });
             })
             .map_err(|e| start_error(e.to_string()))?;

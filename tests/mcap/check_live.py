@@ -75,13 +75,42 @@ async def watch(url, secs):
         print(json.dumps(out))
 
 
-async def stuck(url, secs):
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None,
-                                  max_queue=1) as ws:
-        await subscribe_all(ws)
-        print("subscribed", flush=True)
-        # Read nothing: the socket's buffers and then the server's queue for us fill.
-        await asyncio.sleep(secs)
+def stuck(url, secs):
+    """A viewer that subscribes to everything and then never reads its socket again: a plain
+    socket, so nothing (no library's background reader) drains it."""
+    import os
+    import socket
+    host, port = url.removeprefix("ws://").rstrip("/").rsplit(":", 1)
+    s = socket.create_connection((host, int(port)))
+    s.sendall((f"GET / HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+               "Sec-WebSocket-Key: b21uaWQtc3R1Y2stdmlldw==\r\nSec-WebSocket-Version: 13\r\n"
+               f"Sec-WebSocket-Protocol: {SUBPROTOCOL}\r\n\r\n").encode())
+    f = s.makefile("rb")
+    while f.readline() not in (b"\r\n", b""):
+        pass
+
+    def frame():
+        b0, b1 = f.read(2)
+        n = b1 & 0x7F
+        if n == 126:
+            n = struct.unpack(">H", f.read(2))[0]
+        elif n == 127:
+            n = struct.unpack(">Q", f.read(8))[0]
+        return b0 & 0x0F, f.read(n)
+
+    while True:
+        op, payload = frame()
+        if op == 1 and json.loads(payload).get("op") == "advertise":
+            channels = json.loads(payload)["channels"]
+            break
+    text = json.dumps({"op": "subscribe", "subscriptions": [
+        {"id": i + 1, "channelId": ch["id"]} for i, ch in enumerate(channels)]}).encode()
+    mask = os.urandom(4)
+    head = bytes([0x81]) + (bytes([0x80 | 126]) + struct.pack(">H", len(text)) if len(text) > 125
+                            else bytes([0x80 | len(text)]))
+    s.sendall(head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(text)))
+    print("subscribed", flush=True)
+    time.sleep(secs)
 
 
 async def old(url):
@@ -94,7 +123,7 @@ async def old(url):
 
 if __name__ == "__main__":
     if sys.argv[1] == "--stuck":
-        asyncio.run(stuck(sys.argv[2], float(sys.argv[3])))
+        stuck(sys.argv[2], float(sys.argv[3]))
     elif sys.argv[1] == "--old":
         asyncio.run(old(sys.argv[2]))
     else:
