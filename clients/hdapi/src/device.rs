@@ -77,7 +77,13 @@ pub struct Frame {
     /// since (to be raised as HD errors once per episode: [`limit_errors`]).
     pub limit_flags: u32,
     pub new_limits: u32,
+    /// When each limit of [`LIMITS`] was last raised: a limit that comes and goes with the
+    /// force (a program pushing at the limit) is raised at most once a second.
+    pub limit_raised_at: [Option<Instant>; 2],
 }
+
+/// The least time between two raises of the same limit.
+const LIMIT_HOLD_OFF: Duration = Duration::from_secs(1);
 
 /// The daemon's `flags` bits a program is told about (docs/HDAPI.md, Errors), with the HD
 /// error each raises: the tip force held to the force limit or the continuous force, and a hot
@@ -279,8 +285,16 @@ impl Device {
             return Ok(true);
         };
         let watched = LIMITS.iter().fold(0, |m, (bit, _)| m | bit);
-        f.new_limits |= state.flags & !f.limit_flags & watched;
+        let began = state.flags & !f.limit_flags & watched;
         f.limit_flags = state.flags & watched;
+        let now = Instant::now();
+        for (k, (bit, _)) in LIMITS.iter().enumerate() {
+            let quiet = f.limit_raised_at[k].is_none_or(|t| now - t >= LIMIT_HOLD_OFF);
+            if began & bit != 0 && quiet {
+                f.new_limits |= bit;
+                f.limit_raised_at[k] = Some(now);
+            }
+        }
         let (force, joint_torque) = if force_output {
             (f.force, f.joint_torque)
         } else {
