@@ -285,14 +285,6 @@ impl<'a> CdrReader<'a> {
         }
         Ok(v)
     }
-    /// `N` float64 in a row (a fixed array or a struct of them: no count).
-    pub fn f64_array_fixed<const N: usize>(&mut self) -> Result<[f64; N], CdrError> {
-        let mut v = [0.0; N];
-        for x in &mut v {
-            *x = self.f64()?;
-        }
-        Ok(v)
-    }
     /// A float32 sequence that must be empty.
     pub fn f32_array_empty(&mut self) -> Result<(), CdrError> {
         self.exactly::<0>(4)
@@ -300,18 +292,6 @@ impl<'a> CdrReader<'a> {
     pub fn f64s(&mut self) -> Result<Vec<f64>, CdrError> {
         let n = self.count(8)?;
         (0..n).map(|_| self.f64()).collect()
-    }
-    pub fn i64s(&mut self) -> Result<Vec<i64>, CdrError> {
-        let n = self.count(8)?;
-        (0..n).map(|_| self.i64()).collect()
-    }
-    pub fn f32s(&mut self) -> Result<Vec<f32>, CdrError> {
-        let n = self.count(4)?;
-        (0..n).map(|_| self.f32()).collect()
-    }
-    pub fn i32s(&mut self) -> Result<Vec<i32>, CdrError> {
-        let n = self.count(4)?;
-        (0..n).map(|_| self.i32()).collect()
     }
     pub fn strings(&mut self) -> Result<Vec<&'a str>, CdrError> {
         let n = self.count(5)?;

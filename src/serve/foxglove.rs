@@ -3,7 +3,7 @@
 //! server (`omnid serve --foxglove [ADDR]`).
 //!
 //! Off the loop twice over: the station's tap only hands each tick record to a bounded channel
-//! (a full channel drops the tick and counts it), and a thread per arm encodes the messages and
+//! (a full channel drops the tick), and a thread per arm encodes the messages and
 //! gives them to the server, which runs on a tokio runtime of its own thread. Each viewer has
 //! its own queue in the server (1024 messages, the oldest dropped first), so a slow or stuck
 //! viewer loses its own messages and nothing else.
@@ -13,9 +13,8 @@ use crate::station::Tap;
 use crate::telemetry::mcap_log::write::TickEncoder;
 use crate::telemetry::mcap_log::{Topic, TOPICS};
 use crate::telemetry::record::{LogSchema, TickRecord};
-use crossbeam_channel::{Receiver, Sender, TrySendError};
+use crossbeam_channel::{Receiver, Sender};
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use thiserror::Error;
@@ -180,14 +179,12 @@ impl LiveView {
             });
         }
         let (tx, rx) = crossbeam_channel::bounded(QUEUE_TICKS);
-        let dropped = Arc::new(AtomicU64::new(0));
         let thread = std::thread::Builder::new()
             .name(format!("omnid-view-{arm}"))
             .spawn(move || encode_ticks(rx, encoder, channels))
             .ok();
         Box::new(ViewTap {
             tx: Some(tx),
-            dropped,
             thread,
         })
     }
@@ -208,7 +205,6 @@ fn encode_ticks(
     mut encoder: TickEncoder,
     channels: Vec<Option<Arc<foxglove::RawChannel>>>,
 ) {
-    let index = |topic: Topic| TOPICS.iter().position(|t| *t == topic);
     let mut ticks = 0u64;
     for r in rx {
         ticks += 1;
@@ -216,7 +212,7 @@ fn encode_ticks(
             encoder.repeat();
         }
         let _ = encoder.encode(&r, &mut |topic, log_time, bytes| {
-            if let Some(Some(c)) = index(topic).map(|i| &channels[i]) {
+            if let Some(c) = &channels[topic.id] {
                 c.log_with_meta(bytes, foxglove::PartialMetadata::with_log_time(log_time));
             }
             Ok(())
@@ -227,16 +223,15 @@ fn encode_ticks(
 /// The station's side: hand the tick on, never wait.
 struct ViewTap {
     tx: Option<Sender<TickRecord>>,
-    dropped: Arc<AtomicU64>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl Tap for ViewTap {
     fn on_tick(&mut self, record: &TickRecord) {
         if let Some(tx) = &self.tx {
-            if let Err(TrySendError::Full(_)) = tx.try_send(*record) {
-                self.dropped.fetch_add(1, Ordering::Relaxed);
-            }
+            // A full queue (the encoder behind) drops the tick: viewers see a gap, nothing
+            // else waits.
+            let _ = tx.try_send(*record);
         }
     }
 

@@ -16,52 +16,56 @@ use crate::ros2::msgs::{self, MsgType};
 /// A channel of an omnid MCAP log.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) struct Topic {
+    /// Its place in [`TOPICS`] (per-channel tables are indexed by it).
+    pub(crate) id: usize,
     pub(crate) name: &'static str,
     pub(crate) ty: MsgType,
     /// Only in logs of the simulator's schema (`tau_model`, `fhand`).
     pub(crate) model_only: bool,
 }
 
-const fn topic(name: &'static str, ty: MsgType) -> Topic {
+const fn topic(id: usize, name: &'static str, ty: MsgType) -> Topic {
     Topic {
+        id,
         name,
         ty,
         model_only: false,
     }
 }
 
-pub(crate) const ROBOT_DESCRIPTION: Topic = topic("/robot_description", msgs::STRING);
-pub(crate) const TIME: Topic = topic("/omnid/time", msgs::FLOAT64);
+pub(crate) const ROBOT_DESCRIPTION: Topic = topic(0, "/robot_description", msgs::STRING);
+pub(crate) const TIME: Topic = topic(1, "/omnid/time", msgs::FLOAT64);
 pub(crate) const ESTIMATE_POSITION: Topic =
-    topic("/omnid/estimate/position", msgs::FLOAT64_MULTI_ARRAY);
+    topic(2, "/omnid/estimate/position", msgs::FLOAT64_MULTI_ARRAY);
 pub(crate) const ESTIMATE_ACCELERATION: Topic =
-    topic("/omnid/estimate/acceleration", msgs::FLOAT64_MULTI_ARRAY);
-pub(crate) const REFERENCE: Topic = topic("/omnid/reference/position", msgs::FLOAT64_MULTI_ARRAY);
+    topic(3, "/omnid/estimate/acceleration", msgs::FLOAT64_MULTI_ARRAY);
+pub(crate) const REFERENCE: Topic =
+    topic(4, "/omnid/reference/position", msgs::FLOAT64_MULTI_ARRAY);
 pub(crate) const TORQUE_CONTROLLER: Topic =
-    topic("/omnid/torque/controller", msgs::FLOAT64_MULTI_ARRAY);
+    topic(5, "/omnid/torque/controller", msgs::FLOAT64_MULTI_ARRAY);
 pub(crate) const TORQUE_PREDICTED: Topic =
-    topic("/omnid/torque/predicted", msgs::FLOAT64_MULTI_ARRAY);
+    topic(6, "/omnid/torque/predicted", msgs::FLOAT64_MULTI_ARRAY);
 pub(crate) const TORQUE_MODEL: Topic = Topic {
     model_only: true,
-    ..topic("/omnid/torque/model", msgs::FLOAT64_MULTI_ARRAY)
+    ..topic(7, "/omnid/torque/model", msgs::FLOAT64_MULTI_ARRAY)
 };
-pub(crate) const TIP_MM: Topic = topic("/omnid/tip/position_mm", msgs::FLOAT64_MULTI_ARRAY);
-pub(crate) const TIP_POSE: Topic = topic("/omnid/tip/pose", msgs::POSE_STAMPED);
-pub(crate) const TIP_FORCE: Topic = topic("/omnid/tip/force", msgs::WRENCH_STAMPED);
+pub(crate) const TIP_MM: Topic = topic(8, "/omnid/tip/position_mm", msgs::FLOAT64_MULTI_ARRAY);
+pub(crate) const TIP_POSE: Topic = topic(9, "/omnid/tip/pose", msgs::POSE_STAMPED);
+pub(crate) const TIP_FORCE: Topic = topic(10, "/omnid/tip/force", msgs::WRENCH_STAMPED);
 pub(crate) const HAND_FORCE: Topic = Topic {
     model_only: true,
-    ..topic("/omnid/hand/force", msgs::WRENCH_STAMPED)
+    ..topic(11, "/omnid/hand/force", msgs::WRENCH_STAMPED)
 };
-pub(crate) const ENCODERS: Topic = topic("/omnid/encoders", msgs::INT64_MULTI_ARRAY);
-pub(crate) const FLAGS: Topic = topic("/omnid/safety/flags", msgs::UINT32);
-pub(crate) const MODE: Topic = topic("/omnid/mode", msgs::STRING);
-pub(crate) const AMPLIFIERS: Topic = topic("/omnid/amplifiers", msgs::BOOL);
-pub(crate) const BUTTONS: Topic = topic("/omnid/buttons", msgs::JOY);
-pub(crate) const CONTROLLER: Topic = topic("/omnid/controller", msgs::STRING);
-pub(crate) const EVENTS: Topic = topic("/omnid/events", msgs::STRING);
-pub(crate) const HEAT: Topic = topic("/omnid/motor/heat", msgs::FLOAT64_MULTI_ARRAY);
-pub(crate) const TF: Topic = topic("/tf", msgs::TF_MESSAGE);
-pub(crate) const JOINT_STATES: Topic = topic("/joint_states", msgs::JOINT_STATE);
+pub(crate) const ENCODERS: Topic = topic(12, "/omnid/encoders", msgs::INT64_MULTI_ARRAY);
+pub(crate) const FLAGS: Topic = topic(13, "/omnid/safety/flags", msgs::UINT32);
+pub(crate) const MODE: Topic = topic(14, "/omnid/mode", msgs::STRING);
+pub(crate) const AMPLIFIERS: Topic = topic(15, "/omnid/amplifiers", msgs::BOOL);
+pub(crate) const BUTTONS: Topic = topic(16, "/omnid/buttons", msgs::JOY);
+pub(crate) const CONTROLLER: Topic = topic(17, "/omnid/controller", msgs::STRING);
+pub(crate) const EVENTS: Topic = topic(18, "/omnid/events", msgs::STRING);
+pub(crate) const HEAT: Topic = topic(19, "/omnid/motor/heat", msgs::FLOAT64_MULTI_ARRAY);
+pub(crate) const TF: Topic = topic(20, "/tf", msgs::TF_MESSAGE);
+pub(crate) const JOINT_STATES: Topic = topic(21, "/joint_states", msgs::JOINT_STATE);
 
 /// Every channel, in the order a tick writes them (`/joint_states` last).
 pub(crate) const TOPICS: [Topic; 22] = [
@@ -92,6 +96,14 @@ pub(crate) const TOPICS: [Topic; 22] = [
 /// The joint names of `/joint_states`: omnid's joints in the OpenHaptics convention (the
 /// URDF's joints follow the ROS driver's; see [`arm3d`]).
 pub(crate) const JOINT_NAMES: [&str; 3] = ["joint1", "joint2", "joint3"];
+
+#[cfg(test)]
+#[test]
+fn every_topic_knows_its_place() {
+    for (i, t) in TOPICS.iter().enumerate() {
+        assert_eq!(t.id, i, "{}", t.name);
+    }
+}
 
 /// The file's first bytes.
 pub const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";

@@ -4,7 +4,7 @@
 //! is read as a stream (no seeking, bounded memory), so a FIFO works and a file cut short by a
 //! killed run reads up to its last whole chunk.
 
-use super::{Topic, MAGIC, TOPICS};
+use super::{MAGIC, TOPICS};
 use crate::ros2::cdr::CdrError;
 use crate::ros2::msgs;
 use crate::telemetry::record::{HapticRecord, LogSchema, Mode, TickRecord};
@@ -101,10 +101,6 @@ fn blank() -> TickRecord {
     }
 }
 
-fn index_of(t: Topic) -> usize {
-    TOPICS.iter().position(|x| *x == t).expect("a known topic")
-}
-
 impl<R: Read> McapTicks<R> {
     /// Read from `input` (its first bytes must be the MCAP magic). `lenient`: a file that ends
     /// early ends after its last whole row instead of being an error.
@@ -135,11 +131,6 @@ impl<R: Read> McapTicks<R> {
     /// The columns the log carries (known once the first row is read, or at the end).
     pub fn schema(&self) -> LogSchema {
         self.state.schema()
-    }
-
-    /// Rows read so far.
-    pub fn rows(&self) -> u64 {
-        self.state.rows
     }
 
     /// The next tick, `None` at the end of the file.
@@ -228,7 +219,7 @@ impl<R: Read> McapTicks<R> {
 impl State {
     fn schema(&self) -> LogSchema {
         LogSchema {
-            model: self.channels.present[index_of(super::TORQUE_MODEL)],
+            model: self.channels.present[super::TORQUE_MODEL.id],
         }
     }
 
@@ -256,7 +247,7 @@ impl State {
 
     fn check_is_omnid(&self) -> Result<(), McapReadError> {
         for t in [super::JOINT_STATES, super::TIME] {
-            if !self.channels.present[index_of(t)] {
+            if !self.channels.present[t.id] {
                 return Err(McapReadError::Foreign(format!(
                     "no {} channel ({} channels in all)",
                     t.name,
@@ -328,12 +319,12 @@ impl State {
                 return Ok(None);
             }
             t if t == super::TF => {
-                msgs::check_tf(data).map_err(cdr)?;
+                msgs::read_tf(data).map_err(cdr)?;
                 return Ok(None);
             }
             _ => {}
         }
-        if self.seen & (1 << index_of(super::TIME)) == 0 {
+        if self.seen & (1 << super::TIME.id) == 0 {
             return Err("comes before its tick's /omnid/time".into());
         }
         let arr = |data: &[u8]| msgs::read_f64_array_n::<3>(data).map_err(cdr);
@@ -401,7 +392,7 @@ impl State {
             super::ENCODERS,
         ];
         for t in per_tick {
-            if (!t.model_only || schema.model) && self.seen & (1 << index_of(t)) == 0 {
+            if (!t.model_only || schema.model) && self.seen & (1 << t.id) == 0 {
                 return Err(format!(
                     "the tick at t = {} has no {} message",
                     self.row.t, t.name
@@ -443,7 +434,6 @@ pub struct McapAsCsv<R: Read> {
     text: Vec<u8>,
     at: usize,
     started: bool,
-    first: Option<TickRecord>,
 }
 
 impl<R: Read> McapAsCsv<R> {
@@ -454,7 +444,6 @@ impl<R: Read> McapAsCsv<R> {
             text: Vec::with_capacity(1 << 16),
             at: 0,
             started: false,
-            first: None,
         }
     }
 
@@ -464,12 +453,12 @@ impl<R: Read> McapAsCsv<R> {
         if !self.started {
             self.started = true;
             // The header needs the schema: known once the first row is read.
-            self.first = self.ticks.next_tick()?;
+            let first = self.ticks.next_tick()?;
             let schema = self.ticks.schema();
             self.text
                 .extend_from_slice(schema.columns().join(",").as_bytes());
             self.text.push(b'\n');
-            if let Some(r) = self.first.take() {
+            if let Some(r) = first {
                 crate::telemetry::recorder::format_row(&mut self.text, &r, &schema);
             }
             return Ok(());

@@ -14,6 +14,9 @@ use std::sync::{Arc, Mutex};
 /// [`CHUNK_SECONDS`] of device time: what a killed run can lose.
 const CHUNK_BYTES: usize = 1 << 20;
 const CHUNK_SECONDS: f64 = 1.0;
+/// What a Message record adds to its payload: opcode and length (9), channel id, sequence,
+/// log and publish times (22).
+const MESSAGE_RECORD_BYTES: usize = 31;
 /// Ticks between two `/tf` and `/omnid/motor/heat` messages (62.5 Hz at 1 kHz: enough for a
 /// 3-D view).
 const TF_EVERY: u64 = 16;
@@ -308,16 +311,12 @@ impl Recorder for McapRecorder {
         let (channels, sequence, bytes) =
             (&self.channels, &mut self.sequence, &mut self.chunk_bytes);
         self.encoder.encode(r, &mut |topic, log_time, msg| {
-            let index = TOPICS
-                .iter()
-                .position(|t| *t == topic)
-                .expect("a known topic");
             *sequence = sequence.wrapping_add(1);
-            *bytes += msg.len() + 31;
+            *bytes += msg.len() + MESSAGE_RECORD_BYTES;
             writer
                 .write_to_known_channel(
                     &mcap::records::MessageHeader {
-                        channel_id: channels[index],
+                        channel_id: channels[topic.id],
                         sequence: *sequence,
                         log_time,
                         publish_time: log_time,
