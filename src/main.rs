@@ -266,6 +266,10 @@ struct ServeArgs {
           default_missing_value = omnid::serve::foxglove::DEFAULT_ADDR,
           value_parser = parse_view_addr)]
     foxglove: Option<std::net::SocketAddr>,
+    /// Serve every arm over zenoh too: ROS 2 topics in rmw_zenoh's form and remote clients
+    /// (loopback and read-only unless `[zenoh]` says otherwise; docs/ZENOH.md).
+    #[arg(long)]
+    zenoh: bool,
 }
 
 fn parse_view_addr(s: &str) -> Result<std::net::SocketAddr, String> {
@@ -727,6 +731,7 @@ fn serve_cmd(args: ServeArgs) -> Result<u8, anyhow::Error> {
         lenient: args.lenient,
         inject: args.inject,
         foxglove: args.foxglove,
+        zenoh: args.zenoh,
     };
     let outcome = match omnid::daemon::serve(&opts, &cfg, stop) {
         Ok(o) => o,

@@ -281,6 +281,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         lenient: false,
         inject: Vec::new(),
         foxglove: None,
+        zenoh: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
@@ -414,6 +415,7 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
         lenient: false,
         inject: Vec::new(),
         foxglove: None,
+        zenoh: false,
     };
     let stop = Arc::new(AtomicBool::new(false));
     let mut servos = Vec::new();

@@ -292,6 +292,66 @@ def find_arm_socket(arm: str) -> str:
 Message = Union[State, Dict[str, Any]]
 
 
+class _ZenohLink:
+    """omnid's protocol over zenoh (needs ``pip install eclipse-zenoh``): this client's
+    liveliness token ``omnid/<arm>/client/<id>``, its requests put on ``omnid/<arm>/in/<id>``
+    and the daemon's messages for it, from ``omnid/<arm>/out/<id>``, written into a socket
+    pair the client reads."""
+
+    def __init__(self, remote: str, arm: str, name: str):
+        try:
+            import zenoh  # type: ignore
+        except ImportError as e:
+            raise ConnectError(
+                "a remote client needs the zenoh package: pip install eclipse-zenoh"
+            ) from e
+        import uuid
+
+        self.cid = "py-" + uuid.uuid4().hex[:16]
+        self.dropped = 0
+        self.reader, self._writer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self._writer.setblocking(False)
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("connect/endpoints", json.dumps([remote]))
+        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        try:
+            self._session = zenoh.open(conf)
+        except Exception as e:  # zenoh raises its own ZError
+            raise ConnectError("cannot open a zenoh session to %s: %s" % (remote, e)) from e
+        prefix = "omnid/%s" % arm
+        self._sub = self._session.declare_subscriber(
+            "%s/out/%s" % (prefix, self.cid), self._arrived
+        )
+        self._token = self._session.liveliness().declare_token(
+            "%s/client/%s" % (prefix, self.cid)
+        )
+        self._in = self._session.declare_publisher("%s/in/%s" % (prefix, self.cid))
+
+    def _arrived(self, sample: Any) -> None:
+        try:
+            self._writer.send(bytes(sample.payload.to_bytes()))
+        except (BlockingIOError, OSError):
+            # The reader is not keeping up (or is closed): the message is dropped.
+            self.dropped += 1
+
+    def put(self, data: bytes) -> None:
+        self._in.put(data)
+
+    def close(self) -> None:
+        for thing in (self._token, self._sub, self._in):
+            try:
+                thing.undeclare()
+            except Exception:
+                pass
+        try:
+            self._session.close()
+        except Exception:
+            pass
+        self._writer.close()
+
+
 class Client:
     """A connection to ``omnid serve``.
 
@@ -303,6 +363,11 @@ class Client:
     ``client`` (this connection's number), ``stream_ttl_ms``, ``controllers``, ``modes``,
     ``server``, ``protocol``). A refused connection raises :class:`RefusedError` with the
     daemon's reason.
+
+    ``remote="tcp/host:7447"`` (with ``arm``) reaches a daemon on another PC through zenoh
+    (``omnid serve --zenoh``; needs ``pip install eclipse-zenoh``), with the same methods and
+    messages; the daemon refuses commands over the network unless its ``[zenoh]
+    allow_commands`` is on.
 
     ``timeout`` (s) is the default wait for a reply. ``on_event(message)``, when given, is
     called with every message that is neither a state sample nor a reply (``event``,
@@ -332,8 +397,14 @@ class Client:
         state_buffer: int = 10000,
         event_buffer: int = 10000,
         arm: Optional[str] = None,
+        remote: Optional[str] = None,
     ):
-        if path is not None:
+        self._zenoh: Optional["_ZenohLink"] = None
+        if remote is not None:
+            if not arm:
+                raise ValueError("a remote client names its arm: Client(remote=..., arm='left')")
+            self.path = "zenoh:%s/%s" % (remote, arm)
+        elif path is not None:
             self.path = os.fspath(path)
         elif arm is not None:
             self.path = find_arm_socket(arm)
@@ -357,6 +428,22 @@ class Client:
         self._closed_reason: Optional[str] = None
         self._sock: Optional[socket.socket] = None
         self._poll = select.poll()
+
+        if remote is not None:
+            # The daemon's messages arrive on zenoh's threads and are written into one end of
+            # a socket pair; this client reads the other end exactly as it reads a daemon's
+            # socket.
+            self._zenoh = _ZenohLink(remote, str(arm), name)
+            sock = self._zenoh.reader
+            sock.setblocking(False)
+            self._sock = sock
+            self._poll.register(sock.fileno(), select.POLLIN)
+            try:
+                self._greet(timeout)
+            except BaseException:
+                self.close()
+                raise
+            return
 
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
@@ -430,6 +517,9 @@ class Client:
             except (KeyError, ValueError, OSError):
                 pass
             sock.close()
+        link, self._zenoh = self._zenoh, None
+        if link is not None:
+            link.close()
 
     def __enter__(self) -> "Client":
         return self
@@ -457,6 +547,9 @@ class Client:
         data = json.dumps(message, separators=(",", ":"), allow_nan=False).encode("utf-8")
         if len(data) > MAX_MESSAGE:
             raise ValueError("message of %d bytes exceeds %d" % (len(data), MAX_MESSAGE))
+        if self._zenoh is not None:
+            self._zenoh.put(data)
+            return
         deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
         while True:
             try:

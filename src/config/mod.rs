@@ -89,6 +89,8 @@ pub struct Config {
     pub serve: ServeConfig,
     /// Haptics: tip force limits, the passivity controller, and the simulated hand (docs/HAPTICS.md).
     pub haptics: HapticsConfig,
+    /// zenoh: the arms past this PC, ROS 2 (rmw_zenoh) and remote clients (docs/ZENOH.md).
+    pub zenoh: crate::serve::zenoh::ZenohConfig,
     /// Several arms in one daemon (`[[arm]]`, see `omnid config --print-default`'s end); none:
     /// one arm, named after its device.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -163,6 +165,7 @@ impl Config {
         self.firewire.validate()?;
         self.inject.validate()?;
         self.haptics.validate()?;
+        self.zenoh.validate()?;
         self.telemetry.validate()
     }
 

@@ -43,6 +43,8 @@ pub struct ServeOptions {
     pub inject: Vec<crate::device::inject::Fault>,
     /// Serve the live view (Foxglove WebSocket) on this address (`--foxglove`).
     pub foxglove: Option<std::net::SocketAddr>,
+    /// Serve the arms over zenoh (`--zenoh`; also `[zenoh] enabled`).
+    pub zenoh: bool,
 }
 
 /// How one arm ended.
@@ -352,6 +354,26 @@ pub fn serve(
         }
         None => None,
     };
+    // zenoh is up before any arm starts, like the live view.
+    let net = if opts.zenoh || cfg.zenoh.enabled {
+        let net = crate::serve::zenoh::ZenohNet::start(&cfg.zenoh)
+            .map_err(|e| RunError::BadInput(e.to_string()))?;
+        crate::errln!(
+            "omnid serve: zenoh session {} listening on {} (ROS 2 domain {}; commands {}; \
+             docs/ZENOH.md)",
+            net.zid(),
+            net.listening().join(", "),
+            cfg.zenoh.domain().unwrap_or(0),
+            if cfg.zenoh.allow_commands {
+                "allowed"
+            } else {
+                "refused: [zenoh] allow_commands"
+            }
+        );
+        Some(net)
+    } else {
+        None
+    };
     let several = prepared.len() > 1;
     let mut threads = Vec::new();
     for p in prepared {
@@ -370,10 +392,17 @@ pub fn serve(
         let seed = cfg.sim.seed;
         let controller = opts.controller;
         let tap = view.as_ref().map(|v| v.tap_for(&setup, several));
+        let zenoh = match &net {
+            Some(n) => Some(
+                n.arm(&setup)
+                    .map_err(|e| RunError::BadInput(e.to_string()))?,
+            ),
+            None => None,
+        };
         let thread = std::thread::Builder::new()
             .name(format!("omnid-hub-{name}"))
             .spawn(move || {
-                let report = serve_clients(setup, priority, tap);
+                let report = serve_clients(setup, priority, tap, zenoh);
                 let outcome = end_arm(
                     ArmEnd {
                         name,
@@ -537,6 +566,10 @@ fn serve_clients(
     setup: hub::HubSetup,
     fifo_priority: i32,
     tap: Option<Box<dyn crate::station::Tap>>,
+    zenoh: Option<(
+        Box<dyn crate::station::Tap>,
+        crate::serve::zenoh::door::Door,
+    )>,
 ) -> hub::HubReport {
     if fifo_priority > 0 {
         if let Err(w) = crate::servo::realtime::set_fifo_priority(fifo_priority) {
@@ -546,6 +579,10 @@ fn serve_clients(
     let mut hub = hub::Hub::new(setup);
     if let Some(tap) = tap {
         hub.add_tap(tap);
+    }
+    if let Some((tap, door)) = zenoh {
+        hub.add_tap(tap);
+        hub.add_zenoh(door);
     }
     hub.run()
 }

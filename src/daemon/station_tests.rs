@@ -83,6 +83,7 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
         lenient: false,
         inject: Vec::new(),
         foxglove: None,
+        zenoh: false,
     };
     let p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
     (p.pipeline.servo, p.hub.station, dir)

@@ -1,5 +1,6 @@
-//! Plain CDR (XCDR1, little-endian), the encoding of ROS 2 messages in MCAP files and on
-//! rmw_zenoh (docs/ROS2.md, CDR): a 4-byte encapsulation header `00 01 00 00`, then the
+//! Plain CDR (XCDR1), the encoding of ROS 2 messages in MCAP files and on rmw_zenoh
+//! (docs/ROS2.md, CDR): a 4-byte encapsulation header (`00 01 00 00`, little-endian, is what
+//! omnid writes; a reader also takes `00 00 ..`, big-endian, as some peers send), then the
 //! fields in order, each primitive aligned to its size counted from the end of the header;
 //! strings as a u32 length (bytes + 1) followed by the bytes and a NUL; sequences as a u32
 //! count followed by the elements (no element alignment when the sequence is empty).
@@ -11,6 +12,9 @@ use thiserror::Error;
 
 /// Encapsulation header: CDR, little-endian, no options.
 pub const HEADER: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
+
+/// Encapsulation header of big-endian plain CDR (accepted when read).
+pub const HEADER_BE: [u8; 2] = [0x00, 0x00];
 
 /// Appends one CDR message to a byte buffer.
 pub struct CdrWriter<'a> {
@@ -102,8 +106,8 @@ impl<'a> CdrWriter<'a> {
 /// Why a CDR message could not be read. Offsets count from the message's first byte.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum CdrError {
-    /// Not the little-endian plain CDR header.
-    #[error("encapsulation header {found:02x?} is not plain little-endian CDR (00 01 00 00)")]
+    /// Not a plain CDR header.
+    #[error("encapsulation header {found:02x?} is not plain CDR (00 01 00 00, or 00 00 00 00)")]
     Header {
         /// The first bytes found.
         found: Vec<u8>,
@@ -156,17 +160,36 @@ pub enum CdrError {
 pub struct CdrReader<'a> {
     buf: &'a [u8],
     pos: usize,
+    /// The message is big-endian (header `00 00`).
+    big: bool,
+}
+
+/// A primitive read in the message's byte order.
+macro_rules! read_num {
+    ($self:ident, $t:ty, $n:literal, $what:literal) => {{
+        let b: [u8; $n] = $self.take($n, $n, $what)?.try_into().unwrap_or([0; $n]);
+        Ok(if $self.big {
+            <$t>::from_be_bytes(b)
+        } else {
+            <$t>::from_le_bytes(b)
+        })
+    }};
 }
 
 impl<'a> CdrReader<'a> {
     /// Check the header of `buf` and start after it.
     pub fn new(buf: &'a [u8]) -> Result<Self, CdrError> {
-        if buf.len() < 4 || buf[..4] != HEADER {
-            return Err(CdrError::Header {
-                found: buf[..buf.len().min(4)].to_vec(),
-            });
-        }
-        Ok(CdrReader { buf, pos: 4 })
+        // The options (bytes 2 and 3) carry nothing for plain CDR and are not checked.
+        let big = match buf.get(..2) {
+            Some(h) if buf.len() >= 4 && h == &HEADER[..2] => false,
+            Some(h) if buf.len() >= 4 && h == HEADER_BE => true,
+            _ => {
+                return Err(CdrError::Header {
+                    found: buf[..buf.len().min(4)].to_vec(),
+                })
+            }
+        };
+        Ok(CdrReader { buf, pos: 4, big })
     }
 
     fn take(&mut self, n: usize, align: usize, what: &'static str) -> Result<&'a [u8], CdrError> {
@@ -191,29 +214,19 @@ impl<'a> CdrReader<'a> {
         Ok(self.take(1, 1, "a bool")?[0] != 0)
     }
     pub fn i32(&mut self) -> Result<i32, CdrError> {
-        Ok(i32::from_le_bytes(
-            self.take(4, 4, "an int32")?.try_into().unwrap(),
-        ))
+        read_num!(self, i32, 4, "an int32")
     }
     pub fn u32(&mut self) -> Result<u32, CdrError> {
-        Ok(u32::from_le_bytes(
-            self.take(4, 4, "a uint32")?.try_into().unwrap(),
-        ))
+        read_num!(self, u32, 4, "a uint32")
     }
     pub fn f32(&mut self) -> Result<f32, CdrError> {
-        Ok(f32::from_le_bytes(
-            self.take(4, 4, "a float32")?.try_into().unwrap(),
-        ))
+        read_num!(self, f32, 4, "a float32")
     }
     pub fn i64(&mut self) -> Result<i64, CdrError> {
-        Ok(i64::from_le_bytes(
-            self.take(8, 8, "an int64")?.try_into().unwrap(),
-        ))
+        read_num!(self, i64, 8, "an int64")
     }
     pub fn f64(&mut self) -> Result<f64, CdrError> {
-        Ok(f64::from_le_bytes(
-            self.take(8, 8, "a float64")?.try_into().unwrap(),
-        ))
+        read_num!(self, f64, 8, "a float64")
     }
     pub fn string(&mut self) -> Result<&'a str, CdrError> {
         let n = self.u32()? as usize;

@@ -3,3 +3,4 @@
 
 pub mod cdr;
 pub mod msgs;
+pub mod rmw_zenoh;

@@ -126,6 +126,31 @@ pub const TF_MESSAGE: MsgType = MsgType {
         quaternion!()
     ),
 };
+pub const TWIST_STAMPED: MsgType = MsgType {
+    name: "geometry_msgs/msg/TwistStamped",
+    definition: concat!(
+        "std_msgs/Header header\ngeometry_msgs/Twist twist\n",
+        header_deps!(),
+        dep!(
+            "geometry_msgs/Twist",
+            "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n"
+        ),
+        vector3!()
+    ),
+};
+/// CRTK's arm state (crtk_msgs 1.3.0).
+pub const OPERATING_STATE: MsgType = MsgType {
+    name: "crtk_msgs/msg/OperatingState",
+    definition: concat!(
+        "std_msgs/Header header\nstring state\nbool is_homed\nbool is_busy\n",
+        header_deps!()
+    ),
+};
+/// CRTK's stamped string (the `state_command` topic).
+pub const STRING_STAMPED: MsgType = MsgType {
+    name: "crtk_msgs/msg/StringStamped",
+    definition: concat!("std_msgs/Header header\nstring string\n", header_deps!()),
+};
 pub const STRING: MsgType = MsgType {
     name: "std_msgs/msg/String",
     definition: "string data\n",
@@ -288,6 +313,70 @@ pub fn read_wrench_stamped(buf: &[u8]) -> Result<(Header<'_>, [f64; 3], [f64; 3]
     let t = [r.f64()?, r.f64()?, r.f64()?];
     r.end()?;
     Ok((h, f, t))
+}
+
+/// `geometry_msgs/msg/TwistStamped`: linear and angular velocity.
+pub fn write_twist_stamped(out: &mut Vec<u8>, header: &Header, v: [f64; 3], w: [f64; 3]) {
+    // The same layout as a wrench: two Vector3 after the header.
+    write_wrench_stamped(out, header, v, w)
+}
+
+/// `crtk_msgs/msg/OperatingState`.
+pub fn write_operating_state(
+    out: &mut Vec<u8>,
+    header: &Header,
+    state: &str,
+    is_homed: bool,
+    is_busy: bool,
+) {
+    let mut w = CdrWriter::new(out);
+    write_header(&mut w, header);
+    w.string(state);
+    w.bool(is_homed);
+    w.bool(is_busy);
+}
+
+pub fn read_operating_state(buf: &[u8]) -> Result<(Header<'_>, &str, bool, bool), CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    let h = read_header(&mut r)?;
+    let v = (h, r.string()?, r.bool()?, r.bool()?);
+    r.end()?;
+    Ok(v)
+}
+
+/// `crtk_msgs/msg/StringStamped`.
+pub fn write_string_stamped(out: &mut Vec<u8>, header: &Header, s: &str) {
+    let mut w = CdrWriter::new(out);
+    write_header(&mut w, header);
+    w.string(s);
+}
+
+pub fn read_string_stamped(buf: &[u8]) -> Result<(Header<'_>, &str), CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    let h = read_header(&mut r)?;
+    let s = r.string()?;
+    r.end()?;
+    Ok((h, s))
+}
+
+/// A `JointState` command's positions: exactly `N` of them, names ignored, velocity and effort
+/// free (CRTK's `servo_jp` fills position only).
+pub fn read_joint_positions_n<const N: usize>(buf: &[u8]) -> Result<[f64; N], CdrError> {
+    let mut r = CdrReader::new(buf)?;
+    read_header(&mut r)?;
+    let n = r.count(5)?;
+    for _ in 0..n {
+        r.string()?;
+    }
+    let p = r.f64_array()?;
+    for _ in 0..2 {
+        let n = r.count(8)?;
+        for _ in 0..n {
+            r.f64()?;
+        }
+    }
+    r.end()?;
+    Ok(p)
 }
 
 /// `sensor_msgs/msg/Joy`.
@@ -524,6 +613,36 @@ mod tests {
             &[],
         );
         assert_eq!(out, hex("00010000010000000200000001000000000000000300000003000000 6a3100 00 03000000 6a3200 00 03000000 6a3300 00 03000000 9a9999999999b93f 9a9999999999c93f 333333333333d33f 00000000 00000000"));
+        assert_eq!(read_joint_positions_n::<3>(&out).unwrap(), [0.1, 0.2, 0.3]);
+
+        out.clear();
+        write_operating_state(&mut out, &OMNI, "ENABLED", true, false);
+        assert_eq!(out, hex("0001000000f15365f4010000050000006f6d6e690000000008000000454e41424c4544000100"));
+        let (_, state, homed, busy) = read_operating_state(&out).unwrap();
+        assert_eq!((state, homed, busy), ("ENABLED", true, false));
+
+        // A twist is laid out as a wrench (two Vector3 after the header).
+        let mut twist = Vec::new();
+        write_twist_stamped(&mut twist, &OMNI, [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]);
+        out.clear();
+        write_wrench_stamped(&mut out, &OMNI, [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]);
+        assert_eq!(twist, out);
+    }
+
+    #[test]
+    fn big_endian_messages_are_read_too() {
+        // A StringStamped {stamp 1 s 2 ns, frame "", string "enable"} written big-endian by
+        // hand: header 00 00 00 00, then each field's bytes most significant first.
+        let be = hex("00000000 00000001 00000002 00000001 00 000000 00000007 656e61626c6500");
+        let (h, s) = read_string_stamped(&be).unwrap();
+        assert_eq!((h.stamp, s), (Stamp { sec: 1, nanosec: 2 }, "enable"));
+        let mut le = Vec::new();
+        write_string_stamped(&mut le, &h, "enable");
+        assert_eq!(read_string_stamped(&le).unwrap(), (h, "enable"));
+        assert!(matches!(
+            read_string_stamped(&hex("00020000")),
+            Err(CdrError::Header { .. })
+        ));
     }
 
     #[test]
@@ -574,10 +693,11 @@ mod tests {
             read_joint_state(&lie),
             Err(CdrError::Count { at: 24, .. })
         ));
-        let mut big_endian = out.clone();
-        big_endian[1] = 0;
+        // An encapsulation that is not plain CDR (here PL_CDR_LE, 00 03).
+        let mut other = out.clone();
+        other[1] = 3;
         assert!(matches!(
-            read_joint_state(&big_endian),
+            read_joint_state(&other),
             Err(CdrError::Header { .. })
         ));
         out.extend_from_slice(&[1, 2, 3, 4, 5]);

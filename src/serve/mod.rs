@@ -12,6 +12,7 @@ pub mod foxglove;
 pub mod hub;
 pub mod protocol;
 pub mod socket;
+pub mod zenoh;
 
 pub use config::{ServeConfig, StaleFallback};
 pub use omnid_client::find::{default_socket_dirs, find_arm_socket, find_socket};

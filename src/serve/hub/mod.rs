@@ -6,6 +6,8 @@
 //! reported to it) and sends without ever blocking. The arm itself — lease, checks, taps — is
 //! the station's.
 
+mod remote;
+
 use super::access::{Access, Policy};
 use super::protocol::{Hello, Request, MAX_MESSAGE, PROTOCOL_VERSION};
 use super::socket::{Conn, Listener, Peer};
@@ -123,6 +125,8 @@ pub struct Hub {
     max_clients: usize,
     max_per_user: usize,
     client_queue: usize,
+    /// The arm over zenoh, when served there.
+    remote: Option<remote::Remote>,
 }
 
 /// Say why to a client that will not be served, and take what it sent: closing with its hello
@@ -207,6 +211,7 @@ impl Hub {
             buf: vec![0; MAX_MESSAGE + 1],
             accept_failing: false,
             accept_paused_until: None,
+            remote: None,
         }
     }
 
@@ -242,6 +247,7 @@ impl Hub {
             later,
             client_queue,
             listener,
+            remote,
             ..
         } = self;
         let cap = *client_queue;
@@ -258,6 +264,14 @@ impl Hub {
                 {
                     push_state(c, bytes.clone(), cap);
                 }
+                if let Some(r) = remote.as_ref() {
+                    for k in 0..r.clients.len() {
+                        let every = r.clients[k].every;
+                        if every > 0 && seq % every == 0 {
+                            r.send(k, bytes.clone());
+                        }
+                    }
+                }
             }
             Output::Event(e) => {
                 let mut v = serde_json::to_value(e).unwrap_or_default();
@@ -269,6 +283,12 @@ impl Hub {
                 {
                     push_msg(c, bytes.clone());
                 }
+                if let Some(r) = remote.as_ref() {
+                    let shared: Arc<[u8]> = bytes.into();
+                    for k in 0..r.clients.len() {
+                        r.send(k, shared.clone());
+                    }
+                }
             }
             Output::Done {
                 ticket, op, result, ..
@@ -277,6 +297,11 @@ impl Hub {
                     if let Some(c) = clients.iter_mut().find(|c| c.session == Some(session)) {
                         let v = answer(op, id.as_ref(), result, socket);
                         push_msg(c, encode(&v));
+                    } else if let Some(r) = remote.as_ref() {
+                        if let Some(k) = r.session_of(session) {
+                            let v = answer(op, id.as_ref(), result, socket);
+                            r.send(k, encode(&v).into());
+                        }
                     }
                 }
             }
@@ -284,7 +309,7 @@ impl Hub {
     }
 
     fn poll_once(&mut self) -> io::Result<()> {
-        let mut fds = Vec::with_capacity(2 + self.clients.len());
+        let mut fds = Vec::with_capacity(3 + self.clients.len());
         fds.push(libc::pollfd {
             fd: self.station.wake().fd().as_raw_fd(),
             events: libc::POLLIN,
@@ -294,6 +319,12 @@ impl Hub {
         fds.push(libc::pollfd {
             // A negative descriptor is skipped by poll: the listener rests.
             fd: if resting { -1 } else { self.listener.raw() },
+            events: libc::POLLIN,
+            revents: 0,
+        });
+        // The zenoh inbox's wake-up (or nothing: a negative descriptor is skipped).
+        fds.push(libc::pollfd {
+            fd: self.remote.as_ref().map_or(-1, |r| r.wake_fd()),
             events: libc::POLLIN,
             revents: 0,
         });
@@ -318,8 +349,14 @@ impl Hub {
         if fds[0].revents != 0 {
             self.station.wake().clear();
         }
+        if fds[2].revents != 0 {
+            if let Some(r) = self.remote.as_ref() {
+                r.clear_wake();
+            }
+        }
+        self.serve_remote();
         // Clients first (their indices match `fds`), then new connections.
-        for (i, p) in fds[2..].iter().enumerate() {
+        for (i, p) in fds[3..].iter().enumerate() {
             if p.revents & (libc::POLLIN | libc::POLLHUP | libc::POLLERR) != 0 {
                 self.read_client(i);
             }
@@ -359,6 +396,7 @@ impl Hub {
             }
         }
         self.reap();
+        self.expire_remote();
     }
 
     /// Forget clients that are gone: their sessions close on the station.
@@ -549,7 +587,11 @@ impl Hub {
                 if let Reply::Stream { every, .. } = reply {
                     self.clients[i].every = every;
                 }
-                let v = answer(op_name, id.as_ref(), Ok(reply), self.listener.path());
+                let status = matches!(reply, Reply::Status { .. });
+                let mut v = answer(op_name, id.as_ref(), Ok(reply), self.listener.path());
+                if let (true, Some(r)) = (status, self.remote.as_ref()) {
+                    v["status"]["zenoh"] = r.status();
+                }
                 self.queue_msg(i, v);
             }
             Ok(Answer::Later(ticket)) => {
@@ -589,33 +631,8 @@ impl Hub {
                 let session = self.station.open_session(info);
                 let c = &mut self.clients[i];
                 c.session = Some(session);
-                let arm = self.station.arm();
-                let hello = Hello {
-                    protocol: PROTOCOL_VERSION,
-                    server: format!("omnid {}", env!("CARGO_PKG_VERSION")),
-                    device: arm.kind.to_string(),
-                    arm: arm.name.clone(),
-                    aliases: arm.aliases.clone(),
-                    rate_hz: self.station.rate_hz(),
-                    access: c.access.as_str().into(),
-                    client: session,
-                    stream_ttl_ms: self.station.stream_ttl_ms(),
-                    controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
-                    modes: [
-                        "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
-                    ]
-                    .map(String::from)
-                    .into(),
-                    model: crate::station::device_info::model(arm.kind).into(),
-                    vendor: crate::station::device_info::VENDOR.into(),
-                    serial: arm.serial.clone(),
-                    firmware: None,
-                };
-                let mut v = serde_json::to_value(hello).unwrap_or_default();
-                v["type"] = json!("hello");
-                if let Some(id) = id {
-                    v["id"] = id.clone();
-                }
+                let access = c.access;
+                let v = self.hello(session, access, id);
                 self.queue_msg(i, v);
             }
             Request::Hello { protocol, .. } => {
@@ -640,6 +657,38 @@ impl Hub {
                 self.clients[i].closing = true;
             }
         }
+    }
+
+    /// The hello reply of a new session.
+    fn hello(&self, session: SessionId, access: Access, id: Option<&Value>) -> Value {
+        let arm = self.station.arm();
+        let hello = Hello {
+            protocol: PROTOCOL_VERSION,
+            server: format!("omnid {}", env!("CARGO_PKG_VERSION")),
+            device: arm.kind.to_string(),
+            arm: arm.name.clone(),
+            aliases: arm.aliases.clone(),
+            rate_hz: self.station.rate_hz(),
+            access: access.as_str().into(),
+            client: session,
+            stream_ttl_ms: self.station.stream_ttl_ms(),
+            controllers: ControllerKind::ALL.map(|k| k.as_str().into()).into(),
+            modes: [
+                "idle", "hold", "track", "free", "servo_jp", "servo_jf", "servo_cf",
+            ]
+            .map(String::from)
+            .into(),
+            model: crate::station::device_info::model(arm.kind).into(),
+            vendor: crate::station::device_info::VENDOR.into(),
+            serial: arm.serial.clone(),
+            firmware: None,
+        };
+        let mut v = serde_json::to_value(hello).unwrap_or_default();
+        v["type"] = json!("hello");
+        if let Some(id) = id {
+            v["id"] = id.clone();
+        }
+        v
     }
 
     fn queue_msg(&mut self, i: usize, v: Value) {
@@ -725,6 +774,7 @@ impl Hub {
         for c in self.clients.iter_mut().filter(|c| c.session.is_some()) {
             push_msg(c, bye.clone());
         }
+        self.finish_remote();
         // A moment for the goodbye to leave, never blocking on a stuck client.
         let until = Instant::now() + Duration::from_millis(100);
         while self.clients.iter().any(|c| !c.queue.is_empty()) && Instant::now() < until {

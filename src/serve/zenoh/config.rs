@@ -1,0 +1,188 @@
+//! `[zenoh]`: serving the arms past this PC through zenoh (docs/ZENOH.md).
+
+use crate::config_check::{self as check, ConfigError};
+use serde::{Deserialize, Serialize};
+
+/// How the daemon's zenoh session joins the network.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum ZenohMode {
+    /// Talk to peers directly and to a router if one is configured (rmw_zenoh's own mode).
+    Peer,
+    /// Go through a router (`connect` names it).
+    Client,
+}
+
+/// The `[zenoh]` section (docs/ZENOH.md). Off unless `enabled` or `omnid serve --zenoh`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohConfig {
+    /// Serve every arm over zenoh beside its Unix socket.
+    pub enabled: bool,
+    /// `peer` or `client`.
+    pub mode: ZenohMode,
+    /// Endpoints to connect to, e.g. `tcp/192.168.1.10:7447` (a router: `rmw_zenohd` or
+    /// `zenohd`). Empty: ROS 2's router on this PC, `tcp/127.0.0.1:7447`, tried in the
+    /// background.
+    pub connect: Vec<String>,
+    /// Endpoints to listen on. Empty: loopback only, `tcp/127.0.0.1:0` (other PCs reach the
+    /// daemon through a router, or list an address here).
+    pub listen: Vec<String>,
+    /// Find peers by UDP multicast (off: only the endpoints above).
+    pub multicast_scouting: bool,
+    /// Accept commands from the network (ROS 2 `servo_cf`, `servo_jp`, `state_command`, and
+    /// remote clients' control requests). Off: everything over zenoh is read-only.
+    pub allow_commands: bool,
+    /// ROS 2 domain; -1: `ROS_DOMAIN_ID` from the environment, else 0.
+    pub domain_id: i64,
+    /// ROS 2 namespace put before every arm's topics (e.g. `/lab1`); empty: none.
+    pub namespace: String,
+    /// The ROS 2 node's name.
+    pub node_name: String,
+    /// Publish the ROS 2 topics in rmw_zenoh's form (what `ros2` with rmw_zenoh sees).
+    pub ros2: bool,
+    /// Also publish them for Humble's rmw_zenoh (`TypeHashNotSupported` keys).
+    pub humble: bool,
+    /// Also publish under zenoh-bridge-ros2dds's keys (bare topic names, no attachment).
+    pub bridge: bool,
+    /// `measured_js` rate, Hz; 0: every tick (the device rate).
+    pub joint_rate_hz: f64,
+    /// `measured_cp` and `measured_cv` rate, Hz; 0: every tick.
+    pub cartesian_rate_hz: f64,
+    /// Serve omnid's own protocol (`omnid/<arm>/...`) to remote clients.
+    pub protocol: bool,
+    /// Requests taken from the network per arm before new ones are dropped (and counted).
+    pub inbox: usize,
+    /// Largest sample accepted from the network, bytes.
+    pub max_sample_bytes: usize,
+    /// A zenoh configuration file (JSON5) to start from: TLS certificates
+    /// (`transport.link.tls`), access control (`access_control`), anything zenoh knows. The
+    /// keys above are set on top of it. Empty: zenoh's defaults.
+    pub config_file: String,
+}
+
+impl Default for ZenohConfig {
+    fn default() -> Self {
+        ZenohConfig {
+            enabled: false,
+            mode: ZenohMode::Peer,
+            connect: Vec::new(),
+            listen: Vec::new(),
+            multicast_scouting: false,
+            allow_commands: false,
+            domain_id: -1,
+            namespace: String::new(),
+            node_name: "omnid".into(),
+            ros2: true,
+            humble: false,
+            bridge: false,
+            joint_rate_hz: 0.0,
+            cartesian_rate_hz: 250.0,
+            protocol: true,
+            inbox: 1024,
+            max_sample_bytes: 64 * 1024,
+            config_file: String::new(),
+        }
+    }
+}
+
+/// A ROS name: letters, digits and '_', not starting with a digit.
+fn ros_token_ok(s: &str) -> bool {
+    !s.is_empty()
+        && !s.starts_with(|c: char| c.is_ascii_digit())
+        && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+}
+
+impl ZenohConfig {
+    /// Check every value; the first problem names its field (`zenoh.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if !(-1..=232).contains(&self.domain_id) {
+            return Err(check::invalid(
+                "zenoh.domain_id",
+                self.domain_id.to_string(),
+                "0 ..= 232, or -1 for ROS_DOMAIN_ID",
+            ));
+        }
+        if !self.namespace.is_empty()
+            && !(self.namespace.starts_with('/')
+                && self.namespace[1..].split('/').all(ros_token_ok))
+        {
+            return Err(check::invalid(
+                "zenoh.namespace",
+                crate::text::cut(&self.namespace),
+                "empty, or /name[/name...] of letters, digits and _",
+            ));
+        }
+        if !ros_token_ok(&self.node_name) {
+            return Err(check::invalid(
+                "zenoh.node_name",
+                crate::text::cut(&self.node_name),
+                "letters, digits and _, not starting with a digit",
+            ));
+        }
+        for (field, list) in [("zenoh.connect", &self.connect), ("zenoh.listen", &self.listen)] {
+            for e in list {
+                if e.parse::<zenoh::config::EndPoint>().is_err() {
+                    return Err(check::invalid(
+                        field,
+                        crate::text::cut(e),
+                        "zenoh endpoints such as tcp/192.168.1.10:7447 or tls/host:7447",
+                    ));
+                }
+            }
+        }
+        check::in_range(
+            "zenoh.joint_rate_hz",
+            self.joint_rate_hz,
+            0.0,
+            100_000.0,
+            "0 (every tick) ..= 100000 Hz",
+        )?;
+        check::in_range(
+            "zenoh.cartesian_rate_hz",
+            self.cartesian_rate_hz,
+            0.0,
+            100_000.0,
+            "0 (every tick) ..= 100000 Hz",
+        )?;
+        if !(16..=1 << 20).contains(&self.inbox) {
+            return Err(check::invalid(
+                "zenoh.inbox",
+                self.inbox.to_string(),
+                "16 ..= 1048576",
+            ));
+        }
+        if !(1024..=16 << 20).contains(&self.max_sample_bytes) {
+            return Err(check::invalid(
+                "zenoh.max_sample_bytes",
+                self.max_sample_bytes.to_string(),
+                "1024 ..= 16777216",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The ROS 2 domain: `domain_id`, else `ROS_DOMAIN_ID`, else 0 (an unreadable variable is
+    /// an error naming it).
+    pub fn domain(&self) -> Result<u32, String> {
+        if self.domain_id >= 0 {
+            return Ok(self.domain_id as u32);
+        }
+        match std::env::var("ROS_DOMAIN_ID") {
+            Err(_) => Ok(0),
+            Ok(v) if v.trim().is_empty() => Ok(0),
+            Ok(v) => v
+                .trim()
+                .parse::<u32>()
+                .ok()
+                .filter(|d| *d <= 232)
+                .ok_or_else(|| {
+                    format!(
+                        "ROS_DOMAIN_ID={:?} is not a domain (0 ..= 232); set it, or \
+                         [zenoh] domain_id",
+                        crate::text::cut(&v)
+                    )
+                }),
+        }
+    }
+}

@@ -1,0 +1,165 @@
+//! The two bounded pipes between an arm's hub and its zenoh side: requests in (remote clients'
+//! messages, their comings and goings, ROS 2 commands), and out (messages for remote clients,
+//! with the ticks the tap hands over on the same queue). Neither side ever waits on the other:
+//! a full pipe drops, and the drop is counted.
+
+use crate::servo::Wake;
+use crate::station::Op;
+use crate::telemetry::record::TickRecord;
+use crossbeam_channel::{Receiver, Sender, TrySendError};
+use serde::Serialize;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+/// Messages and ticks queued toward the network per arm before new ones are dropped.
+const OUT_QUEUE: usize = 4096;
+
+/// What came from the network for the hub.
+pub(crate) enum Inbound {
+    /// A remote client's message, JSON as a socket client sends it.
+    Message { cid: Arc<str>, bytes: Vec<u8> },
+    /// A remote client's liveliness token appeared.
+    Joined(Arc<str>),
+    /// It went away (the client closed, or its session died).
+    Gone(Arc<str>),
+    /// A ROS 2 command, already a station op.
+    Ros(Op),
+}
+
+/// What goes to the network.
+pub(crate) enum Outbound {
+    /// One tick, for the ROS 2 topics.
+    Tick(Box<TickRecord>),
+    /// A message for one remote client.
+    ToClient { cid: Arc<str>, bytes: Arc<[u8]> },
+    /// The arm has ended: the network thread stops.
+    Stop,
+}
+
+/// What the zenoh side of one arm counted (in `status` as `zenoh`, and said at exit).
+#[derive(Debug, Default)]
+pub struct ZenohStats {
+    /// Samples taken from the network (commands and client messages).
+    pub received: AtomicU64,
+    /// Samples refused: too large, not decodable, not a known client, not allowed.
+    pub refused: AtomicU64,
+    /// Samples dropped because the hub's inbox was full (a flood).
+    pub dropped_in: AtomicU64,
+    /// Samples put to the network.
+    pub published: AtomicU64,
+    /// Ticks or messages dropped because the network side was behind.
+    pub dropped_out: AtomicU64,
+}
+
+/// [`ZenohStats`] read once, for `status`.
+#[derive(Debug, Clone, Copy, Serialize, PartialEq, Eq)]
+pub struct StatsSnapshot {
+    pub received: u64,
+    pub refused: u64,
+    pub dropped_in: u64,
+    pub published: u64,
+    pub dropped_out: u64,
+}
+
+impl ZenohStats {
+    pub(crate) fn count(c: &AtomicU64) {
+        c.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Every counter, now.
+    pub fn snapshot(&self) -> StatsSnapshot {
+        let r = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        StatsSnapshot {
+            received: r(&self.received),
+            refused: r(&self.refused),
+            dropped_in: r(&self.dropped_in),
+            published: r(&self.published),
+            dropped_out: r(&self.dropped_out),
+        }
+    }
+}
+
+/// The hub's side of an arm's zenoh transport.
+pub struct Door {
+    pub(crate) inbox: Receiver<Inbound>,
+    pub(crate) out: Sender<Outbound>,
+    pub(crate) wake: Arc<Wake>,
+    pub(crate) stats: Arc<ZenohStats>,
+    /// Commands over zenoh are allowed (`[zenoh] allow_commands`).
+    pub(crate) allow_commands: bool,
+    /// A ROS 2 commander silent this long loses the lease, ms.
+    pub(crate) lease_lapse_ms: f64,
+}
+
+/// The network's side (cloned into every zenoh callback of the arm).
+#[derive(Clone)]
+pub(crate) struct NetSide {
+    inbox: Sender<Inbound>,
+    wake: Arc<Wake>,
+    pub(crate) stats: Arc<ZenohStats>,
+    pub(crate) out_tx: Sender<Outbound>,
+    pub(crate) out_rx: Receiver<Outbound>,
+    pub(crate) max_sample_bytes: usize,
+}
+
+impl Door {
+    /// Both sides for arm `_arm`, the inbox holding `inbox` requests.
+    pub(crate) fn pair(
+        _arm: &str,
+        inbox: usize,
+        allow_commands: bool,
+        lease_lapse_ms: f64,
+    ) -> std::io::Result<(Door, NetSide)> {
+        let (in_tx, in_rx) = crossbeam_channel::bounded(inbox);
+        let (out_tx, out_rx) = crossbeam_channel::bounded(OUT_QUEUE);
+        let wake = Arc::new(Wake::new()?);
+        let stats = Arc::new(ZenohStats::default());
+        Ok((
+            Door {
+                inbox: in_rx,
+                out: out_tx.clone(),
+                wake: wake.clone(),
+                stats: stats.clone(),
+                allow_commands,
+                lease_lapse_ms,
+            },
+            NetSide {
+                inbox: in_tx,
+                wake,
+                stats,
+                out_tx,
+                out_rx,
+                max_sample_bytes: usize::MAX,
+            },
+        ))
+    }
+
+    /// Queue a message for a remote client (dropped and counted when the network is behind).
+    pub(crate) fn to_client(&self, cid: &Arc<str>, bytes: Arc<[u8]>) {
+        let m = Outbound::ToClient {
+            cid: cid.clone(),
+            bytes,
+        };
+        if self.out.try_send(m).is_err() {
+            ZenohStats::count(&self.stats.dropped_out);
+        }
+    }
+}
+
+impl NetSide {
+    /// Hand a request to the hub and wake it; a full inbox drops it (counted).
+    pub(crate) fn send(&self, m: Inbound) {
+        ZenohStats::count(&self.stats.received);
+        match self.inbox.try_send(m) {
+            Ok(()) => self.wake.notify(),
+            Err(TrySendError::Full(_)) => ZenohStats::count(&self.stats.dropped_in),
+            Err(TrySendError::Disconnected(_)) => {}
+        }
+    }
+
+    /// Count a sample refused before it reached the hub.
+    pub(crate) fn refuse(&self) {
+        ZenohStats::count(&self.stats.received);
+        ZenohStats::count(&self.stats.refused);
+    }
+}
