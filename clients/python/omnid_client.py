@@ -328,6 +328,12 @@ class _ZenohLink:
             "%s/client/%s" % (prefix, self.cid)
         )
         self._in = self._session.declare_publisher("%s/in/%s" % (prefix, self.cid))
+        self._closed = False
+        # A zenoh session left open keeps the interpreter from exiting (it waits for threads
+        # before atexit runs): close it first, so a script that never closes its client ends.
+        import threading
+
+        getattr(threading, "_register_atexit", lambda f: None)(self.close)
 
     def _arrived(self, sample: Any) -> None:
         try:
@@ -340,6 +346,9 @@ class _ZenohLink:
         self._in.put(data)
 
     def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
         for thing in (self._token, self._sub, self._in):
             try:
                 thing.undeclare()

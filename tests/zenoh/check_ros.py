@@ -224,10 +224,11 @@ def ros():
             )
             pub.put(bytes(TS.serialize_cdr(msg, "geometry_msgs/msg/WrenchStamped")))
             time.sleep(0.002)
-            modes.add(c.latest_state().mode)
-        after = c.latest_state()
+            during = c.latest_state()
+            modes.add(during.mode)
         res["push_modes"] = sorted(modes)
-        res["push_dy_mm"] = after.tip_mm[1] - before.tip_mm[1]
+        # The motors push: the commanded torque moved by Jᵀ F (the docked stylus may not move).
+        res["push_dtau_nm"] = max(abs(a - b) for a, b in zip(during.tau, before.tau))
         time.sleep(1.6)
         st = c.latest_state()
         res["mode_after"] = st.mode

@@ -294,12 +294,14 @@ impl Hub {
                 ticket, op, result, ..
             } => {
                 if let Some((session, id)) = later.remove(&ticket) {
+                    let mut v = answer(op, id.as_ref(), result, socket);
+                    if let (Some(r), true) = (remote.as_ref(), v["status"].is_object()) {
+                        v["status"]["zenoh"] = r.status();
+                    }
                     if let Some(c) = clients.iter_mut().find(|c| c.session == Some(session)) {
-                        let v = answer(op, id.as_ref(), result, socket);
                         push_msg(c, encode(&v));
                     } else if let Some(r) = remote.as_ref() {
                         if let Some(k) = r.session_of(session) {
-                            let v = answer(op, id.as_ref(), result, socket);
                             r.send(k, encode(&v).into());
                         }
                     }
@@ -587,11 +589,7 @@ impl Hub {
                 if let Reply::Stream { every, .. } = reply {
                     self.clients[i].every = every;
                 }
-                let status = matches!(reply, Reply::Status { .. });
-                let mut v = answer(op_name, id.as_ref(), Ok(reply), self.listener.path());
-                if let (true, Some(r)) = (status, self.remote.as_ref()) {
-                    v["status"]["zenoh"] = r.status();
-                }
+                let v = answer(op_name, id.as_ref(), Ok(reply), self.listener.path());
                 self.queue_msg(i, v);
             }
             Ok(Answer::Later(ticket)) => {

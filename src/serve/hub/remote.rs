@@ -200,7 +200,6 @@ impl Hub {
             Err(e) => return r.send_value(k, &error(op_name, id.as_ref(), e.to_string())),
         };
         let socket = self.listener.path().to_path_buf();
-        let status = matches!(op, Op::Status);
         match self.station.request(session, op) {
             Ok(Answer::Now(Reply::Silent)) => {}
             Ok(Answer::Now(reply)) => {
@@ -210,10 +209,7 @@ impl Hub {
                 if let Reply::Stream { every, .. } = reply {
                     r.clients[k].every = every;
                 }
-                let mut v = answer(op_name, id.as_ref(), Ok(reply), &socket);
-                if status {
-                    v["status"]["zenoh"] = r.status();
-                }
+                let v = answer(op_name, id.as_ref(), Ok(reply), &socket);
                 r.send_value(k, &v);
             }
             Ok(Answer::Later(ticket)) => {
