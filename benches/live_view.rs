@@ -119,6 +119,7 @@ fn main() {
                 lenient: false,
                 inject: Vec::new(),
                 foxglove: (k > 0).then_some(port),
+                zenoh: false,
             };
             let stop = Arc::new(AtomicBool::new(false));
             let daemon = {

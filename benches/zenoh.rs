@@ -89,7 +89,8 @@ fn main() {
             let mut report = String::new();
             if on {
                 let sub_session = peer(&format!("tcp/127.0.0.1:{port}"));
-                let key = rmw::data_key(0, "/sim/measured_js", &rmw::JOINT_STATE, Default::default());
+                let key =
+                    rmw::data_key(0, "/sim/measured_js", &rmw::JOINT_STATE, Default::default());
                 let got: Arc<Mutex<Vec<(i64, i64)>>> = Arc::default();
                 let g = got.clone();
                 let _sub = sub_session
@@ -114,7 +115,10 @@ fn main() {
                 let mut c = zenoh::Config::default();
                 for (k, v) in [
                     ("mode", "\"peer\"".to_string()),
-                    ("listen/endpoints", format!("[\"tcp/127.0.0.1:{floor_port}\"]")),
+                    (
+                        "listen/endpoints",
+                        format!("[\"tcp/127.0.0.1:{floor_port}\"]"),
+                    ),
                     ("scouting/multicast/enabled", "false".into()),
                 ] {
                     c.insert_json5(k, &v).unwrap();

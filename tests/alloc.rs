@@ -290,9 +290,42 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     // The live view's tap on the hub too: its encoder thread works on every tick.
     let view = omnid::serve::foxglove::LiveView::start("127.0.0.1:0".parse().unwrap()).unwrap();
     let tap = view.tap_for(&prepared.hub, false);
+    // And zenoh: the ROS 2 topics, read by a peer of this test (so every topic is encoded).
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let zcfg = omnid::serve::zenoh::ZenohConfig {
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        ..Default::default()
+    };
+    let net = omnid::serve::zenoh::ZenohNet::start(&zcfg).unwrap();
+    let (ztap, door) = net.arm(&prepared.hub).unwrap();
+    let ros_reader = {
+        use zenoh::Wait;
+        let mut c = zenoh::Config::default();
+        c.insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
+            .unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        let s = zenoh::open(c).wait().unwrap();
+        let got = Arc::new(AtomicU64::new(0));
+        let g = got.clone();
+        let sub = s
+            .declare_subscriber("0/sim/**")
+            .callback(move |_| {
+                g.fetch_add(1, Ordering::Relaxed);
+            })
+            .wait()
+            .unwrap();
+        (s, sub, got)
+    };
     let hub = std::thread::spawn(move || {
         let mut hub = omnid::serve::hub::Hub::new(prepared.hub);
         hub.add_tap(tap);
+        hub.add_tap(ztap);
+        hub.add_zenoh(door);
         hub.run()
     });
 
@@ -386,6 +419,10 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     for r in readers {
         assert!(r.join().unwrap() > 1_000, "readers were served");
     }
+    let (_session, _sub, got) = ros_reader;
+    let got = got.load(Ordering::Relaxed);
+    assert!(got > 1_000, "the ROS 2 reader over zenoh got {got} samples");
+    drop(net);
     assert!(
         done >= 8,
         "only {done} commands besides the stream in the window"

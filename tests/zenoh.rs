@@ -108,7 +108,10 @@ fn a_zenoh_peer_finds_the_node_and_reads_measured_js_with_rmw_zenohs_attachments
     assert_eq!(seqs.len(), 500);
     let gaps = seqs.windows(2).filter(|w| w[1] != w[0] + 1).count();
     // The subscriber's own queue may drop on this loaded machine; the numbers only grow.
-    assert!(seqs.windows(2).all(|w| w[1] > w[0]), "sequence numbers grow");
+    assert!(
+        seqs.windows(2).all(|w| w[1] > w[0]),
+        "sequence numbers grow"
+    );
     assert!(gaps < 50, "{gaps} gaps in 500 samples");
     drop(sub);
     s.close().wait().unwrap();
@@ -188,7 +191,10 @@ fn ros2_tools_see_omnid_as_rmw_zenoh_does_and_servo_cf_pushes_the_arm() {
     let dtau = r["push_dtau_nm"].as_f64().unwrap();
     assert!(dtau > 0.02, "0.6 N up changed the torque by {dtau} N·m");
     assert_ne!(r["mode_after"], "servo_cf");
-    assert!(r["lease_after"].is_null(), "a quiet ROS 2 commander loses the lease");
+    assert!(
+        r["lease_after"].is_null(),
+        "a quiet ROS 2 commander loses the lease"
+    );
 }
 
 #[test]
@@ -227,7 +233,10 @@ fn bad_samples_and_floods_from_the_network_are_refused_and_counted() {
     let z = &r["zenoh"];
     // Truncated, garbage, NaN, empty, 10 MB: each refused.
     assert!(z["refused"].as_u64().unwrap() >= 5, "{z}");
-    assert!(r["states_after"].as_u64().unwrap() > 300, "the daemon goes on");
+    assert!(
+        r["states_after"].as_u64().unwrap() > 300,
+        "the daemon goes on"
+    );
     assert_ne!(r["mode"], "servo_cf");
     let (code, err) = d.stop();
     assert_eq!(code, Some(130), "{err}");
@@ -249,10 +258,17 @@ fn without_allow_commands_a_remote_client_is_read_only() {
     );
     let out = Command::new(&py).args(["-c", &script]).output().unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let mut lines = text.lines();
     assert_eq!(lines.next(), Some("read"));
     let second = lines.next().unwrap_or_default();
-    assert!(second.starts_with("refused:") && second.contains("allow_commands"), "{second}");
+    assert!(
+        second.starts_with("refused:") && second.contains("allow_commands"),
+        "{second}"
+    );
     drop(d);
 }

@@ -617,7 +617,10 @@ mod tests {
 
         out.clear();
         write_operating_state(&mut out, &OMNI, "ENABLED", true, false);
-        assert_eq!(out, hex("0001000000f15365f4010000050000006f6d6e690000000008000000454e41424c4544000100"));
+        assert_eq!(
+            out,
+            hex("0001000000f15365f4010000050000006f6d6e690000000008000000454e41424c4544000100")
+        );
         let (_, state, homed, busy) = read_operating_state(&out).unwrap();
         assert_eq!((state, homed, busy), ("ENABLED", true, false));
 

@@ -357,9 +357,7 @@ pub enum AttachmentError {
 
 /// An attachment's sequence number, source time (ns) and GID.
 pub fn read_attachment(a: &[u8]) -> Result<(i64, i64, [u8; 16]), AttachmentError> {
-    let a: &[u8; ATTACHMENT_LEN] = a
-        .try_into()
-        .map_err(|_| AttachmentError::Length(a.len()))?;
+    let a: &[u8; ATTACHMENT_LEN] = a.try_into().map_err(|_| AttachmentError::Length(a.len()))?;
     if a[16] != 16 {
         return Err(AttachmentError::GidLength(a[16]));
     }
@@ -502,10 +500,7 @@ mod tests {
         assert_eq!(&a[8..16], &1_700_000_000_123_456_789i64.to_le_bytes());
         assert_eq!(a[16], 0x10);
         assert_eq!(hex(&a[17..]), "eb85fa883b7846dc448a4501890ad062");
-        assert_eq!(
-            read_attachment(&a),
-            Ok((1, 1_700_000_000_123_456_789, g))
-        );
+        assert_eq!(read_attachment(&a), Ok((1, 1_700_000_000_123_456_789, g)));
         assert_eq!(read_attachment(&a[..32]), Err(AttachmentError::Length(32)));
         let mut bad = a;
         bad[16] = 8;

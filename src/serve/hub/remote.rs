@@ -76,9 +76,7 @@ impl Remote {
     }
 
     pub(super) fn session_of(&self, session: SessionId) -> Option<usize> {
-        self.clients
-            .iter()
-            .position(|c| c.session == Some(session))
+        self.clients.iter().position(|c| c.session == Some(session))
     }
 }
 
@@ -334,9 +332,7 @@ impl Hub {
                 encode(&error(
                     "connect",
                     None,
-                    format!(
-                        "no liveliness token omnid/<arm>/client/{cid} within {ms} ms; closing"
-                    ),
+                    format!("no liveliness token omnid/<arm>/client/{cid} within {ms} ms; closing"),
                 ))
                 .into(),
             );
@@ -349,10 +345,8 @@ impl Hub {
             if self.station.lease_holder() == Some(c.session) && now - c.last > lapse {
                 let ms = lapse.as_millis();
                 let session = c.session;
-                self.station.lapse_lease(
-                    session,
-                    &format!("no ROS 2 command over zenoh for {ms} ms"),
-                );
+                self.station
+                    .lapse_lease(session, &format!("no ROS 2 command over zenoh for {ms} ms"));
             }
         }
     }

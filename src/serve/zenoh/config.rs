@@ -103,10 +103,10 @@ impl ZenohConfig {
                 "0 ..= 232, or -1 for ROS_DOMAIN_ID",
             ));
         }
-        if !self.namespace.is_empty()
-            && !(self.namespace.starts_with('/')
-                && self.namespace[1..].split('/').all(ros_token_ok))
-        {
+        let namespace_ok = self.namespace.is_empty()
+            || (self.namespace.starts_with('/')
+                && self.namespace[1..].split('/').all(ros_token_ok));
+        if !namespace_ok {
             return Err(check::invalid(
                 "zenoh.namespace",
                 crate::text::cut(&self.namespace),
@@ -120,7 +120,10 @@ impl ZenohConfig {
                 "letters, digits and _, not starting with a digit",
             ));
         }
-        for (field, list) in [("zenoh.connect", &self.connect), ("zenoh.listen", &self.listen)] {
+        for (field, list) in [
+            ("zenoh.connect", &self.connect),
+            ("zenoh.listen", &self.listen),
+        ] {
             for e in list {
                 if e.parse::<zenoh::config::EndPoint>().is_err() {
                     return Err(check::invalid(

@@ -10,8 +10,8 @@
 
 pub mod config;
 pub(crate) mod door;
-mod ros;
 mod remote;
+mod ros;
 
 pub use config::{ZenohConfig, ZenohMode};
 pub use door::ZenohStats;

@@ -115,7 +115,7 @@ impl RosTopic {
 enum Command {
     ServoCf,
     ServoJp,
-    StateCommand,
+    State,
 }
 
 /// CRTK's `state_command` as a station op (docs/ZENOH.md).
@@ -165,7 +165,7 @@ fn decode_command(c: Command, bytes: &[u8], seq: u64) -> Result<Op, String> {
                 ttl_ms: None,
             })
         }
-        Command::StateCommand => {
+        Command::State => {
             let (_, s) = msgs::read_string_stamped(bytes).map_err(|e| e.to_string())?;
             state_command(s)
         }
@@ -278,7 +278,7 @@ impl RosArm {
             for (leaf, t, c) in [
                 ("servo_cf", rmw::WRENCH_STAMPED, Command::ServoCf),
                 ("servo_jp", rmw::JOINT_STATE, Command::ServoJp),
-                ("state_command", rmw::STRING_STAMPED, Command::StateCommand),
+                ("state_command", rmw::STRING_STAMPED, Command::State),
             ] {
                 let topic = topic_name(leaf);
                 for form in &forms {
@@ -477,11 +477,7 @@ impl Tap for NetTap {
     fn on_tick(&mut self, record: &TickRecord) {
         // A full queue (the network behind) drops the tick: subscribers see a sequence gap
         // in rmw_zenoh's attachment, nothing else waits.
-        if self
-            .tx
-            .try_send(Outbound::Tick(Box::new(*record)))
-            .is_err()
-        {
+        if self.tx.try_send(Outbound::Tick(Box::new(*record))).is_err() {
             ZenohStats::count(&self.stats.dropped_out);
         }
     }
@@ -529,12 +525,12 @@ mod tests {
         b.clear();
         msgs::write_string_stamped(&mut b, &h, "disable");
         assert!(matches!(
-            decode_command(Command::StateCommand, &b, 3),
+            decode_command(Command::State, &b, 3),
             Ok(Op::Mode(_))
         ));
         b.clear();
         msgs::write_string_stamped(&mut b, &h, "explode");
-        assert!(decode_command(Command::StateCommand, &b, 3)
+        assert!(decode_command(Command::State, &b, 3)
             .unwrap_err()
             .contains("not a CRTK state command"));
     }
@@ -550,7 +546,12 @@ mod tests {
     #[test]
     fn bridge_tokens_name_the_topic_and_type_with_section_signs() {
         assert_eq!(
-            bridge_token("abc", Kind::Publisher, "/left/measured_js", &rmw::JOINT_STATE),
+            bridge_token(
+                "abc",
+                Kind::Publisher,
+                "/left/measured_js",
+                &rmw::JOINT_STATE
+            ),
             "@/abc/@ros2_lv/MP/left§measured_js/sensor_msgs§msg§JointState/:1:0:0,100:\
              typehash=RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e;"
         );
