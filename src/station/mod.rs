@@ -334,6 +334,7 @@ impl Station {
     /// Add a consumer of every tick and event (a recorder, a remote transport's feed).
     pub fn add_tap(&mut self, tap: Box<dyn Tap>) {
         self.taps.push(tap);
+        self.publish_every();
     }
 
     /// A client arrived: its session number.
@@ -611,6 +612,12 @@ impl Station {
             .iter()
             .filter(|s| s.every > 0)
             .fold(0, |g, s| gcd(g, s.every));
+        // A prompt tap wants every tick.
+        let every = if self.taps.iter().any(|t| t.prompt()) {
+            1
+        } else {
+            every
+        };
         self.s.wake.set_every(every);
     }
 

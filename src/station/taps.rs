@@ -22,6 +22,11 @@ pub trait Tap: Send {
     fn on_event(&mut self, _event: &super::Event) {}
     /// The servo has ended: flush, close.
     fn finish(&mut self) {}
+    /// Each tick must reach it at once (the servo wakes the station every tick), not in the
+    /// batches the station drains on its own schedule: a network feed with latency to keep.
+    fn prompt(&self) -> bool {
+        false
+    }
 }
 
 /// The last `cap` ticks, oldest first: what a fault dump writes.

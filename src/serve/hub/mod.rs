@@ -285,7 +285,7 @@ impl Hub {
                 }
                 if let Some(r) = remote.as_ref() {
                     let shared: Arc<[u8]> = bytes.into();
-                    for k in 0..r.clients.len() {
+                    for k in (0..r.clients.len()).filter(|&k| r.greeted(k)) {
                         r.send(k, shared.clone());
                     }
                 }

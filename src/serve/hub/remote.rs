@@ -2,8 +2,8 @@
 //! socket's, fed from the door's inbox and answered through its outbox; ROS 2 commands are one
 //! more session, "ROS 2 over zenoh", that holds the lease while its commands keep coming.
 
-use super::{answer, encode, parse_request, to_op, Access, Hub};
-use crate::serve::protocol::{Request, PROTOCOL_VERSION};
+use super::{answer, encode, parse_request, to_op, Access, Hub, MAX_ID_BYTES};
+use crate::serve::protocol::{Request, MAX_MESSAGE, PROTOCOL_VERSION};
 use crate::serve::zenoh::door::{Door, Inbound};
 use crate::station::{Answer, FileRights, Op, Reply, SessionId, SessionInfo};
 use serde_json::{json, Value};
@@ -73,6 +73,11 @@ impl Remote {
     /// The status's `zenoh` object: the counters.
     pub(super) fn status(&self) -> Value {
         serde_json::to_value(self.door.stats.snapshot()).unwrap_or_default()
+    }
+
+    /// Remote client `k` has said hello.
+    pub(super) fn greeted(&self, k: usize) -> bool {
+        self.clients[k].session.is_some()
     }
 
     pub(super) fn session_of(&self, session: SessionId) -> Option<usize> {
@@ -184,12 +189,26 @@ impl Hub {
                 return;
             }
         };
+        if bytes.len() > MAX_MESSAGE {
+            let n = bytes.len();
+            let why = format!("message of {n} bytes is larger than {MAX_MESSAGE}");
+            return r.send_value(k, &error("message", None, why));
+        }
         let request = match parse_request(bytes) {
             Ok(q) => q,
             Err(why) => return r.send_value(k, &error("?", None, why)),
         };
         let op_name = request.op();
         let id = request.id().cloned();
+        if let Some(long) = id.as_ref().map(|v| v.to_string().len()) {
+            if long > MAX_ID_BYTES {
+                let why = format!(
+                    "`id` is {long} bytes of JSON; at most {MAX_ID_BYTES} are echoed (an id \
+                     tags a reply)"
+                );
+                return r.send_value(k, &error(op_name, None, why));
+            }
+        }
         let Some(session) = r.clients[k].session else {
             return self.remote_greet(k, id.as_ref(), op_name, request);
         };
@@ -336,6 +355,8 @@ impl Hub {
                 ))
                 .into(),
             );
+            // And forget its publisher on the network side.
+            r.door.to_client(&cid, Arc::from(&[][..]));
         }
         let Some(r) = self.remote.as_ref() else {
             return;
@@ -356,6 +377,17 @@ impl Hub {
         let Some(r) = self.remote.as_ref() else {
             return;
         };
+        let z = r.door.stats.snapshot();
+        crate::errln!(
+            "omnid serve: arm `{}` over zenoh: {} samples published, {} received ({} refused, \
+             {} dropped on a full inbox), {} dropped on the way out",
+            self.station.arm().name,
+            z.published,
+            z.received,
+            z.refused,
+            z.dropped_in,
+            z.dropped_out
+        );
         let bye: Arc<[u8]> =
             encode(&json!({ "type": "bye", "message": "omnid serve is stopping" })).into();
         for k in 0..r.clients.len() {

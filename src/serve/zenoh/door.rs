@@ -103,9 +103,8 @@ pub(crate) struct NetSide {
 }
 
 impl Door {
-    /// Both sides for arm `_arm`, the inbox holding `inbox` requests.
+    /// Both sides of one arm's door, the inbox holding `inbox` requests.
     pub(crate) fn pair(
-        _arm: &str,
         inbox: usize,
         allow_commands: bool,
         lease_lapse_ms: f64,

@@ -173,7 +173,6 @@ impl ZenohNet {
     ) -> Result<(Box<dyn Tap>, door::Door), ZenohError> {
         let s = &hub.station;
         let (hub_side, mut net_side) = door::Door::pair(
-            &s.arm.name,
             self.cfg.inbox,
             self.cfg.allow_commands,
             hub.serve.lease_lapse_ms,

@@ -362,13 +362,17 @@ impl RosArm {
     fn on_tick(&mut self, r: &TickRecord) {
         let t = r.t.max(0.0);
         let device_ns = (t * 1e9) as u64;
-        let epoch = *self.epoch_ns.get_or_insert_with(|| {
-            let now = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_nanos() as u64)
-                .unwrap_or(0);
-            now.saturating_sub(device_ns)
-        });
+        // Device time 0 on the system clock: the least of (now − device time) seen so far. A
+        // tick reaches this thread late, never early, so the least is the truest (within the
+        // quickest tick's delay) and the stamps say when each tick happened.
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(0);
+        let seen = now.saturating_sub(device_ns);
+        let epoch = *self
+            .epoch_ns
+            .insert(self.epoch_ns.map_or(seen, |e| e.min(seen)));
         let header = Header {
             stamp: Stamp::from_nanos(epoch.saturating_add(device_ns)),
             frame_id: "",
@@ -480,6 +484,11 @@ impl Tap for NetTap {
         if self.tx.try_send(Outbound::Tick(Box::new(*record))).is_err() {
             ZenohStats::count(&self.stats.dropped_out);
         }
+    }
+
+    fn prompt(&self) -> bool {
+        // ROS 2 subscribers get each tick as it happens, not in the station's batches.
+        true
     }
 
     fn finish(&mut self) {
