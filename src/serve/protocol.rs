@@ -138,6 +138,15 @@ pub(crate) enum Request {
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
+    /// The simulator's hand on the stylus: `action` press, release or click `button` (1 or
+    /// 2), or dock or undock the stylus. Control access; not the lease.
+    Stylus {
+        action: String,
+        #[serde(default)]
+        button: Option<u64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
     /// Stop the daemon: zero torque, amplifiers off, socket removed.
     Shutdown {
         #[serde(default)]
@@ -167,6 +176,7 @@ impl Request {
             Request::WeightsLoad { .. } => "weights_load",
             Request::RecordStart { .. } => "record_start",
             Request::RecordStop { .. } => "record_stop",
+            Request::Stylus { .. } => "stylus",
             Request::Shutdown { .. } => "shutdown",
         }
     }
@@ -192,6 +202,7 @@ impl Request {
             | Request::WeightsLoad { id, .. }
             | Request::RecordStart { id, .. }
             | Request::RecordStop { id }
+            | Request::Stylus { id, .. }
             | Request::Shutdown { id } => id.as_ref(),
         }
     }
