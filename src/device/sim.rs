@@ -873,3 +873,83 @@ mod tests {
         );
     }
 }
+
+#[cfg(test)]
+mod stylus_tests {
+    use super::*;
+    use crate::config::Config;
+    use crate::device::codec::{decode_state, encode_command, MotorCommand};
+
+    fn config(stylus: &str) -> Result<Config, ConfigError> {
+        let cfg = Config::from_toml(&format!("[sim]\nstylus = {stylus}\n"), "test")?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    #[test]
+    fn a_stylus_schedule_is_read_and_each_bad_entry_named_by_its_field() {
+        let cfg = config(
+            r#"[{ at_s = 2.0, action = "undock" }, { at_s = 0.5, action = "click", button = 2 }]"#,
+        )
+        .unwrap();
+        assert_eq!(
+            cfg.sim.stylus_schedule(),
+            [(0.5, StylusAction::Click(1)), (2.0, StylusAction::Undock)]
+        );
+        for (entries, field, says) in [
+            (r#"[{ at_s = 1.0, action = "press", button = 3 }]"#, "sim.stylus[0].button", "1 or 2"),
+            (r#"[{ at_s = 1.0, action = "press" }]"#, "sim.stylus[0].button", "1 or 2"),
+            (
+                r#"[{ at_s = 1.0, action = "dock" }, { at_s = 2.0, action = "dock", button = 1 }]"#,
+                "sim.stylus[1].button",
+                "take no button",
+            ),
+            (r#"[{ at_s = 1.0, action = "wave" }]"#, "sim.stylus[0].action", "undock"),
+            (r#"[{ at_s = -1.0, action = "dock" }]"#, "sim.stylus[0].at_s", "0 ..= 1e6"),
+        ] {
+            let e = config(entries).unwrap_err().to_string();
+            assert!(e.contains(field) && e.contains(says), "{entries}: {e}");
+        }
+        // A key the entry does not have is refused by name.
+        let e = config(r#"[{ at_s = 1.0, action = "dock", when = 2 }]"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("when"), "{e}");
+    }
+
+    /// The packets a program would read: buttons and inkwell, one tick at a time.
+    fn run(sim: &mut SimOmni, ticks: usize) -> ([bool; 2], bool) {
+        let mut last = ([false; 2], false);
+        for k in 0..ticks {
+            let raw = sim
+                .exchange(&encode_command(&MotorCommand::safe(k as u8)))
+                .unwrap();
+            let p = decode_state(raw.packet()).unwrap();
+            last = (p.buttons, p.inkwell);
+        }
+        last
+    }
+
+    #[test]
+    fn the_hand_clicks_on_schedule_and_carries_the_stylus_out_of_and_into_its_inkwell() {
+        let cfg = config(r#"[{ at_s = 0.2, action = "click", button = 1 }]"#).unwrap();
+        let mut sim = SimOmni::new(&cfg, false);
+        assert_eq!(run(&mut sim, 150), ([false, false], true));
+        assert_eq!(run(&mut sim, 100), ([true, false], true), "clicked at 0.2 s");
+        assert_eq!(run(&mut sim, 100), ([false, false], true), "released 0.1 s later");
+        // Undocked, the unpowered arm is held out of the inkwell (not back in it) ...
+        assert!(sim.stylus(StylusAction::Undock));
+        assert_eq!(run(&mut sim, 3000).1, false);
+        assert!((sim.true_state().0 - Joint3::from(INKWELL_POSE)).amax() > 0.1);
+        // ... and docked again, it rests there with the amplifiers off.
+        sim.stylus(StylusAction::Dock);
+        assert_eq!(run(&mut sim, 3000).1, true);
+        let q = sim.true_state().0;
+        assert_eq!(run(&mut sim, 2000).1, true);
+        assert!((sim.true_state().0 - q).amax() < 1e-3, "stays in the inkwell");
+        sim.stylus(StylusAction::Press(1));
+        assert_eq!(run(&mut sim, 1).0, [false, true]);
+        sim.stylus(StylusAction::Release(1));
+        assert_eq!(run(&mut sim, 1).0, [false, false]);
+    }
+}
