@@ -1109,7 +1109,11 @@ fn a_servo_stall_is_a_scheduler_error() {
         &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
     );
     assert_eq!(field(&out, "scheduler-errors"), "1", "{out}");
-    assert_eq!(field(&out, "error"), "0x304 internal 9 scheduler-error 1", "{out}");
+    assert_eq!(
+        field(&out, "error"),
+        "0x304 internal 9 scheduler-error 1",
+        "{out}"
+    );
     assert!(field(&out, "string").contains("deadline"), "{out}");
     assert_eq!(field(&out, "other-errors"), "0", "{out}");
 }

@@ -256,7 +256,10 @@ fn the_simulators_hand_works_the_stylus_beside_the_lease_holder() {
     let Err(OpError::Invalid(why)) = station.request(s, Op::Stylus(StylusAction::Press(1))) else {
         panic!("a real stylus is pressed by a real hand")
     };
-    assert!(why.contains("firewire") && why.contains("simulator"), "{why}");
+    assert!(
+        why.contains("firewire") && why.contains("simulator"),
+        "{why}"
+    );
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
 }

@@ -6,8 +6,8 @@ use super::codec::{decode_command, encode_state, DacScale, StatePacket};
 use super::DeviceConfig;
 use super::{Device, DeviceError, RawSample, StylusAction, COMMAND_LEN};
 use crate::clock;
-use crate::control::reference::quintic;
 use crate::config_check::{self as check, ConfigError};
+use crate::control::reference::quintic;
 use crate::haptics::{tip_force_torque, Force3, Hand, HandConfig, HandPattern};
 use crate::omni::{jacobian, tip_position_mm, Dynamics, Geometry, Joint3, ModelParams};
 use rand::{Rng, SeedableRng};
@@ -542,9 +542,7 @@ impl SimOmni {
         }
         if let Some(c) = self.carry.filter(|c| c.dock && t >= c.t0 + c.dur) {
             let off = self.q - self.inkwell.pose;
-            if self.inkwell.docked
-                || (off.amax() < INKWELL_TOLERANCE && self.qd.amax() < 0.05)
-            {
+            if self.inkwell.docked || (off.amax() < INKWELL_TOLERANCE && self.qd.amax() < 0.05) {
                 self.inkwell.docked = true;
                 self.inkwell.away = false;
                 self.carry = None;
@@ -897,15 +895,31 @@ mod stylus_tests {
             [(0.5, StylusAction::Click(1)), (2.0, StylusAction::Undock)]
         );
         for (entries, field, says) in [
-            (r#"[{ at_s = 1.0, action = "press", button = 3 }]"#, "sim.stylus[0].button", "1 or 2"),
-            (r#"[{ at_s = 1.0, action = "press" }]"#, "sim.stylus[0].button", "1 or 2"),
+            (
+                r#"[{ at_s = 1.0, action = "press", button = 3 }]"#,
+                "sim.stylus[0].button",
+                "1 or 2",
+            ),
+            (
+                r#"[{ at_s = 1.0, action = "press" }]"#,
+                "sim.stylus[0].button",
+                "1 or 2",
+            ),
             (
                 r#"[{ at_s = 1.0, action = "dock" }, { at_s = 2.0, action = "dock", button = 1 }]"#,
                 "sim.stylus[1].button",
                 "take no button",
             ),
-            (r#"[{ at_s = 1.0, action = "wave" }]"#, "sim.stylus[0].action", "undock"),
-            (r#"[{ at_s = -1.0, action = "dock" }]"#, "sim.stylus[0].at_s", "0 ..= 1e6"),
+            (
+                r#"[{ at_s = 1.0, action = "wave" }]"#,
+                "sim.stylus[0].action",
+                "undock",
+            ),
+            (
+                r#"[{ at_s = -1.0, action = "dock" }]"#,
+                "sim.stylus[0].at_s",
+                "0 ..= 1e6",
+            ),
         ] {
             let e = config(entries).unwrap_err().to_string();
             assert!(e.contains(field) && e.contains(says), "{entries}: {e}");
@@ -935,18 +949,29 @@ mod stylus_tests {
         let cfg = config(r#"[{ at_s = 0.2, action = "click", button = 1 }]"#).unwrap();
         let mut sim = SimOmni::new(&cfg, false);
         assert_eq!(run(&mut sim, 150), ([false, false], true));
-        assert_eq!(run(&mut sim, 100), ([true, false], true), "clicked at 0.2 s");
-        assert_eq!(run(&mut sim, 100), ([false, false], true), "released 0.1 s later");
+        assert_eq!(
+            run(&mut sim, 100),
+            ([true, false], true),
+            "clicked at 0.2 s"
+        );
+        assert_eq!(
+            run(&mut sim, 100),
+            ([false, false], true),
+            "released 0.1 s later"
+        );
         // Undocked, the unpowered arm is held out of the inkwell (not back in it) ...
         assert!(sim.stylus(StylusAction::Undock));
-        assert_eq!(run(&mut sim, 3000).1, false);
+        assert!(!run(&mut sim, 3000).1);
         assert!((sim.true_state().0 - Joint3::from(INKWELL_POSE)).amax() > 0.1);
         // ... and docked again, it rests there with the amplifiers off.
         sim.stylus(StylusAction::Dock);
-        assert_eq!(run(&mut sim, 3000).1, true);
+        assert!(run(&mut sim, 3000).1);
         let q = sim.true_state().0;
-        assert_eq!(run(&mut sim, 2000).1, true);
-        assert!((sim.true_state().0 - q).amax() < 1e-3, "stays in the inkwell");
+        assert!(run(&mut sim, 2000).1);
+        assert!(
+            (sim.true_state().0 - q).amax() < 1e-3,
+            "stays in the inkwell"
+        );
         sim.stylus(StylusAction::Press(1));
         assert_eq!(run(&mut sim, 1).0, [false, true]);
         sim.stylus(StylusAction::Release(1));

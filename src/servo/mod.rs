@@ -546,7 +546,8 @@ impl Servo {
                 self.event = Some(ServoEvent::SafetyTrip(trip));
                 let speed = matches!(
                     trip,
-                    safety::SafetyTrip::Velocity { .. } | safety::SafetyTrip::MeasuredVelocity { .. }
+                    safety::SafetyTrip::Velocity { .. }
+                        | safety::SafetyTrip::MeasuredVelocity { .. }
                 );
                 Ok(safety::Limited {
                     flags: if speed { flags::SPEED_TRIP } else { 0 },

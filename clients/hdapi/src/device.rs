@@ -2,7 +2,9 @@
 //! reads outside a frame and before the scheduler starts are fresh, and our requests'
 //! answers) and the frame (snapshot in, force out). docs/HDAPI.md, Devices and Frames.
 
-use crate::consts::{HD_EXCEEDED_MAX_FORCE, HD_EXCEEDED_MAX_VELOCITY, HD_TIMER_ERROR, HD_WARM_MOTORS};
+use crate::consts::{
+    HD_EXCEEDED_MAX_FORCE, HD_EXCEEDED_MAX_VELOCITY, HD_TIMER_ERROR, HD_WARM_MOTORS,
+};
 use crate::error::Internal;
 use crate::kin;
 use crate::link::{Link, WaitEnd};
