@@ -337,6 +337,18 @@ enum CtlCommand {
     Adapt,
     /// Stop the daemon (zero torque, amplifiers off).
     Shutdown,
+    /// Simulator: the hand presses, releases or clicks (press, then release 0.1 s later) a
+    /// stylus button, 1 or 2.
+    Button {
+        /// 1 or 2
+        button: u64,
+        /// press, release or click
+        action: String,
+    },
+    /// Simulator: the hand puts the stylus in its inkwell.
+    Dock,
+    /// Simulator: the hand takes the stylus out of its inkwell and holds it lightly.
+    Undock,
 }
 
 #[derive(clap::Args)]
@@ -953,6 +965,20 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
         CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
         CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
         CtlCommand::Shutdown => json!({ "op": "shutdown" }),
+        CtlCommand::Button { button, action } => match action.as_str() {
+            "press" | "release" | "click" => {
+                json!({ "op": "stylus", "action": action, "button": button })
+            }
+            other => {
+                omnid::errln!(
+                    "omnid ctl: button {button} {}: expected press, release or click",
+                    omnid::text::cut(other)
+                );
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
+        CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
     };
     // Paths are the daemon's to open: make relative ones relative to where ctl runs.
     let mut request = request;

@@ -977,3 +977,143 @@ fn occasional_frames_that_push_nothing_leave_the_arm_alone() {
     assert_eq!(amps_on, 0, "the amplifiers came on; modes {modes:?}");
     assert_eq!(modes.into_iter().collect::<Vec<_>>(), ["idle"]);
 }
+
+/// The SDK's QueryDevice way of waiting for button 1 (synchronous reads on the main thread)
+/// sees the simulator's hand click it on the schedule of `[sim] stylus`, and exits.
+#[test]
+fn a_program_waiting_for_button_1_sees_the_scheduled_click() {
+    let hd = HD::get();
+    // A click a second from the daemon's start, then one every second (so a program that
+    // starts late, on a loaded machine, still gets one).
+    let clicks: Vec<String> = (1..=30)
+        .map(|s| format!("{{ at_s = {s}.0, action = \"click\", button = 1 }}"))
+        .collect();
+    let config = format!("[sim]\nstylus = [{}]\n", clicks.join(", "));
+    let daemon = Daemon::start_with_config(&[], &config);
+    let out = run(
+        hd.exe("query"),
+        &["40"],
+        &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
+    );
+    let line = field(&out, "pressed");
+    // Button 1 down (bit 0), button 2 up, the stylus still in its inkwell.
+    assert!(line.starts_with("buttons 1 inkwell 1 "), "{out}");
+}
+
+/// `omnid ctl` as the simulator's hand: the inkwell switch a program reads follows undock and
+/// dock, a button pressed and released shows in HD_CURRENT_BUTTONS; a read-only request, an
+/// unknown action and a third button are refused by name.
+#[test]
+fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
+    let hd = HD::get();
+    let daemon = Daemon::start(&[]);
+    let ctl = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_omnid"))
+            .args(["ctl", "--socket"])
+            .arg(&daemon.socket)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let mut program = std::process::Command::new(hd.exe("inkwell"))
+        .args(["2", "40"])
+        .env("OMNID_SOCKET", &daemon.socket)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("inkwell starts");
+    let _watchdog = hd::Watchdog::new(&program, Duration::from_secs(60));
+    let mut lines = BufReader::new(program.stdout.take().unwrap()).lines();
+    let mut next = || lines.next().expect("a line").unwrap();
+    // The simulator starts docked.
+    assert_eq!(next(), "inkwell 1");
+    assert_eq!(next(), "buttons 0");
+    let out = ctl(&["button", "2", "press"]);
+    assert!(out.status.success(), "{out:?}");
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        r#"{"button":2,"op":"stylus","stylus":"press"}"#
+    );
+    assert_eq!(next(), "buttons 2");
+    assert!(ctl(&["button", "2", "release"]).status.success());
+    assert_eq!(next(), "buttons 0");
+    assert!(ctl(&["undock"]).status.success());
+    assert_eq!(next(), "inkwell 0");
+    assert!(ctl(&["dock"]).status.success());
+    assert_eq!(next(), "inkwell 1");
+    assert_eq!(next(), "done 2");
+    assert!(program.wait().unwrap().success());
+
+    // Refusals name what is wrong (the client library's request, as any program sends it).
+    let mut c = daemon.client("check");
+    let e = c
+        .request(serde_json::json!({"op": "stylus", "action": "press", "button": 3}))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("button") && e.contains("1 or 2"), "{e}");
+    let e = c
+        .request(serde_json::json!({"op": "stylus", "action": "squeeze", "button": 1}))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("squeeze") && e.contains("undock"), "{e}");
+    let out = ctl(&["button", "1", "hold"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("press, release or click"));
+}
+
+/// A program that drives the arm faster than `[safety] max_velocity_rad_s`: the daemon's
+/// speed trip comes back as HD_EXCEEDED_MAX_VELOCITY, a force error with its own string.
+#[test]
+fn driving_the_arm_too_fast_is_an_exceeded_max_velocity_error() {
+    let hd = HD::get();
+    let daemon = Daemon::start_with_config(
+        &["--controller", "off"],
+        "[safety]\nmax_velocity_rad_s = [0.5, 0.5, 0.5]\n",
+    );
+    let out = run(
+        hd.exe("speed"),
+        &["2.5"],
+        &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
+    );
+    assert_eq!(field(&out, "velocity-errors"), "1", "{out}");
+    assert_eq!(
+        field(&out, "error"),
+        "0x203 internal 8 force-error 1 scheduler-error 0",
+        "{out}"
+    );
+    assert!(field(&out, "string").contains("maximum velocity"), "{out}");
+    // The daemon tripped for it (the arm is idle, the trip latched), and said why.
+    let mut c = daemon.client("check");
+    c.request(serde_json::json!({"op": "stream", "rate_hz": 100}))
+        .unwrap();
+    let s = c.next_state(5000).unwrap();
+    assert_eq!((s.mode.as_str(), s.amps), ("idle", false));
+}
+
+/// The daemon's servo loop stalling past its deadline (an injected 200 ms wait in the
+/// exchange) comes back to a running program as a scheduler error: HD_TIMER_ERROR with the
+/// internal code of a servo stall.
+#[test]
+fn a_servo_stall_is_a_scheduler_error() {
+    let hd = HD::get();
+    // A stall every 3 s of device time, so a program that starts late still meets one.
+    let stalls: Vec<String> = (1..=10).map(|k| format!("slow@{}:200", 3 * k)).collect();
+    let mut args = Vec::new();
+    for s in &stalls {
+        args.extend(["--inject", s.as_str()]);
+    }
+    let daemon = Daemon::start(&args);
+    let out = run(
+        hd.exe("stall"),
+        &["40"],
+        &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
+    );
+    assert_eq!(field(&out, "scheduler-errors"), "1", "{out}");
+    assert_eq!(
+        field(&out, "error"),
+        "0x304 internal 9 scheduler-error 1",
+        "{out}"
+    );
+    assert!(field(&out, "string").contains("deadline"), "{out}");
+    assert_eq!(field(&out, "other-errors"), "0", "{out}");
+}

@@ -210,3 +210,57 @@ fn an_identifier_that_stops_is_announced_once() {
     assert_eq!(told.len(), 1, "{:?}", t.events);
     assert!(told[0].message.as_deref().unwrap().contains("PD fallback"));
 }
+
+/// The simulator's hand: any session with control access works the stylus while another
+/// holds the lease (the program waiting for the button), the press reaches the state's
+/// `buttons` at the next tick and a click lets go by itself; a read-only session is refused,
+/// and so is every session on a device that is not the simulator.
+#[test]
+fn the_simulators_hand_works_the_stylus_beside_the_lease_holder() {
+    use crate::device::StylusAction;
+    let (mut servo, setup, _dir) = served_sim();
+    let mut t = Loopback::new(Station::new(setup), "holder");
+    t.call(Op::Stream { rate_hz: 1000.0 }).unwrap();
+    t.call(Op::Lease { fallback: None }).unwrap();
+    let hand = t.station.open_session(commander("hand"));
+    let reply = t.station.request(hand, Op::Stylus(StylusAction::Click(0)));
+    assert!(
+        matches!(
+            reply,
+            Ok(Answer::Now(Reply::Stylus {
+                stylus: "click",
+                button: Some(1)
+            }))
+        ),
+        "{reply:?}"
+    );
+    assert_eq!(t.station.lease_holder(), Some(t.session), "the lease stays");
+    ticks(&mut servo, &mut t, 2);
+    assert_eq!(t.states.last().unwrap().buttons, [true, false]);
+    // A click lasts CLICK_S (0.1 s): released by 150 ticks later.
+    ticks(&mut servo, &mut t, 150);
+    assert_eq!(t.states.last().unwrap().buttons, [false, false]);
+    let watcher = t.station.open_session(SessionInfo {
+        control: false,
+        read_only_reason: "read-only".into(),
+        ..commander("watcher")
+    });
+    assert!(matches!(
+        t.station.request(watcher, Op::Stylus(StylusAction::Dock)),
+        Err(OpError::ReadOnly(_))
+    ));
+    // The same station on a real device refuses the hand, naming the device.
+    let (_other_servo, mut real, _other_dir) = served_sim();
+    real.arm.kind = "firewire";
+    let mut station = Station::new(real);
+    let s = station.open_session(commander("hand"));
+    let Err(OpError::Invalid(why)) = station.request(s, Op::Stylus(StylusAction::Press(1))) else {
+        panic!("a real stylus is pressed by a real hand")
+    };
+    assert!(
+        why.contains("firewire") && why.contains("simulator"),
+        "{why}"
+    );
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}

@@ -263,6 +263,10 @@ impl Device for FaultyDevice {
     fn hand_force(&self) -> Option<[f64; 3]> {
         self.inner.hand_force()
     }
+
+    fn stylus(&mut self, action: super::StylusAction) -> bool {
+        self.inner.stylus(action)
+    }
 }
 
 #[cfg(test)]

@@ -175,6 +175,75 @@ pub enum DeviceError {
     Unsupported(String),
 }
 
+/// What the simulator's hand does with the stylus (`[sim] stylus`, the `stylus` op of
+/// `omnid serve`): press or release a button (0 or 1: the stylus's buttons 1 and 2), click one
+/// (pressed for [`sim::CLICK_S`]), put the stylus in its inkwell or take it out. Plain `Copy`
+/// data: it reaches the servo thread through the mailbox and allocates nothing there.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StylusAction {
+    /// Press button `0` (button 1) or `1` (button 2) and keep it pressed.
+    Press(usize),
+    /// Release the button.
+    Release(usize),
+    /// Press the button and release it [`sim::CLICK_S`] later.
+    Click(usize),
+    /// The hand carries the stylus into its inkwell and lets it rest there.
+    Dock,
+    /// The hand takes the stylus out of its inkwell and holds it lightly at the workspace
+    /// centre.
+    Undock,
+}
+
+impl StylusAction {
+    /// The names `[sim] stylus` and the `stylus` op use.
+    pub const NAMES: &'static str = "press, release, click, dock or undock";
+
+    /// `action` (press, release, click: with `button` 1 or 2; dock, undock: without one). The
+    /// error names the field at fault (`action` or `button`) and what it allows.
+    pub fn parse(
+        action: &str,
+        button: Option<u64>,
+    ) -> Result<StylusAction, (&'static str, &'static str)> {
+        const BUTTONS: &str = "1 or 2 (the Omni's stylus has two buttons)";
+        let which = |button: Option<u64>| match button {
+            Some(b @ 1..=2) => Ok(b as usize - 1),
+            _ => Err(("button", BUTTONS)),
+        };
+        match action {
+            "press" => Ok(StylusAction::Press(which(button)?)),
+            "release" => Ok(StylusAction::Release(which(button)?)),
+            "click" => Ok(StylusAction::Click(which(button)?)),
+            "dock" | "undock" if button.is_some() => {
+                Err(("button", "none: dock and undock take no button"))
+            }
+            "dock" => Ok(StylusAction::Dock),
+            "undock" => Ok(StylusAction::Undock),
+            _ => Err(("action", Self::NAMES)),
+        }
+    }
+
+    /// The action's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            StylusAction::Press(_) => "press",
+            StylusAction::Release(_) => "release",
+            StylusAction::Click(_) => "click",
+            StylusAction::Dock => "dock",
+            StylusAction::Undock => "undock",
+        }
+    }
+
+    /// The button it presses or releases, 1 or 2 (none for dock and undock).
+    pub fn button(self) -> Option<u8> {
+        match self {
+            StylusAction::Press(b) | StylusAction::Release(b) | StylusAction::Click(b) => {
+                Some(b as u8 + 1)
+            }
+            StylusAction::Dock | StylusAction::Undock => None,
+        }
+    }
+}
+
 /// A Phantom Omni, real or mock, at the packet level.
 pub trait Device: Send {
     /// Short name for logs and the summary (`sim`, `replay`, `usb`, `firewire`).
@@ -210,6 +279,14 @@ pub trait Device: Send {
     /// simulator only (docs/HAPTICS.md §7).
     fn hand_force(&self) -> Option<[f64; 3]> {
         None
+    }
+
+    /// The simulated hand acts on the stylus (buttons, inkwell): the simulator only; false
+    /// where nothing can (a real stylus is pressed by a real hand). Called on the servo thread
+    /// between exchanges: it must not allocate or block.
+    fn stylus(&mut self, action: StylusAction) -> bool {
+        let _ = action;
+        false
     }
 }
 

@@ -4,9 +4,10 @@
 
 use super::codec::{decode_command, encode_state, DacScale, StatePacket};
 use super::DeviceConfig;
-use super::{Device, DeviceError, RawSample, COMMAND_LEN};
+use super::{Device, DeviceError, RawSample, StylusAction, COMMAND_LEN};
 use crate::clock;
 use crate::config_check::{self as check, ConfigError};
+use crate::control::reference::quintic;
 use crate::haptics::{tip_force_torque, Force3, Hand, HandConfig, HandPattern};
 use crate::omni::{jacobian, tip_position_mm, Dynamics, Geometry, Joint3, ModelParams};
 use rand::{Rng, SeedableRng};
@@ -37,7 +38,32 @@ pub struct SimConfig {
     /// default), which holds it there as a real Omni's does until the motors or a hand lift it
     /// out.
     pub docked: bool,
+    /// What the simulator's hand does with the stylus, and when: a list of
+    /// `{ at_s = 2.0, action = "click", button = 1 }` (press, release, click: button 1 or 2)
+    /// and `{ at_s = 5.0, action = "undock" }` (dock, undock), at seconds of device time.
+    pub stylus: Vec<StylusEvent>,
 }
+
+/// One entry of `[sim] stylus`: at `at_s` s of device time the hand does `action` (with
+/// `button` for press, release and click).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StylusEvent {
+    /// When, s of device time since the simulator started.
+    pub at_s: f64,
+    /// press, release, click, dock or undock.
+    pub action: String,
+    /// The button, 1 or 2 (press, release and click only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub button: Option<u64>,
+}
+
+/// Most entries `[sim] stylus` may list.
+pub const MAX_STYLUS_EVENTS: usize = 1024;
+
+/// How long a click keeps its button pressed, s (a quick press: about 8 frames of a 60 Hz
+/// graphics loop, 100 ticks of a 1 kHz servo loop, so every kind of program sees it).
+pub const CLICK_S: f64 = 0.1;
 
 impl Default for SimConfig {
     fn default() -> Self {
@@ -50,6 +76,7 @@ impl Default for SimConfig {
             torque_noise_nm: 2e-4,
             start_pose: INKWELL_POSE,
             docked: true,
+            stylus: Vec::new(),
         }
     }
 }
@@ -75,9 +102,54 @@ impl SimConfig {
         )?;
         check::each("sim.start_pose", &self.start_pose, |f, v| {
             check::in_range(f, v, -3.2, 3.2, "-3.2 ..= 3.2 rad")
-        })
+        })?;
+        if self.stylus.len() > MAX_STYLUS_EVENTS {
+            return Err(check::invalid(
+                "sim.stylus",
+                format!("{} entries", self.stylus.len()),
+                format!("at most {MAX_STYLUS_EVENTS}"),
+            ));
+        }
+        for (i, e) in self.stylus.iter().enumerate() {
+            check::in_range(
+                &format!("sim.stylus[{i}].at_s"),
+                e.at_s,
+                0.0,
+                1e6,
+                "0 ..= 1e6 s",
+            )?;
+            e.parsed().map_err(|(field, allowed)| {
+                let value = match field {
+                    "button" => e.button.map_or("none".into(), |b| b.to_string()),
+                    _ => format!("{:?}", crate::text::cut(&e.action)),
+                };
+                check::invalid(format!("sim.stylus[{i}].{field}"), value, allowed)
+            })?;
+        }
+        Ok(())
     }
 
+    /// The schedule as (time, action), in time order (entries at the same time in the order
+    /// written).
+    fn stylus_schedule(&self) -> Vec<(f64, StylusAction)> {
+        let mut list: Vec<(f64, StylusAction)> = self
+            .stylus
+            .iter()
+            .filter_map(|e| Some((e.at_s, e.parsed().ok()?)))
+            .collect();
+        list.sort_by(|a, b| a.0.total_cmp(&b.0));
+        list
+    }
+}
+
+impl StylusEvent {
+    /// The action, or the field at fault and why.
+    pub fn parsed(&self) -> Result<StylusAction, (&'static str, &'static str)> {
+        StylusAction::parse(&self.action, self.button)
+    }
+}
+
+impl SimConfig {
     /// What the simulated plant needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
     /// Long on purpose: an ordered list of checks, each naming its field.
@@ -287,6 +359,53 @@ impl Inkwell {
     }
 }
 
+/// The hand's grip when it carries the stylus (into the inkwell, out of it) or holds it: a
+/// joint-space spring-damper around a smooth path, with the arm's weight carried, N·m/rad and
+/// N·m·s/rad. Light: a motor's push moves the held stylus (3.3 N at the tip is about 0.05 rad).
+const GRIP_STIFFNESS: f64 = 8.0;
+const GRIP_DAMPING: f64 = 0.15;
+/// The hand moves the stylus at most this fast along its path, rad/s, and takes at least
+/// `CARRY_MIN_S`.
+const CARRY_SPEED: f64 = 1.0;
+const CARRY_MIN_S: f64 = 0.3;
+/// A hand that cannot bring the stylus to its inkwell (the motors push it away) gives up this
+/// long after its path ended, s.
+const CARRY_GIVE_UP_S: f64 = 1.0;
+
+/// The hand carrying the stylus from `from` to `to` (joint angles), starting at `t0` over
+/// `dur` s, then holding it at `to`: into the inkwell (`dock`: it lets go once the stylus
+/// rests there), or out of it (it keeps holding the stylus lightly, as a user does).
+#[derive(Debug, Clone, Copy)]
+struct Carry {
+    from: Joint3,
+    to: Joint3,
+    t0: f64,
+    dur: f64,
+    dock: bool,
+}
+
+impl Carry {
+    fn new(from: Joint3, to: Joint3, t0: f64, dock: bool) -> Carry {
+        let dur = ((to - from).amax() / CARRY_SPEED).max(CARRY_MIN_S);
+        Carry {
+            from,
+            to,
+            t0,
+            dur,
+            dock,
+        }
+    }
+
+    /// The hand's torque on the arm at time `t` and (q, q̇): gravity's, carried, and the grip
+    /// towards the path.
+    fn torque(&self, plant: &Dynamics, t: f64, q: &Joint3, qd: &Joint3) -> Joint3 {
+        let (s, ds, _) = quintic((t - self.t0) / self.dur);
+        let span = self.to - self.from;
+        let (at, vel) = (self.from + span * s, span * (ds / self.dur));
+        plant.gravity(q) + (at - q) * GRIP_STIFFNESS + (vel - qd) * GRIP_DAMPING
+    }
+}
+
 /// The simulated Omni: the rigid-body model integrated at the servo rate, with encoder
 /// quantisation, sensor and torque noise, an optional payload and a simulated hand, behind
 /// the [`Device`] trait.
@@ -311,6 +430,16 @@ pub struct SimOmni {
     hand: Option<Hand>,
     hand_force: Force3,
     inkwell: Inkwell,
+    /// The stylus buttons, and when a click releases each (∞: it does not).
+    buttons: [bool; 2],
+    release_at: [f64; 2],
+    /// `[sim] stylus` in time order, and the next entry due.
+    schedule: Vec<(f64, StylusAction)>,
+    next_event: usize,
+    /// The hand carrying or holding the stylus (dock, undock).
+    carry: Option<Carry>,
+    /// Where the hand holds an undocked stylus: the workspace centre, rad.
+    centre: Joint3,
 }
 
 impl SimOmni {
@@ -352,6 +481,74 @@ impl SimOmni {
                 docked: cfg.sim.docked && (start_pose - ink).amax() < INKWELL_TOLERANCE,
                 away: (start_pose - ink).amax() > 2.0 * INKWELL_TOLERANCE,
             },
+            buttons: [false; 2],
+            release_at: [f64::INFINITY; 2],
+            schedule: cfg.sim.stylus_schedule(),
+            next_event: 0,
+            carry: None,
+            centre: Joint3::from(cfg.center),
+        }
+    }
+
+    /// The stylus buttons pressed.
+    pub fn buttons(&self) -> [bool; 2] {
+        self.buttons
+    }
+
+    /// The hand acts on the stylus at device time `t`.
+    fn act(&mut self, t: f64, action: StylusAction) {
+        match action {
+            StylusAction::Press(b) => {
+                self.buttons[b] = true;
+                self.release_at[b] = f64::INFINITY;
+            }
+            StylusAction::Release(b) => {
+                self.buttons[b] = false;
+                self.release_at[b] = f64::INFINITY;
+            }
+            StylusAction::Click(b) => {
+                self.buttons[b] = true;
+                self.release_at[b] = t + CLICK_S;
+            }
+            StylusAction::Dock => {
+                if !self.inkwell.docked {
+                    self.carry = Some(Carry::new(self.q, self.inkwell.pose, t, true));
+                }
+            }
+            StylusAction::Undock => {
+                if self.inkwell.docked || self.carry.is_some_and(|c| c.dock) {
+                    self.inkwell.docked = false;
+                    self.carry = Some(Carry::new(self.q, self.centre, t, false));
+                }
+            }
+        }
+    }
+
+    /// After the step to device time `t`: the schedule's entries that are due, clicks that
+    /// end, and a carried stylus that has come to rest in its inkwell.
+    fn stylus_step(&mut self, t: f64) {
+        while let Some(&(at, action)) = self.schedule.get(self.next_event) {
+            if at > t {
+                break;
+            }
+            self.next_event += 1;
+            self.act(t, action);
+        }
+        for b in 0..2 {
+            if t >= self.release_at[b] {
+                self.buttons[b] = false;
+                self.release_at[b] = f64::INFINITY;
+            }
+        }
+        if let Some(c) = self.carry.filter(|c| c.dock && t >= c.t0 + c.dur) {
+            let off = self.q - self.inkwell.pose;
+            if self.inkwell.docked || (off.amax() < INKWELL_TOLERANCE && self.qd.amax() < 0.05) {
+                self.inkwell.docked = true;
+                self.inkwell.away = false;
+                self.carry = None;
+            } else if t >= c.t0 + c.dur + CARRY_GIVE_UP_S {
+                self.carry = None;
+            }
         }
     }
 
@@ -399,8 +596,12 @@ impl SimOmni {
         let h = dt / self.substeps as f64;
         let with_hand = self.hand.is_some();
         let inkwell = self.inkwell;
+        let carry = self.carry;
         let f = |s: f64, q: &Joint3, qd: &Joint3| {
-            let held = tau + inkwell.torque(q, qd);
+            let mut held = tau + inkwell.torque(q, qd);
+            if let Some(c) = &carry {
+                held += c.torque(&self.plant, t + s, q, qd);
+            }
             if with_hand {
                 let fh = self.hand_force_at(t, s, q, qd);
                 let ext = tip_force_torque(&self.plant.geometry, q, &fh);
@@ -479,6 +680,7 @@ impl Device for SimOmni {
                 0.0
             };
             self.step(t, &tau);
+            self.stylus_step(t + self.period_s);
             if self.paced {
                 clock::sleep_until_ns(
                     self.start_ns + (self.tick as f64 * self.period_s * 1e9) as u64,
@@ -489,7 +691,7 @@ impl Device for SimOmni {
         let state = StatePacket {
             encoder: self.encoder_words(),
             gimbal: [0x8000; 3],
-            buttons: [false; 2],
+            buttons: self.buttons,
             inkwell: self.inkwell.docked,
             counter: self.tick as u32,
         };
@@ -504,6 +706,11 @@ impl Device for SimOmni {
 
     fn hand_force(&self) -> Option<[f64; 3]> {
         Some(self.hand_force.into())
+    }
+
+    fn stylus(&mut self, action: StylusAction) -> bool {
+        self.act(self.tick as f64 * self.period_s, action);
+        true
     }
 }
 
@@ -662,5 +869,112 @@ mod tests {
             dq1 > 8.0 * dq2 && dqd1 > 8.0 * dqd2,
             "{dq1:e} {dq2:e} {dqd1:e} {dqd2:e}"
         );
+    }
+}
+
+#[cfg(test)]
+mod stylus_tests {
+    use super::*;
+    use crate::config::Config;
+    use crate::device::codec::{decode_state, encode_command, MotorCommand};
+
+    fn config(stylus: &str) -> Result<Config, ConfigError> {
+        let cfg = Config::from_toml(&format!("[sim]\nstylus = {stylus}\n"), "test")?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    #[test]
+    fn a_stylus_schedule_is_read_and_each_bad_entry_named_by_its_field() {
+        let cfg = config(
+            r#"[{ at_s = 2.0, action = "undock" }, { at_s = 0.5, action = "click", button = 2 }]"#,
+        )
+        .unwrap();
+        assert_eq!(
+            cfg.sim.stylus_schedule(),
+            [(0.5, StylusAction::Click(1)), (2.0, StylusAction::Undock)]
+        );
+        for (entries, field, says) in [
+            (
+                r#"[{ at_s = 1.0, action = "press", button = 3 }]"#,
+                "sim.stylus[0].button",
+                "1 or 2",
+            ),
+            (
+                r#"[{ at_s = 1.0, action = "press" }]"#,
+                "sim.stylus[0].button",
+                "1 or 2",
+            ),
+            (
+                r#"[{ at_s = 1.0, action = "dock" }, { at_s = 2.0, action = "dock", button = 1 }]"#,
+                "sim.stylus[1].button",
+                "take no button",
+            ),
+            (
+                r#"[{ at_s = 1.0, action = "wave" }]"#,
+                "sim.stylus[0].action",
+                "undock",
+            ),
+            (
+                r#"[{ at_s = -1.0, action = "dock" }]"#,
+                "sim.stylus[0].at_s",
+                "0 ..= 1e6",
+            ),
+        ] {
+            let e = config(entries).unwrap_err().to_string();
+            assert!(e.contains(field) && e.contains(says), "{entries}: {e}");
+        }
+        // A key the entry does not have is refused by name.
+        let e = config(r#"[{ at_s = 1.0, action = "dock", when = 2 }]"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("when"), "{e}");
+    }
+
+    /// The packets a program would read: buttons and inkwell, one tick at a time.
+    fn run(sim: &mut SimOmni, ticks: usize) -> ([bool; 2], bool) {
+        let mut last = ([false; 2], false);
+        for k in 0..ticks {
+            let raw = sim
+                .exchange(&encode_command(&MotorCommand::safe(k as u8)))
+                .unwrap();
+            let p = decode_state(raw.packet()).unwrap();
+            last = (p.buttons, p.inkwell);
+        }
+        last
+    }
+
+    #[test]
+    fn the_hand_clicks_on_schedule_and_carries_the_stylus_out_of_and_into_its_inkwell() {
+        let cfg = config(r#"[{ at_s = 0.2, action = "click", button = 1 }]"#).unwrap();
+        let mut sim = SimOmni::new(&cfg, false);
+        assert_eq!(run(&mut sim, 150), ([false, false], true));
+        assert_eq!(
+            run(&mut sim, 100),
+            ([true, false], true),
+            "clicked at 0.2 s"
+        );
+        assert_eq!(
+            run(&mut sim, 100),
+            ([false, false], true),
+            "released 0.1 s later"
+        );
+        // Undocked, the unpowered arm is held out of the inkwell (not back in it) ...
+        assert!(sim.stylus(StylusAction::Undock));
+        assert!(!run(&mut sim, 3000).1);
+        assert!((sim.true_state().0 - Joint3::from(INKWELL_POSE)).amax() > 0.1);
+        // ... and docked again, it rests there with the amplifiers off.
+        sim.stylus(StylusAction::Dock);
+        assert!(run(&mut sim, 3000).1);
+        let q = sim.true_state().0;
+        assert!(run(&mut sim, 2000).1);
+        assert!(
+            (sim.true_state().0 - q).amax() < 1e-3,
+            "stays in the inkwell"
+        );
+        sim.stylus(StylusAction::Press(1));
+        assert_eq!(run(&mut sim, 1).0, [false, true]);
+        sim.stylus(StylusAction::Release(1));
+        assert_eq!(run(&mut sim, 1).0, [false, false]);
     }
 }

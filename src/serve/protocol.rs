@@ -138,6 +138,15 @@ pub(crate) enum Request {
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
+    /// The simulator's hand on the stylus: `action` press, release or click `button` (1 or
+    /// 2), or dock or undock the stylus. Control access; not the lease.
+    Stylus {
+        action: String,
+        #[serde(default)]
+        button: Option<u64>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
     /// Stop the daemon: zero torque, amplifiers off, socket removed.
     Shutdown {
         #[serde(default)]
@@ -167,6 +176,7 @@ impl Request {
             Request::WeightsLoad { .. } => "weights_load",
             Request::RecordStart { .. } => "record_start",
             Request::RecordStop { .. } => "record_stop",
+            Request::Stylus { .. } => "stylus",
             Request::Shutdown { .. } => "shutdown",
         }
     }
@@ -192,6 +202,7 @@ impl Request {
             | Request::WeightsLoad { id, .. }
             | Request::RecordStart { id, .. }
             | Request::RecordStop { id }
+            | Request::Stylus { id, .. }
             | Request::Shutdown { id } => id.as_ref(),
         }
     }
@@ -231,6 +242,21 @@ mod tests {
         );
         assert!(super::super::hub::to_op(r.clone()).unwrap().commands());
         assert_eq!(r.op(), "servo_cf");
+        let r: Request =
+            serde_json::from_str(r#"{"op":"stylus","action":"click","button":2}"#).unwrap();
+        assert_eq!(r.op(), "stylus");
+        let op = super::super::hub::to_op(r).unwrap();
+        assert_eq!(
+            op,
+            crate::station::Op::Stylus(crate::device::StylusAction::Click(1))
+        );
+        assert!(op.commands() && op.is_hand() && !op.is_stop());
+        let r: Request = serde_json::from_str(r#"{"op":"stylus","action":"dock"}"#).unwrap();
+        assert!(super::super::hub::to_op(r).unwrap().is_hand());
+        let r: Request =
+            serde_json::from_str(r#"{"op":"stylus","action":"undock","button":1}"#).unwrap();
+        let e = super::super::hub::to_op(r).unwrap_err().to_string();
+        assert!(e.contains("no button"), "{e}");
         let r: Request = serde_json::from_str(r#"{"op":"status"}"#).unwrap();
         assert!(!super::super::hub::to_op(r.clone()).unwrap().commands());
         assert_eq!(r.op(), "status");

@@ -112,6 +112,9 @@ pub enum ServoCommand {
     Controller(ControllerKind),
     /// Resume (`true`) or freeze (`false`) online adaptation.
     Adapt(bool),
+    /// The simulator's hand acts on the stylus (press a button, dock, …): the station checked
+    /// that the device is the simulator. Makes no force of a client's: any epoch applies it.
+    Stylus(crate::device::StylusAction),
     /// Swap this identifier in; the old one comes back as [`ServoReply::Identifier`].
     LoadIdentifier(Box<Identifier>),
     /// Fill this in and send it back as [`ServoReply::Snapshot`].

@@ -44,6 +44,12 @@ const LINK_WINDOW: u32 = 100;
 const LINK_MAX_BAD: u32 = 10;
 const LINK_WINDOW_MASK: u128 = (1u128 << LINK_WINDOW) - 1;
 
+/// A paced loop whose next sample comes more than this after the previous one has stalled
+/// (the log's and the state's `flags` bit [`flags::STALL`]; libHD raises `HD_TIMER_ERROR`,
+/// docs/HDAPI.md, Errors), ns. Fifty periods at 1 kHz: far beyond a loaded machine's
+/// scheduling hiccups (a few ms), short of anything a hand would not feel.
+pub const STALL_NS: u64 = 50_000_000;
+
 /// Why a run ended. Each class has its own exit code (see `main.rs` and the README).
 #[derive(Debug, Clone, PartialEq)]
 pub enum EndReason {
@@ -209,6 +215,8 @@ pub struct Servo {
     /// One bit per recent exchange, 1 = lost or corrupt (newest in bit 0).
     link_history: u128,
     held: bool,
+    /// When the host woke with the last sample, ns (a stall: [`Servo::stalled`]).
+    last_wake: u64,
     // Results.
     stats: RunStats,
     timing: TickTiming,
@@ -310,6 +318,7 @@ impl Servo {
             consecutive_missed: 0,
             link_history: 0,
             held: false,
+            last_wake: 0,
             stats: RunStats::default(),
             timing: TickTiming::new(period_ns),
             dropped: 0,
@@ -396,7 +405,8 @@ impl Servo {
         let flags = limited.flags
             | ident_flag
             | self.haptic_flags()
-            | if self.held { flags::HELD } else { 0 };
+            | if self.held { flags::HELD } else { 0 }
+            | self.stalled(s.wake);
         self.announce_limits(s.t, flags);
         self.held = false;
         self.record(
@@ -534,7 +544,15 @@ impl Servo {
                 self.latched = true;
                 self.safety.rest();
                 self.event = Some(ServoEvent::SafetyTrip(trip));
-                Ok(rest)
+                let speed = matches!(
+                    trip,
+                    safety::SafetyTrip::Velocity { .. }
+                        | safety::SafetyTrip::MeasuredVelocity { .. }
+                );
+                Ok(safety::Limited {
+                    flags: if speed { flags::SPEED_TRIP } else { 0 },
+                    ..rest
+                })
             }
             Err(trip) => {
                 self.last_t = t;
@@ -615,6 +633,17 @@ impl Servo {
         self.timing
             .record(s.wake, clock::now_ns(), s.t_dev, self.paced);
         self.tick += 1;
+    }
+
+    /// [`flags::STALL`] when this sample came more than [`STALL_NS`] after the previous one
+    /// (paced runs: the loop missed its deadlines that long), else 0.
+    fn stalled(&mut self, wake: u64) -> u32 {
+        let gap = wake.saturating_sub(std::mem::replace(&mut self.last_wake, wake));
+        if self.paced && self.tick > 0 && gap > STALL_NS {
+            flags::STALL
+        } else {
+            0
+        }
     }
 
     /// What acted on the tip force this tick (the haptic modes only).
@@ -859,6 +888,9 @@ impl Servo {
                 }
                 ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
                 ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
+                ServoCommand::Stylus(action) => {
+                    self.device.stylus(action);
+                }
                 ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
                 ServoCommand::Adapt(on) => {
                     if let Some(id) = self.identifier.as_mut() {

@@ -400,6 +400,9 @@ impl Station {
             if op.is_stop() {
                 return self.stop(k, op);
             }
+            if op.is_hand() {
+                return self.apply(k, op);
+            }
             if op.is_stream() {
                 if let Some(why) = &self.latched {
                     return Err(OpError::Stopped(format!(
@@ -527,6 +530,21 @@ impl Station {
                 Some((path, rows, error)) => now(Reply::RecordStop { path, rows, error }),
                 None => Err(OpError::Failed("not recording".into())),
             },
+            Op::Stylus(action) => {
+                if self.s.arm.kind != "sim" {
+                    return Err(OpError::Invalid(format!(
+                        "stylus {}: only the simulator's stylus can be worked from here; this \
+                         arm's device is {} (press its buttons, dock it, with your hand)",
+                        action.name(),
+                        self.s.arm.kind
+                    )));
+                }
+                self.send(ServoCommand::Stylus(action))?;
+                now(Reply::Stylus {
+                    stylus: action.name(),
+                    button: action.button(),
+                })
+            }
             Op::Shutdown => unreachable!("a stop is handled by Station::stop"),
         }
     }

@@ -156,6 +156,8 @@ pub enum Op {
     RecordStop,
     /// Stop the daemon (zero torque, amplifiers off).
     Shutdown,
+    /// The simulator's hand acts on the stylus: a button, the inkwell (simulator only).
+    Stylus(crate::device::StylusAction),
 }
 
 impl Op {
@@ -163,6 +165,13 @@ impl Op {
     /// (but for the emergency stop, [`Op::is_stop`]).
     pub fn commands(&self) -> bool {
         !matches!(self, Op::Stream { .. } | Op::Status)
+    }
+
+    /// The simulator's hand (`stylus`): it needs control access but not the lease. It stands
+    /// for the user's hand on the stylus, not for a program commanding the motors, and the
+    /// program that holds the lease (a libHD scheduler) is the one waiting for the button.
+    pub fn is_hand(&self) -> bool {
+        matches!(self, Op::Stylus(_))
     }
 
     /// `mode idle` and `shutdown`: the stop nobody can refuse. No lease refuses them to a
@@ -262,6 +271,14 @@ pub enum Reply {
         rows: u64,
         /// Why it is incomplete, if it is.
         error: Option<String>,
+    },
+    /// What the simulator's hand did.
+    Stylus {
+        /// The action (press, release, click, dock, undock).
+        stylus: &'static str,
+        /// The button it acted on, 1 or 2.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        button: Option<u8>,
     },
     /// The daemon's status.
     Status {

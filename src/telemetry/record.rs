@@ -87,6 +87,12 @@ pub mod flags {
     /// An effect whose force was not finite at this pose was left out of the sum (the other
     /// effects still act).
     pub const EFFECT_SKIPPED: u32 = 1 << 10;
+    /// The safety layer tripped on a joint's speed this tick (`safety.max_velocity_rad_s`):
+    /// the arm is now idle (`omnid serve`; a run ends instead).
+    pub const SPEED_TRIP: u32 = 1 << 11;
+    /// The servo loop stalled: this sample came more than 50 ms after the previous one
+    /// (paced runs; `servo::STALL_NS`).
+    pub const STALL: u32 = 1 << 12;
 }
 
 /// Everything the loop knows at one tick: one row of the log, what `omnid serve` streams and

@@ -85,6 +85,10 @@ impl HD {
                 "slow",
                 "temp",
                 "occasional",
+                "query",
+                "inkwell",
+                "speed",
+                "stall",
             ] {
                 hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
             }

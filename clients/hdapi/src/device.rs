@@ -2,7 +2,10 @@
 //! reads outside a frame and before the scheduler starts are fresh, and our requests'
 //! answers) and the frame (snapshot in, force out). docs/HDAPI.md, Devices and Frames.
 
-use crate::consts::{HD_EXCEEDED_MAX_FORCE, HD_WARM_MOTORS};
+use crate::consts::{
+    HD_EXCEEDED_MAX_FORCE, HD_EXCEEDED_MAX_VELOCITY, HD_TIMER_ERROR, HD_WARM_MOTORS,
+};
+use crate::error::Internal;
 use crate::kin;
 use crate::link::{Link, WaitEnd};
 use omnid_client::protocol::{Hello, State, MAX_MESSAGE, PROTOCOL_VERSION};
@@ -79,25 +82,32 @@ pub struct Frame {
     pub new_limits: u32,
     /// When each limit of [`LIMITS`] was last raised: a limit that comes and goes with the
     /// force (a program pushing at the limit) is raised at most once a second.
-    pub limit_raised_at: [Option<Instant>; 2],
+    pub limit_raised_at: [Option<Instant>; LIMITS.len()],
 }
 
 /// The least time between two raises of the same limit.
 const LIMIT_HOLD_OFF: Duration = Duration::from_secs(1);
 
 /// The daemon's `flags` bits a program is told about (docs/HDAPI.md, Errors), with the HD
-/// error each raises: the tip force held to the force limit or the continuous force, and a hot
-/// motor held to its continuous torque. The kick (torque-rate) limit is not among them: it
-/// shapes most force onsets, and programs stop on any error.
-const LIMITS: [(u32, u32); 2] = [(1 << 9, HD_EXCEEDED_MAX_FORCE), (1 << 6, HD_WARM_MOTORS)];
+/// error each raises and its internal code: the tip force held to the force limit or the
+/// continuous force, a hot motor held to its continuous torque, the safety layer's speed trip
+/// (one tick), and the daemon's servo loop stalled (one tick). The kick (torque-rate) limit is
+/// not among them: it shapes most force onsets, and programs stop on any error.
+const LIMITS: [(u32, u32, Internal); 4] = [
+    (1 << 9, HD_EXCEEDED_MAX_FORCE, Internal::DaemonLimit),
+    (1 << 6, HD_WARM_MOTORS, Internal::DaemonLimit),
+    (1 << 11, HD_EXCEEDED_MAX_VELOCITY, Internal::DaemonLimit),
+    (1 << 12, HD_TIMER_ERROR, Internal::ServoStall),
+];
 
-/// The HD errors for the limits that began acting between two samples' `flags`.
-pub fn limit_errors(before: u32, now: u32) -> impl Iterator<Item = u32> {
+/// The HD errors (code, internal code) for the limits that began acting between two samples'
+/// `flags`.
+pub fn limit_errors(before: u32, now: u32) -> impl Iterator<Item = (u32, Internal)> {
     let began = now & !before;
     LIMITS
         .into_iter()
-        .filter(move |(bit, _)| began & bit != 0)
-        .map(|(_, code)| code)
+        .filter(move |(bit, _, _)| began & bit != 0)
+        .map(|(_, code, internal)| (code, internal))
 }
 
 pub struct Device {
@@ -284,11 +294,14 @@ impl Device {
         let Some(state) = f.current.clone() else {
             return Ok(true);
         };
-        let watched = LIMITS.iter().fold(0, |m, (bit, _)| m | bit);
-        let began = state.flags & !f.limit_flags & watched;
-        f.limit_flags = state.flags & watched;
+        let watched = LIMITS.iter().fold(0, |m, (bit, _, _)| m | bit);
+        // One-tick bits (a trip, a stall) from every sample since the last frame, so a frame
+        // that runs on a later sample still sees them; the others from this frame's sample.
+        let one_tick = std::mem::take(&mut self.link.inbox().one_tick_flags);
+        let began = (state.flags & !f.limit_flags & watched) | one_tick;
+        f.limit_flags = state.flags & watched & !crate::link::ONE_TICK;
         let now = Instant::now();
-        for (k, (bit, _)) in LIMITS.iter().enumerate() {
+        for (k, (bit, _, _)) in LIMITS.iter().enumerate() {
             let quiet = f.limit_raised_at[k].is_none_or(|t| now - t >= LIMIT_HOLD_OFF);
             if began & bit != 0 && quiet {
                 f.new_limits |= bit;
@@ -356,8 +369,8 @@ impl Device {
         lock(&self.frame).too_slow.take()
     }
 
-    /// The HD errors for limits that began acting since the last call.
-    pub fn take_limit_errors(&self) -> Vec<u32> {
+    /// The HD errors (code, internal code) for limits that began acting since the last call.
+    pub fn take_limit_errors(&self) -> Vec<(u32, Internal)> {
         let bits = std::mem::take(&mut lock(&self.frame).new_limits);
         limit_errors(0, bits).collect()
     }
@@ -429,14 +442,17 @@ mod limit_tests {
         let force = 1 << 9;
         let warm = 1 << 6;
         let kick = 1 << 3;
-        assert_eq!(
-            limit_errors(0, force).collect::<Vec<_>>(),
-            [HD_EXCEEDED_MAX_FORCE]
-        );
+        let codes = |before, now| limit_errors(before, now).map(|e| e.0).collect::<Vec<_>>();
+        assert_eq!(codes(0, force), [HD_EXCEEDED_MAX_FORCE]);
         assert_eq!(limit_errors(force, force).count(), 0);
+        assert_eq!(codes(force, force | warm | kick), [HD_WARM_MOTORS]);
+        // The speed trip and a stall: the velocity error and the scheduler's timer error,
+        // the stall with its own internal code.
+        let (speed, stall) = (1 << 11, 1 << 12);
+        assert_eq!(codes(0, speed), [HD_EXCEEDED_MAX_VELOCITY]);
         assert_eq!(
-            limit_errors(force, force | warm | kick).collect::<Vec<_>>(),
-            [HD_WARM_MOTORS]
+            limit_errors(0, stall).collect::<Vec<_>>(),
+            [(HD_TIMER_ERROR, Internal::ServoStall)]
         );
         // Bits the library does not raise (a clamp, the kick limit, the ramp, a wall) raise
         // nothing.

@@ -50,7 +50,7 @@ pub fn pop() -> HDErrorInfo {
 }
 
 /// What went wrong inside, as `internalErrorCode` (docs/HDAPI.md, Errors).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[repr(i32)]
 pub enum Internal {
     None = 0,
@@ -70,8 +70,11 @@ pub enum Internal {
     /// force lapses between them (`HD_TIMER_ERROR`).
     SlowFrames = 7,
     /// The daemon's safety layer held the force or torque back (`HD_EXCEEDED_MAX_FORCE`,
-    /// `HD_WARM_MOTORS`), once per episode.
+    /// `HD_WARM_MOTORS`), once per episode, or tripped on a joint's speed
+    /// (`HD_EXCEEDED_MAX_VELOCITY`).
     DaemonLimit = 8,
+    /// The daemon's servo loop stalled past its deadline (`HD_TIMER_ERROR`).
+    ServoStall = 9,
 }
 
 /// `hdGetErrorString`: a static, NUL-terminated description of `code`.
@@ -86,7 +89,10 @@ pub fn describe(code: u32) -> &'static [u8] {
         HD_WARM_MOTORS => b"Motors are warm\0",
         HD_EXCEEDED_MAX_FORCE => b"Exceeded the maximum force\0",
         HD_EXCEEDED_MAX_FORCE_IMPULSE => b"Exceeded the maximum force impulse\0",
-        HD_EXCEEDED_MAX_VELOCITY => b"Exceeded the maximum velocity\0",
+        HD_EXCEEDED_MAX_VELOCITY => {
+            b"Exceeded the maximum velocity (omnid's safety layer stopped the arm: \
+              safety.max_velocity_rad_s)\0"
+        }
         HD_FORCE_ERROR => b"Force error\0",
         HD_DEVICE_FAULT => b"Device fault\0",
         HD_DEVICE_ALREADY_INITIATED => {
@@ -97,7 +103,10 @@ pub fn describe(code: u32) -> &'static [u8] {
               set OMNID_SOCKET to its socket)\0"
         }
         HD_COMM_CONFIG_ERROR => b"Communication configuration error\0",
-        HD_TIMER_ERROR => b"Scheduler timer error\0",
+        HD_TIMER_ERROR => {
+            b"Scheduler timer error (the servo loop missed its deadline, or frames that push \
+              came too far apart)\0"
+        }
         HD_ILLEGAL_BEGIN => b"Illegal begin frame\0",
         HD_ILLEGAL_END => b"Illegal end frame (no frame begun)\0",
         HD_FRAME_ERROR => b"Frame error\0",

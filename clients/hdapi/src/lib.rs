@@ -161,8 +161,8 @@ pub extern "C" fn hdEndFrame(hhd: u32) {
                 if d.take_too_slow().is_some() {
                     error::push(HD_TIMER_ERROR, Internal::SlowFrames, hhd);
                 }
-                for code in d.take_limit_errors() {
-                    error::push(code, Internal::DaemonLimit, hhd);
+                for (code, internal) in d.take_limit_errors() {
+                    error::push(code, internal, hhd);
                 }
             }
             Ok(false) => error::push(HD_ILLEGAL_END, Internal::None, hhd),

@@ -20,6 +20,10 @@ const READ_SLICE_MS: i32 = 100;
 /// after a slow one runs on the newest sample, but bounded so a flood cannot pin the reader.
 const MAX_BATCH: usize = 256;
 
+/// The state's `flags` bits set on one tick only (docs/PROTOCOL.md): the safety layer's speed
+/// trip and a servo stall. The reader keeps them until a frame takes them.
+pub const ONE_TICK: u32 = (1 << 11) | (1 << 12);
+
 /// What the reader files for the other threads.
 #[derive(Default)]
 pub struct Inbox {
@@ -33,6 +37,9 @@ pub struct Inbox {
     pub received_at: Option<Instant>,
     /// The stylus has been seen in its inkwell since the device was opened.
     pub inkwell_seen: bool,
+    /// `flags` bits of [`ONE_TICK`] any sample carried since the last frame took them: a bit
+    /// set on one tick only is seen even by a frame that runs on a later sample.
+    pub one_tick_flags: u32,
     pub replies: HashMap<u64, Value>,
     pub closed: bool,
     /// The thread that filed the last message (which thread reads is the point of [`Link`]).
@@ -215,6 +222,7 @@ impl Link {
                         }
                     }
                     i.inkwell_seen |= s.inkwell;
+                    i.one_tick_flags |= s.flags & ONE_TICK;
                     i.latest = Some(s);
                     i.samples += 1;
                 }

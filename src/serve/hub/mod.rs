@@ -190,6 +190,18 @@ pub(crate) fn to_op(request: Request) -> Result<Op, OpError> {
         Request::RecordStart { path, .. } => Op::RecordStart(path.map(PathBuf::from)),
         Request::RecordStop { .. } => Op::RecordStop,
         Request::Shutdown { .. } => Op::Shutdown,
+        Request::Stylus { action, button, .. } => Op::Stylus(
+            crate::device::StylusAction::parse(&action, button).map_err(|(field, allowed)| {
+                let value = match field {
+                    "button" => button.map_or("none".into(), |b| b.to_string()),
+                    _ => format!("`{}`", crate::text::cut(&action)),
+                };
+                OpError::Invalid(format!(
+                    "stylus {field} {value} (action `{}`): expected {allowed}",
+                    crate::text::cut(&action)
+                ))
+            })?,
+        ),
     })
 }
 
