@@ -90,6 +90,7 @@ pub mod estimate;
 pub mod experiment;
 pub(crate) mod fast_tanh;
 pub mod haptics;
+pub mod human;
 pub mod identifier;
 pub mod input;
 pub mod log_pretune;

@@ -290,7 +290,8 @@ struct WatchArgs {
     /// Samples per second (up to the device's rate).
     #[arg(long, default_value_t = 10.0)]
     rate: f64,
-    /// One JSON object per sample per line.
+    /// One JSON object per line, for programs: each sample, and each event as the daemon
+    /// sent it (without it: readable lines, events as sentences).
     #[arg(long)]
     json: bool,
 }
@@ -303,13 +304,18 @@ struct CtlArgs {
     /// The arm, by name or alias (its socket `<name>.sock` in the default directories).
     #[arg(long, value_name = "NAME", conflicts_with = "socket")]
     arm: Option<String>,
+    /// Print the daemon's reply as JSON (for programs; `status`: the keys of
+    /// docs/DESIGN.md §2.3) instead of the readable form.
+    #[arg(long, global = true)]
+    json: bool,
     #[command(subcommand)]
     command: CtlCommand,
 }
 
 #[derive(Subcommand)]
 enum CtlCommand {
-    /// The run summary so far, the mode, the controller, the lease and the clients (JSON).
+    /// The mode, controller, lease, clients, faults, tracking, timing and recording (`--json`:
+    /// the run summary so far with them).
     Status,
     /// idle, hold, track or free (track follows --trajectory).
     Mode {
@@ -910,8 +916,10 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
                 if args.json {
                     v.to_string()
                 } else {
-                    omnid::errln!("omnid watch: {v}");
-                    continue;
+                    match omnid::human::event_line(&v) {
+                        Some(line) => line,
+                        None => continue,
+                    }
                 }
             }
             Err(omnid::serve::client::ClientError::Closed) => {
@@ -996,7 +1004,11 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     match client.request(request) {
         Ok(reply) => {
             let text = match &args.command {
-                CtlCommand::Status => serde_json::to_string_pretty(&reply["status"])?,
+                CtlCommand::Status if args.json => serde_json::to_string_pretty(&reply["status"])?,
+                CtlCommand::Status => omnid::human::status_block(&reply["status"])
+                    .trim_end()
+                    .to_string(),
+                _ if !args.json => omnid::human::reply_line(&reply),
                 _ => {
                     let mut r = reply.clone();
                     if let Some(o) = r.as_object_mut() {

@@ -63,7 +63,7 @@ fn two_simulated_arms_are_served_side_by_side_each_with_its_own_client() {
     }
     // Each arm's own status, through `--arm`.
     for arm in ["sim", "sim-2"] {
-        let out = d.omnid(&["ctl", "--arm", arm, "status"]);
+        let out = d.omnid(&["ctl", "--arm", arm, "--json", "status"]);
         let text = String::from_utf8_lossy(&out.stdout);
         assert!(
             out.status.success(),

@@ -42,7 +42,7 @@ fn serve_then_track(controller: &str, docked: bool) -> serde_json::Value {
         String::from_utf8_lossy(&out.stderr)
     );
     std::thread::sleep(Duration::from_secs(10));
-    let out = d.omnid(&["ctl", "status"]);
+    let out = d.omnid(&["ctl", "--json", "status"]);
     assert!(
         out.status.success(),
         "{}",
@@ -118,7 +118,7 @@ fn the_readme_python_examples_run_without_a_trip() {
             String::from_utf8_lossy(&out.stderr)
         );
     }
-    let out = d.omnid(&["ctl", "status"]);
+    let out = d.omnid(&["ctl", "--json", "status"]);
     let status: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(status["faults"], serde_json::json!([]), "{status}");
     let (_, err) = d.stop();

@@ -802,7 +802,7 @@ fn ctl_and_watch_drive_the_daemon() {
     let out = ctl(&["mode", "servo_jp"]);
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("servo_jp"));
-    let out = ctl(&["status"]);
+    let out = ctl(&["--json", "status"]);
     let status: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(status["mode"], "hold");
     let out = omnid()

@@ -1,0 +1,326 @@
+//! What `omnid ctl status` and `omnid watch` print for people (their `--json` prints the
+//! daemon's messages as they came, docs/PROTOCOL.md): a short block for the status, one
+//! sentence a line for events. Built from the messages' JSON, so a key this version of the
+//! CLI does not know is left out rather than refused.
+
+use serde_json::Value;
+
+fn f(v: &Value) -> Option<f64> {
+    v.as_f64()
+}
+
+fn triple(v: &Value, scale: f64, unit: &str) -> Option<String> {
+    let a = v.as_array()?;
+    let x: Vec<f64> = a.iter().filter_map(|x| x.as_f64()).collect();
+    (x.len() == 3).then(|| {
+        format!(
+            "{:.2} / {:.2} / {:.2} {unit}",
+            x[0] * scale,
+            x[1] * scale,
+            x[2] * scale
+        )
+    })
+}
+
+fn text(v: &Value) -> Option<String> {
+    v.as_str().map(crate::text::printable)
+}
+
+fn percentiles(p: &Value) -> Option<String> {
+    Some(format!(
+        "p50 {:.1}  p99 {:.1}  max {:.1} µs",
+        f(&p["p50"])?,
+        f(&p["p99"])?,
+        f(&p["max"])?
+    ))
+}
+
+/// `omnid ctl status` for people: the arm, mode, controller, lease, clients, faults, tracking,
+/// timing and recording of a `status` reply's `status` object.
+pub fn status_block(s: &Value) -> String {
+    let mut out = String::new();
+    let mut line = |label: &str, value: String| {
+        out += &format!("  {label:<11} {value}\n");
+    };
+    let arm = text(&s["arm"]).unwrap_or_else(|| "?".into());
+    let device = text(&s["device"]).unwrap_or_else(|| "?".into());
+    let mut head = format!("arm {arm} ({device})");
+    if let Some(socket) = text(&s["socket"]) {
+        head += &format!(" on {socket}");
+    }
+    let mut out_head = head + "\n";
+    let mode = text(&s["mode"]).unwrap_or_else(|| "not started".into());
+    let mode_words = match mode.as_str() {
+        "idle" => "idle (no torque, amplifiers off)".to_string(),
+        "hold" => "hold (holding the pose)".to_string(),
+        "blend" | "track" => format!("{mode} (following a trajectory)"),
+        "free" => "free (compensation and effects only)".to_string(),
+        m if m.starts_with("servo_") => format!("{m} (a client streams commands)"),
+        m => m.to_string(),
+    };
+    line("mode", mode_words);
+    let mut controller = text(&s["controller"]).unwrap_or_else(|| "?".into());
+    let ident = &s["identifier"];
+    if let Some(fault) = text(&ident["fault"]) {
+        controller += &format!(" (identifier STOPPED: {fault}; running on PD)");
+    } else if ident["adapt"] == Value::Bool(true) {
+        controller += " (identifier learning)";
+    } else if ident["adapt"] == Value::Bool(false) {
+        controller += " (identifier frozen)";
+    }
+    if let Some(w) = text(&ident["weights"]) {
+        controller += &format!(", weights {w}");
+    }
+    line("controller", controller);
+    let lease = &s["lease"];
+    line(
+        "lease",
+        if lease.is_null() {
+            "free (the next command takes it)".to_string()
+        } else {
+            format!(
+                "client {} `{}` (pid {}, uid {})",
+                lease["client"],
+                text(&lease["name"]).unwrap_or_default(),
+                lease["pid"],
+                lease["uid"]
+            )
+        },
+    );
+    if let Some(n) = s["clients"].as_u64() {
+        line("clients", format!("{n} connected, this one included"));
+    }
+    if let (Some(t), Some(ticks)) = (f(&s["duration_s"]), s["ticks"].as_u64()) {
+        line("up", format!("{t:.1} s device time ({ticks} ticks)"));
+    }
+    let faults = s["faults"].as_array().cloned().unwrap_or_default();
+    line(
+        "faults",
+        match faults.last() {
+            None => "none".to_string(),
+            Some(last) => format!(
+                "{} (last at {:.3} s: {})",
+                faults.len(),
+                f(&last["t"]).unwrap_or(0.0),
+                text(&last["message"]).unwrap_or_default()
+            ),
+        },
+    );
+    let (clamped, limited, hot) = (
+        s["clamped_ticks"].as_u64().unwrap_or(0),
+        s["force_limited_ticks"].as_u64().unwrap_or(0),
+        s["thermal_ticks"].as_u64().unwrap_or(0),
+    );
+    if clamped + limited + hot > 0 {
+        line(
+            "limits",
+            format!(
+                "torque clamped {clamped} ticks, tip force held {limited}, hot motor held {hot}"
+            ),
+        );
+    }
+    line(
+        "tracking",
+        match triple(&s["tracking_rms_rad"], 1e3, "mrad") {
+            Some(rms) => format!(
+                "RMS {rms}, max {} (joints 1/2/3)",
+                triple(&s["tracking_max_rad"], 1e3, "mrad").unwrap_or_else(|| "n/a".into())
+            ),
+            None => "nothing tracked yet (mode track follows a trajectory)".to_string(),
+        },
+    );
+    let timing = &s["timing_us"];
+    if let Some(p) = percentiles(&timing["period"]) {
+        line("period", p);
+    }
+    if let Some(p) = percentiles(&timing["compute"]) {
+        line(
+            "compute",
+            format!("{p}, {} overruns", timing["overruns"].as_u64().unwrap_or(0)),
+        );
+    }
+    if let Some(h) = triple(&s["heat"], 1.0, "") {
+        line(
+            "heat",
+            format!("{} (1 = a motor at its continuous torque)", h.trim_end()),
+        );
+    }
+    let rec = &s["recording"];
+    line(
+        "recording",
+        if rec.is_null() {
+            "no (`omnid ctl record start` starts one)".to_string()
+        } else {
+            let dropped = rec["dropped"].as_u64().unwrap_or(0);
+            format!(
+                "to {}{}",
+                text(&rec["path"]).unwrap_or_default(),
+                if dropped > 0 {
+                    format!(" ({dropped} rows dropped: the disk fell behind)")
+                } else {
+                    String::new()
+                }
+            )
+        },
+    );
+    out_head.push_str(&out);
+    out_head
+}
+
+/// One line for a message of the daemon other than a state (an event, `lost`, `bye`, …)
+/// for people: when it happened (device time, where the message has it) and what happened, in
+/// a sentence. None for messages a person watching has no use for (`reply`).
+pub fn event_line(v: &Value) -> Option<String> {
+    let when = match f(&v["t"]) {
+        Some(t) => format!("{t:>9.3} s"),
+        None => format!("{:>11}", ""),
+    };
+    let message = text(&v["message"]);
+    let sentence = match v["type"].as_str() {
+        Some("event") => {
+            let event = text(&v["event"]).unwrap_or_else(|| "?".into());
+            match event.as_str() {
+                "mode" => format!(
+                    "mode is now {}",
+                    text(&v["mode"]).unwrap_or_else(|| "?".into())
+                ),
+                "controller" => format!(
+                    "controller is now {}",
+                    text(&v["controller"]).unwrap_or_else(|| "off".into())
+                ),
+                "lease" => format!(
+                    "lease: {}",
+                    message.unwrap_or_else(|| match v["holder"].as_u64() {
+                        Some(h) => format!("held by client {h}"),
+                        None => "free".into(),
+                    })
+                ),
+                "stopped" => format!("stopped: {}", message.unwrap_or_default()),
+                "stream-stale" => format!("stream went stale: {}", message.unwrap_or_default()),
+                "stream-ended" => format!("stream ended: {}", message.unwrap_or_default()),
+                "safety-trip" => format!(
+                    "SAFETY TRIP: {} (latched: the arm stays idle until a client asks for a mode)",
+                    message.unwrap_or_default()
+                ),
+                "limit" => format!("limit: {}", message.unwrap_or_default()),
+                "weights" => format!("weights: {}", message.unwrap_or_default()),
+                "identifier-fault" => {
+                    format!("IDENTIFIER STOPPED: {}", message.unwrap_or_default())
+                }
+                "recording-failed" => {
+                    format!("RECORDING FAILED: {}", message.unwrap_or_default())
+                }
+                other => match message {
+                    Some(m) => format!("{other}: {m}"),
+                    None => format!("{other}: {}", crate::text::cut(&v.to_string())),
+                },
+            }
+        }
+        Some("lost") => format!(
+            "{} samples lost: this reader fell behind ({} in all; a lower --rate keeps up)",
+            v["count"], v["total"]
+        ),
+        Some("bye") => format!(
+            "the daemon is stopping{}",
+            message.map(|m| format!(": {m}")).unwrap_or_default()
+        ),
+        Some("error") => format!("error: {}", message.unwrap_or_default()),
+        Some("reply") | Some("hello") => return None,
+        _ => crate::text::cut(&v.to_string()),
+    };
+    let seq = v["seq"].as_u64().map(|s| s.to_string()).unwrap_or_default();
+    Some(format!("{seq:>8} {when}  {sentence}"))
+}
+
+/// `omnid ctl`'s answer to a command other than `status`, for people: what the daemon did.
+pub fn reply_line(r: &Value) -> String {
+    let op = r["op"].as_str().unwrap_or("");
+    let path = text(&r["path"]).unwrap_or_default();
+    match op {
+        "mode" | "hold" | "free" => format!("mode {}", text(&r["mode"]).unwrap_or_default()),
+        "controller" => format!("controller {}", text(&r["controller"]).unwrap_or_default()),
+        "adapt" => match r["adapt"].as_bool() {
+            Some(true) => "the identifier learns".to_string(),
+            _ => "the identifier is frozen".to_string(),
+        },
+        "record_start" => format!("recording to {path}"),
+        "record_stop" => format!(
+            "recording stopped: {} rows in {path}{}",
+            r["rows"],
+            match text(&r["error"]) {
+                Some(e) => format!(" (INCOMPLETE: {e})"),
+                None => String::new(),
+            }
+        ),
+        "weights_save" => format!("weights saved to {path}"),
+        "weights_load" => format!("weights loaded from {path}"),
+        "shutdown" => "the daemon is stopping".to_string(),
+        _ => {
+            let mut r = r.clone();
+            if let Some(o) = r.as_object_mut() {
+                o.remove("type");
+                o.remove("id");
+            }
+            crate::text::cut(&r.to_string())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn a_status_reads_as_a_block_with_every_part_named() {
+        let s = json!({
+            "arm": "sim", "device": "sim", "socket": "/run/omnid/sim.sock", "mode": "hold",
+            "controller": "nnidc", "identifier": {"adapt": true, "weights": "shipped", "fault": null},
+            "lease": {"client": 3, "name": "omnid ctl", "pid": 42, "uid": 1000},
+            "clients": 2, "duration_s": 12.5, "ticks": 12500,
+            "faults": [{"tick": 5, "t": 0.005, "class": "safety-fault", "message": "safety: joint 2 too fast"}],
+            "tracking_rms_rad": null, "tracking_max_rad": null,
+            "timing_us": {"period": {"p50": 1000.0, "p99": 1010.0, "p999": 1020.0, "max": 1100.0},
+                          "compute": {"p50": 12.0, "p99": 30.0, "p999": 40.0, "max": 50.0}, "overruns": 0},
+            "heat": [0.1, 0.2, 0.3], "recording": null
+        });
+        let b = status_block(&s);
+        for want in [
+            "arm sim (sim) on /run/omnid/sim.sock",
+            "mode        hold (holding the pose)",
+            "controller  nnidc (identifier learning), weights shipped",
+            "lease       client 3 `omnid ctl` (pid 42, uid 1000)",
+            "clients     2 connected",
+            "faults      1 (last at 0.005 s: safety: joint 2 too fast)",
+            "tracking    nothing tracked yet",
+            "period      p50 1000.0  p99 1010.0  max 1100.0 µs",
+            "compute     p50 12.0  p99 30.0  max 50.0 µs, 0 overruns",
+            "recording   no",
+        ] {
+            assert!(b.contains(want), "{want:?} not in\n{b}");
+        }
+        assert!(!b.contains('{'), "{b}");
+    }
+
+    #[test]
+    fn events_read_as_sentences() {
+        let l = event_line(
+            &json!({"type": "event", "event": "mode", "mode": "hold", "seq": 3, "t": 1.5}),
+        )
+        .unwrap();
+        assert!(l.ends_with("1.500 s  mode is now hold"), "{l}");
+        let l = event_line(
+            &json!({"type": "event", "event": "safety-trip", "mode": "idle",
+            "message": "safety: joint 1 too fast; zero torque"}),
+        )
+        .unwrap();
+        assert!(l.contains("SAFETY TRIP: safety: joint 1 too fast"), "{l}");
+        let l = event_line(&json!({"type": "lost", "count": 4, "total": 9})).unwrap();
+        assert!(l.contains("4 samples lost"), "{l}");
+        assert_eq!(event_line(&json!({"type": "reply", "op": "stream"})), None);
+        // An event this version does not know is still shown.
+        let l =
+            event_line(&json!({"type": "event", "event": "new-thing", "message": "hi"})).unwrap();
+        assert!(l.contains("new-thing: hi"), "{l}");
+    }
+}
