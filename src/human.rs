@@ -163,6 +163,20 @@ pub fn status_block(s: &Value) -> String {
             )
         },
     );
+    let z = &s["zenoh"];
+    if z.is_object() {
+        let n = |k: &str| z[k].as_u64().unwrap_or(0);
+        line(
+            "zenoh",
+            format!(
+                "{} samples published, {} received ({} refused, {} dropped on a full inbox)",
+                n("published"),
+                n("received"),
+                n("refused"),
+                n("dropped_in")
+            ),
+        );
+    }
     out_head.push_str(&out);
     out_head
 }
@@ -255,6 +269,13 @@ pub fn reply_line(r: &Value) -> String {
         "weights_save" => format!("weights saved to {path}"),
         "weights_load" => format!("weights loaded from {path}"),
         "shutdown" => "the daemon is stopping".to_string(),
+        "stylus" => match (
+            text(&r["stylus"]).unwrap_or_default().as_str(),
+            r["button"].as_u64(),
+        ) {
+            (action, Some(b)) => format!("simulated hand: button {b} {action}"),
+            (action, None) => format!("simulated hand: stylus {action}"),
+        },
         _ => {
             let mut r = r.clone();
             if let Some(o) = r.as_object_mut() {
@@ -270,6 +291,17 @@ pub fn reply_line(r: &Value) -> String {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn stylus_replies_and_zenoh_counters_read_as_sentences() {
+        let r = json!({"type": "reply", "op": "stylus", "stylus": "click", "button": 1});
+        assert_eq!(reply_line(&r), "simulated hand: button 1 click");
+        let r = json!({"type": "reply", "op": "stylus", "stylus": "undock", "button": null});
+        assert_eq!(reply_line(&r), "simulated hand: stylus undock");
+        let s = json!({"zenoh": {"published": 5, "received": 3, "refused": 2, "dropped_in": 0}});
+        assert!(status_block(&s)
+            .contains("5 samples published, 3 received (2 refused, 0 dropped on a full inbox)"));
+    }
 
     #[test]
     fn a_status_reads_as_a_block_with_every_part_named() {
