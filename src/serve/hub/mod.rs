@@ -143,6 +143,26 @@ fn encode(v: &Value) -> Vec<u8> {
     serde_json::to_vec(v).unwrap_or_default()
 }
 
+/// Why an `id` is refused: longer than is echoed back (an id tags a reply, it is no payload).
+fn id_too_long(id: Option<&Value>) -> Option<String> {
+    let long = id?.to_string().len();
+    (long > MAX_ID_BYTES).then(|| {
+        format!(
+            "`id` is {long} bytes of JSON; at most {MAX_ID_BYTES} are echoed (an id tags a reply)"
+        )
+    })
+}
+
+/// Why a first message that is not a hello in our version opens no session.
+fn not_greeted(request: &Request) -> String {
+    match request {
+        Request::Hello { protocol, .. } => {
+            format!("protocol {protocol} is not supported: this daemon speaks {PROTOCOL_VERSION}")
+        }
+        _ => "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
+    }
+}
+
 /// One client message decoded, or the one-line refusal the client gets (the user's quoted
 /// value cut, the list of choices kept).
 fn parse_request(bytes: &[u8]) -> Result<Request, String> {
@@ -579,14 +599,8 @@ impl Hub {
     fn handle(&mut self, i: usize, request: Request) {
         let op_name = request.op();
         let id = request.id().cloned();
-        if let Some(long) = id.as_ref().map(|v| v.to_string().len()) {
-            if long > MAX_ID_BYTES {
-                let message = format!(
-                    "`id` is {long} bytes of JSON; at most {MAX_ID_BYTES} are echoed (an id \
-                     tags a reply)"
-                );
-                return self.fail(i, None, op_name, message);
-            }
+        if let Some(message) = id_too_long(id.as_ref()) {
+            return self.fail(i, None, op_name, message);
         }
         let Some(session) = self.clients[i].session else {
             return self.greet(i, id.as_ref(), op_name, request);
@@ -645,25 +659,8 @@ impl Hub {
                 let v = self.hello(session, access, id);
                 self.queue_msg(i, v);
             }
-            Request::Hello { protocol, .. } => {
-                self.fail(
-                    i,
-                    id,
-                    op,
-                    format!(
-                        "protocol {protocol} is not supported: this daemon speaks \
-                         {PROTOCOL_VERSION}"
-                    ),
-                );
-                self.clients[i].closing = true;
-            }
-            _ => {
-                self.fail(
-                    i,
-                    id,
-                    op,
-                    "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
-                );
+            other => {
+                self.fail(i, id, op, not_greeted(&other));
                 self.clients[i].closing = true;
             }
         }

@@ -2,7 +2,7 @@
 //! socket's, fed from the door's inbox and answered through its outbox; ROS 2 commands are one
 //! more session, "ROS 2 over zenoh", that holds the lease while its commands keep coming.
 
-use super::{answer, encode, parse_request, to_op, Access, Hub, MAX_ID_BYTES};
+use super::{answer, encode, id_too_long, not_greeted, parse_request, to_op, Access, Hub};
 use crate::serve::protocol::{Request, MAX_MESSAGE, PROTOCOL_VERSION};
 use crate::serve::zenoh::door::{Door, Inbound};
 use crate::station::{Answer, FileRights, Op, Reply, SessionId, SessionInfo};
@@ -159,8 +159,7 @@ impl Hub {
         };
         if let Some(k) = r.clients.iter().position(|c| &*c.cid == cid) {
             let c = r.clients.remove(k);
-            // Forget its publisher on the network side.
-            r.door.to_client(&c.cid, Arc::from(&[][..]));
+            r.door.forget(&c.cid);
             if let Some(s) = c.session {
                 self.station.close_session(s);
             }
@@ -200,14 +199,8 @@ impl Hub {
         };
         let op_name = request.op();
         let id = request.id().cloned();
-        if let Some(long) = id.as_ref().map(|v| v.to_string().len()) {
-            if long > MAX_ID_BYTES {
-                let why = format!(
-                    "`id` is {long} bytes of JSON; at most {MAX_ID_BYTES} are echoed (an id \
-                     tags a reply)"
-                );
-                return r.send_value(k, &error(op_name, None, why));
-            }
+        if let Some(why) = id_too_long(id.as_ref()) {
+            return r.send_value(k, &error(op_name, None, why));
         }
         let Some(session) = r.clients[k].session else {
             return self.remote_greet(k, id.as_ref(), op_name, request);
@@ -260,25 +253,7 @@ impl Hub {
                     r.send_value(k, &v);
                 }
             }
-            Request::Hello { protocol, .. } => r.send_value(
-                k,
-                &error(
-                    op,
-                    id,
-                    format!(
-                        "protocol {protocol} is not supported: this daemon speaks \
-                         {PROTOCOL_VERSION}"
-                    ),
-                ),
-            ),
-            _ => r.send_value(
-                k,
-                &error(
-                    op,
-                    id,
-                    "say hello first: {\"op\":\"hello\",\"protocol\":1}".into(),
-                ),
-            ),
+            other => r.send_value(k, &error(op, id, not_greeted(&other))),
         }
     }
 
@@ -355,8 +330,7 @@ impl Hub {
                 ))
                 .into(),
             );
-            // And forget its publisher on the network side.
-            r.door.to_client(&cid, Arc::from(&[][..]));
+            r.door.forget(&cid);
         }
         let Some(r) = self.remote.as_ref() else {
             return;

@@ -32,6 +32,8 @@ pub(crate) enum Outbound {
     Tick(Box<TickRecord>),
     /// A message for one remote client.
     ToClient { cid: Arc<str>, bytes: Arc<[u8]> },
+    /// A remote client has gone: its publisher is undeclared.
+    Forget(Arc<str>),
     /// The arm has ended: the network thread stops.
     Stop,
 }
@@ -140,6 +142,16 @@ impl Door {
             bytes,
         };
         if self.out.try_send(m).is_err() {
+            ZenohStats::count(&self.stats.dropped_out);
+        }
+    }
+}
+
+impl Door {
+    /// Remote client `cid` has gone: the network side drops what it kept for it (queued
+    /// behind its last messages, so they still leave).
+    pub(crate) fn forget(&self, cid: &Arc<str>) {
+        if self.out.try_send(Outbound::Forget(cid.clone())).is_err() {
             ZenohStats::count(&self.stats.dropped_out);
         }
     }

@@ -95,12 +95,13 @@ impl RemoteArm {
         })
     }
 
-    /// A message for client `cid` (a client that has gone is forgotten: `bytes` empty).
+    /// Client `cid` has gone: undeclare its publisher.
+    pub(super) fn forget(&mut self, cid: &Arc<str>) {
+        self.outs.remove(cid);
+    }
+
+    /// A message for client `cid`.
     pub(super) fn send(&mut self, cid: &Arc<str>, bytes: &[u8]) {
-        if bytes.is_empty() {
-            self.outs.remove(cid);
-            return;
-        }
         if !self.outs.contains_key(cid) {
             let key = format!("{}/out/{cid}", self.prefix);
             let Ok(p) = self

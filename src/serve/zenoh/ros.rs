@@ -472,6 +472,11 @@ fn feed(
                     remote.send(&cid, &bytes);
                 }
             }
+            Outbound::Forget(cid) => {
+                if let Some(remote) = remote.as_mut() {
+                    remote.forget(&cid);
+                }
+            }
             Outbound::Stop => break,
         }
     }
