@@ -1030,11 +1030,18 @@ fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
     assert_eq!(next(), "buttons 0");
     let out = ctl(&["button", "2", "press"]);
     assert!(out.status.success(), "{out:?}");
+    // A person reads a sentence; `--json` gives a program the daemon's reply.
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        "simulated hand: button 2 press"
+    );
+    assert_eq!(next(), "buttons 2");
+    let out = ctl(&["--json", "button", "2", "press"]);
+    assert!(out.status.success(), "{out:?}");
     assert_eq!(
         String::from_utf8_lossy(&out.stdout).trim(),
         r#"{"button":2,"op":"stylus","stylus":"press"}"#
     );
-    assert_eq!(next(), "buttons 2");
     assert!(ctl(&["button", "2", "release"]).status.success());
     assert_eq!(next(), "buttons 0");
     assert!(ctl(&["undock"]).status.success());
