@@ -57,6 +57,18 @@ fn the_haptics_experiment_meets_the_acceptance_floors() {
     for f in ["transparency", "walls"] {
         assert!(out.join(format!("{f}.png")).exists());
     }
+    // The walls figure draws the wall and names its lines in words; the report says what
+    // "open" and the passivity columns mean, and which way is better (issue 33, item 7).
+    let svg = std::fs::read_to_string(out.join("walls.svg")).unwrap();
+    for label in ["surface", "passivity control off", "passivity control on"] {
+        assert!(svg.contains(label), "walls.svg has no {label:?}");
+    }
+    for words in ["`-open`", "Closer to zero is better", "peak-to-peak"] {
+        assert!(
+            rep.markdown.contains(words),
+            "the report does not say {words:?}"
+        );
+    }
 }
 
 #[test]
