@@ -1,5 +1,5 @@
 //! A configuration value's error and the checks every section uses. It depends on no other
-//! module of the crate (but the leaves `text` and `input`), so each component can define and validate its own section beside its
+//! module of the crate (but the leaves `text`, `toml_place` and `input`), so each component can define and validate its own section beside its
 //! code while `config` only gathers the sections (no import cycle between them).
 
 use serde::Deserialize;
@@ -37,9 +37,44 @@ pub enum ConfigError {
         /// The allowed range or values, in words (`0.1 ..= 200 rad/s`).
         allowed: String,
     },
+    /// A value outside what its field allows, in a file: where it is.
+    #[error("config {path}: {}`{field}` = {} is out of range: allowed {allowed}",
+        .place.as_ref().map(|p| format!("{p}: ")).unwrap_or_default(), crate::text::cut(.value))]
+    InvalidIn {
+        /// The file, as given.
+        path: String,
+        /// The value's line and column (None when the file does not hold it: a default).
+        place: Option<Box<crate::toml_place::Place>>,
+        /// As [`ConfigError::Invalid`].
+        field: String,
+        /// The value as it was given.
+        value: String,
+        /// The allowed range or values.
+        allowed: String,
+    },
 }
 
 impl ConfigError {
+    /// This error told in file `path` whose text is `text`: a value out of range gets the file
+    /// and the value's place.
+    pub fn in_file(self, path: &str, text: &str) -> ConfigError {
+        match self {
+            ConfigError::Invalid {
+                field,
+                value,
+                allowed,
+            } => ConfigError::InvalidIn {
+                path: path.to_string(),
+                place: crate::toml_place::place_of(text, &field, crate::toml_place::Part::Value)
+                    .map(Box::new),
+                field,
+                value,
+                allowed,
+            },
+            other => other,
+        }
+    }
+
     /// Reading the file was stopped by the operator.
     pub fn is_stopped(&self) -> bool {
         matches!(self, ConfigError::Read { source, .. } if crate::input::is_stopped(source))

@@ -106,6 +106,7 @@ pub mod servo;
 pub mod station;
 pub mod telemetry;
 pub mod text;
+pub mod toml_place;
 
 pub use config::{Config, ConfigError};
 pub use control::{ControllerKind, Trajectory};

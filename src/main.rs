@@ -59,13 +59,16 @@ enum Command {
         config: Option<PathBuf>,
     },
     /// Figures (PNG and SVG) from a log: angles, torque vs. the identifier's estimate,
-    /// identification and tracking errors, control effort.
+    /// identification and tracking errors, control effort; a haptic run's tip path and forces.
     Plot {
         /// The CSV log (at least `t`; figures whose columns are missing are skipped).
         log: PathBuf,
         /// Directory for the figures (created if needed).
         #[arg(long)]
         out: PathBuf,
+        /// The scene the run rendered: its walls are drawn on the tip path.
+        #[arg(long, value_name = "SCENE.toml")]
+        scene: Option<PathBuf>,
     },
     /// Reproduce the paper's experiments on the simulator, and the haptics experiment: runs,
     /// `DIR/report.md` with the tables, and the figures.
@@ -491,9 +494,21 @@ struct ConvertArgs {
     lenient: bool,
 }
 
-fn plot_cmd(log: &std::path::Path, out: &std::path::Path) -> Result<u8, anyhow::Error> {
+fn plot_cmd(
+    log: &std::path::Path,
+    out: &std::path::Path,
+    scene: Option<&std::path::Path>,
+) -> Result<u8, anyhow::Error> {
     let stop = stop_on_signal()?;
-    match omnid::plot::plot_log(log, out, Some(&stop)) {
+    let effects = match scene.map(|p| omnid::haptics::scene::read_scene(p, Some(&stop))) {
+        None => Vec::new(),
+        Some(Ok(e)) => e,
+        Some(Err(e)) => {
+            omnid::errln!("omnid plot: {e}");
+            return Ok(EXIT_BAD_INPUT);
+        }
+    };
+    match omnid::plot::plot_log(log, out, &effects, Some(&stop)) {
         Ok(report) => {
             omnid::out!("{report}");
             Ok(0)
@@ -1112,7 +1127,7 @@ fn run_cli() -> ExitCode {
             }
             Err(code) => Ok(code),
         },
-        Command::Plot { log, out } => plot_cmd(&log, &out),
+        Command::Plot { log, out, scene } => plot_cmd(&log, &out, scene.as_deref()),
         Command::Experiment { kind, out, quick } => {
             match omnid::experiment::run_experiment(kind, &out, quick) {
                 Ok(report) => {

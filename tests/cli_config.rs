@@ -228,3 +228,100 @@ fn every_experiment_is_listed_where_users_look() {
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(names.iter().all(|n| err.contains(n)), "{err}");
 }
+
+/// Errors at their true place (issue 33, item 2): the file, line and column, and the key.
+#[test]
+fn config_errors_name_the_file_line_column_and_key() {
+    // Out of range in the fifth line, after a blank one and another section.
+    assert_bad(
+        "[sim]\nsubsteps = 3\n\n[haptics]\nmax_force_n = -1\n",
+        &[
+            "c.toml: line 5, column 15 (`max_force_n = -1`)",
+            "`haptics.max_force_n` = -1",
+        ],
+    );
+    // A type error names its dotted key, at the value.
+    assert_bad(
+        "[sim]\nsubsteps = 3\n\n[control]\nomega_n = \"fast\"\n",
+        &[
+            "c.toml: line 5, column 11",
+            "`control.omega_n`: invalid type",
+        ],
+    );
+    // A misspelled key at the key.
+    assert_bad(
+        "[haptics]\nmax_force_n = 1\n  max_forse = 2\n",
+        &[
+            "line 3, column 3 (`max_forse = 2`)",
+            "unknown field `max_forse`",
+        ],
+    );
+}
+
+/// `omnid run --mode free --scene` on this scene text: (exit code, stderr).
+fn with_scene(text: &str) -> (i32, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("s.toml");
+    std::fs::write(&scene, text).unwrap();
+    let out = omnid()
+        .env("OMNID_STATE_DIR", dir.path())
+        .args([
+            "run",
+            "--fast",
+            "--duration",
+            "0.1",
+            "--mode",
+            "free",
+            "--scene",
+        ])
+        .arg(&scene)
+        .arg("--log")
+        .arg(dir.path().join("x.csv"))
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+const TWO_EFFECTS: &str = "[[effect]]\ntype = \"damper\"\ndamping_n_s_per_m = 1.5\n\n[[effect]]\ntype = \"plane\"\npoint_mm = [0, -20, 0]\nnormal = [0, 1, 0]\n";
+
+#[test]
+fn scene_errors_name_the_file_line_column_and_key() {
+    for (last, want) in [
+        // A misspelled key (was: line 1).
+        (
+            "stifness_n_per_mm = 1.0",
+            "s.toml: line 9, column 1 (`stifness_n_per_mm = 1.0`): effect[1].stifness_n_per_mm: \
+             unknown field `stifness_n_per_mm`",
+        ),
+        // Out of range in the second effect (was: no line).
+        (
+            "stiffness_n_per_mm = -3.0",
+            "s.toml: line 9, column 22 (`stiffness_n_per_mm = -3.0`): \
+             effect[1].stiffness_n_per_mm = -3 is out of range",
+        ),
+        // A type error in the second effect (was: the first effect's header, line 1).
+        (
+            "stiffness_n_per_mm = \"stiff\"",
+            "s.toml: line 9, column 22 (`stiffness_n_per_mm = \"stiff\"`): \
+             effect[1].stiffness_n_per_mm: invalid type: string \"stiff\", expected f64",
+        ),
+    ] {
+        let (code, err) = with_scene(&format!("{TWO_EFFECTS}{last}\n"));
+        assert_eq!(code, 2, "{err}");
+        assert!(err.contains(want), "{want:?} not in {err:?}");
+        assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    }
+    // A user's long value is cut with its length; the list of valid types is whole.
+    let long = "w".repeat(300);
+    let (code, err) = with_scene(&format!("[[effect]]\ntype = \"{long}\"\n"));
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("line 2, column 8"), "{err}");
+    assert!(err.contains("(300 bytes)") && !err.contains(&long), "{err}");
+    assert!(
+        err.contains("expected one of `spring`, `damper`, `plane`, `box`, `constant`"),
+        "{err}"
+    );
+}

@@ -1,6 +1,7 @@
 //! Property-based smoke of the config parser, the CI-sized cousin of the `config` fuzz target in
 //! `tests/fuzz/`: random TOML-ish text and random values for every real key never panic, and
-//! every refusal names a line (syntax, types, unknown keys) or a field (values out of range),
+//! every refusal names a line (syntax, types, unknown keys) or a field (values out of range, at
+//! its line when the file holds it),
 //! and an accepted config holds every array exactly as written (nothing cut off).
 
 use omnid::config::{Config, ConfigError};
@@ -16,8 +17,19 @@ fn check(text: &str) -> Result<Config, ConfigError> {
             ConfigError::Parse { message, .. } => {
                 assert!(message.starts_with("line "), "names no line: {msg}\n{text}")
             }
-            ConfigError::Invalid { field, .. } => {
-                assert!(!field.is_empty() && msg.contains(field.as_str()), "{msg}")
+            ConfigError::Invalid { .. } => panic!("from_toml names the file: {msg}"),
+            ConfigError::InvalidIn { field, place, .. } => {
+                assert!(
+                    !field.is_empty() && msg.contains(field.as_str()) && msg.contains("smoke.toml"),
+                    "{msg}"
+                );
+                // A value written in the file is told at its line.
+                if omnid::toml_place::place_of(text, field, omnid::toml_place::Part::Value)
+                    .is_some()
+                {
+                    let p = place.as_ref().expect("a written value has a place");
+                    assert!(msg.contains(&format!("line {}, column", p.line)), "{msg}");
+                }
             }
             ConfigError::Read { .. } => panic!("from_toml reads no file: {msg}"),
         }
@@ -150,14 +162,18 @@ proptest! {
             }
             Err(ConfigError::Parse { message, .. }) => {
                 // A type error points at the line that was changed.
-                let line = format!("line {} ", at + 1);
+                let line = format!("line {}, ", at + 1);
                 prop_assert!(message.starts_with(&line), "`{key} = {v}`: {message}");
             }
-            Err(ConfigError::Invalid { field, .. }) => {
+            Err(ConfigError::InvalidIn { field, place, .. }) => {
                 // Range errors name the field that was changed (its element, or the group of
-                // fields checked together, like `model.k1..k7`).
+                // fields checked together, like `model.k1..k7`), at its line when it is that
+                // field.
                 let section = &key[..=key.find('.').unwrap()];
                 prop_assert!(field.starts_with(section), "`{key} = {v}`: field `{field}`");
+                if &field == key {
+                    prop_assert_eq!(place.map(|p| p.line), Some(at + 1), "`{} = {}`", key, v);
+                }
             }
             Err(e) => prop_assert!(false, "{e}"),
         }
@@ -197,7 +213,7 @@ fn every_array_refuses_a_value_more_or_less() {
             match check(&text) {
                 Ok(cfg) => assert_eq!(check_arrays(&text, &cfg), Ok(()), "{key}"),
                 Err(ConfigError::Parse { message, .. }) => assert!(
-                    message.starts_with(&format!("line {} ", at + 1))
+                    message.starts_with(&format!("line {}, ", at + 1))
                         && message.contains(&format!("length {}", changed.len())),
                     "{key}: {message}"
                 ),

@@ -57,6 +57,18 @@ fn the_haptics_experiment_meets_the_acceptance_floors() {
     for f in ["transparency", "walls"] {
         assert!(out.join(format!("{f}.png")).exists());
     }
+    // The walls figure draws the wall and names its lines in words; the report says what
+    // "open" and the passivity columns mean, and which way is better (issue 33, item 7).
+    let svg = std::fs::read_to_string(out.join("walls.svg")).unwrap();
+    for label in ["surface", "passivity control off", "passivity control on"] {
+        assert!(svg.contains(label), "walls.svg has no {label:?}");
+    }
+    for words in ["`-open`", "Closer to zero is better", "peak-to-peak"] {
+        assert!(
+            rep.markdown.contains(words),
+            "the report does not say {words:?}"
+        );
+    }
 }
 
 #[test]
@@ -92,6 +104,31 @@ fn run_free_with_a_scene_and_a_hand_logs_the_tip_and_the_forces() {
     ]);
     let said = String::from_utf8_lossy(&out.stdout);
     assert!(said.contains("in free mode"), "{said}");
+    // Summarised as a haptic run (issue 33, item 7): the forces and how deep the tip went
+    // into the floor, not tracking figures it never had.
+    assert!(!said.contains("tracking"), "{said}");
+    let line = |label: &str| {
+        said.lines()
+            .find(|l| l.trim_start().starts_with(label))
+            .unwrap_or_else(|| panic!("no `{label}` line in\n{said}"))
+            .to_string()
+    };
+    let number_after = |line: &str, word: &str| -> f64 {
+        let rest = &line[line.find(word).unwrap() + word.len()..];
+        rest.split_whitespace().next().unwrap().parse().unwrap()
+    };
+    let force = line("tip force");
+    assert!(number_after(&force, "peak") <= 3.3 + 1e-9, "{force}");
+    assert!(number_after(&force, "RMS") > 0.5, "{force}");
+    let hand = line("hand force");
+    assert!((0.5..=1.5).contains(&number_after(&hand, "RMS")), "{hand}");
+    let floor = line("effect 0");
+    assert!(floor.contains("plane: deepest"), "{floor}");
+    // At rest 1/2.31 mm under the surface; the landing may go a little deeper.
+    assert!(
+        (0.4..3.0).contains(&number_after(&floor, "deepest")),
+        "{floor}"
+    );
     let l = Log::read(&log);
     let modes: Vec<&str> = l.rows.iter().map(|r| r[l.col("mode")].as_str()).collect();
     assert!(modes[..modes.len() - 1].iter().all(|m| *m == "free"));

@@ -295,3 +295,61 @@ fn extreme_values_are_drawn_without_failing() {
     assert!(stdout.contains("2 rows"), "{stdout}");
     assert_eq!(pngs_in(&out), ["angles.png", "control_effort.png"]);
 }
+
+/// A free-mode log is drawn as a haptic run (issue 33, item 7): the tip path with the scene's
+/// wall and the forces, no tracking error; a tracking log keeps its figures and gets none of
+/// the haptic ones.
+#[test]
+fn a_haptic_run_is_drawn_as_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("floor.toml");
+    std::fs::write(
+        &scene,
+        "[[effect]]\ntype = \"plane\"\npoint_mm = [0, -33.3, 0]\nnormal = [0, 1, 0]\n\
+         stiffness_n_per_mm = 2.31\n",
+    )
+    .unwrap();
+    let log = dir.path().join("free.csv");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    run_ok(&[
+        "run",
+        "--fast",
+        "--mode",
+        "free",
+        "--hand",
+        "push-y",
+        "--duration",
+        "2",
+        "--scene",
+        &s(&scene),
+        "--log",
+        &s(&log),
+    ]);
+    let out = dir.path().join("figures");
+    let o = run_ok(&["plot", &s(&log), "--out", &s(&out), "--scene", &s(&scene)]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    for name in ["tip_path", "tip_force"] {
+        assert_figure(&out, name);
+    }
+    assert_skipped(&stdout, "tracking_error", "a haptic run");
+    assert!(!out.join("tracking_error.png").exists());
+    // The floor is drawn on the y panel, in the wall's pen, and named in the legend.
+    let svg = std::fs::read_to_string(out.join("tip_path.svg")).unwrap();
+    assert!(svg.contains("#6E6E6E"), "no wall line");
+    assert!(svg.contains("wall of an effect"), "no wall in the legend");
+    assert!(svg.contains("y (up)"), "panels are not the tip's axes");
+    let force = std::fs::read_to_string(out.join("tip_force.svg")).unwrap();
+    assert!(force.contains("(fhand, simulator)") && force.contains("rendered (fcmd"));
+
+    // A tracking run: today's figures, no haptic ones.
+    let track = dir.path().join("track.csv");
+    run_ok(&["run", "--fast", "--duration", "1", "--log", &s(&track)]);
+    let out = dir.path().join("tracking");
+    let (stdout, _) = plot(&track, &out);
+    assert_figure(&out, "tracking_error");
+    assert!(
+        !stdout.contains("tip_"),
+        "haptic figures told to a tracking run:\n{stdout}"
+    );
+    assert!(!out.join("tip_path.png").exists());
+}

@@ -102,10 +102,10 @@ impl Config {
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, ConfigError> {
         let cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: origin.to_string(),
-            message: describe_toml_error(text, &e),
+            message: crate::toml_place::describe(text, &e),
         })?;
-        cfg.validate()?;
-        cfg.arms()?;
+        cfg.validate().map_err(|e| e.in_file(origin, text))?;
+        cfg.arms().map_err(|e| e.in_file(origin, text))?;
         Ok(cfg)
     }
 
@@ -324,19 +324,6 @@ impl<'a> From<&'a Config> for ProbeSetup<'a> {
             device: &cfg.device,
             firewire: &cfg.firewire,
         }
-    }
-}
-
-/// One line from a TOML error: where it is (line and the text there) and what is wrong.
-fn describe_toml_error(text: &str, e: &toml::de::Error) -> String {
-    let message = e.message().trim().replace('\n', " ");
-    match e.span() {
-        Some(span) => {
-            let line_no = text[..span.start.min(text.len())].matches('\n').count() + 1;
-            let line = text.lines().nth(line_no - 1).unwrap_or("").trim();
-            format!("line {line_no} (`{line}`): {message}")
-        }
-        None => message,
     }
 }
 

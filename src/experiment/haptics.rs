@@ -445,14 +445,27 @@ fn sweep_axis(
         let (open, log_open) = wall_run(out, quick, axis, k, false, 1.0)?;
         let (pc, log_pc) = wall_run(out, quick, axis, k, true, 1.0)?;
         if k == NOMINAL_STIFFNESS[axis] {
+            let mut t_end: f64 = 0.0;
             for (log, label, role) in [
-                (&log_open, "open", Role::Target),
-                (&log_pc, "passivity control", Role::Measured),
+                (&log_open, "passivity control off", Role::Target),
+                (&log_pc, "passivity control on", Role::Measured),
             ] {
                 let t = log.col("t")?;
+                t_end = t.iter().fold(t_end, |m, &x| m.max(x));
                 let tip = log.col(&format!("tip{}", axis + 1))?;
                 lines.push((label, role, series(&t, &tip, 1.0)));
             }
+            // The wall's surface, under the tip's lines.
+            let (_, sign) = PUSH[axis];
+            let surface = centre_mm(&base_config())[axis] + sign * WALL_GAP_MM;
+            lines.insert(
+                0,
+                (
+                    "the wall's surface",
+                    Role::Wall,
+                    vec![(0.0, surface), (t_end, surface)],
+                ),
+            );
         }
         holding = (holding.0 && open.stable, holding.1 && pc.stable);
         if holding.0 {
@@ -494,7 +507,7 @@ fn walls(
     figure(
         out,
         "walls",
-        "Tip position while the hand pushes with 1 N into a wall at the vendor's stiffness",
+        "Tip while the hand pushes with 1 N into a wall at the vendor's stiffness (grey: the wall)",
         "tip (mm)",
         panels,
         files,
@@ -505,7 +518,7 @@ fn walls(
 
 /// The walls' tables.
 fn walls_markdown(md: &mut String, all: &[Wall], stiffest: &Stiffest) {
-    md.push_str("## Walls\n\nThe hand moves from the centre towards a wall 10 mm away (x: to the right, y: down onto a floor, z: away from the user) at 0.1 m/s and settles pushing with 1 N. A wall *holds* when over the last second the tip moves at most 0.15 mm peak to peak (about two encoder counts at the tip) and the hand still pushes with at least 0.8 N (it is not bouncing off). The energy column is the work the wall did on the hand over the last second. The nnidc compensation is active.\n\n| axis | stiffness (N/mm) | passivity control | holds | max penetration (mm) | peak-to-peak, last s (mm) | hand force (N) | wall's work on the hand, last s (mJ) |\n|---|---:|---|---|---:|---:|---:|---:|\n");
+    md.push_str("## Walls\n\nThe hand moves from the centre towards a wall 10 mm away (x: to the right, y: down onto a floor, z: away from the user) at 0.1 m/s and settles pushing with 1 N. A wall *holds* when over the last second the tip moves at most 0.15 mm peak to peak (about two encoder counts at the tip) and the hand still pushes with at least 0.8 N (it is not bouncing off). The nnidc compensation is active.\n\n*Passivity control* off (the logs named `-open` in `walls/`: the wall's force as computed, nothing watching its energy) or on (`-pc`: the passivity observer sums the energy the wall has put into the hand, and when it would give out more than it took in, the controller adds damping to take the excess back; docs/HAPTICS.md §6). *Max penetration* is how deep the tip went past the surface; *peak-to-peak* how much it still moves over the last second (smaller is steadier); *hand force* the hand's push over the last second (1 N when it rests on the wall). *Wall's work on the hand* is the work the wall's force did on the moving tip over the last second (the force of each tick times the tip's displacement): positive means the wall gave the hand more energy than it took from it in that second. A passive wall can give back only what the push stored in it, so over a second in which the tip holds still the work is near zero either way; a wall that keeps giving energy is pumping it into the hand, which is what makes a wall buzz. Closer to zero is better. But read it with the peak-to-peak column: the sum uses each tick's force times the next displacement, and a tip that dithers by one encoder count (about 0.06 mm at the tip) against a wall whose force steps with that count adds about k·(0.06 mm)² to it per back-and-forth (0.01 mJ at 3 N/mm), a few mJ over a second of such dither, without the hand feeling any bounce. That is why it can be larger with passivity control on (its damping acts on the velocity estimated from the same encoder steps, so its force moves with every step too) while the wall holds just as still: a wall that really pumps energy shows it as a growing peak-to-peak and a hand force below 1 N, and then `holds` says no.\n\n| axis | stiffness (N/mm) | passivity control | holds | max penetration (mm) | peak-to-peak, last s (mm) | hand force (N) | wall's work on the hand, last s (mJ) |\n|---|---:|---|---|---:|---:|---:|---:|\n");
     for w in all.iter().filter(|w| !w.kick_raised) {
         let _ = writeln!(
             md,
@@ -544,7 +557,7 @@ fn walls_markdown(md: &mut String, all: &[Wall], stiffest: &Stiffest) {
             w.hand_force_n
         );
     }
-    md.push_str("\n![Walls](walls.png) ([SVG](walls.svg))\n\n");
+    md.push_str("\n![Walls](walls.png) ([SVG](walls.svg))\n\nIn the figure the grey line is the wall's surface; where the two tip lines lie on top of each other, the passivity controller found no energy to take back at the vendor's stiffness and changed nothing.\n\n");
 }
 
 // ---------------------------------------------------------------------------------------------

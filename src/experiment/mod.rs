@@ -303,7 +303,7 @@ fn figures_of(
     rel: &str,
     files: &mut Vec<PathBuf>,
 ) -> Result<String, ExperimentError> {
-    let rep = plot_log(log, dir, None)?;
+    let rep = plot_log(log, dir, &[], None)?;
     files.extend(rep.files.iter().cloned());
     let mut md = String::new();
     for name in &rep.figures {

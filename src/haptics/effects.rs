@@ -106,6 +106,35 @@ impl Effect {
         }
     }
 
+    /// Its `type` name, as in scene files and the protocol.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Effect::Spring { .. } => "spring",
+            Effect::Damper { .. } => "damper",
+            Effect::Plane { .. } => "plane",
+            Effect::Box { .. } => "box",
+            Effect::Constant { .. } => "constant",
+        }
+    }
+
+    /// How deep the tip at `p` (m) is into this effect's wall, m (0 outside); None for an
+    /// effect without a wall (spring, damper, constant). A box holds the tip inside it: its
+    /// depth is how far the tip is out past its farthest face.
+    pub(crate) fn depth(&self, p: &Force3) -> Option<f64> {
+        match *self {
+            Effect::Plane {
+                point_mm, normal, ..
+            } => {
+                let n = Force3::from(normal).normalize();
+                Some((Force3::from(point_mm) * 1e-3 - p).dot(&n).max(0.0))
+            }
+            Effect::Box { min_mm, max_mm, .. } => Some((0..3).fold(0.0f64, |d, i| {
+                d.max(min_mm[i] * 1e-3 - p[i]).max(p[i] - max_mm[i] * 1e-3)
+            })),
+            _ => None,
+        }
+    }
+
     /// Check every parameter; the error names the field (`prefix` says which effect).
     pub(crate) fn validate(&self, prefix: &str) -> Result<(), String> {
         let finite = |name: &str, v: &[f64]| -> Result<(), String> {
@@ -274,6 +303,18 @@ impl Scene {
             total += f;
         }
         total
+    }
+
+    /// Each slot's effect kind and how deep the tip at `p` (m) is into its wall, m (see
+    /// [`Effect::depth`]).
+    pub(crate) fn depths(&self, p: &Force3) -> [Option<(&'static str, Option<f64>)>; MAX_EFFECTS] {
+        let mut out = [None; MAX_EFFECTS];
+        for (o, s) in out.iter_mut().zip(&self.slots) {
+            *o = s
+                .effect
+                .map(|e| (e.kind(), e.depth(p).filter(|d| d.is_finite())));
+        }
+        out
     }
 
     /// The scene's force split into what the passivity controller watches and the constant

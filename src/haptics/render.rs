@@ -53,6 +53,9 @@ pub(crate) struct HapticLoop {
     /// What acted on this tick's force: `flags::FORCE_LIMIT` (held to the peak or the
     /// continuous force), `flags::EFFECT_SKIPPED`.
     pub(crate) flags: u32,
+    /// Each slot's effect kind and the tip's depth into its wall this tick, m (None: no effect
+    /// in the slot, or effects not rendered this tick), for the run's summary.
+    pub(crate) depths: [Option<(&'static str, Option<f64>)>; super::effects::MAX_EFFECTS],
 }
 
 impl HapticLoop {
@@ -75,6 +78,7 @@ impl HapticLoop {
             tip_mm: [0.0; 3],
             force: [0.0; 3],
             flags: 0,
+            depths: [None; super::effects::MAX_EFFECTS],
         }
     }
 
@@ -93,6 +97,7 @@ impl HapticLoop {
     pub(crate) fn observe(&mut self, q: &Joint3) {
         self.tip_mm = tip_position_mm(&self.geometry, q).into();
         self.force = [0.0; 3];
+        self.depths = [None; super::effects::MAX_EFFECTS];
         self.passivity.reset();
     }
 
@@ -111,8 +116,10 @@ impl HapticLoop {
         let p = tip_position_mm(&self.geometry, q) * 1e-3;
         let v = jacobian(&self.geometry, q) * qd;
         let (watched, constant) = if effects {
+            self.depths = self.scene.depths(&p);
             self.scene.split(t, &p, &v)
         } else {
+            self.depths = [None; super::effects::MAX_EFFECTS];
             (Force3::zeros(), Force3::zeros())
         };
         let rendered = self.passivity.step(&p, &watched, dt) + constant;

@@ -16,6 +16,12 @@ pub enum Signal {
     TauCmd,
     /// The identifier's estimate of `tau`, N·m.
     TauHat,
+    /// The stylus tip, mm (OpenHaptics frame; per axis, not per joint).
+    Tip,
+    /// The tip force commanded (effects, a client's force), N, per axis.
+    Fcmd,
+    /// The simulated hand's force on the tip, N, per axis.
+    Fhand,
 }
 
 impl Signal {
@@ -26,6 +32,9 @@ impl Signal {
             Signal::Tau => "tau",
             Signal::TauCmd => "tau_cmd",
             Signal::TauHat => "tau_hat",
+            Signal::Tip => "tip",
+            Signal::Fcmd => "fcmd",
+            Signal::Fhand => "fhand",
         }
     }
 
@@ -36,6 +45,9 @@ impl Signal {
             Signal::Tau => "the applied torque",
             Signal::TauCmd => "the controller's output",
             Signal::TauHat => "the identifier's torque estimate",
+            Signal::Tip => "the stylus tip",
+            Signal::Fcmd => "the tip force commanded",
+            Signal::Fhand => "the simulated hand's force",
         }
     }
 }
@@ -60,6 +72,19 @@ pub enum Role {
     Estimate,
     /// An error signal.
     Error,
+    /// An effect's wall (a scene's geometry, drawn where the tip would meet it).
+    Wall,
+}
+
+/// Which runs a figure is for: decided once the rows are read (the `mode` column).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Shows {
+    /// Every log that has its columns.
+    Always,
+    /// Logs with rows that track a reference (`blend`, `track`), or without a `mode` column.
+    Tracking,
+    /// Logs with rows in a haptic mode (`free`, `servo_cf`).
+    Haptic,
 }
 
 /// One line of a figure, as defined: what it shows and how it is drawn.
@@ -90,6 +115,10 @@ pub struct FigureDef {
     pub zero_line: bool,
     /// Drawn in this order: later lines on top.
     pub lines: &'static [LineDef],
+    /// The three panels' titles, top to bottom.
+    pub panels: &'static [&'static str; 3],
+    /// Which runs it is for.
+    pub shows: Shows,
 }
 
 /// Every figure `omnid plot` can draw, in report order.
@@ -100,6 +129,8 @@ pub const FIGURES: &[FigureDef] = &[
         y_desc: "angle (rad)",
         scale: 1.0,
         zero_line: false,
+        panels: &JOINTS,
+        shows: Shows::Always,
         lines: &[
             LineDef {
                 label: "reference (ref)",
@@ -121,6 +152,8 @@ pub const FIGURES: &[FigureDef] = &[
         y_desc: "torque (N·m)",
         scale: 1.0,
         zero_line: false,
+        panels: &JOINTS,
+        shows: Shows::Always,
         lines: &[
             LineDef {
                 label: "measured (tau)",
@@ -142,6 +175,8 @@ pub const FIGURES: &[FigureDef] = &[
         y_desc: "error (N·m)",
         scale: 1.0,
         zero_line: true,
+        panels: &JOINTS,
+        shows: Shows::Always,
         lines: &[LineDef {
             label: "tau − tau_hat",
             quantity: Quantity::Difference(Signal::Tau, Signal::TauHat),
@@ -155,6 +190,8 @@ pub const FIGURES: &[FigureDef] = &[
         y_desc: "torque (N·m)",
         scale: 1.0,
         zero_line: true,
+        panels: &JOINTS,
+        shows: Shows::Always,
         lines: &[
             LineDef {
                 label: "controller output (tau_cmd)",
@@ -177,6 +214,8 @@ pub const FIGURES: &[FigureDef] = &[
         y_desc: "error (mrad)",
         scale: 1e3,
         zero_line: true,
+        panels: &JOINTS,
+        shows: Shows::Tracking,
         lines: &[LineDef {
             label: "ref − q",
             quantity: Quantity::Difference(Signal::Ref, Signal::Q),
@@ -184,7 +223,48 @@ pub const FIGURES: &[FigureDef] = &[
             required: true,
         }],
     },
+    FigureDef {
+        name: "tip_path",
+        title: "Tip path, with the scene's walls (omnid plot --scene)",
+        y_desc: "position (mm)",
+        scale: 1.0,
+        zero_line: false,
+        panels: &AXES,
+        shows: Shows::Haptic,
+        lines: &[LineDef {
+            label: "tip",
+            quantity: Quantity::Of(Signal::Tip),
+            role: Role::Measured,
+            required: true,
+        }],
+    },
+    FigureDef {
+        name: "tip_force",
+        title: "Force on the tip: rendered by omnid and the hand's push",
+        y_desc: "force (N)",
+        scale: 1.0,
+        zero_line: true,
+        panels: &AXES,
+        shows: Shows::Haptic,
+        lines: &[
+            LineDef {
+                label: "hand's push (fhand, simulator)",
+                quantity: Quantity::Of(Signal::Fhand),
+                role: Role::Target,
+                required: false,
+            },
+            LineDef {
+                label: "rendered (fcmd: effects, client force, after limits)",
+                quantity: Quantity::Of(Signal::Fcmd),
+                role: Role::Measured,
+                required: true,
+            },
+        ],
+    },
 ];
+
+/// Axis names for the tip's panels (OpenHaptics frame).
+pub const AXES: [&str; 3] = ["x (right)", "y (up)", "z (toward the user)"];
 
 /// Joint names for panel titles (OpenHaptics convention).
 pub const JOINTS: [&str; 3] = [
@@ -347,7 +427,9 @@ mod tests {
             [
                 "torque_identification",
                 "identification_error",
-                "tracking_error"
+                "tracking_error",
+                "tip_path",
+                "tip_force"
             ]
         );
         assert!(
@@ -364,14 +446,16 @@ mod tests {
     #[test]
     fn full_log_gets_every_figure_and_shares_columns() {
         let mut cols = vec!["t".to_string()];
-        for g in ["q", "tau", "ref", "tau_cmd", "tau_hat"] {
+        for g in [
+            "q", "tau", "ref", "tau_cmd", "tau_hat", "tip", "fcmd", "fhand",
+        ] {
             cols.extend((1..=3).map(|j| format!("{g}{j}")));
         }
         let p = plan(&Header::new(cols));
         assert_eq!(p.figures.len(), FIGURES.len());
         assert!(p.skipped.is_empty() && p.notes.is_empty());
-        // 5 signals × 3 joints + 2 differences × 3 joints.
-        assert_eq!(p.formulas.len(), 21);
+        // 8 signals × 3 joints or axes + 2 differences × 3 joints.
+        assert_eq!(p.formulas.len(), 30);
     }
 
     #[test]

@@ -15,7 +15,7 @@ pub use render::RenderError;
 
 use crate::output::OutputError;
 use crate::telemetry::reader::ReadError;
-use figures::{PlannedFigure, JOINTS};
+use figures::PlannedFigure;
 use read::LogReader;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -130,6 +130,7 @@ impl fmt::Display for PlotReport {
 pub fn plot_log(
     log: &Path,
     out_dir: &Path,
+    scene: &[crate::haptics::Effect],
     stop: Option<&Arc<AtomicBool>>,
 ) -> Result<PlotReport, PlotError> {
     let reader = LogReader::open(log, stop)?;
@@ -145,7 +146,7 @@ pub fn plot_log(
     // removed again if the plot then fails (an empty one; nothing else is touched).
     let made_dir = !out_dir.exists();
     crate::output::check_dir(out_dir).map_err(PlotError::OutDir)?;
-    let result = draw(out_dir, reader, plan);
+    let result = draw(out_dir, reader, plan, scene);
     if result.is_err() && made_dir {
         let _ = std::fs::remove_dir(out_dir);
     }
@@ -153,7 +154,12 @@ pub fn plot_log(
 }
 
 /// Check the figure files, read the rows once and draw every planned figure.
-fn draw(out_dir: &Path, reader: LogReader, plan: figures::Plan) -> Result<PlotReport, PlotError> {
+fn draw(
+    out_dir: &Path,
+    reader: LogReader,
+    mut plan: figures::Plan,
+    scene: &[crate::haptics::Effect],
+) -> Result<PlotReport, PlotError> {
     for planned in &plan.figures {
         for format in render::FORMATS {
             crate::output::check_file(&figure_file(out_dir, planned.def.name, format))?;
@@ -168,9 +174,54 @@ fn draw(out_dir: &Path, reader: LogReader, plan: figures::Plan) -> Result<PlotRe
     let data = reader.decimate(&plan.formulas, BUCKETS, |pos| bar.set_position(pos))?;
     bar.finish_and_clear();
 
+    // A figure for another kind of run is left out: tracking errors mean nothing where
+    // nothing tracked (free mode), and a tracking run has no tip forces to show.
+    let not_for = |shows: figures::Shows| match (shows, data.modes) {
+        (figures::Shows::Tracking, Some((0, haptic))) if haptic > 0 => {
+            Some("a haptic run: no row follows a reference (mode free or servo_cf)")
+        }
+        (figures::Shows::Haptic, None | Some((_, 0))) => {
+            Some("no row in a haptic mode (free, servo_cf)")
+        }
+        _ => None,
+    };
+    let (drawn, left): (Vec<_>, Vec<_>) = std::mem::take(&mut plan.figures)
+        .into_iter()
+        .partition(|f| not_for(f.def.shows).is_none());
+    // A run that is not haptic is not told about the haptic figures it has no use for (its
+    // report stays as it was); a haptic run is told why its tracking figure is missing.
+    let haptic_run = data.modes.is_some_and(|(_, h)| h > 0);
+    let is_haptic = |name: &str| {
+        figures::FIGURES
+            .iter()
+            .any(|d| d.name == name && d.shows == figures::Shows::Haptic)
+    };
+    if !haptic_run {
+        plan.skipped.retain(|s| !is_haptic(s.figure));
+        plan.notes.retain(|n| {
+            !figures::FIGURES.iter().any(|d| {
+                d.shows == figures::Shows::Haptic && n.starts_with(&format!("{}:", d.name))
+            })
+        });
+    }
+    for f in left
+        .into_iter()
+        .filter(|f| haptic_run || f.def.shows != figures::Shows::Haptic)
+    {
+        plan.skipped.push(Skipped {
+            figure: f.def.name,
+            reason: not_for(f.def.shows).unwrap_or_default().to_string(),
+        });
+    }
+    plan.figures = drawn;
+    let walls = walls(scene);
+
     let mut files = Vec::new();
     for planned in &plan.figures {
-        let figure = assemble(planned, &data.decimated, data.blend_end);
+        let mut figure = assemble(planned, &data.decimated, data.blend_end);
+        if planned.def.name == "tip_path" {
+            add_walls(&mut figure, &walls);
+        }
         for format in render::FORMATS {
             let file = figure_file(out_dir, planned.def.name, format);
             render::write(&figure, format, &file).map_err(|source| PlotError::Render {
@@ -189,6 +240,55 @@ fn draw(out_dir: &Path, reader: LogReader, plan: figures::Plan) -> Result<PlotRe
     })
 }
 
+/// The walls of `scene` the tip path's panels can show, per axis (mm): an axis-aligned
+/// plane's surface, a box's two faces on every axis. A tilted plane is not one line on any
+/// axis, and springs, dampers and constant forces have no wall.
+fn walls(scene: &[crate::haptics::Effect]) -> [Vec<f64>; 3] {
+    use crate::haptics::Effect;
+    let mut walls: [Vec<f64>; 3] = Default::default();
+    for e in scene {
+        match *e {
+            Effect::Plane {
+                point_mm, normal, ..
+            } => {
+                let axes: Vec<usize> = (0..3).filter(|&a| normal[a] != 0.0).collect();
+                if let [a] = axes[..] {
+                    walls[a].push(point_mm[a]);
+                }
+            }
+            Effect::Box { min_mm, max_mm, .. } => {
+                for a in 0..3 {
+                    walls[a].extend([min_mm[a], max_mm[a]]);
+                }
+            }
+            _ => {}
+        }
+    }
+    walls
+}
+
+/// Draw `walls` (per panel, mm) across the figure's time range, under the tip.
+fn add_walls(figure: &mut render::Figure, walls: &[Vec<f64>; 3]) {
+    if walls.iter().all(Vec::is_empty) {
+        return;
+    }
+    let (t0, t1) = figure.x_range;
+    for (panel, ys) in figure.panels.iter_mut().zip(walls) {
+        for &y in ys {
+            panel.lines.insert(
+                0,
+                render::Line {
+                    points: vec![(t0, y), (t1, y)],
+                    role: figures::Role::Wall,
+                },
+            );
+        }
+    }
+    figure
+        .legend
+        .insert(0, ("wall of an effect (the scene)", figures::Role::Wall));
+}
+
 /// The drawable figure: the planned lines' decimated points, scaled to plotted units.
 fn assemble(
     planned: &PlannedFigure,
@@ -198,7 +298,7 @@ fn assemble(
     let def = planned.def;
     let panels = (0..3)
         .map(|j| render::Panel {
-            title: JOINTS[j],
+            title: def.panels[j],
             lines: planned
                 .lines
                 .iter()

@@ -60,6 +60,9 @@ pub(crate) struct LogData {
     /// The last time the `mode` column said `blend` (the start-up blend onto the reference),
     /// if the log has that column and any such row.
     pub(crate) blend_end: Option<f64>,
+    /// Rows that track a reference (`blend`, `track`) and rows in a haptic mode (`free`,
+    /// `servo_cf`); None without a `mode` column.
+    pub(crate) modes: Option<(u64, u64)>,
 }
 
 /// An open log whose header has been read.
@@ -122,6 +125,7 @@ impl LogReader {
         Ok(LogData {
             decimated: pass.decimator.finish(),
             blend_end: pass.blend_end,
+            modes: pass.mode.map(|_| (pass.tracking_rows, pass.haptic_rows)),
         })
     }
 }
@@ -140,6 +144,8 @@ struct RowPass<'f> {
     values: Vec<f64>,
     decimator: Decimator,
     blend_end: Option<f64>,
+    tracking_rows: u64,
+    haptic_rows: u64,
 }
 
 impl<'f> RowPass<'f> {
@@ -152,6 +158,8 @@ impl<'f> RowPass<'f> {
             values: vec![0.0; formulas.len()],
             decimator: Decimator::new(formulas.len(), buckets),
             blend_end: None,
+            tracking_rows: 0,
+            haptic_rows: 0,
         }
     }
 
@@ -181,7 +189,16 @@ impl<'f> RowPass<'f> {
         let value = row.field(m);
         match std::str::from_utf8(value).ok().and_then(Mode::parse) {
             Some(Mode::Blend) => {
+                self.tracking_rows += 1;
                 self.blend_end = Some(self.blend_end.map_or(row.t, |b| b.max(row.t)));
+                Ok(())
+            }
+            Some(Mode::Track) => {
+                self.tracking_rows += 1;
+                Ok(())
+            }
+            Some(Mode::Free | Mode::ServoCf) => {
+                self.haptic_rows += 1;
                 Ok(())
             }
             Some(_) => Ok(()),

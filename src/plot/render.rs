@@ -94,6 +94,7 @@ fn pen(role: Role) -> ShapeStyle {
         Role::Measured => (RGBColor(0, 90, 181), 1),
         Role::Estimate => (RGBColor(213, 94, 0), 2),
         Role::Error => (RGBColor(0, 130, 100), 1),
+        Role::Wall => (RGBColor(110, 110, 110), 2),
     };
     color.stroke_width(width)
 }

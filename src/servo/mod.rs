@@ -592,6 +592,13 @@ impl Servo {
         };
         self.stats.record_time(t);
         self.stats.record_torque(&o.tau_plant);
+        if matches!(self.activity, Activity::Free | Activity::ServoCf) {
+            self.stats.haptic.record(
+                &self.haptics.force,
+                self.device.hand_force(),
+                &self.haptics.depths,
+            );
+        }
         let event = self.event.take();
         if o.flags & flags::CLAMPED != 0 {
             self.stats.clamped_ticks += 1;

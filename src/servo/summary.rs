@@ -28,6 +28,58 @@ pub struct RunStats {
     pub(crate) force_limited_ticks: u64,
     /// Ticks a hot motor was held to its continuous torque.
     pub(crate) thermal_ticks: u64,
+    /// The haptic modes' figures (free, servo_cf).
+    pub(crate) haptic: HapticStats,
+}
+
+const SLOTS: usize = crate::haptics::effects::MAX_EFFECTS;
+
+/// Running sums of the haptic modes (free, servo_cf): the force commanded at the tip, the
+/// simulated hand's, and how deep the tip went into each slot's wall. Fixed size.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct HapticStats {
+    ticks: u64,
+    force_sq: f64,
+    force_peak: f64,
+    hand_ticks: u64,
+    hand_sq: f64,
+    hand_peak: f64,
+    /// Per slot: the last effect kind seen there, and its deepest depth, m (None: no wall).
+    slots: [Option<(&'static str, Option<f64>)>; SLOTS],
+}
+
+impl HapticStats {
+    /// One haptic tick: the tip force `force` (N), the hand's `hand` (N; None without one or
+    /// not finite), each slot's kind and depth.
+    pub(crate) fn record(
+        &mut self,
+        force: &[f64; 3],
+        hand: Option<[f64; 3]>,
+        depths: &[Option<(&'static str, Option<f64>)>; SLOTS],
+    ) {
+        let norm = |v: &[f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        let f = norm(force);
+        if f.is_finite() {
+            self.ticks += 1;
+            self.force_sq += f * f;
+            self.force_peak = self.force_peak.max(f);
+        }
+        if let Some(h) = hand.map(|h| norm(&h)).filter(|h| h.is_finite()) {
+            self.hand_ticks += 1;
+            self.hand_sq += h * h;
+            self.hand_peak = self.hand_peak.max(h);
+        }
+        for (acc, now) in self.slots.iter_mut().zip(depths) {
+            if let Some((kind, depth)) = *now {
+                let deepest = match (*acc, depth) {
+                    (Some((k, Some(d0))), Some(d)) if k == kind => Some(d0.max(d)),
+                    (Some((k, Some(d0))), None) if k == kind => Some(d0),
+                    (_, d) => d,
+                };
+                *acc = Some((kind, deepest));
+            }
+        }
+    }
 }
 
 impl RunStats {
@@ -50,6 +102,7 @@ impl RunStats {
             clamped_ticks,
             force_limited_ticks,
             thermal_ticks,
+            haptic,
         } = other;
         (self.ticks, self.first_t, self.last_t) = (*ticks, *first_t, *last_t);
         (self.tracked, self.track_sq, self.track_max) = (*tracked, *track_sq, *track_max);
@@ -61,6 +114,7 @@ impl RunStats {
         self.clamped_ticks = *clamped_ticks;
         self.force_limited_ticks = *force_limited_ticks;
         self.thermal_ticks = *thermal_ticks;
+        self.haptic = *haptic;
     }
 
     pub(crate) fn record_time(&mut self, t: f64) {
@@ -273,6 +327,59 @@ impl TimingSummary {
     }
 }
 
+/// The haptic modes' figures (summary JSON `haptics`; null when the arm never ran free or
+/// servo_cf).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct HapticSummary {
+    /// Ticks in a haptic mode.
+    pub ticks: u64,
+    /// RMS of the tip force commanded (effects and a client's force, after the limits), N.
+    pub force_rms_n: f64,
+    /// Its largest magnitude, N.
+    pub force_peak_n: f64,
+    /// RMS of the simulated hand's force on the tip, N (null without a hand).
+    pub hand_rms_n: Option<f64>,
+    /// Its largest magnitude, N.
+    pub hand_peak_n: Option<f64>,
+    /// Each slot with an effect: its kind and how deep the tip went into its wall.
+    pub effects: Vec<EffectDepth>,
+}
+
+/// One effect of a haptic run (summary JSON `haptics.effects`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EffectDepth {
+    /// The slot (0–7; a scene file's effects fill slots from 0, in order).
+    pub slot: usize,
+    /// Its `type`.
+    pub kind: String,
+    /// The deepest the tip went into its wall, mm (0: never in it; null: no wall).
+    pub depth_max_mm: Option<f64>,
+}
+
+impl HapticSummary {
+    pub(crate) fn from_stats(h: &HapticStats) -> Option<HapticSummary> {
+        (h.ticks > 0).then(|| HapticSummary {
+            ticks: h.ticks,
+            force_rms_n: (h.force_sq / h.ticks as f64).sqrt(),
+            force_peak_n: h.force_peak,
+            hand_rms_n: (h.hand_ticks > 0).then(|| (h.hand_sq / h.hand_ticks as f64).sqrt()),
+            hand_peak_n: (h.hand_ticks > 0).then_some(h.hand_peak),
+            effects: h
+                .slots
+                .iter()
+                .enumerate()
+                .filter_map(|(slot, s)| {
+                    s.map(|(kind, d)| EffectDepth {
+                        slot,
+                        kind: kind.to_string(),
+                        depth_max_mm: d.map(|d| d * 1e3),
+                    })
+                })
+                .collect(),
+        })
+    }
+}
+
 /// One fault of a run (summary JSON `faults`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FaultEntry {
@@ -328,6 +435,9 @@ pub struct RunSummary {
     /// Ticks on which a hot motor was held to its continuous torque.
     #[serde(default)]
     pub thermal_ticks: u64,
+    /// The haptic modes' figures (null when none ran).
+    #[serde(default)]
+    pub haptics: Option<HapticSummary>,
     /// The log written, if any.
     pub log_path: Option<String>,
     /// Rows that reached the log file.
@@ -384,6 +494,35 @@ fn pct(p: &Option<Percentiles>) -> String {
             p.p50, p.p99, p.p999, p.max
         ),
         None => "n/a".to_string(),
+    }
+}
+
+impl HapticSummary {
+    /// Its lines of the printout.
+    fn human(&self) -> String {
+        let mut s = format!(
+            "  tip force       RMS {:.2} N  peak {:.2} N   (rendered: effects and client force, \
+             after the limits; {} ticks in a haptic mode)\n",
+            self.force_rms_n, self.force_peak_n, self.ticks
+        );
+        if let (Some(rms), Some(peak)) = (self.hand_rms_n, self.hand_peak_n) {
+            s += &format!(
+                "  hand force      RMS {rms:.2} N  peak {peak:.2} N   (the simulated hand on the \
+                 stylus)\n"
+            );
+        }
+        if self.effects.is_empty() {
+            s += "  effects         none\n";
+        }
+        for e in &self.effects {
+            let depth = match e.depth_max_mm {
+                Some(d) if d > 0.0 => format!("deepest {d:.2} mm into its wall"),
+                Some(_) => "the tip never went into its wall".to_string(),
+                None => "no wall".to_string(),
+            };
+            s += &format!("  effect {}        {}: {depth}\n", e.slot, e.kind);
+        }
+        s
     }
 }
 
@@ -444,6 +583,7 @@ impl RunSummary {
             clamped_ticks: stats.clamped_ticks,
             force_limited_ticks: stats.force_limited_ticks,
             thermal_ticks: stats.thermal_ticks,
+            haptics: HapticSummary::from_stats(&stats.haptic),
             log_path: None,
             log_rows: 0,
             log_complete: None,
@@ -480,14 +620,21 @@ impl RunSummary {
             if self.fast { " (--fast)" } else { "" },
             self.end
         );
-        s += &format!(
-            "  tracking RMS    {}   (joints 1/2/3, after the start-up blend)\n",
-            triple(self.tracking_rms_rad, 1e3, "mrad")
-        );
-        s += &format!(
-            "  tracking max    {}\n",
-            triple(self.tracking_max_rad, 1e3, "mrad")
-        );
+        // A run that only rendered forces tracked nothing: its figures are the forces.
+        let haptic_only = self.tracking_rms_rad.is_none() && self.haptics.is_some();
+        if !haptic_only {
+            s += &format!(
+                "  tracking RMS    {}   (joints 1/2/3, after the start-up blend)\n",
+                triple(self.tracking_rms_rad, 1e3, "mrad")
+            );
+            s += &format!(
+                "  tracking max    {}\n",
+                triple(self.tracking_max_rad, 1e3, "mrad")
+            );
+        }
+        if let Some(h) = &self.haptics {
+            s += &h.human();
+        }
         s += &format!(
             "  torque RMS      {}\n",
             triple(self.torque_rms_nm, 1e3, "mN·m")

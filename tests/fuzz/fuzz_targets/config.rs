@@ -48,7 +48,8 @@ fuzz_target!(|data: &[u8]| {
                 "parse error without a line: {message}"
             );
         }
-        Err(ConfigError::Invalid { field, .. }) => assert!(!field.is_empty()),
+        Err(ConfigError::InvalidIn { field, .. }) => assert!(!field.is_empty()),
+        Err(e @ ConfigError::Invalid { .. }) => panic!("from_toml names its file: {e}"),
         Err(e @ ConfigError::Read { .. }) => panic!("from_toml reads no file: {e}"),
     }
     for line in text.lines() {
