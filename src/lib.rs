@@ -105,6 +105,7 @@ pub mod serve;
 pub mod servo;
 pub mod station;
 pub mod telemetry;
+pub mod teleop;
 pub mod text;
 pub mod toml_place;
 

@@ -91,6 +91,8 @@ pub struct Config {
     pub haptics: HapticsConfig,
     /// zenoh: the arms past this PC, ROS 2 (rmw_zenoh) and remote clients (docs/ZENOH.md).
     pub zenoh: crate::serve::zenoh::ZenohConfig,
+    /// Teleoperation between a leader and a follower arm (docs/TELEOP.md).
+    pub teleop: crate::teleop::TeleopConfig,
     /// Several arms in one daemon (`[[arm]]`, see `omnid config --print-default`'s end); none:
     /// one arm, named after its device.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -166,6 +168,7 @@ impl Config {
         self.inject.validate()?;
         self.haptics.validate()?;
         self.zenoh.validate()?;
+        self.teleop.validate()?;
         self.telemetry.validate()
     }
 
@@ -314,6 +317,7 @@ impl<'a> From<&'a Config> for ServoSetup<'a> {
             seed: cfg.sim.seed,
             haptics: &cfg.haptics,
             geometry: &cfg.geometry,
+            model: &cfg.model,
         }
     }
 }

@@ -264,6 +264,10 @@ impl Device for FaultyDevice {
         self.inner.hand_force()
     }
 
+    fn contact_force(&self) -> Option<[f64; 3]> {
+        self.inner.contact_force()
+    }
+
     fn stylus(&mut self, action: super::StylusAction) -> bool {
         self.inner.stylus(action)
     }

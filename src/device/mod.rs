@@ -281,6 +281,12 @@ pub trait Device: Send {
         None
     }
 
+    /// The force the simulated world's wall (`[sim.wall]`) puts on the tip, N: the true
+    /// contact force an estimate is checked against (simulator only).
+    fn contact_force(&self) -> Option<[f64; 3]> {
+        None
+    }
+
     /// The simulated hand acts on the stylus (buttons, inkwell): the simulator only; false
     /// where nothing can (a real stylus is pressed by a real hand). Called on the servo thread
     /// between exchanges: it must not allocate or block.

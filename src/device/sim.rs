@@ -42,6 +42,125 @@ pub struct SimConfig {
     /// `{ at_s = 2.0, action = "click", button = 1 }` (press, release, click: button 1 or 2)
     /// and `{ at_s = 5.0, action = "undock" }` (dock, undock), at seconds of device time.
     pub stylus: Vec<StylusEvent>,
+    /// A physical wall in the simulated world (`[sim.wall]`): the plant meets it, whatever
+    /// the servo renders (a teleoperation follower's environment).
+    pub wall: SimWall,
+}
+
+/// `[sim.wall]`: a flat, stiff surface the simulated tip presses into (a spring-damper that
+/// only pushes), inside the plant's integration like the hand: the servo can only feel it
+/// through the encoders and its own torques, as with a real object (docs/TELEOP.md §4).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimWall {
+    /// Whether the wall is there.
+    pub enabled: bool,
+    /// Which side of the workspace centre it stands on, and so the way the tip presses into
+    /// it: +x, -x, +y, -y, +z or -z (OpenHaptics frame).
+    pub side: String,
+    /// How far from the workspace centre its surface is, mm.
+    pub distance_mm: f64,
+    /// Its stiffness, N/mm.
+    pub stiffness_n_per_mm: f64,
+    /// Its damping while pressed, N·s/m.
+    pub damping_n_s_per_m: f64,
+}
+
+impl Default for SimWall {
+    fn default() -> Self {
+        SimWall {
+            enabled: false,
+            side: "-z".into(),
+            distance_mm: 10.0,
+            stiffness_n_per_mm: 1.0,
+            damping_n_s_per_m: 1.0,
+        }
+    }
+}
+
+impl SimWall {
+    /// The sides `side` may name.
+    const SIDES: &'static str = "+x, -x, +y, -y, +z or -z";
+
+    /// (axis, sign) of `side`.
+    fn parse_side(side: &str) -> Option<(usize, f64)> {
+        let sign = match side.as_bytes().first()? {
+            b'+' => 1.0,
+            b'-' => -1.0,
+            _ => return None,
+        };
+        let axis = ["x", "y", "z"].iter().position(|a| *a == &side[1..])?;
+        Some((axis, sign))
+    }
+
+    fn validate(&self) -> Result<(), ConfigError> {
+        if Self::parse_side(&self.side).is_none() {
+            return Err(check::invalid(
+                "sim.wall.side",
+                format!("{:?}", crate::text::cut(&self.side)),
+                Self::SIDES,
+            ));
+        }
+        check::in_range(
+            "sim.wall.distance_mm",
+            self.distance_mm,
+            -200.0,
+            200.0,
+            "-200 ..= 200 mm",
+        )?;
+        check::in_range(
+            "sim.wall.stiffness_n_per_mm",
+            self.stiffness_n_per_mm,
+            0.0,
+            10.0,
+            "0 ..= 10 N/mm",
+        )?;
+        check::in_range(
+            "sim.wall.damping_n_s_per_m",
+            self.damping_n_s_per_m,
+            0.0,
+            50.0,
+            "0 ..= 50 N·s/m",
+        )
+    }
+}
+
+/// A [`SimWall`] placed in the world: the plane and its law, in SI units.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Wall {
+    axis: usize,
+    sign: f64,
+    /// The surface's coordinate along `axis`, m.
+    at_m: f64,
+    k_n_per_m: f64,
+    b_n_s_per_m: f64,
+}
+
+impl Wall {
+    /// `cfg` placed `distance_mm` from `centre_mm` (the workspace centre's tip); `None` when
+    /// the wall is off.
+    pub(crate) fn place(cfg: &SimWall, centre_mm: &Joint3) -> Option<Wall> {
+        let (axis, sign) = SimWall::parse_side(&cfg.side).filter(|_| cfg.enabled)?;
+        Some(Wall {
+            axis,
+            sign,
+            at_m: (centre_mm[axis] + sign * cfg.distance_mm) * 1e-3,
+            k_n_per_m: cfg.stiffness_n_per_mm * 1e3,
+            b_n_s_per_m: cfg.damping_n_s_per_m,
+        })
+    }
+
+    /// The wall's force on a tip at `tip` (m) moving at `v` (m/s): zero outside it, a push
+    /// back out of it inside (never a pull: the damping only brakes what the spring pushes).
+    pub(crate) fn force(&self, tip: &Joint3, v: &Joint3) -> Force3 {
+        let depth = self.sign * (tip[self.axis] - self.at_m);
+        let mut f = Force3::zeros();
+        if depth > 0.0 {
+            let push = (self.k_n_per_m * depth + self.b_n_s_per_m * self.sign * v[self.axis]).max(0.0);
+            f[self.axis] = -self.sign * push;
+        }
+        f
+    }
 }
 
 /// One entry of `[sim] stylus`: at `at_s` s of device time the hand does `action` (with
@@ -77,6 +196,7 @@ impl Default for SimConfig {
             start_pose: INKWELL_POSE,
             docked: true,
             stylus: Vec::new(),
+            wall: SimWall::default(),
         }
     }
 }
@@ -103,6 +223,7 @@ impl SimConfig {
         check::each("sim.start_pose", &self.start_pose, |f, v| {
             check::in_range(f, v, -3.2, 3.2, "-3.2 ..= 3.2 rad")
         })?;
+        self.wall.validate()?;
         if self.stylus.len() > MAX_STYLUS_EVENTS {
             return Err(check::invalid(
                 "sim.stylus",
@@ -233,18 +354,37 @@ impl SimConfig {
                 )
             });
         }
+        let mut springs = Vec::new();
         if let Some(h) = hand {
-            check_hand(h, d, s.substeps, m, geometry)?;
+            springs.push((
+                "haptics.hand.stiffness_n_per_m",
+                h.stiffness_n_per_m,
+                "haptics.hand.damping_n_s_per_m",
+                h.damping_n_s_per_m,
+            ));
+        }
+        if s.wall.enabled {
+            springs.push((
+                "sim.wall.stiffness_n_per_mm",
+                s.wall.stiffness_n_per_mm * 1e3,
+                "sim.wall.damping_n_s_per_m",
+                s.wall.damping_n_s_per_m,
+            ));
+        }
+        for (k_field, k, b_field, b) in springs {
+            check_tip_spring((k_field, k), (b_field, b), d, s.substeps, m, geometry)?;
         }
         Ok(())
     }
 }
 
-/// A hand on the stylus is a spring and a damper at the tip: through the Jacobian it adds
-/// the joint-space rates b·λ and √(k·λ), λ the largest eigenvalue of M⁻¹JᵀJ over the joint
-/// range. RK4 on a damping mode is stable while h·rate stays under 2.78; we ask for ≤ 2.
-fn check_hand(
-    h: &HandConfig,
+/// A hand on the stylus (or a wall the tip presses) is a spring and a damper at the tip:
+/// through the Jacobian it adds the joint-space rates b·λ and √(k·λ), λ the largest eigenvalue
+/// of M⁻¹JᵀJ over the joint range. RK4 on a damping mode is stable while h·rate stays under
+/// 2.78; we ask for ≤ 2. `k` in N/m, `b` in N·s/m, each with the field that sets it.
+fn check_tip_spring(
+    (k_field, k): (&'static str, f64),
+    (b_field, b): (&'static str, f64),
     d: &DeviceConfig,
     substeps: u32,
     m: &ModelParams,
@@ -262,25 +402,25 @@ fn check_hand(
     let step = 1.0 / (d.rate_hz * f64::from(substeps));
     // The largest values the step resolves: b·λ·h ≤ 2 and √(k·λ)·h ≤ 2.
     let (max_b, max_k) = (2.0 / (step * gain), (2.0 / step).powi(2) / gain);
-    for (field, value, most) in [
-        ("haptics.hand.damping_n_s_per_m", h.damping_n_s_per_m, max_b),
-        ("haptics.hand.stiffness_n_per_m", h.stiffness_n_per_m, max_k),
-    ] {
+    for (field, value, most) in [(b_field, b, max_b), (k_field, k, max_k)] {
         if value > most {
             // Substeps scale the step: the damping bound with them, the stiffness bound with
             // their square.
-            let over = if field.contains("damping") {
+            let over = if field == b_field {
                 value / most
             } else {
                 (value / most).sqrt()
             };
             let needed = (f64::from(substeps) * over).ceil();
+            // A field in N/mm is told in its own unit.
+            let unit = if field.ends_with("_per_mm") { 1e-3 } else { 1.0 };
             return Err(check::invalid(
                 field,
-                value,
+                value * unit,
                 format!(
-                    "at most {most:.0} with sim.substeps = {substeps} at {} Hz, or sim.substeps \
+                    "at most {:.3} with sim.substeps = {substeps} at {} Hz, or sim.substeps \
                      ≥ {needed} (faster than that the simulator diverges)",
+                    most * unit,
                     d.rate_hz
                 ),
             ));
@@ -429,6 +569,9 @@ pub struct SimOmni {
     /// at the last sample, N.
     hand: Option<Hand>,
     hand_force: Force3,
+    /// The world's wall (`[sim.wall]`), and the force it put on the tip at the last sample, N.
+    wall: Option<Wall>,
+    wall_force: Force3,
     inkwell: Inkwell,
     /// The stylus buttons, and when a click releases each (∞: it does not).
     buttons: [bool; 2],
@@ -475,6 +618,8 @@ impl SimOmni {
             start_ns: 0,
             hand,
             hand_force: Force3::zeros(),
+            wall: Wall::place(&cfg.sim.wall, &tip_position_mm(cfg.geometry, &cfg.center.into())),
+            wall_force: Force3::zeros(),
             inkwell: Inkwell {
                 pose: ink,
                 hold,
@@ -590,11 +735,20 @@ impl SimOmni {
         hand.force(t + s, &tip, &(jacobian(g, q) * qd), s)
     }
 
+    /// The wall's force on the tip at (q, q̇) (zero without a wall).
+    fn wall_force_at(&self, q: &Joint3, qd: &Joint3) -> Force3 {
+        let Some(wall) = &self.wall else {
+            return Force3::zeros();
+        };
+        let g = &self.plant.geometry;
+        wall.force(&(tip_position_mm(g, q) * 1e-3), &(jacobian(g, q) * qd))
+    }
+
     /// [`integrate`](Self::integrate) over the tick starting at `t`, with the hand's force on
     /// the tip (through Jᵀ) inside every evaluation: the grip is stiff next to the arm.
     fn integrate_from(&mut self, t: f64, tau: &Joint3, dt: f64) {
         let h = dt / self.substeps as f64;
-        let with_hand = self.hand.is_some();
+        let with_hand = self.hand.is_some() || self.wall.is_some();
         let inkwell = self.inkwell;
         let carry = self.carry;
         let f = |s: f64, q: &Joint3, qd: &Joint3| {
@@ -603,7 +757,7 @@ impl SimOmni {
                 held += c.torque(&self.plant, t + s, q, qd);
             }
             if with_hand {
-                let fh = self.hand_force_at(t, s, q, qd);
+                let fh = self.hand_force_at(t, s, q, qd) + self.wall_force_at(q, qd);
                 let ext = tip_force_torque(&self.plant.geometry, q, &fh);
                 self.plant.forward_dynamics(q, qd, &(held + ext))
             } else {
@@ -638,6 +792,7 @@ impl SimOmni {
         self.inkwell.update(&self.q, &self.qd);
         let (q, qd) = (self.q, self.qd);
         self.hand_force = self.hand_force_at(t, self.period_s, &q, &qd);
+        self.wall_force = self.wall_force_at(&q, &qd);
     }
 
     fn encoder_words(&self) -> [u16; 3] {
@@ -706,6 +861,10 @@ impl Device for SimOmni {
 
     fn hand_force(&self) -> Option<[f64; 3]> {
         Some(self.hand_force.into())
+    }
+
+    fn contact_force(&self) -> Option<[f64; 3]> {
+        Some(self.wall_force.into())
     }
 
     fn stylus(&mut self, action: StylusAction) -> bool {

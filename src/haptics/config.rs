@@ -27,6 +27,11 @@ pub struct HapticsConfig {
     pub passivity_reserve_j: f64,
     /// The simulated hand on the stylus (simulator only; `omnid run --hand`).
     pub hand: HandConfig,
+    /// Which model the external-force estimate subtracts (active, parametric or learned;
+    /// docs/TELEOP.md §2).
+    pub external_model: super::ExternalModel,
+    /// Cut-off of the external-force estimate's low-pass filter, Hz.
+    pub external_cutoff_hz: f64,
 }
 
 impl Default for HapticsConfig {
@@ -40,6 +45,8 @@ impl Default for HapticsConfig {
             passivity_max_damping_n_s_per_m: 20.0,
             passivity_reserve_j: 1e-3,
             hand: HandConfig::default(),
+            external_model: super::ExternalModel::Active,
+            external_cutoff_hz: 15.0,
         }
     }
 }
@@ -81,6 +88,13 @@ impl HapticsConfig {
             0.0,
             1.0,
             "0 ..= 1 J",
+        )?;
+        check::in_range(
+            "haptics.external_cutoff_hz",
+            self.external_cutoff_hz,
+            0.1,
+            200.0,
+            "0.1 ..= 200 Hz",
         )?;
         validate_hand(&self.hand)
     }

@@ -5,6 +5,7 @@
 
 pub(crate) mod config;
 pub(crate) mod effects;
+pub(crate) mod external;
 pub(crate) mod hand;
 pub(crate) mod passivity;
 pub(crate) mod render;
@@ -12,6 +13,7 @@ pub mod scene;
 
 pub use config::HapticsConfig;
 pub use effects::Effect;
+pub use external::ExternalModel;
 pub(crate) use effects::MAX_EFFECTS;
 pub(crate) use hand::Hand;
 pub use hand::{HandConfig, HandPattern};

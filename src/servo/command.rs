@@ -31,6 +31,9 @@ pub enum Activity {
     /// A client's tip force (N, OpenHaptics frame) on top of the compensation, as τ = Jᵀ F
     /// (stream with a time to live).
     ServoCf,
+    /// One side of a teleoperation pair: the coupling's tip force on top of the compensation
+    /// (docs/TELEOP.md).
+    Teleop,
 }
 
 impl Activity {
@@ -47,7 +50,10 @@ impl Activity {
     /// (free, servo_cf) a hand moves it with a force no sensor measures, and learning from
     /// that teaches the model the hand (docs/HAPTICS.md §3).
     pub fn learns(self) -> bool {
-        !matches!(self, Activity::Idle | Activity::Free | Activity::ServoCf)
+        !matches!(
+            self,
+            Activity::Idle | Activity::Free | Activity::ServoCf | Activity::Teleop
+        )
     }
 
     /// The mode this activity is logged as.
@@ -60,6 +66,7 @@ impl Activity {
             Activity::ServoJp => Mode::ServoJp,
             Activity::ServoJf => Mode::ServoJf,
             Activity::ServoCf => Mode::ServoCf,
+            Activity::Teleop => Mode::Teleop,
         }
     }
 }
@@ -115,6 +122,13 @@ pub enum ServoCommand {
     /// The simulator's hand acts on the stylus (press a button, dock, …): the station checked
     /// that the device is the simulator. Makes no force of a client's: any epoch applies it.
     Stylus(crate::device::StylusAction),
+    /// Couple this arm as one side of a teleoperation pair (the arm enters `teleop`); a
+    /// coupling already there comes back as [`ServoReply::Teleop`].
+    Teleop(Box<crate::teleop::Coupling>),
+    /// Uncouple: the coupling comes back as [`ServoReply::Teleop`], the arm holds.
+    TeleopEnd,
+    /// Change the coupling's motion scale now (no jump).
+    TeleopScale(f64),
     /// Swap this identifier in; the old one comes back as [`ServoReply::Identifier`].
     LoadIdentifier(Box<Identifier>),
     /// Fill this in and send it back as [`ServoReply::Snapshot`].
@@ -126,6 +140,8 @@ pub enum ServoReply {
     /// The identifier that a `LoadIdentifier` replaced.
     Identifier(Box<Identifier>),
     Snapshot(Box<Snapshot>),
+    /// A coupling that was replaced or ended.
+    Teleop(Box<crate::teleop::Coupling>),
 }
 
 /// The loop's results so far, copied into memory the caller provided.

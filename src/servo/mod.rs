@@ -20,10 +20,11 @@ use crate::device::{
 use crate::estimate::kalman::{Estimate, KalmanConfig};
 use crate::estimate::KalmanBank;
 use crate::haptics::HapticsConfig;
-use crate::haptics::{limit_force, Effect, Force3, HapticLoop};
+use crate::haptics::external::ExternalForce;
+use crate::haptics::{limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop};
 use crate::identifier::Identifier;
 use crate::identifier::IdentifierConfig;
-use crate::omni::Geometry;
+use crate::omni::{jacobian, tip_position_mm, Dynamics, Geometry};
 use crate::omni::Joint3;
 use crate::servo::summary::{FaultEntry, RunStats};
 use crate::telemetry::record::{flags, HapticRecord, Live, Mode, TickRecord};
@@ -168,6 +169,18 @@ pub struct Servo {
     max_force_n: f64,
     /// Forces at the tip: effects, passivity, Jᵀ F (docs/HAPTICS.md).
     haptics: HapticLoop,
+    /// The outside's force on the tip, from the motors and a model (docs/TELEOP.md §2).
+    external: ExternalForce,
+    external_model: ExternalModel,
+    /// The parametric rigid-body model, for that estimate.
+    parametric: Dynamics,
+    geometry: Geometry,
+    /// This arm's side of a teleoperation pair (docs/TELEOP.md), and the force it put on the
+    /// tip this tick.
+    teleop: Option<Box<crate::teleop::Coupling>>,
+    teleop_force: Force3,
+    /// The stylus buttons at this tick's sample.
+    buttons: [bool; 2],
     cmd_seq: u64,
     stream_deadline: f64,
     event: Option<ServoEvent>,
@@ -243,6 +256,8 @@ pub struct ServoSetup<'a> {
     pub haptics: &'a HapticsConfig,
     /// Link lengths, for the tip position and τ = Jᵀ F.
     pub geometry: &'a Geometry,
+    /// The parametric rigid-body model (the external-force estimate's, unless learned).
+    pub model: &'a crate::omni::ModelParams,
 }
 
 impl Servo {
@@ -278,6 +293,17 @@ impl Servo {
             stream_force_limited: false,
             max_force_n: cfg.haptics.max_force_n,
             haptics: HapticLoop::new(cfg.haptics, *cfg.geometry),
+            external: ExternalForce::new(cfg.haptics.external_cutoff_hz, 1.0 / cfg.device.rate_hz),
+            external_model: cfg.haptics.external_model,
+            parametric: {
+                let mut m = Dynamics::new(*cfg.model, *cfg.geometry);
+                m.friction = true;
+                m
+            },
+            geometry: *cfg.geometry,
+            teleop: None,
+            teleop_force: Force3::zeros(),
+            buttons: [false; 2],
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
@@ -393,9 +419,11 @@ impl Servo {
         }
         // Control, with the weights as they are; the update below then learns from this
         // sample at the same point (one network pass serves both).
+        self.buttons = s.buttons;
         let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
         let (tau_hat, ident_flag) = self.identify(s.t, &est);
         let tau_model = self.oracle(&est);
+        self.estimate_external(&est, &tau_hat);
         let limited = match self.limit(&tau_cmd, &est, s.t, s.t_dev) {
             Ok(l) => l,
             Err(end) => return Some(end),
@@ -504,6 +532,26 @@ impl Servo {
             }
         }
         (tau_hat, ident_flag)
+    }
+
+    /// The outside's force on the tip: what the model says the free arm needed for the
+    /// estimated motion minus what the motors gave over the interval ending at this sample.
+    fn estimate_external(&mut self, est: &Estimate, tau_hat: &[f64; 3]) {
+        let learned = match self.external_model {
+            ExternalModel::Learned => true,
+            ExternalModel::Parametric => false,
+            ExternalModel::Active => {
+                self.controllers.active() == crate::control::ControllerKind::Nnidc
+            }
+        };
+        let healthy = self.identifier.as_ref().is_some_and(|id| id.healthy());
+        let needed = if learned && healthy {
+            Joint3::from(*tau_hat)
+        } else {
+            self.parametric.inverse_dynamics(&est.q, &est.qd, &est.qdd)
+        };
+        let acting = Joint3::from(self.acting_tau.unwrap_or([0.0; 3]));
+        self.external.update(&self.geometry, &est.q, &needed, &acting);
     }
 
     /// Simulator: the plant's exact inverse dynamics on the estimated states (NaN elsewhere).
@@ -628,6 +676,7 @@ impl Servo {
                 cmd_seq: self.cmd_seq,
                 event,
                 heat: self.safety.heat(),
+                fext: self.external.force.into(),
             },
         });
         self.last_t = t;
@@ -693,9 +742,38 @@ impl Servo {
     fn haptic_record(&self) -> HapticRecord {
         HapticRecord {
             tip_mm: self.haptics.tip_mm,
-            force: self.haptics.force,
+            force: if self.activity == Activity::Teleop {
+                self.teleop_force.into()
+            } else {
+                self.haptics.force
+            },
             hand: self.device.hand_force().unwrap_or([f64::NAN; 3]),
         }
+    }
+
+    /// Couple this arm as one side of a teleoperation pair now (the loop enters `teleop`);
+    /// the coupling it replaces, if any.
+    pub fn set_teleop(
+        &mut self,
+        coupling: Box<crate::teleop::Coupling>,
+    ) -> Option<Box<crate::teleop::Coupling>> {
+        self.activity = Activity::Teleop;
+        self.teleop.replace(coupling)
+    }
+
+    /// This arm's side of a teleoperation pair, if coupled.
+    pub fn teleop(&self) -> Option<&crate::teleop::Coupling> {
+        self.teleop.as_deref()
+    }
+
+    /// The outside's force on the tip as last estimated, N.
+    pub fn external_force(&self) -> [f64; 3] {
+        self.external.force.into()
+    }
+
+    /// The device under the loop (the experiment reads a simulator's true forces).
+    pub fn device(&self) -> &dyn Device {
+        self.device.as_ref()
     }
 
     /// Run in free mode (the compensation and the scene's effects) instead of tracking.
@@ -766,8 +844,26 @@ impl Servo {
         if !matches!(self.activity, Activity::Free | Activity::ServoCf) {
             self.haptics.observe(q);
         }
+        self.teleop_force = Force3::zeros();
+        if let Some(c) = self.teleop.as_mut() {
+            // Every tick, coupled or not: a side that is not in teleop tells the other so.
+            let side = crate::teleop::SideInput {
+                t,
+                tip_mm: tip_position_mm(&self.geometry, &est.q),
+                vel_mm_s: jacobian(&self.geometry, &est.q) * est.qd * 1e3,
+                fext_n: self.external.force,
+                buttons: self.buttons,
+                active: self.activity == Activity::Teleop,
+            };
+            self.teleop_force = c.step(&side);
+        }
         match self.activity {
             Activity::Idle => (here, Joint3::zeros()),
+            Activity::Teleop => (
+                here,
+                self.controllers.compensation(t, est, id)
+                    + tip_force_torque(&self.geometry, q, &self.teleop_force),
+            ),
             Activity::Track | Activity::Hold | Activity::ServoJp => {
                 (reference, self.controllers.torque(&input, id))
             }
@@ -842,6 +938,7 @@ impl Servo {
                     | ServoCommand::ServoCf { .. }
                     | ServoCommand::Effect { .. }
                     | ServoCommand::Free
+                    | ServoCommand::Teleop(_)
             );
             if halts > self.halts_seen {
                 self.halts_seen = halts;
@@ -895,6 +992,25 @@ impl Servo {
                 }
                 ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
                 ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
+                ServoCommand::Teleop(coupling) => {
+                    self.enter(Activity::Teleop, q);
+                    if let Some(old) = self.teleop.replace(coupling) {
+                        self.reply(ServoReply::Teleop(old));
+                    }
+                }
+                ServoCommand::TeleopEnd => {
+                    if let Some(old) = self.teleop.take() {
+                        if self.activity == Activity::Teleop {
+                            self.enter(Activity::Hold, q);
+                        }
+                        self.reply(ServoReply::Teleop(old));
+                    }
+                }
+                ServoCommand::TeleopScale(scale) => {
+                    if let Some(c) = self.teleop.as_mut() {
+                        c.set_motion_scale(scale);
+                    }
+                }
                 ServoCommand::Stylus(action) => {
                     self.device.stylus(action);
                 }
@@ -940,6 +1056,14 @@ impl Servo {
                 self.enter(Activity::Idle, q);
                 self.event = Some(ServoEvent::StreamEnded {
                     fallback: Mode::Idle,
+                });
+            } else if self.activity == Activity::Teleop {
+                // The pair was its owner's: without them this side holds (or rests) and
+                // tells the other side it is down.
+                let fallback = self.owner_fallback();
+                self.enter(fallback, q);
+                self.event = Some(ServoEvent::StreamEnded {
+                    fallback: fallback.mode(),
                 });
             }
         }

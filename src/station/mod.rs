@@ -816,6 +816,8 @@ impl Station {
                         });
                     }
                 }
+                // A coupling that ended: freed here, off the servo thread.
+                ServoReply::Teleop(_old) => {}
             }
         }
         self.flush_pending(out);

@@ -25,5 +25,6 @@ pub fn arm_state(r: &TickRecord, geometry: &Geometry) -> ArmState {
         flags: r.flags,
         cmd_seq: r.live.cmd_seq,
         heat: r.live.heat,
+        fext: r.live.fext,
     }
 }

@@ -22,11 +22,14 @@ pub enum Mode {
     ServoJf,
     /// A client's tip force stream (Jᵀ F) on top of the compensation.
     ServoCf,
+    /// One side of a teleoperation pair: the coupling's tip force on top of the compensation
+    /// (docs/TELEOP.md).
+    Teleop,
 }
 
 impl Mode {
     /// Every mode, in the order of the enum.
-    pub const ALL: [Mode; 9] = [
+    pub const ALL: [Mode; 10] = [
         Mode::Blend,
         Mode::Track,
         Mode::Stop,
@@ -36,6 +39,7 @@ impl Mode {
         Mode::ServoJp,
         Mode::ServoJf,
         Mode::ServoCf,
+        Mode::Teleop,
     ];
 
     /// The name in the log's `mode` column (`servo_jp`, …).
@@ -50,6 +54,7 @@ impl Mode {
             Mode::ServoJp => "servo_jp",
             Mode::ServoJf => "servo_jf",
             Mode::ServoCf => "servo_cf",
+            Mode::Teleop => "teleop",
         }
     }
 
@@ -195,6 +200,9 @@ pub(crate) struct Live {
     /// Motor heat per joint from the safety layer's thermal model (1 = the steady state at the
     /// continuous torque; `[safety] thermal_limit` holds the motor to it).
     pub(crate) heat: [f64; 3],
+    /// The outside's force on the tip estimated from the motors and the model, N
+    /// (docs/TELEOP.md §2).
+    pub(crate) fext: [f64; 3],
 }
 
 /// Which optional column groups a log carries.

@@ -1,0 +1,605 @@
+//! One side of a teleoperation pair (docs/TELEOP.md §4), stepped by its arm's servo every tick:
+//! its own state in, the freshest packet from the other side, the force to put on its own tip
+//! out. The leader decides when the pair is engaged (operator present, clutch) and numbers each
+//! engagement; each side measures motion from where it stood when it took that engagement up,
+//! so engaging, re-indexing after the clutch and changing the scale never make a jump. Plain
+//! data: nothing allocates after construction.
+
+use super::channel::{packet_flags, ChannelStats, Endpoint, Packet};
+use super::passivity::Port;
+use super::{Architecture, Operator, TeleopConfig};
+use nalgebra::Vector3;
+use serde::Serialize;
+
+type V3 = Vector3<f64>;
+
+/// Which side of the pair.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// The arm a person moves.
+    Leader,
+    /// The arm that copies it.
+    Follower,
+}
+
+/// Where a side is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TeleopState {
+    /// Not following: waiting for the operator (leader), holding still (follower).
+    Waiting,
+    /// Following.
+    Engaged,
+    /// The leader's clutch is pressed: the follower holds, the leader is free.
+    Clutched,
+    /// No packet within the timeout, or the other side is down: the leader's force fades to
+    /// zero, the follower holds; the operator engages again once the link is back.
+    LinkLost,
+    /// This side's own arm is not coupled (fault, idle): it tells the other side so.
+    Down,
+}
+
+impl TeleopState {
+    /// Its name in the state stream and the results.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TeleopState::Waiting => "waiting",
+            TeleopState::Engaged => "engaged",
+            TeleopState::Clutched => "clutched",
+            TeleopState::LinkLost => "link_lost",
+            TeleopState::Down => "down",
+        }
+    }
+}
+
+/// What a side knows of its own arm this tick.
+#[derive(Debug, Clone, Copy)]
+pub struct SideInput {
+    /// Device time, s.
+    pub t: f64,
+    /// The tip, mm (OpenHaptics frame).
+    pub tip_mm: V3,
+    /// The tip's velocity, mm/s.
+    pub vel_mm_s: V3,
+    /// The outside's force on the tip (the arm's estimate), N.
+    pub fext_n: V3,
+    /// Stylus buttons 1 and 2.
+    pub buttons: [bool; 2],
+    /// The arm is coupled (in teleop); false: it is idle or faulted, the pair is down.
+    pub active: bool,
+}
+
+/// A link that came back counts as up again after this long (operator `always`), s.
+const REARM_S: f64 = 0.5;
+
+/// One side of the pair.
+pub struct Coupling {
+    role: Role,
+    cfg: TeleopConfig,
+    endpoint: Endpoint,
+    port: Port,
+    dt: f64,
+    seq: u64,
+    state: TeleopState,
+    /// The freshest packet from the other side, and when (local time) it was delivered.
+    peer: Option<Packet>,
+    peer_at: f64,
+    /// Since when the link has been up without a break, s.
+    up_since: f64,
+    /// Leader: the engagement number (0: never engaged). Follower: the one taken up.
+    epoch: u32,
+    /// Where this side's motion is measured from, mm.
+    origin_mm: V3,
+    /// Leader: when it engaged (the force's ramp); its scaled motion held while clutched.
+    engaged_at: f64,
+    held_mm: V3,
+    /// Leader: button 1 a tick ago (an engage after a lost link needs a fresh press).
+    button_was: bool,
+    fresh_press_needed: bool,
+    /// Follower: where it holds while not following, mm.
+    hold_mm: V3,
+    holding: bool,
+    /// The last force put out, N; a fade's start and time.
+    force: V3,
+    fade_from: V3,
+    fade_at: f64,
+    /// The last own tip (a scale change re-measures from it).
+    last_tip: V3,
+}
+
+impl Coupling {
+    /// A side in `role` over `endpoint`, stepped every `dt` s.
+    pub fn new(role: Role, cfg: &TeleopConfig, endpoint: Endpoint, dt: f64) -> Coupling {
+        Coupling {
+            role,
+            cfg: cfg.clone(),
+            endpoint,
+            port: Port::default(),
+            dt,
+            seq: 0,
+            state: TeleopState::Waiting,
+            peer: None,
+            peer_at: f64::NEG_INFINITY,
+            up_since: f64::INFINITY,
+            epoch: 0,
+            origin_mm: V3::zeros(),
+            engaged_at: 0.0,
+            held_mm: V3::zeros(),
+            button_was: false,
+            fresh_press_needed: false,
+            hold_mm: V3::zeros(),
+            holding: false,
+            force: V3::zeros(),
+            fade_from: V3::zeros(),
+            fade_at: f64::NEG_INFINITY,
+            last_tip: V3::zeros(),
+        }
+    }
+
+    /// Which side this is.
+    pub fn role(&self) -> Role {
+        self.role
+    }
+
+    /// Where this side is.
+    pub fn state(&self) -> TeleopState {
+        self.state
+    }
+
+    /// The force put on this side's tip on the last tick, N.
+    pub fn force(&self) -> V3 {
+        self.force
+    }
+
+    /// The engagement this side is in or has taken up (0: none yet).
+    pub fn epoch(&self) -> u32 {
+        self.epoch
+    }
+
+    /// This side's passivity port (energies in, out and dissipated).
+    pub fn port(&self) -> &Port {
+        &self.port
+    }
+
+    /// This side's channel counters.
+    pub fn channel(&self) -> ChannelStats {
+        self.endpoint.stats()
+    }
+
+    /// The settings in force.
+    pub fn config(&self) -> &TeleopConfig {
+        &self.cfg
+    }
+
+    /// Change the motion scale now without a jump: the leader re-measures its motion so the
+    /// follower's target stays where it is.
+    pub fn set_motion_scale(&mut self, scale: f64) {
+        if !(scale.is_finite() && scale > 0.0) {
+            return;
+        }
+        if self.role == Role::Leader && self.state == TeleopState::Engaged {
+            let d = (self.last_tip - self.origin_mm) * self.cfg.motion_scale;
+            self.origin_mm = self.last_tip - d / scale;
+        }
+        self.cfg.motion_scale = scale;
+    }
+
+    /// Change the force scale (applies from the next tick; the leader's force is continuous
+    /// in it only as the force itself is, so callers change it in small steps or at rest).
+    pub fn set_force_scale(&mut self, scale: f64) {
+        if scale.is_finite() && scale >= 0.0 {
+            self.cfg.force_scale = scale;
+        }
+    }
+
+    /// Change the impairment injected on what this side receives.
+    pub fn set_impairment(&mut self, impairment: super::Impairment) {
+        self.endpoint.set_impairment(impairment);
+    }
+
+    /// One tick: the force to put on this side's tip, N (zero when not active).
+    pub fn step(&mut self, x: &SideInput) -> V3 {
+        if let Some(p) = self.endpoint.receive(x.t) {
+            if self.peer_at < x.t - self.cfg.link_timeout_ms * 1e-3 || self.peer.is_none() {
+                self.up_since = x.t;
+            }
+            self.peer = Some(p);
+            self.peer_at = x.t;
+        }
+        let fresh = x.t - self.peer_at <= self.cfg.link_timeout_ms * 1e-3;
+        let peer_down = self.peer.is_some_and(|p| p.flags & packet_flags::DOWN != 0);
+        let link_up = fresh && !peer_down;
+        if !link_up {
+            self.up_since = f64::INFINITY;
+        }
+        self.last_tip = x.tip_mm;
+        let force = if !x.active {
+            self.down(x)
+        } else {
+            match self.role {
+                Role::Leader => self.lead(x, link_up),
+                Role::Follower => self.follow(x, link_up),
+            }
+        };
+        self.force = force;
+        force
+    }
+
+    /// Not coupled: say so every tick, put out nothing.
+    fn down(&mut self, x: &SideInput) -> V3 {
+        self.state = TeleopState::Down;
+        self.holding = false;
+        self.send(x, 0, packet_flags::DOWN, V3::zeros(), V3::zeros());
+        V3::zeros()
+    }
+
+    fn lead(&mut self, x: &SideInput, link_up: bool) -> V3 {
+        let present = match self.cfg.operator {
+            Operator::Button1 => x.buttons[0],
+            Operator::Always => true,
+        };
+        let pressed_now = x.buttons[0] && !self.button_was;
+        self.button_was = x.buttons[0];
+        let clutch = x.buttons[1];
+        let following = matches!(self.state, TeleopState::Engaged | TeleopState::Clutched);
+        if following && !link_up {
+            self.fade(x.t, TeleopState::LinkLost);
+            self.fresh_press_needed = true;
+        } else if following && !present {
+            self.fade(x.t, TeleopState::Waiting);
+        } else if !following && link_up && present {
+            let may = match self.cfg.operator {
+                Operator::Button1 => !self.fresh_press_needed || pressed_now,
+                Operator::Always => x.t - self.up_since >= REARM_S || self.epoch == 0,
+            };
+            if may {
+                self.epoch += 1;
+                self.origin_mm = x.tip_mm;
+                self.held_mm = V3::zeros();
+                self.engaged_at = x.t;
+                self.fresh_press_needed = false;
+                self.port = Port {
+                    energy_in: self.port.energy_in,
+                    energy_out: self.port.energy_out,
+                    ..Port::default()
+                };
+                self.state = TeleopState::Engaged;
+            }
+        }
+        // The clutch: hold the scaled motion where it is, and on release measure again from
+        // where the leader is so the follower does not jump.
+        let s = self.cfg.motion_scale;
+        match self.state {
+            TeleopState::Engaged if clutch => {
+                self.held_mm = (x.tip_mm - self.origin_mm) * s;
+                self.fade(x.t, TeleopState::Clutched);
+            }
+            TeleopState::Clutched if !clutch => {
+                self.origin_mm = x.tip_mm - self.held_mm / s;
+                self.state = TeleopState::Engaged;
+                self.engaged_at = x.t;
+            }
+            _ => {}
+        }
+        let (d, dv, engage, flags) = match self.state {
+            TeleopState::Engaged => ((x.tip_mm - self.origin_mm) * s, x.vel_mm_s * s, self.epoch, 0),
+            TeleopState::Clutched => (self.held_mm, V3::zeros(), self.epoch, packet_flags::CLUTCH),
+            _ => (V3::zeros(), V3::zeros(), 0, 0),
+        };
+        self.send(x, engage, flags, d, dv);
+        let peer = self.peer.filter(|p| p.engage == self.epoch && self.epoch != 0);
+        match (self.state, peer) {
+            (TeleopState::Engaged, Some(p)) if link_up => {
+                let raw = match self.cfg.architecture {
+                    Architecture::Pp => {
+                        let e = V3::from(p.pos_mm) - d;
+                        let ev = V3::from(p.vel_mm_s) - dv;
+                        (e * self.cfg.stiffness_n_per_mm + ev * (self.cfg.damping_n_s_per_m * 1e-3))
+                            * self.cfg.force_scale
+                    }
+                    Architecture::Pf => {
+                        let f = V3::from(p.force_n);
+                        let n = f.norm();
+                        let db = self.cfg.force_deadband_n;
+                        let felt = if n > db { f * ((n - db) / n) } else { V3::zeros() };
+                        felt * self.cfg.force_scale
+                    }
+                };
+                let ramp = if self.cfg.ramp_s > 0.0 {
+                    ((x.t - self.engaged_at) / self.cfg.ramp_s).clamp(0.0, 1.0)
+                } else {
+                    1.0
+                };
+                let f = crate::haptics::limit_force(&(raw * ramp), self.cfg.max_force_n);
+                self.passive(f, x, p.energy_in_j)
+            }
+            _ => self.faded(x.t),
+        }
+    }
+
+    fn follow(&mut self, x: &SideInput, link_up: bool) -> V3 {
+        let leader = self
+            .peer
+            .filter(|p| link_up && p.engage != 0 && p.flags & packet_flags::DOWN == 0);
+        match leader {
+            Some(p) => {
+                if p.engage != self.epoch || self.state != TeleopState::Engaged {
+                    // Take the engagement up from where this arm is: its target starts here.
+                    self.epoch = p.engage;
+                    self.origin_mm = x.tip_mm - V3::from(p.pos_mm);
+                    self.port = Port {
+                        energy_in: self.port.energy_in,
+                        energy_out: self.port.energy_out,
+                        ..Port::default()
+                    };
+                }
+                self.state = if p.flags & packet_flags::CLUTCH != 0 {
+                    TeleopState::Clutched
+                } else {
+                    TeleopState::Engaged
+                };
+                self.holding = false;
+            }
+            None => {
+                if !self.holding {
+                    self.hold_mm = x.tip_mm;
+                    self.holding = true;
+                }
+                self.state = if link_up || self.peer.is_none() {
+                    TeleopState::Waiting
+                } else {
+                    TeleopState::LinkLost
+                };
+            }
+        }
+        let own = x.tip_mm - self.origin_mm;
+        let engage = if self.holding { 0 } else { self.epoch };
+        self.send(x, engage, 0, own, x.vel_mm_s);
+        let (target, target_v) = match leader {
+            Some(p) => (self.origin_mm + V3::from(p.pos_mm), V3::from(p.vel_mm_s)),
+            None => (self.hold_mm, V3::zeros()),
+        };
+        let pull = (target - x.tip_mm) * self.cfg.stiffness_n_per_mm
+            + (target_v - x.vel_mm_s) * (self.cfg.damping_n_s_per_m * 1e-3);
+        let f = crate::haptics::limit_force(&pull, self.cfg.max_force_n);
+        match leader {
+            Some(p) => self.passive(f, x, p.energy_in_j),
+            // Holding is this arm's own spring, not the channel's: no passivity accounting.
+            None => f,
+        }
+    }
+
+    /// The force through this side's passivity port.
+    fn passive(&mut self, f: V3, x: &SideInput, remote_in: f64) -> V3 {
+        self.port.pass(
+            f,
+            &(x.vel_mm_s * 1e-3),
+            self.dt,
+            remote_in,
+            self.cfg.passivity_reserve_j,
+            self.cfg.passivity_max_damping_n_s_per_m,
+            self.cfg.passivity,
+        )
+    }
+
+    /// Leave following for `to`, the force fading from where it is.
+    fn fade(&mut self, t: f64, to: TeleopState) {
+        self.fade_from = self.force;
+        self.fade_at = t;
+        self.state = to;
+    }
+
+    /// The fading force at `t`: linear to zero over `fade_ms`.
+    fn faded(&self, t: f64) -> V3 {
+        let k = 1.0 - (t - self.fade_at) / (self.cfg.fade_ms * 1e-3);
+        self.fade_from * k.clamp(0.0, 1.0)
+    }
+
+    fn send(&mut self, x: &SideInput, engage: u32, flags: u32, pos: V3, vel: V3) {
+        self.seq += 1;
+        self.endpoint.send(Packet {
+            seq: self.seq,
+            t: x.t,
+            engage,
+            flags,
+            pos_mm: pos.into(),
+            vel_mm_s: vel.into(),
+            force_n: x.fext_n.into(),
+            energy_in_j: self.port.energy_in,
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{pair, Impairment};
+    use super::*;
+
+    const DT: f64 = 1e-3;
+
+    fn sides(cfg: &TeleopConfig) -> (Coupling, Coupling) {
+        let (l, f) = pair(Impairment::default(), Impairment::default(), 3);
+        (
+            Coupling::new(Role::Leader, cfg, l, DT),
+            Coupling::new(Role::Follower, cfg, f, DT),
+        )
+    }
+
+    fn input(t: f64, tip: [f64; 3]) -> SideInput {
+        SideInput {
+            t,
+            tip_mm: tip.into(),
+            vel_mm_s: V3::zeros(),
+            fext_n: V3::zeros(),
+            buttons: [false; 2],
+            active: true,
+        }
+    }
+
+    fn always() -> TeleopConfig {
+        TeleopConfig {
+            operator: Operator::Always,
+            ramp_s: 0.0,
+            passivity: false,
+            ..TeleopConfig::default()
+        }
+    }
+
+    /// Step the pair `n` ticks from tick `k0` with the leader at `l` and the follower at `f`.
+    fn run(pair: &mut (Coupling, Coupling), k0: usize, n: usize, l: SideInput, f: SideInput) -> (V3, V3) {
+        let mut out = (V3::zeros(), V3::zeros());
+        for k in k0..k0 + n {
+            let t = k as f64 * DT;
+            out.0 = pair.0.step(&SideInput { t, ..l });
+            out.1 = pair.1.step(&SideInput { t, ..f });
+        }
+        out
+    }
+
+    #[test]
+    fn engaging_starts_from_where_each_arm_is_and_then_the_follower_is_pulled_along() {
+        let cfg = always();
+        let mut p = sides(&cfg);
+        let (lf, ff) = run(&mut p, 0, 20, input(0.0, [10.0, 0.0, 0.0]), input(0.0, [-5.0, 3.0, 0.0]));
+        assert_eq!((p.0.state(), p.1.state()), (TeleopState::Engaged, TeleopState::Engaged));
+        assert!(lf.norm() < 1e-12 && ff.norm() < 1e-12, "{lf:?} {ff:?}");
+        // The leader moves 1 mm along x: the follower is pulled 1 mm's worth, the leader held
+        // back as much (position–position), the follower not having moved yet.
+        let (lf, ff) = run(&mut p, 20, 3, input(0.0, [11.0, 0.0, 0.0]), input(0.0, [-5.0, 3.0, 0.0]));
+        let k = cfg.stiffness_n_per_mm;
+        assert!((ff - V3::new(k, 0.0, 0.0)).norm() < 1e-9, "{ff:?}");
+        assert!((lf - V3::new(-k, 0.0, 0.0)).norm() < 1e-9, "{lf:?}");
+    }
+
+    #[test]
+    fn the_clutch_holds_the_follower_frees_the_leader_and_re_indexes_on_release() {
+        let cfg = always();
+        let mut p = sides(&cfg);
+        run(&mut p, 0, 10, input(0.0, [0.0; 3]), input(0.0, [50.0, 0.0, 0.0]));
+        // The leader moves 2 mm; the follower gets there.
+        run(&mut p, 10, 10, input(0.0, [2.0, 0.0, 0.0]), input(0.0, [52.0, 0.0, 0.0]));
+        // Clutch: the leader goes back 5 mm; the follower's target stays at 52.
+        let clutched = SideInput {
+            buttons: [false, true],
+            ..input(0.0, [-3.0, 0.0, 0.0])
+        };
+        let (lf, ff) = run(&mut p, 20, 100, clutched, input(0.0, [52.0, 0.0, 0.0]));
+        assert_eq!(p.0.state(), TeleopState::Clutched);
+        assert_eq!(p.1.state(), TeleopState::Clutched);
+        assert!(lf.norm() < 1e-12, "leader not freed: {lf:?}");
+        assert!(ff.norm() < 1e-9, "follower pulled while clutched: {ff:?}");
+        // Released at −3: from there, +1 mm of the leader is +1 mm of target (53).
+        run(&mut p, 120, 5, input(0.0, [-3.0, 0.0, 0.0]), input(0.0, [52.0, 0.0, 0.0]));
+        let (_, ff) = run(&mut p, 125, 3, input(0.0, [-2.0, 0.0, 0.0]), input(0.0, [52.0, 0.0, 0.0]));
+        assert!((ff[0] - cfg.stiffness_n_per_mm).abs() < 1e-9, "{ff:?}");
+    }
+
+    #[test]
+    fn a_motion_scale_change_moves_no_target_and_scales_what_follows() {
+        let cfg = always();
+        let mut p = sides(&cfg);
+        run(&mut p, 0, 10, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
+        run(&mut p, 10, 10, input(0.0, [0.0, 4.0, 0.0]), input(0.0, [0.0, 4.0, 0.0]));
+        p.0.set_motion_scale(0.5);
+        let (_, ff) = run(&mut p, 20, 5, input(0.0, [0.0, 4.0, 0.0]), input(0.0, [0.0, 4.0, 0.0]));
+        assert!(ff.norm() < 1e-9, "the scale change moved the target: {ff:?}");
+        // 2 mm of the leader at scale 0.5 is 1 mm of the follower.
+        let (_, ff) = run(&mut p, 25, 3, input(0.0, [0.0, 6.0, 0.0]), input(0.0, [0.0, 4.0, 0.0]));
+        assert!((ff[1] - cfg.stiffness_n_per_mm).abs() < 1e-9, "{ff:?}");
+    }
+
+    #[test]
+    fn a_cut_link_fades_the_leader_within_50_ms_without_a_step_and_the_follower_holds() {
+        for arch in [Architecture::Pf, Architecture::Pp] {
+            let cfg = TeleopConfig {
+                architecture: arch,
+                ..always()
+            };
+            let mut p = sides(&cfg);
+            // Pressing: the follower feels 1 N from outside and lags 0.3 mm behind.
+            let pressed = SideInput {
+                fext_n: V3::new(0.0, 0.0, 1.0),
+                ..input(0.0, [0.0, 0.0, 0.0])
+            };
+            run(&mut p, 0, 10, input(0.0, [0.0; 3]), pressed);
+            let (before, _) = run(&mut p, 10, 50, input(0.0, [0.0, 0.0, -0.3]), pressed);
+            assert!(before.norm() > 0.5, "{arch:?}: no force to fade: {before:?}");
+            // The follower goes silent at tick 60.
+            let mut last = before;
+            let mut zero_at = None;
+            for k in 60..200 {
+                let f = p.0.step(&input(k as f64 * DT, [0.0, 0.0, -0.3]));
+                let step = (f - last).norm();
+                assert!(
+                    step <= before.norm() * DT / (cfg.fade_ms * 1e-3) + 1e-9,
+                    "{arch:?}: a step of {step} N at tick {k}"
+                );
+                last = f;
+                if f.norm() == 0.0 && zero_at.is_none() {
+                    zero_at = Some(k);
+                }
+            }
+            let ms = (zero_at.expect("the force reached zero") - 60) as f64;
+            assert!(ms <= 50.0, "{arch:?}: zero after {ms} ms");
+            assert_eq!(p.0.state(), TeleopState::LinkLost);
+            // The leader goes silent for the follower: it holds where it is.
+            for k in 200..260 {
+                p.1.step(&SideInput { t: k as f64 * DT, ..pressed });
+            }
+            assert_eq!(p.1.state(), TeleopState::LinkLost);
+            let held = p.1.step(&SideInput { t: 0.26, ..pressed });
+            assert!(held.norm() < 1e-9, "{arch:?}: {held:?}");
+            let pushed = p.1.step(&SideInput { t: 0.261, ..input(0.0, [0.0, 0.0, 1.0]) });
+            assert!((pushed[2] + cfg.stiffness_n_per_mm).abs() < 1e-9, "{arch:?}: {pushed:?}");
+        }
+    }
+
+    #[test]
+    fn a_side_that_goes_down_disables_the_pair_at_once() {
+        let cfg = TeleopConfig {
+            architecture: Architecture::Pf,
+            ..always()
+        };
+        let mut p = sides(&cfg);
+        let pressed = SideInput {
+            fext_n: V3::new(1.0, 0.0, 0.0),
+            ..input(0.0, [0.0; 3])
+        };
+        run(&mut p, 0, 30, input(0.0, [0.0; 3]), pressed);
+        assert!(p.0.force().norm() > 0.5);
+        // The follower's arm faults: its side says so on its next packet.
+        let down = SideInput {
+            active: false,
+            ..pressed
+        };
+        let (lf, ff) = run(&mut p, 30, 23, input(0.0, [0.0; 3]), down);
+        assert_eq!(ff, V3::zeros());
+        assert_eq!(p.1.state(), TeleopState::Down);
+        assert_eq!(p.0.state(), TeleopState::LinkLost);
+        assert_eq!(lf, V3::zeros(), "faded within fade_ms, not after the timeout");
+    }
+
+    #[test]
+    fn with_operator_button1_the_pair_follows_only_while_it_is_held() {
+        let cfg = TeleopConfig {
+            operator: Operator::Button1,
+            ramp_s: 0.0,
+            ..TeleopConfig::default()
+        };
+        let mut p = sides(&cfg);
+        let away = input(0.0, [0.0; 3]);
+        run(&mut p, 0, 20, SideInput { tip_mm: V3::new(5.0, 0.0, 0.0), ..away }, away);
+        assert_eq!(p.0.state(), TeleopState::Waiting);
+        let (_, ff) = run(&mut p, 20, 3, away, away);
+        assert!(ff.norm() < 1e-9, "followed without the operator: {ff:?}");
+        let held = SideInput {
+            buttons: [true, false],
+            ..away
+        };
+        run(&mut p, 23, 5, held, away);
+        assert_eq!(p.0.state(), TeleopState::Engaged);
+        run(&mut p, 28, 5, away, away);
+        assert_eq!(p.0.state(), TeleopState::Waiting);
+    }
+}

@@ -1,0 +1,194 @@
+//! Teleoperation between two arms (docs/TELEOP.md): a leader a person moves and a follower that
+//! copies it and touches something, the leader letting the person feel it. Each arm's servo runs
+//! its side of the coupling every tick ([`coupling::Coupling`]), on its own fresh state and the
+//! freshest packet from the other side ([`channel`]); time-domain passivity on each port
+//! ([`passivity`]) keeps the pair stable under delay and loss. `[teleop]` configures it.
+
+pub mod channel;
+pub mod coupling;
+pub mod passivity;
+
+pub use channel::{pair, Endpoint, Impairment, Packet};
+pub use coupling::{Coupling, Role, SideInput, TeleopState};
+
+use crate::config_check::{self as check, ConfigError};
+use serde::{Deserialize, Serialize};
+
+/// What the leader feels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Architecture {
+    /// Position–position: each side is pulled toward the other's position by a spring and
+    /// damper; the leader feels the coupling (no force sensor, no model).
+    Pp,
+    /// Position–force: the follower tracks the leader's position; the leader feels the
+    /// follower's external force estimated from its motors and model.
+    Pf,
+}
+
+impl Architecture {
+    /// Its name in the config and the results.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Architecture::Pp => "pp",
+            Architecture::Pf => "pf",
+        }
+    }
+
+    /// From its name.
+    pub fn parse(s: &str) -> Option<Architecture> {
+        match s {
+            "pp" => Some(Architecture::Pp),
+            "pf" => Some(Architecture::Pf),
+            _ => None,
+        }
+    }
+}
+
+/// When the leader's operator counts as present (the pair follows only then).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Operator {
+    /// While the leader's button 1 is held (dVRK's Omni set-up).
+    Button1,
+    /// Always, once the link is up (experiments, a foot pedal outside omnid).
+    Always,
+}
+
+/// `[teleop]`: the coupling between a leader and a follower arm.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields, default)]
+pub struct TeleopConfig {
+    /// pp (position–position) or pf (position–force, the force from the follower's estimate).
+    pub architecture: Architecture,
+    /// The follower moves this many mm per mm of the leader (changed live without a jump).
+    pub motion_scale: f64,
+    /// The leader feels this times the force (the coupling's in pp, the estimate's in pf).
+    pub force_scale: f64,
+    /// The coupling spring, N/mm.
+    pub stiffness_n_per_mm: f64,
+    /// The coupling damper, N·s/m.
+    pub damping_n_s_per_m: f64,
+    /// Largest force the coupling puts on either tip, N.
+    pub max_force_n: f64,
+    /// The leader's force ramps in over this time after engaging, s.
+    pub ramp_s: f64,
+    /// Estimated forces below this are not felt in pf (the estimate's noise), N.
+    pub force_deadband_n: f64,
+    /// No packet for this long and the link counts as lost, ms.
+    pub link_timeout_ms: f64,
+    /// On a lost link the leader's force fades to zero over this time, ms.
+    pub fade_ms: f64,
+    /// When the operator counts as present: button1 (held) or always.
+    pub operator: Operator,
+    /// Time-domain passivity on both ports.
+    pub passivity: bool,
+    /// Largest damping the passivity controller adds, N·s/m.
+    pub passivity_max_damping_n_s_per_m: f64,
+    /// Most energy a port keeps in hand from the far side, J.
+    pub passivity_reserve_j: f64,
+    /// Delay, jitter and loss injected on what the leader receives.
+    pub to_leader: Impairment,
+    /// Delay, jitter and loss injected on what the follower receives.
+    pub to_follower: Impairment,
+}
+
+impl Default for TeleopConfig {
+    fn default() -> Self {
+        TeleopConfig {
+            architecture: Architecture::Pp,
+            motion_scale: 1.0,
+            force_scale: 1.0,
+            stiffness_n_per_mm: 3.0,
+            damping_n_s_per_m: 15.0,
+            max_force_n: 3.3,
+            ramp_s: 0.5,
+            force_deadband_n: 0.05,
+            link_timeout_ms: 25.0,
+            fade_ms: 20.0,
+            operator: Operator::Button1,
+            passivity: true,
+            passivity_max_damping_n_s_per_m: 40.0,
+            passivity_reserve_j: 0.02,
+            to_leader: Impairment::default(),
+            to_follower: Impairment::default(),
+        }
+    }
+}
+
+impl TeleopConfig {
+    /// Check every value; the first problem names its field (`teleop.…`).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let ranges: [(&str, f64, f64, f64, &str); 11] = [
+            ("teleop.motion_scale", self.motion_scale, 0.05, 20.0, "0.05 ..= 20"),
+            ("teleop.force_scale", self.force_scale, 0.0, 5.0, "0 ..= 5"),
+            (
+                "teleop.stiffness_n_per_mm",
+                self.stiffness_n_per_mm,
+                0.0,
+                10.0,
+                "0 ..= 10 N/mm",
+            ),
+            (
+                "teleop.damping_n_s_per_m",
+                self.damping_n_s_per_m,
+                0.0,
+                100.0,
+                "0 ..= 100 N·s/m",
+            ),
+            ("teleop.max_force_n", self.max_force_n, 0.0, 10.0, "0 ..= 10 N"),
+            ("teleop.ramp_s", self.ramp_s, 0.0, 10.0, "0 ..= 10 s"),
+            (
+                "teleop.force_deadband_n",
+                self.force_deadband_n,
+                0.0,
+                2.0,
+                "0 ..= 2 N",
+            ),
+            (
+                "teleop.link_timeout_ms",
+                self.link_timeout_ms,
+                2.0,
+                1000.0,
+                "2 ..= 1000 ms",
+            ),
+            ("teleop.fade_ms", self.fade_ms, 1.0, 1000.0, "1 ..= 1000 ms"),
+            (
+                "teleop.passivity_max_damping_n_s_per_m",
+                self.passivity_max_damping_n_s_per_m,
+                0.0,
+                1000.0,
+                "0 ..= 1000 N·s/m",
+            ),
+            (
+                "teleop.passivity_reserve_j",
+                self.passivity_reserve_j,
+                0.0,
+                1.0,
+                "0 ..= 1 J",
+            ),
+        ];
+        for (field, v, lo, hi, allowed) in ranges {
+            check::in_range(field, v, lo, hi, allowed)?;
+        }
+        for (side, imp) in [("to_leader", &self.to_leader), ("to_follower", &self.to_follower)] {
+            let max = channel::MAX_DELAY_MS;
+            check::in_range(
+                &format!("teleop.{side}.delay_ms"),
+                imp.delay_ms,
+                0.0,
+                max,
+                "0 ..= 1500 ms",
+            )?;
+            check::in_range(
+                &format!("teleop.{side}.jitter_ms"),
+                imp.jitter_ms,
+                0.0,
+                max - imp.delay_ms,
+                "0 ..= 1500 ms minus the delay",
+            )?;
+            check::in_range(&format!("teleop.{side}.loss"), imp.loss, 0.0, 1.0, "0 ..= 1")?;
+        }
+        Ok(())
+    }
+}
