@@ -512,3 +512,30 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
     }
     assert_eq!(n, 0, "two arms: {n} allocations in 2 × 2000 ticks");
 }
+
+#[test]
+fn a_coupled_teleoperation_pair_allocates_nothing_per_tick() {
+    // Two servos coupled in one process, each with its side of the pair (the channel, the
+    // delay line, the passivity port, the fast velocity filter), over a delayed, lossy
+    // channel with the hand pushing the follower into its floor.
+    use omnid::experiment::teleop::{PairSim, Scene, CHANNELS};
+    use omnid::teleop::{Architecture, TeleopConfig};
+    let scene = Scene::Press {
+        force_n: 1.0,
+        wall_n_per_mm: 1.0,
+    };
+    for arch in [Architecture::Pp, Architecture::Pf] {
+        let lossy = CHANNELS.iter().find(|c| c.loss > 0.0).unwrap();
+        let mut sim =
+            PairSim::new(&TeleopConfig::default(), arch, true, &scene, lossy, 10.0, false).unwrap();
+        for _ in 0..500 {
+            sim.tick().unwrap();
+        }
+        let n = count_allocations(|| {
+            for _ in 0..3000 {
+                std::hint::black_box(sim.tick().unwrap());
+            }
+        });
+        assert_eq!(n, 0, "{arch:?}: {n} allocations over 3000 coupled ticks");
+    }
+}

@@ -11,6 +11,7 @@
 //! tests and smoke checks); its numbers are not the paper's.
 
 mod haptics;
+pub mod teleop;
 
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
@@ -41,6 +42,9 @@ pub enum Experiment {
     Payload,
     /// Haptics: transparency, walls, force accuracy (`haptics`).
     Haptics,
+    /// Teleoperation between two simulated Omnis: architectures, passivity, delay and loss
+    /// (`teleop`).
+    Teleop,
 }
 
 impl FromStr for Experiment {
@@ -51,6 +55,7 @@ impl FromStr for Experiment {
             "alpha" => Ok(Experiment::Alpha),
             "payload" => Ok(Experiment::Payload),
             "haptics" => Ok(Experiment::Haptics),
+            "teleop" => Ok(Experiment::Teleop),
             _ => Err(format!(
                 "unknown experiment `{}`: expected one of {}",
                 crate::text::cut(s),
@@ -62,11 +67,12 @@ impl FromStr for Experiment {
 
 impl Experiment {
     /// Every experiment, in the order help and docs list them (the one source of that list).
-    pub const ALL: [Experiment; 4] = [
+    pub const ALL: [Experiment; 5] = [
         Experiment::Validation,
         Experiment::Alpha,
         Experiment::Payload,
         Experiment::Haptics,
+        Experiment::Teleop,
     ];
 
     /// The name the command line takes.
@@ -76,6 +82,7 @@ impl Experiment {
             Experiment::Alpha => "alpha",
             Experiment::Payload => "payload",
             Experiment::Haptics => "haptics",
+            Experiment::Teleop => "teleop",
         }
     }
 }
@@ -179,6 +186,7 @@ pub fn run_experiment(
         Experiment::Payload => payload(out, quick, &mut figures)?,
         // Writes its own report and results.json.
         Experiment::Haptics => return haptics::run_haptics(out, quick),
+        Experiment::Teleop => return teleop::run_teleop(out, quick),
     };
     let report = out.join("report.md");
     crate::output::write_bytes(&report, markdown.as_bytes())?;
@@ -224,8 +232,8 @@ fn check_outputs(experiment: Experiment, out: &Path, quick: bool) -> Result<(), 
                 run_dir(out.join(name));
             }
         }
-        // Checks its own outputs.
-        Experiment::Haptics => {}
+        // Check their own outputs.
+        Experiment::Haptics | Experiment::Teleop => {}
     }
     for dir in &dirs {
         crate::output::check_dir(dir)?;

@@ -25,11 +25,23 @@ pub enum HandPattern {
         /// Its direction, +1.0 or −1.0.
         sign: f64,
     },
+    /// Tap along `dir` from the centre: out to `path_radius_m` and back, [`TAP_HZ`] times a
+    /// second (a teleoperation follower tapping a surface).
+    Tap {
+        /// The axis, 0..=2 for x, y, z.
+        axis: usize,
+        /// Its direction, +1.0 or −1.0.
+        sign: f64,
+    },
 }
+
+/// How often the tapping hand taps, Hz.
+pub const TAP_HZ: f64 = 1.5;
 
 impl HandPattern {
     pub(crate) const NAMES: &'static str =
-        "none, hold, path, push+x, push-x, push+y, push-y, push+z, push-z";
+        "none, hold, path, push+x, push-x, push+y, push-y, push+z, push-z, tap+x, tap-x, tap+y, \
+         tap-y, tap+z, tap-z";
 
     pub(crate) fn parse(s: &str) -> Option<HandPattern> {
         Some(match s {
@@ -37,7 +49,10 @@ impl HandPattern {
             "hold" => HandPattern::Hold,
             "path" => HandPattern::Path,
             _ => {
-                let rest = s.strip_prefix("push")?;
+                let (tap, rest) = match s.strip_prefix("push") {
+                    Some(rest) => (false, rest),
+                    None => (true, s.strip_prefix("tap")?),
+                };
                 let sign = match rest.as_bytes().first()? {
                     b'+' => 1.0,
                     b'-' => -1.0,
@@ -49,7 +64,11 @@ impl HandPattern {
                     "z" => 2,
                     _ => return None,
                 };
-                HandPattern::Push { axis, sign }
+                if tap {
+                    HandPattern::Tap { axis, sign }
+                } else {
+                    HandPattern::Push { axis, sign }
+                }
             }
         })
     }
@@ -61,6 +80,11 @@ impl HandPattern {
             HandPattern::Path => "path".into(),
             HandPattern::Push { axis, sign } => format!(
                 "push{}{}",
+                if sign > 0.0 { '+' } else { '-' },
+                ["x", "y", "z"][axis]
+            ),
+            HandPattern::Tap { axis, sign } => format!(
+                "tap{}{}",
                 if sign > 0.0 { '+' } else { '-' },
                 ["x", "y", "z"][axis]
             ),
@@ -233,6 +257,12 @@ impl Hand {
                 p[axis] += sign * self.push_depth;
                 p
             }
+            HandPattern::Tap { axis, sign } => {
+                let phase = std::f64::consts::TAU * TAP_HZ * (t1 - a);
+                let mut p = self.centre;
+                p[axis] += sign * self.cfg.radius * 0.5 * (1.0 - phase.cos());
+                p
+            }
         };
         self.vel = if dt > 0.0 {
             (self.pos - before) / dt
@@ -248,10 +278,10 @@ mod tests {
 
     #[test]
     fn patterns_parse_and_print_back() {
-        for name in ["none", "hold", "path", "push+x", "push-y", "push+z"] {
+        for name in ["none", "hold", "path", "push+x", "push-y", "push+z", "tap-y", "tap+x"] {
             assert_eq!(HandPattern::parse(name).unwrap().name(), name);
         }
-        for bad in ["push", "push*x", "push+w", "walk"] {
+        for bad in ["push", "push*x", "push+w", "walk", "tap", "tapy"] {
             assert!(HandPattern::parse(bad).is_none(), "{bad}");
         }
     }

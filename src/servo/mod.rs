@@ -179,6 +179,10 @@ pub struct Servo {
     /// tip this tick.
     teleop: Option<Box<crate::teleop::Coupling>>,
     teleop_force: Force3,
+    /// The coupling's own fast velocity estimate (`[teleop] velocity_jerk_psd`), and the
+    /// measurement variance it was built with.
+    teleop_kalman: KalmanBank,
+    measurement_var: f64,
     /// The stylus buttons at this tick's sample.
     buttons: [bool; 2],
     cmd_seq: u64,
@@ -303,6 +307,8 @@ impl Servo {
             geometry: *cfg.geometry,
             teleop: None,
             teleop_force: Force3::zeros(),
+            teleop_kalman: KalmanBank::new(cfg.kalman),
+            measurement_var: cfg.kalman.measurement_var,
             buttons: [false; 2],
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
@@ -545,13 +551,14 @@ impl Servo {
             }
         };
         let healthy = self.identifier.as_ref().is_some_and(|id| id.healthy());
-        let needed = if learned && healthy {
-            Joint3::from(*tau_hat)
-        } else {
-            self.parametric.inverse_dynamics(&est.q, &est.qd, &est.qdd)
-        };
         let acting = Joint3::from(self.acting_tau.unwrap_or([0.0; 3]));
-        self.external.update(&self.geometry, &est.q, &needed, &acting);
+        if learned && healthy {
+            self.external
+                .update(&self.geometry, &est.q, &Joint3::from(*tau_hat), &acting);
+        } else {
+            self.external
+                .observe(&self.parametric, &est.q, &est.qd, &acting);
+        }
     }
 
     /// Simulator: the plant's exact inverse dynamics on the estimated states (NaN elsewhere).
@@ -758,6 +765,10 @@ impl Servo {
         coupling: Box<crate::teleop::Coupling>,
     ) -> Option<Box<crate::teleop::Coupling>> {
         self.activity = Activity::Teleop;
+        self.teleop_kalman = KalmanBank::new(&KalmanConfig {
+            jerk_psd: coupling.config().velocity_jerk_psd,
+            measurement_var: self.measurement_var,
+        });
         self.teleop.replace(coupling)
     }
 
@@ -846,11 +857,13 @@ impl Servo {
         }
         self.teleop_force = Force3::zeros();
         if let Some(c) = self.teleop.as_mut() {
-            // Every tick, coupled or not: a side that is not in teleop tells the other so.
+            // Every tick, coupled or not: a side that is not in teleop tells the other so. The
+            // tip where the encoders put it, its velocity from the coupling's own fast filter.
+            let fast = self.teleop_kalman.update(t, q);
             let side = crate::teleop::SideInput {
                 t,
-                tip_mm: tip_position_mm(&self.geometry, &est.q),
-                vel_mm_s: jacobian(&self.geometry, &est.q) * est.qd * 1e3,
+                tip_mm: tip_position_mm(&self.geometry, q),
+                vel_mm_s: jacobian(&self.geometry, q) * fast.qd * 1e3,
                 fext_n: self.external.force,
                 buttons: self.buttons,
                 active: self.activity == Activity::Teleop,
@@ -994,7 +1007,7 @@ impl Servo {
                 ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
                 ServoCommand::Teleop(coupling) => {
                     self.enter(Activity::Teleop, q);
-                    if let Some(old) = self.teleop.replace(coupling) {
+                    if let Some(old) = self.set_teleop(coupling) {
                         self.reply(ServoReply::Teleop(old));
                     }
                 }

@@ -139,6 +139,17 @@ impl TickRecord {
     pub fn t(&self) -> f64 {
         self.t
     }
+
+    /// The tip force commanded this tick (effects, a client's, or a teleoperation coupling's),
+    /// N.
+    pub fn haptic_force(&self) -> [f64; 3] {
+        self.haptic.force
+    }
+
+    /// The mode's name, as the log's `mode` column writes it.
+    pub fn mode_name(&self) -> &'static str {
+        self.mode.as_str()
+    }
 }
 
 #[cfg(test)]

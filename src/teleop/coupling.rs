@@ -100,6 +100,8 @@ pub struct Coupling {
     /// Follower: where it holds while not following, mm.
     hold_mm: V3,
     holding: bool,
+    /// Follower (pf): the integral action's force, N.
+    integral_n: V3,
     /// The last force put out, N; a fade's start and time.
     force: V3,
     fade_from: V3,
@@ -130,6 +132,7 @@ impl Coupling {
             fresh_press_needed: false,
             hold_mm: V3::zeros(),
             holding: false,
+            integral_n: V3::zeros(),
             force: V3::zeros(),
             fade_from: V3::zeros(),
             fade_at: f64::NEG_INFINITY,
@@ -295,7 +298,8 @@ impl Coupling {
                     Architecture::Pp => {
                         let e = V3::from(p.pos_mm) - d;
                         let ev = V3::from(p.vel_mm_s) - dv;
-                        (e * self.cfg.stiffness_n_per_mm + ev * (self.cfg.damping_n_s_per_m * 1e-3))
+                        (e * self.cfg.stiffness_n_per_mm
+                            + ev * (self.cfg.leader_damping_n_s_per_m * 1e-3))
                             * self.cfg.force_scale
                     }
                     Architecture::Pf => {
@@ -328,6 +332,7 @@ impl Coupling {
                     // Take the engagement up from where this arm is: its target starts here.
                     self.epoch = p.engage;
                     self.origin_mm = x.tip_mm - V3::from(p.pos_mm);
+                    self.integral_n = V3::zeros();
                     self.port = Port {
                         energy_in: self.port.energy_in,
                         energy_out: self.port.energy_out,
@@ -345,6 +350,7 @@ impl Coupling {
                 if !self.holding {
                     self.hold_mm = x.tip_mm;
                     self.holding = true;
+                    self.integral_n = V3::zeros();
                 }
                 self.state = if link_up || self.peer.is_none() {
                     TeleopState::Waiting
@@ -360,8 +366,15 @@ impl Coupling {
             Some(p) => (self.origin_mm + V3::from(p.pos_mm), V3::from(p.vel_mm_s)),
             None => (self.hold_mm, V3::zeros()),
         };
+        if leader.is_some() && self.cfg.architecture == Architecture::Pf {
+            // Bounded, so a follower held off its target cannot wind up a push.
+            let ki = self.cfg.stiffness_n_per_mm * std::f64::consts::TAU * self.cfg.integral_hz;
+            let i = self.integral_n + (target - x.tip_mm) * (ki * self.dt);
+            self.integral_n = crate::haptics::limit_force(&i, 0.5 * self.cfg.max_force_n);
+        }
         let pull = (target - x.tip_mm) * self.cfg.stiffness_n_per_mm
-            + (target_v - x.vel_mm_s) * (self.cfg.damping_n_s_per_m * 1e-3);
+            + (target_v - x.vel_mm_s) * (self.cfg.damping_n_s_per_m * 1e-3)
+            + self.integral_n;
         let f = crate::haptics::limit_force(&pull, self.cfg.max_force_n);
         match leader {
             Some(p) => self.passive(f, x, p.energy_in_j),

@@ -67,8 +67,16 @@ pub struct TeleopConfig {
     pub force_scale: f64,
     /// The coupling spring, N/mm.
     pub stiffness_n_per_mm: f64,
-    /// The coupling damper, N·s/m.
+    /// The coupling damper on the follower, N·s/m.
     pub damping_n_s_per_m: f64,
+    /// The damper in the force the leader feels in pp, N·s/m (the hand damps the leader; a
+    /// damper on two differentiated positions is mostly felt as noise).
+    pub leader_damping_n_s_per_m: f64,
+    /// pf: the follower's integral action, as the frequency below which it removes the
+    /// position error (0: none), Hz. In contact it presses until the follower is as deep as
+    /// the leader, so the hand feels the environment's stiffness rather than the coupling
+    /// spring's in series with it. Not in pp, where the error is what the leader feels.
+    pub integral_hz: f64,
     /// Largest force the coupling puts on either tip, N.
     pub max_force_n: f64,
     /// The leader's force ramps in over this time after engaging, s.
@@ -87,6 +95,10 @@ pub struct TeleopConfig {
     pub passivity_max_damping_n_s_per_m: f64,
     /// Most energy a port keeps in hand from the far side, J.
     pub passivity_reserve_j: f64,
+    /// The coupling's own velocity estimate: jerk spectral density of its Kalman filter,
+    /// rad²/s⁵ (far faster than `[kalman]`'s: a stiff coupling needs a velocity with little
+    /// lag, or its damping comes too late and the pair oscillates).
+    pub velocity_jerk_psd: f64,
     /// Delay, jitter and loss injected on what the leader receives.
     pub to_leader: Impairment,
     /// Delay, jitter and loss injected on what the follower receives.
@@ -99,17 +111,20 @@ impl Default for TeleopConfig {
             architecture: Architecture::Pp,
             motion_scale: 1.0,
             force_scale: 1.0,
-            stiffness_n_per_mm: 3.0,
-            damping_n_s_per_m: 15.0,
+            stiffness_n_per_mm: 2.5,
+            damping_n_s_per_m: 7.0,
+            leader_damping_n_s_per_m: 0.0,
+            integral_hz: 1.0,
             max_force_n: 3.3,
             ramp_s: 0.5,
-            force_deadband_n: 0.05,
+            force_deadband_n: 0.02,
             link_timeout_ms: 25.0,
             fade_ms: 20.0,
             operator: Operator::Button1,
             passivity: true,
-            passivity_max_damping_n_s_per_m: 40.0,
+            passivity_max_damping_n_s_per_m: 15.0,
             passivity_reserve_j: 0.02,
+            velocity_jerk_psd: 1e6,
             to_leader: Impairment::default(),
             to_follower: Impairment::default(),
         }
@@ -119,7 +134,15 @@ impl Default for TeleopConfig {
 impl TeleopConfig {
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let ranges: [(&str, f64, f64, f64, &str); 11] = [
+        let ranges: [(&str, f64, f64, f64, &str); 13] = [
+            (
+                "teleop.leader_damping_n_s_per_m",
+                self.leader_damping_n_s_per_m,
+                0.0,
+                100.0,
+                "0 ..= 100 N·s/m",
+            ),
+            ("teleop.integral_hz", self.integral_hz, 0.0, 20.0, "0 ..= 20 Hz"),
             ("teleop.motion_scale", self.motion_scale, 0.05, 20.0, "0.05 ..= 20"),
             ("teleop.force_scale", self.force_scale, 0.0, 5.0, "0 ..= 5"),
             (
@@ -171,6 +194,13 @@ impl TeleopConfig {
         for (field, v, lo, hi, allowed) in ranges {
             check::in_range(field, v, lo, hi, allowed)?;
         }
+        check::in_range(
+            "teleop.velocity_jerk_psd",
+            self.velocity_jerk_psd,
+            1.0,
+            1e9,
+            "1 ..= 1e9 rad²/s⁵",
+        )?;
         for (side, imp) in [("to_leader", &self.to_leader), ("to_follower", &self.to_follower)] {
             let max = channel::MAX_DELAY_MS;
             check::in_range(

@@ -49,6 +49,10 @@ pub struct ArmState {
     /// torque; the limit is `[safety] thermal_limit`).
     #[serde(default)]
     pub heat: [f64; 3],
+    /// The outside's force on the tip (a hand, a contact) estimated from the motor torques
+    /// and the arm's model, N, OpenHaptics frame.
+    #[serde(default)]
+    pub fext: [f64; 3],
 }
 
 /// The state stream's message (`type: "state"`), as the protocol names it.

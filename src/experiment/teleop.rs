@@ -1,0 +1,777 @@
+//! `omnid experiment teleop --out DIR` (docs/TELEOP.md §6): two simulated Omnis coupled in one
+//! process, the simulated hand on the leader, a physical wall in the follower's simulator. Both
+//! servos tick in lockstep, unpaced (the leader first, then the follower: the follower sees the
+//! leader's packet of the same tick, the leader the follower's of the tick before), for each
+//! architecture with and without time-domain passivity, each scene and each channel. Writes
+//! `report.md`, `results.json` and figures.
+
+use super::{write_figure, ExperimentError, ExperimentReport};
+use crate::config::Config;
+use crate::control::{ControllerKind, Trajectory};
+use crate::haptics::{HandConfig, HandPattern};
+use crate::pipeline::{assemble, RunOptions};
+use crate::plot::figures::Role;
+use crate::plot::render::{Figure, Line, Panel};
+use crate::servo::Servo;
+use crate::teleop::{pair, Architecture, Coupling, Impairment, Operator, Role as Side, TeleopConfig};
+use crate::telemetry::record::TickRecord;
+use nalgebra::Vector3;
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+type V3 = Vector3<f64>;
+
+/// A channel the pair is run over: round trip (split evenly both ways), jitter as a fraction of
+/// the one-way delay, loss.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Channel {
+    /// Its name in the tables.
+    pub name: &'static str,
+    /// Round-trip delay, ms.
+    pub rt_ms: f64,
+    /// Each packet's delay varies by up to ± this fraction of the one-way delay.
+    pub jitter: f64,
+    /// Fraction of packets lost each way.
+    pub loss: f64,
+}
+
+/// The issue's channels: round trips from in-process to a second, jitter, and loss.
+pub const CHANNELS: [Channel; 12] = [
+    ch("0 ms", 0.0, 0.0, 0.0),
+    ch("2 ms", 2.0, 0.0, 0.0),
+    ch("10 ms", 10.0, 0.0, 0.0),
+    ch("50 ms", 50.0, 0.0, 0.0),
+    ch("100 ms", 100.0, 0.0, 0.0),
+    ch("200 ms", 200.0, 0.0, 0.0),
+    ch("500 ms", 500.0, 0.0, 0.0),
+    ch("1000 ms", 1000.0, 0.0, 0.0),
+    ch("100 ms ±50 %", 100.0, 0.5, 0.0),
+    ch("10 ms, 1 % loss", 10.0, 0.0, 0.01),
+    ch("10 ms, 10 % loss", 10.0, 0.0, 0.10),
+    ch("10 ms, 50 % loss", 10.0, 0.0, 0.50),
+];
+
+const fn ch(name: &'static str, rt_ms: f64, jitter: f64, loss: f64) -> Channel {
+    Channel {
+        name,
+        rt_ms,
+        jitter,
+        loss,
+    }
+}
+
+/// What the hand does on the leader, and what the follower meets.
+#[derive(Debug, Clone, Copy, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Scene {
+    /// The hand traces a 3-D path at 0.1 m/s; no wall.
+    Free,
+    /// The hand pushes down with `force_n`; the follower meets a floor of `wall_n_per_mm`.
+    Press {
+        /// The hand's push, N.
+        force_n: f64,
+        /// The floor's stiffness, N/mm.
+        wall_n_per_mm: f64,
+    },
+    /// The hand taps the floor (1 N/mm) at 1.5 Hz.
+    Tap,
+    /// The hand pushes with 1 N on the floor (1 N/mm) and lets go mid-contact.
+    LetGo,
+}
+
+impl Scene {
+    /// Its name in the tables.
+    pub fn name(&self) -> String {
+        match self {
+            Scene::Free => "free path".into(),
+            Scene::Press {
+                force_n,
+                wall_n_per_mm,
+            } => format!("press {force_n} N, {wall_n_per_mm} N/mm"),
+            Scene::Tap => "tapping".into(),
+            Scene::LetGo => "let go".into(),
+        }
+    }
+
+    fn wall(&self) -> Option<f64> {
+        match self {
+            Scene::Free => None,
+            Scene::Press { wall_n_per_mm, .. } => Some(*wall_n_per_mm),
+            Scene::Tap | Scene::LetGo => Some(1.0),
+        }
+    }
+
+    fn secs(&self, quick: bool) -> f64 {
+        let full = match self {
+            Scene::Free => 6.0,
+            Scene::Press { .. } => 4.0,
+            Scene::Tap => 4.0,
+            Scene::LetGo => 4.0,
+        };
+        if quick {
+            full * 0.5
+        } else {
+            full
+        }
+    }
+
+    /// When the hand lets go, s (let go only).
+    fn release_s(&self, quick: bool) -> Option<f64> {
+        matches!(self, Scene::LetGo).then(|| self.secs(quick) * 0.5)
+    }
+}
+
+/// The follower's floor: this far below the workspace centre, mm (the hand pushes down, −y).
+const FLOOR_MM: f64 = 10.0;
+/// The hand's approach before each scene starts, s.
+const APPROACH_S: f64 = 0.5;
+/// A run is unstable when over its last second the follower's tip, less its 50 ms moving
+/// average, moves more than this RMS, mm ...
+const HF_TIP_MM: f64 = 0.2;
+/// ... or the leader's force, less its moving average, more than this RMS, N.
+const HF_FORCE_N: f64 = 0.15;
+
+/// The numbers of one run (docs/TELEOP.md §6 defines each).
+#[derive(Debug, Clone, Serialize)]
+pub struct PairResult {
+    /// pp or pf.
+    pub architecture: &'static str,
+    /// Time-domain passivity on both ports.
+    pub passivity: bool,
+    /// The scene's name and parameters.
+    pub scene: String,
+    /// The channel's name.
+    pub channel: &'static str,
+    /// Round trip, ms.
+    pub rt_ms: f64,
+    /// Follower vs the leader delayed by the forward delay (motion since engaging), mm.
+    pub position_rms_mm: f64,
+    /// Force displayed at the leader vs the environment's on the follower delayed by the
+    /// backward delay, over the contact window, N (NaN without a wall).
+    pub force_rms_n: f64,
+    /// Perceived stiffness (leader force over the leader's depth past the mapped wall) over
+    /// the environment's, in the press's last second (NaN where there is no steady press).
+    pub stiffness_ratio: f64,
+    /// No trip, and no sustained oscillation over the last second.
+    pub stable: bool,
+    /// Energy into the channel minus energy out of it at the end, J (≥ 0: passive).
+    pub channel_energy_j: f64,
+    /// Its lowest value over the run, J.
+    pub channel_energy_min_j: f64,
+    /// Packets delivered per second, both ways together.
+    pub packets_per_s: f64,
+    /// The follower's external-force estimate vs the true contact force over the contact
+    /// window, N (NaN without a wall).
+    pub fext_rms_n: f64,
+    /// Why the run was unstable, when it was.
+    pub why: Option<String>,
+}
+
+/// One run's time series (for figures).
+#[derive(Debug, Default, Clone)]
+pub struct Trace {
+    /// Device time, s.
+    pub t: Vec<f64>,
+    /// Tips, mm.
+    pub leader_tip: Vec<V3>,
+    /// Follower tip, mm.
+    pub follower_tip: Vec<V3>,
+    /// The coupling's force on the leader (what the hand feels from the device), N.
+    pub leader_force: Vec<V3>,
+    /// The wall's force on the follower, N.
+    pub environment: Vec<V3>,
+    /// The follower's external-force estimate, N.
+    pub fext: Vec<V3>,
+    /// The channel's energy (in − out, both ports), J.
+    pub energy: Vec<f64>,
+}
+
+/// The config of one side.
+fn side_config(scene: &Scene, leader: bool, quick: bool) -> Config {
+    let mut cfg = Config::default();
+    cfg.sim.start_pose = cfg.reference.center;
+    cfg.sim.docked = false;
+    cfg.safety.persist_heat = false;
+    // The coupling's forces are the teleoperation's own; the haptic continuous-force limit is
+    // for rendered scenes (docs/HAPTICS.md), not in the coupling's path.
+    if leader {
+        cfg.haptics.hand = HandConfig {
+            pattern: match scene {
+                Scene::Free => HandPattern::Path,
+                Scene::Press { .. } | Scene::LetGo => HandPattern::Push {
+                    axis: 1,
+                    sign: -1.0,
+                },
+                Scene::Tap => HandPattern::Tap {
+                    axis: 1,
+                    sign: -1.0,
+                },
+            },
+            push_force_n: match scene {
+                Scene::Press { force_n, .. } => *force_n,
+                _ => 1.0,
+            },
+            speed_m_s: match scene {
+                Scene::Free => 0.1,
+                _ => 0.02,
+            },
+            path_radius_m: match scene {
+                Scene::Tap => (FLOOR_MM + 2.0) * 1e-3,
+                _ => 0.04,
+            },
+            release_s: scene.release_s(quick).unwrap_or(0.0),
+            approach_s: APPROACH_S,
+            ..HandConfig::default()
+        };
+    } else if let Some(k) = scene.wall() {
+        cfg.sim.wall.enabled = true;
+        cfg.sim.wall.side = "-y".into();
+        cfg.sim.wall.distance_mm = FLOOR_MM;
+        cfg.sim.wall.stiffness_n_per_mm = k;
+    }
+    cfg
+}
+
+/// A servo for one side (computed torque's parametric compensation; the simulator at the
+/// workspace centre), its records drained by the caller after every tick.
+fn side_servo(
+    name: &str,
+    cfg: &Config,
+    secs: f64,
+) -> Result<(Servo, crossbeam_channel::Receiver<TickRecord>), ExperimentError> {
+    let opts = RunOptions {
+        controller: ControllerKind::Ct,
+        trajectory: Trajectory::Hold,
+        duration_s: secs,
+        fast: true,
+        ..RunOptions::default()
+    };
+    let (tx, rx) = crossbeam_channel::bounded(64);
+    let stop = Arc::new(AtomicBool::new(false));
+    let p = assemble(&opts, cfg, &[], tx, stop).map_err(|source| ExperimentError::Run {
+        name: name.to_string(),
+        source: Box::new(source),
+    })?;
+    Ok((p.servo, rx))
+}
+
+/// Two simulated Omnis coupled in one process, ticked in lockstep (the leader first).
+pub struct PairSim {
+    /// The leader's servo (the simulated hand on it).
+    pub leader: Servo,
+    /// The follower's servo (a floor in its simulator, for the scenes with one).
+    pub follower: Servo,
+    lrx: crossbeam_channel::Receiver<TickRecord>,
+    frx: crossbeam_channel::Receiver<TickRecord>,
+}
+
+/// One lockstep tick's records.
+pub struct PairTick {
+    /// The leader's record.
+    pub leader: TickRecord,
+    /// The follower's record.
+    pub follower: TickRecord,
+}
+
+impl PairSim {
+    /// `arch` with passivity on or off, `scene` over `channel`, the coupling's other settings
+    /// from `base`, for up to `secs` s.
+    pub fn new(
+        base: &TeleopConfig,
+        arch: Architecture,
+        passivity: bool,
+        scene: &Scene,
+        channel: &Channel,
+        secs: f64,
+        quick: bool,
+    ) -> Result<PairSim, ExperimentError> {
+        let name = format!("{} {} {}", arch.as_str(), scene.name(), channel.name);
+        let lcfg = side_config(scene, true, quick);
+        let fcfg = side_config(scene, false, quick);
+        let one_way = channel.rt_ms / 2.0;
+        let imp = Impairment {
+            delay_ms: one_way,
+            jitter_ms: one_way * channel.jitter,
+            loss: channel.loss,
+        };
+        let tcfg = TeleopConfig {
+            architecture: arch,
+            passivity,
+            operator: Operator::Always,
+            to_leader: imp,
+            to_follower: imp,
+            ..base.clone()
+        };
+        let dt = 1.0 / lcfg.device.rate_hz;
+        let (le, fe) = pair(imp, imp, 0x7E1E);
+        let (mut leader, lrx) = side_servo(&name, &lcfg, secs)?;
+        let (mut follower, frx) = side_servo(&name, &fcfg, secs)?;
+        leader.set_teleop(Box::new(Coupling::new(Side::Leader, &tcfg, le, dt)));
+        follower.set_teleop(Box::new(Coupling::new(Side::Follower, &tcfg, fe, dt)));
+        Ok(PairSim {
+            leader,
+            follower,
+            lrx,
+            frx,
+        })
+    }
+
+    /// Tick both sides (the leader first); `Err` names why either loop ended.
+    pub fn tick(&mut self) -> Result<PairTick, String> {
+        let ends = [self.leader.tick(), self.follower.tick()];
+        if let Some(end) = ends.iter().flatten().next() {
+            return Err(format!("{end:?}"));
+        }
+        match (self.lrx.try_recv(), self.frx.try_recv()) {
+            (Ok(leader), Ok(follower)) => Ok(PairTick { leader, follower }),
+            _ => Err("a side sent no record".into()),
+        }
+    }
+
+    /// Tick the leader alone (the follower has gone silent: a cut link).
+    pub fn tick_leader(&mut self) -> Result<TickRecord, String> {
+        if let Some(end) = self.leader.tick() {
+            return Err(format!("{end:?}"));
+        }
+        self.lrx.try_recv().map_err(|e| e.to_string())
+    }
+
+    /// The channel's energy, in less out over both ports, J.
+    pub fn channel_energy(&self) -> f64 {
+        self.leader
+            .teleop()
+            .zip(self.follower.teleop())
+            .map_or(0.0, |(a, b)| {
+                a.port().energy_in + b.port().energy_in
+                    - a.port().energy_out
+                    - b.port().energy_out
+            })
+    }
+}
+
+/// Run one pair: `arch`, passivity on or off, `scene` over `channel`, the coupling's other
+/// settings from `base`.
+pub fn run_pair(
+    base: &TeleopConfig,
+    arch: Architecture,
+    passivity: bool,
+    scene: &Scene,
+    channel: &Channel,
+    quick: bool,
+) -> Result<(PairResult, Trace), ExperimentError> {
+    let secs = scene.secs(quick);
+    let mut sim = PairSim::new(base, arch, passivity, scene, channel, secs, quick)?;
+    let mut tr = Trace::default();
+    let mut why = None;
+    let ticks = (secs * 1000.0).round() as usize;
+    for _ in 0..ticks {
+        let PairTick {
+            leader: l,
+            follower: f,
+        } = match sim.tick() {
+            Ok(t) => t,
+            Err(e) => {
+                // A safety trip ends an unattached loop: unstable.
+                why = Some(e);
+                break;
+            }
+        };
+        tr.t.push(l.t);
+        tr.leader_tip.push(l.haptic.tip_mm.into());
+        tr.follower_tip.push(f.haptic.tip_mm.into());
+        tr.leader_force.push(l.haptic.force.into());
+        tr.environment.push(
+            sim.follower
+                .device()
+                .contact_force()
+                .unwrap_or([0.0; 3])
+                .into(),
+        );
+        tr.fext.push(sim.follower.external_force().into());
+        tr.energy.push(sim.channel_energy());
+    }
+    let delivered = [&sim.leader, &sim.follower]
+        .iter()
+        .filter_map(|s| s.teleop())
+        .map(|c| c.channel().delivered)
+        .sum::<u64>();
+    let result = measure(arch, passivity, scene, channel, &tr, why, delivered, quick);
+    Ok((result, tr))
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x * x, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        (s / n as f64).sqrt()
+    }
+}
+
+/// RMS of `x` less its centred moving average over `w` samples, over `from..`.
+fn high_pass_rms(x: &[V3], from: usize, w: usize) -> f64 {
+    let h = w / 2;
+    rms((from.max(h)..x.len().saturating_sub(h)).map(|k| {
+        let mean = x[k - h..=k + h].iter().sum::<V3>() / (2 * h + 1) as f64;
+        (x[k] - mean).norm()
+    }))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn measure(
+    arch: Architecture,
+    passivity: bool,
+    scene: &Scene,
+    channel: &Channel,
+    tr: &Trace,
+    mut why: Option<String>,
+    delivered: u64,
+    quick: bool,
+) -> PairResult {
+    let n = tr.t.len();
+    let shift = (channel.rt_ms / 2.0).round() as usize;
+    let rate = 1000.0;
+    let at = |s: f64| ((s * rate) as usize).min(n);
+    let (xl0, xf0) = match (tr.leader_tip.first(), tr.follower_tip.first()) {
+        (Some(l), Some(f)) => (*l, *f),
+        _ => (V3::zeros(), V3::zeros()),
+    };
+    let secs = scene.secs(quick);
+    // Position: after the approach, the whole scene.
+    let position_rms_mm = rms((at(APPROACH_S).max(shift)..n).map(|k| {
+        ((tr.follower_tip[k] - xf0) - (tr.leader_tip[k - shift] - xl0)).norm()
+    }));
+    // Contact window: the press's steady last second, the tapping's whole, let-go's pushing
+    // half after it settled.
+    let window = match scene {
+        Scene::Free => None,
+        Scene::Press { .. } => Some((at(secs - 1.0), n)),
+        Scene::Tap => Some((at(APPROACH_S), n)),
+        Scene::LetGo => {
+            let r = scene.release_s(quick).unwrap_or(secs);
+            Some((at(r - 0.5), at(r)))
+        }
+    };
+    let (force_rms_n, fext_rms_n) = match window {
+        Some((a, b)) if b > a => (
+            rms((a.max(shift)..b).map(|k| (tr.leader_force[k] - tr.environment[k - shift]).norm())),
+            rms((a..b).map(|k| (tr.fext[k] - tr.environment[k]).norm())),
+        ),
+        _ => (f64::NAN, f64::NAN),
+    };
+    let stiffness_ratio = match (scene, window) {
+        (Scene::Press { wall_n_per_mm, .. }, Some((a, b))) if b > a => {
+            // Normal out of the floor: +y. The leader's depth past where the floor maps.
+            let f: f64 = (a..b).map(|k| tr.leader_force[k][1]).sum::<f64>() / (b - a) as f64;
+            let depth: f64 = (a..b)
+                .map(|k| -(tr.leader_tip[k][1] - xl0[1]) - FLOOR_MM)
+                .sum::<f64>()
+                / (b - a) as f64;
+            if depth > 0.05 {
+                f / depth / wall_n_per_mm
+            } else {
+                f64::NAN
+            }
+        }
+        _ => f64::NAN,
+    };
+    let last = n.saturating_sub(1000);
+    let hf_tip = high_pass_rms(&tr.follower_tip, last, 51);
+    let hf_force = high_pass_rms(&tr.leader_force, last, 51);
+    if why.is_none() && n < (secs * rate) as usize {
+        why = Some("ended early".into());
+    }
+    if why.is_none() && !(hf_tip <= HF_TIP_MM && hf_force <= HF_FORCE_N) {
+        why = Some(format!(
+            "oscillating over the last second: follower tip {hf_tip:.2} mm RMS, leader force \
+             {hf_force:.2} N RMS above their 50 ms averages"
+        ));
+    }
+    let channel_energy_j = tr.energy.last().copied().unwrap_or(0.0);
+    let channel_energy_min_j = tr.energy.iter().copied().fold(0.0, f64::min);
+    PairResult {
+        architecture: arch.as_str(),
+        passivity,
+        scene: scene.name(),
+        channel: channel.name,
+        rt_ms: channel.rt_ms,
+        position_rms_mm,
+        force_rms_n,
+        stiffness_ratio,
+        stable: why.is_none(),
+        channel_energy_j,
+        channel_energy_min_j,
+        packets_per_s: delivered as f64 / (n.max(1) as f64 / rate),
+        fext_rms_n,
+        why,
+    }
+}
+
+/// The scenes run over every channel, and those run over the first channels only.
+fn scenes(quick: bool) -> (Vec<Scene>, Vec<Scene>) {
+    let main = vec![
+        Scene::Free,
+        Scene::Press {
+            force_n: 1.0,
+            wall_n_per_mm: 1.0,
+        },
+        Scene::Tap,
+        Scene::LetGo,
+    ];
+    let mut presses = Vec::new();
+    if !quick {
+        for force_n in [1.0, 2.0] {
+            for wall_n_per_mm in [0.5, 1.0, 2.0] {
+                if !(force_n == 1.0 && wall_n_per_mm == 1.0) {
+                    presses.push(Scene::Press {
+                        force_n,
+                        wall_n_per_mm,
+                    });
+                }
+            }
+        }
+    }
+    (main, presses)
+}
+
+/// The experiment: every architecture with and without passivity, every scene and channel.
+pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, ExperimentError> {
+    crate::output::check_dir(out).map_err(ExperimentError::OutDir)?;
+    for f in ["report.md", "results.json"] {
+        crate::output::check_file(&out.join(f))?;
+    }
+    let channels: Vec<Channel> = if quick {
+        [0usize, 4, 6, 10].iter().map(|&i| CHANNELS[i]).collect()
+    } else {
+        CHANNELS.to_vec()
+    };
+    let (main, presses) = scenes(quick);
+    let base = TeleopConfig::default();
+    let mut results = Vec::new();
+    let mut traces: Vec<(&'static str, Trace)> = Vec::new();
+    for arch in [Architecture::Pp, Architecture::Pf] {
+        for passivity in [true, false] {
+            for scene in &main {
+                for c in &channels {
+                    let (r, tr) = run_pair(&base, arch, passivity, scene, c, quick)?;
+                    if let Some(title) = figure_panel(arch, passivity, scene, c) {
+                        traces.push((title, tr));
+                    }
+                    results.push(r);
+                }
+            }
+            for scene in &presses {
+                for c in [CHANNELS[0], CHANNELS[4]] {
+                    results.push(run_pair(&base, arch, passivity, scene, &c, quick)?.0);
+                }
+            }
+        }
+    }
+    let mut figures = Vec::new();
+    press_figure(out, &traces, &mut figures)?;
+    let md = report(&results, &channels, quick);
+    let json = serde_json::json!({
+        "quick": quick,
+        "floor_mm": FLOOR_MM,
+        "channels": channels,
+        "runs": results,
+    });
+    let text = serde_json::to_string_pretty(&json)
+        .map_err(|e| ExperimentError::Internal(e.to_string()))?;
+    crate::output::write_bytes(&out.join("results.json"), text.as_bytes())?;
+    let report_path = out.join("report.md");
+    crate::output::write_bytes(&report_path, md.as_bytes())?;
+    Ok(ExperimentReport {
+        report: report_path,
+        figures,
+        markdown: md,
+    })
+}
+
+/// The press figure's panel a run is drawn in, if any: 1 N into 1 N/mm with passivity control,
+/// in-process and at 200 ms round trip.
+fn figure_panel(
+    arch: Architecture,
+    passivity: bool,
+    scene: &Scene,
+    c: &Channel,
+) -> Option<&'static str> {
+    let press = matches!(scene, Scene::Press { force_n, wall_n_per_mm } if *force_n == 1.0 && *wall_n_per_mm == 1.0);
+    if !(passivity && press && c.loss == 0.0 && c.jitter == 0.0) {
+        return None;
+    }
+    match (arch, c.rt_ms as u32) {
+        (Architecture::Pp, 0) => Some("position–position, in process"),
+        (Architecture::Pf, 0) => Some("position–force, in process"),
+        (Architecture::Pp, 200) => Some("position–position, 200 ms round trip"),
+        (Architecture::Pf, 200) => Some("position–force, 200 ms round trip"),
+        _ => None,
+    }
+}
+
+fn press_figure(
+    out: &Path,
+    traces: &[(&'static str, Trace)],
+    files: &mut Vec<PathBuf>,
+) -> Result<(), ExperimentError> {
+    if traces.is_empty() {
+        return Ok(());
+    }
+    let mut x_max: f64 = 0.0;
+    let panels = traces
+        .iter()
+        .map(|(title, tr)| {
+            x_max = tr.t.last().copied().unwrap_or(0.0).max(x_max);
+            let series = |v: &[V3]| tr.t.iter().zip(v).map(|(t, f)| (*t, f[1])).collect();
+            Panel {
+                title,
+                lines: vec![
+                    Line {
+                        points: series(&tr.environment),
+                        role: Role::Target,
+                    },
+                    Line {
+                        points: series(&tr.leader_force),
+                        role: Role::Measured,
+                    },
+                    Line {
+                        points: series(&tr.fext),
+                        role: Role::Estimate,
+                    },
+                ],
+            }
+        })
+        .collect();
+    let fig = Figure {
+        title: "Press with 1 N into a 1 N/mm floor: the force felt at the leader",
+        y_desc: "force up (+y), N",
+        x_range: (0.0, x_max.max(1e-3)),
+        shade_until: None,
+        zero_line: true,
+        legend: vec![
+            ("the floor's force on the follower", Role::Target),
+            ("the force the leader puts on the hand", Role::Measured),
+            ("the follower's estimate of the floor's force", Role::Estimate),
+        ],
+        panels,
+    };
+    write_figure(&fig, out, "teleop-press", files)
+}
+
+fn num(v: f64, digits: usize) -> String {
+    if v.is_finite() {
+        format!("{v:.digits$}")
+    } else {
+        "–".into()
+    }
+}
+
+fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
+    let mut md = String::from(
+        "# Teleoperation between two simulated Omnis\n\n\
+         Two simulated Omnis in one process, ticking in lockstep at 1 kHz: the simulated hand on \
+         the leader, a floor 10 mm below the workspace centre inside the follower's simulator \
+         (a physical spring-damper, not a rendered effect). Each side's coupling runs in its \
+         arm's servo (docs/TELEOP.md). Channels are injected in both directions (half the round \
+         trip each way).\n\n",
+    );
+    if quick {
+        md.push_str("*`--quick`: shortened runs, fewer channels and no press sweep; the numbers are not the full experiment's.*\n\n");
+    }
+    md.push_str(
+        "Columns: *position* is the follower's motion against the leader's delayed by the \
+         forward delay (RMS, mm); *force* is the force the leader puts on the hand against the \
+         floor's force on the follower delayed by the backward delay, over the contact window \
+         (RMS, N); *k ratio* is the stiffness the hand feels (leader force over the leader's \
+         depth past where the floor maps) over the floor's; *energy* is the channel's energy in \
+         less out at the end (≥ 0: the channel made no energy); *stable*: no trip and no \
+         sustained oscillation over the last second.\n\n",
+    );
+    for arch in ["pp", "pf"] {
+        for pc in [true, false] {
+            let _ = writeln!(
+                md,
+                "## {} {} passivity control\n",
+                if arch == "pp" { "Position–position" } else { "Position–force" },
+                if pc { "with" } else { "without" }
+            );
+            md.push_str("| channel | free: position mm | free: stable | press 1 N: force N | press: k ratio | press: stable | tapping: stable | let go: stable | min energy mJ |\n|---|---|---|---|---|---|---|---|---|\n");
+            for c in channels {
+                let find = |scene: &str| {
+                    results.iter().find(|r| {
+                        r.architecture == arch
+                            && r.passivity == pc
+                            && r.channel == c.name
+                            && r.scene.starts_with(scene)
+                    })
+                };
+                let st = |r: Option<&PairResult>| match r {
+                    Some(r) if r.stable => "yes".to_string(),
+                    Some(_) => "**no**".to_string(),
+                    None => "–".to_string(),
+                };
+                let free = find("free");
+                let press = find("press 1 N, 1 N/mm");
+                let min_e = results
+                    .iter()
+                    .filter(|r| r.architecture == arch && r.passivity == pc && r.channel == c.name)
+                    .map(|r| r.channel_energy_min_j)
+                    .fold(0.0, f64::min);
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                    c.name,
+                    num(free.map_or(f64::NAN, |r| r.position_rms_mm), 2),
+                    st(free),
+                    num(press.map_or(f64::NAN, |r| r.force_rms_n), 3),
+                    num(press.map_or(f64::NAN, |r| r.stiffness_ratio), 2),
+                    st(press),
+                    st(find("tapping")),
+                    st(find("let go")),
+                    num(min_e * 1e3, 2),
+                );
+            }
+            md.push('\n');
+        }
+    }
+    let presses: Vec<&PairResult> = results
+        .iter()
+        .filter(|r| r.scene.starts_with("press") && r.passivity && r.rt_ms == 0.0)
+        .collect();
+    if !presses.is_empty() {
+        md.push_str("## Presses, in-process channel, with passivity control\n\n| architecture | scene | force RMS N | k ratio | estimate RMS N | stable |\n|---|---|---|---|---|---|\n");
+        for r in presses {
+            let _ = writeln!(
+                md,
+                "| {} | {} | {} | {} | {} | {} |",
+                r.architecture,
+                r.scene,
+                num(r.force_rms_n, 3),
+                num(r.stiffness_ratio, 2),
+                num(r.fext_rms_n, 3),
+                if r.stable { "yes" } else { "**no**" }
+            );
+        }
+        md.push('\n');
+    }
+    md.push_str("![press](teleop-press.png)\n\n");
+    let unstable: Vec<&PairResult> = results.iter().filter(|r| !r.stable).collect();
+    if !unstable.is_empty() {
+        md.push_str("## Why the unstable runs were called so\n\n");
+        for r in unstable {
+            let _ = writeln!(
+                md,
+                "- {} {} passivity, {}, {}: {}",
+                r.architecture,
+                if r.passivity { "with" } else { "without" },
+                r.scene,
+                r.channel,
+                r.why.as_deref().unwrap_or("")
+            );
+        }
+    }
+    md
+}
