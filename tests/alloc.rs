@@ -526,8 +526,16 @@ fn a_coupled_teleoperation_pair_allocates_nothing_per_tick() {
     };
     for arch in [Architecture::Pp, Architecture::Pf] {
         let lossy = CHANNELS.iter().find(|c| c.loss > 0.0).unwrap();
-        let mut sim =
-            PairSim::new(&TeleopConfig::default(), arch, true, &scene, lossy, 10.0, false).unwrap();
+        let mut sim = PairSim::new(
+            &TeleopConfig::default(),
+            arch,
+            true,
+            &scene,
+            lossy,
+            10.0,
+            false,
+        )
+        .unwrap();
         for _ in 0..500 {
             sim.tick().unwrap();
         }

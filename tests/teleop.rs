@@ -12,7 +12,10 @@ const PRESS: Scene = Scene::Press {
 };
 
 fn channel(rt_ms: f64) -> Channel {
-    *CHANNELS.iter().find(|c| c.rt_ms == rt_ms && c.loss == 0.0 && c.jitter == 0.0).unwrap()
+    *CHANNELS
+        .iter()
+        .find(|c| c.rt_ms == rt_ms && c.loss == 0.0 && c.jitter == 0.0)
+        .unwrap()
 }
 
 #[test]
@@ -24,8 +27,15 @@ fn the_followers_force_estimate_is_within_0_1_n_of_the_true_contact_during_a_1_n
         // (computed inside the follower's simulator, which the estimate never sees).
         let n = tr.t.len();
         let floor: f64 = tr.environment[n - 1000..].iter().map(|f| f[1]).sum::<f64>() / 1000.0;
-        assert!((floor - 1.0).abs() < 0.2, "{arch:?}: the floor pushed {floor} N");
-        assert!(r.fext_rms_n <= 0.1, "{arch:?}: estimate RMS error {} N", r.fext_rms_n);
+        assert!(
+            (floor - 1.0).abs() < 0.2,
+            "{arch:?}: the floor pushed {floor} N"
+        );
+        assert!(
+            r.fext_rms_n <= 0.1,
+            "{arch:?}: estimate RMS error {} N",
+            r.fext_rms_n
+        );
     }
 }
 
@@ -35,10 +45,18 @@ fn a_local_pair_follows_within_half_a_millimetre_and_the_hand_feels_the_floor() 
     for arch in [Architecture::Pf, Architecture::Pp] {
         let (free, _) = run_pair(&base, arch, true, &Scene::Free, &channel(0.0), false).unwrap();
         assert!(free.stable, "{arch:?}: {:?}", free.why);
-        assert!(free.position_rms_mm <= 0.5, "{arch:?}: {} mm", free.position_rms_mm);
+        assert!(
+            free.position_rms_mm <= 0.5,
+            "{arch:?}: {} mm",
+            free.position_rms_mm
+        );
         let (press, _) = run_pair(&base, arch, true, &PRESS, &channel(0.0), false).unwrap();
         assert!(press.stable, "{arch:?}: {:?}", press.why);
-        assert!(press.force_rms_n <= 0.15, "{arch:?}: {} N", press.force_rms_n);
+        assert!(
+            press.force_rms_n <= 0.15,
+            "{arch:?}: {} N",
+            press.force_rms_n
+        );
     }
     // Position–force with the follower's integral action: the hand feels the floor's own
     // stiffness, not the coupling spring in series with it.
@@ -49,8 +67,16 @@ fn a_local_pair_follows_within_half_a_millimetre_and_the_hand_feels_the_floor() 
 #[test]
 fn a_cut_link_fades_the_leaders_force_within_50_ms_without_a_step_and_leaves_it_free() {
     let base = TeleopConfig::default();
-    let mut sim = PairSim::new(&base, Architecture::Pf, true, &PRESS, &channel(0.0), 10.0, false)
-        .unwrap();
+    let mut sim = PairSim::new(
+        &base,
+        Architecture::Pf,
+        true,
+        &PRESS,
+        &channel(0.0),
+        10.0,
+        false,
+    )
+    .unwrap();
     let mut last = None;
     for _ in 0..3000 {
         last = Some(sim.tick().unwrap());
@@ -90,8 +116,12 @@ fn passivity_control_keeps_a_pair_stable_at_500_ms_that_is_unstable_without_it()
     let base = TeleopConfig::default();
     let slow = channel(500.0);
     let (with, _) = run_pair(&base, Architecture::Pp, true, &Scene::Free, &slow, false).unwrap();
-    let (without, _) = run_pair(&base, Architecture::Pp, false, &Scene::Free, &slow, false).unwrap();
+    let (without, _) =
+        run_pair(&base, Architecture::Pp, false, &Scene::Free, &slow, false).unwrap();
     assert!(with.stable, "{:?}", with.why);
-    assert!(!without.stable, "the controller is seen to matter only if it does");
+    assert!(
+        !without.stable,
+        "the controller is seen to matter only if it does"
+    );
     assert!(with.channel_energy_min_j > without.channel_energy_min_j);
 }

@@ -156,7 +156,8 @@ impl Wall {
         let depth = self.sign * (tip[self.axis] - self.at_m);
         let mut f = Force3::zeros();
         if depth > 0.0 {
-            let push = (self.k_n_per_m * depth + self.b_n_s_per_m * self.sign * v[self.axis]).max(0.0);
+            let push =
+                (self.k_n_per_m * depth + self.b_n_s_per_m * self.sign * v[self.axis]).max(0.0);
             f[self.axis] = -self.sign * push;
         }
         f
@@ -413,7 +414,11 @@ fn check_tip_spring(
             };
             let needed = (f64::from(substeps) * over).ceil();
             // A field in N/mm is told in its own unit.
-            let unit = if field.ends_with("_per_mm") { 1e-3 } else { 1.0 };
+            let unit = if field.ends_with("_per_mm") {
+                1e-3
+            } else {
+                1.0
+            };
             return Err(check::invalid(
                 field,
                 value * unit,
@@ -618,7 +623,10 @@ impl SimOmni {
             start_ns: 0,
             hand,
             hand_force: Force3::zeros(),
-            wall: Wall::place(&cfg.sim.wall, &tip_position_mm(cfg.geometry, &cfg.center.into())),
+            wall: Wall::place(
+                &cfg.sim.wall,
+                &tip_position_mm(cfg.geometry, &cfg.center.into()),
+            ),
             wall_force: Force3::zeros(),
             inkwell: Inkwell {
                 pose: ink,

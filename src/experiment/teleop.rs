@@ -13,8 +13,10 @@ use crate::pipeline::{assemble, RunOptions};
 use crate::plot::figures::Role;
 use crate::plot::render::{Figure, Line, Panel};
 use crate::servo::Servo;
-use crate::teleop::{pair, Architecture, Coupling, Impairment, Operator, Role as Side, TeleopConfig};
 use crate::telemetry::record::TickRecord;
+use crate::teleop::{
+    pair, Architecture, Coupling, Impairment, Operator, Role as Side, TeleopConfig,
+};
 use nalgebra::Vector3;
 use serde::Serialize;
 use std::fmt::Write as _;
@@ -345,9 +347,7 @@ impl PairSim {
             .teleop()
             .zip(self.follower.teleop())
             .map_or(0.0, |(a, b)| {
-                a.port().energy_in + b.port().energy_in
-                    - a.port().energy_out
-                    - b.port().energy_out
+                a.port().energy_in + b.port().energy_in - a.port().energy_out - b.port().energy_out
             })
     }
 }
@@ -441,9 +441,8 @@ fn measure(
     };
     let secs = scene.secs(quick);
     // Position: after the approach, the whole scene.
-    let position_rms_mm = rms((at(APPROACH_S).max(shift)..n).map(|k| {
-        ((tr.follower_tip[k] - xf0) - (tr.leader_tip[k - shift] - xl0)).norm()
-    }));
+    let position_rms_mm = rms((at(APPROACH_S).max(shift)..n)
+        .map(|k| ((tr.follower_tip[k] - xf0) - (tr.leader_tip[k - shift] - xl0)).norm()));
     // Contact window: the press's steady last second, the tapping's whole, let-go's pushing
     // half after it settled.
     let window = match scene {
@@ -654,7 +653,10 @@ fn press_figure(
         legend: vec![
             ("the floor's force on the follower", Role::Target),
             ("the force the leader puts on the hand", Role::Measured),
-            ("the follower's estimate of the floor's force", Role::Estimate),
+            (
+                "the follower's estimate of the floor's force",
+                Role::Estimate,
+            ),
         ],
         panels,
     };
@@ -690,12 +692,38 @@ fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
          less out at the end (≥ 0: the channel made no energy); *stable*: no trip and no \
          sustained oscillation over the last second.\n\n",
     );
+    md.push_str("## Summary\n\n| architecture | passivity control | stable runs | worst channel energy (mJ) |\n|---|---|---|---|\n");
+    for arch in ["pp", "pf"] {
+        for pc in [true, false] {
+            let runs: Vec<&PairResult> = results
+                .iter()
+                .filter(|r| r.architecture == arch && r.passivity == pc)
+                .collect();
+            let stable = runs.iter().filter(|r| r.stable).count();
+            let worst = runs
+                .iter()
+                .map(|r| r.channel_energy_min_j)
+                .fold(0.0, f64::min);
+            let _ = writeln!(
+                md,
+                "| {arch} | {} | {stable} of {} | {} |",
+                if pc { "on" } else { "off" },
+                runs.len(),
+                num(worst * 1e3, 1)
+            );
+        }
+    }
+    md.push('\n');
     for arch in ["pp", "pf"] {
         for pc in [true, false] {
             let _ = writeln!(
                 md,
                 "## {} {} passivity control\n",
-                if arch == "pp" { "Position–position" } else { "Position–force" },
+                if arch == "pp" {
+                    "Position–position"
+                } else {
+                    "Position–force"
+                },
                 if pc { "with" } else { "without" }
             );
             md.push_str("| channel | free: position mm | free: stable | press 1 N: force N | press: k ratio | press: stable | tapping: stable | let go: stable | min energy mJ |\n|---|---|---|---|---|---|---|---|---|\n");

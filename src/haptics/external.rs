@@ -71,7 +71,12 @@ impl ExternalForce {
     /// One sample with the parametric model `m`: the estimated (q, q̇) and the motors' torque
     /// over the interval that ended at it.
     pub(crate) fn observe(&mut self, m: &Dynamics, q: &Joint3, qd: &Joint3, acting: &Joint3) {
-        if !(q.iter().chain(qd.iter()).chain(acting.iter()).all(|v| v.is_finite())) {
+        if !(q
+            .iter()
+            .chain(qd.iter())
+            .chain(acting.iter())
+            .all(|v| v.is_finite()))
+        {
             return;
         }
         let mass = m.mass(q);
@@ -195,17 +200,26 @@ mod tests {
         let mut worst_late = 0.0f64;
         for k in 0..3000 {
             let t = k as f64 * dt;
-            // The motors: gravity held, plus a slow swing.
-            let motor = plant.gravity(&q) + Joint3::new(0.02 * (3.0 * t).sin(), 0.03 * (2.0 * t).cos(), 0.0);
+            // The motors: gravity held, the push resisted, a swing about the start kept
+            // inside the joint limits by a spring (whose torque the observer is told).
             let ext = tip_force_torque(&g, &q, &push);
+            let swing = Joint3::new(0.2 * (3.0 * t).sin(), 0.6 + 0.2 * (2.0 * t).cos(), 0.2);
+            let motor = plant.gravity(&q) - ext + (swing - q) * 0.5 - qd * 0.01;
             let f = |q: &Joint3, qd: &Joint3| plant.forward_dynamics(q, qd, &(motor + ext));
             let h = dt / 10.0;
             for _ in 0..10 {
                 let a1 = f(&q, &qd);
                 let a2 = f(&(q + qd * (h / 2.0)), &(qd + a1 * (h / 2.0)));
-                let a3 = f(&(q + (qd + a1 * (h / 2.0)) * (h / 2.0)), &(qd + a2 * (h / 2.0)));
+                let a3 = f(
+                    &(q + (qd + a1 * (h / 2.0)) * (h / 2.0)),
+                    &(qd + a2 * (h / 2.0)),
+                );
                 let a4 = f(&(q + (qd + a2 * (h / 2.0)) * h), &(qd + a3 * h));
-                q += (qd + (qd + a1 * (h / 2.0)) * 2.0 + (qd + a2 * (h / 2.0)) * 2.0 + (qd + a3 * h)) * (h / 6.0);
+                q += (qd
+                    + (qd + a1 * (h / 2.0)) * 2.0
+                    + (qd + a2 * (h / 2.0)) * 2.0
+                    + (qd + a3 * h))
+                    * (h / 6.0);
                 qd += (a1 + a2 * 2.0 + a3 * 2.0 + a4) * (h / 6.0);
             }
             e.observe(&plant, &q, &qd, &motor);

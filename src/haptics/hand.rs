@@ -278,7 +278,9 @@ mod tests {
 
     #[test]
     fn patterns_parse_and_print_back() {
-        for name in ["none", "hold", "path", "push+x", "push-y", "push+z", "tap-y", "tap+x"] {
+        for name in [
+            "none", "hold", "path", "push+x", "push-y", "push+z", "tap-y", "tap+x",
+        ] {
             assert_eq!(HandPattern::parse(name).unwrap().name(), name);
         }
         for bad in ["push", "push*x", "push+w", "walk", "tap", "tapy"] {

@@ -13,8 +13,8 @@ pub mod scene;
 
 pub use config::HapticsConfig;
 pub use effects::Effect;
-pub use external::ExternalModel;
 pub(crate) use effects::MAX_EFFECTS;
+pub use external::ExternalModel;
 pub(crate) use hand::Hand;
 pub use hand::{HandConfig, HandPattern};
 pub(crate) use render::HapticLoop;

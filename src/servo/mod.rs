@@ -19,13 +19,13 @@ use crate::device::{
 };
 use crate::estimate::kalman::{Estimate, KalmanConfig};
 use crate::estimate::KalmanBank;
-use crate::haptics::HapticsConfig;
 use crate::haptics::external::ExternalForce;
+use crate::haptics::HapticsConfig;
 use crate::haptics::{limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop};
 use crate::identifier::Identifier;
 use crate::identifier::IdentifierConfig;
-use crate::omni::{jacobian, tip_position_mm, Dynamics, Geometry};
 use crate::omni::Joint3;
+use crate::omni::{jacobian, tip_position_mm, Dynamics, Geometry};
 use crate::servo::summary::{FaultEntry, RunStats};
 use crate::telemetry::record::{flags, HapticRecord, Live, Mode, TickRecord};
 pub use command::Activity;

@@ -226,6 +226,8 @@ mod tests {
         for k in 40..45 {
             leader.send(packet(k));
         }
+        // Taken in at 0.5 s (due 9.5 ms later): only the last of the first forty is due.
+        assert_eq!(follower.receive(0.5).map(|p| p.seq), Some(39));
         assert_eq!(follower.receive(1.0).map(|p| p.seq), Some(44));
     }
 

@@ -117,7 +117,11 @@ impl Coupling {
             role,
             cfg: cfg.clone(),
             endpoint,
-            port: Port::default(),
+            port: Port::new(
+                cfg.passivity_reserve_j,
+                cfg.passivity_max_damping_n_s_per_m,
+                cfg.passivity,
+            ),
             dt,
             seq: 0,
             state: TeleopState::Waiting,
@@ -262,11 +266,6 @@ impl Coupling {
                 self.held_mm = V3::zeros();
                 self.engaged_at = x.t;
                 self.fresh_press_needed = false;
-                self.port = Port {
-                    energy_in: self.port.energy_in,
-                    energy_out: self.port.energy_out,
-                    ..Port::default()
-                };
                 self.state = TeleopState::Engaged;
             }
         }
@@ -286,12 +285,19 @@ impl Coupling {
             _ => {}
         }
         let (d, dv, engage, flags) = match self.state {
-            TeleopState::Engaged => ((x.tip_mm - self.origin_mm) * s, x.vel_mm_s * s, self.epoch, 0),
+            TeleopState::Engaged => (
+                (x.tip_mm - self.origin_mm) * s,
+                x.vel_mm_s * s,
+                self.epoch,
+                0,
+            ),
             TeleopState::Clutched => (self.held_mm, V3::zeros(), self.epoch, packet_flags::CLUTCH),
             _ => (V3::zeros(), V3::zeros(), 0, 0),
         };
         self.send(x, engage, flags, d, dv);
-        let peer = self.peer.filter(|p| p.engage == self.epoch && self.epoch != 0);
+        let peer = self
+            .peer
+            .filter(|p| p.engage == self.epoch && self.epoch != 0);
         match (self.state, peer) {
             (TeleopState::Engaged, Some(p)) if link_up => {
                 let raw = match self.cfg.architecture {
@@ -306,7 +312,11 @@ impl Coupling {
                         let f = V3::from(p.force_n);
                         let n = f.norm();
                         let db = self.cfg.force_deadband_n;
-                        let felt = if n > db { f * ((n - db) / n) } else { V3::zeros() };
+                        let felt = if n > db {
+                            f * ((n - db) / n)
+                        } else {
+                            V3::zeros()
+                        };
                         felt * self.cfg.force_scale
                     }
                 };
@@ -333,11 +343,6 @@ impl Coupling {
                     self.epoch = p.engage;
                     self.origin_mm = x.tip_mm - V3::from(p.pos_mm);
                     self.integral_n = V3::zeros();
-                    self.port = Port {
-                        energy_in: self.port.energy_in,
-                        energy_out: self.port.energy_out,
-                        ..Port::default()
-                    };
                 }
                 self.state = if p.flags & packet_flags::CLUTCH != 0 {
                     TeleopState::Clutched
@@ -385,15 +390,7 @@ impl Coupling {
 
     /// The force through this side's passivity port.
     fn passive(&mut self, f: V3, x: &SideInput, remote_in: f64) -> V3 {
-        self.port.pass(
-            f,
-            &(x.vel_mm_s * 1e-3),
-            self.dt,
-            remote_in,
-            self.cfg.passivity_reserve_j,
-            self.cfg.passivity_max_damping_n_s_per_m,
-            self.cfg.passivity,
-        )
+        self.port.pass(f, &(x.vel_mm_s * 1e-3), self.dt, remote_in)
     }
 
     /// Leave following for `to`, the force fading from where it is.
@@ -460,7 +457,13 @@ mod tests {
     }
 
     /// Step the pair `n` ticks from tick `k0` with the leader at `l` and the follower at `f`.
-    fn run(pair: &mut (Coupling, Coupling), k0: usize, n: usize, l: SideInput, f: SideInput) -> (V3, V3) {
+    fn run(
+        pair: &mut (Coupling, Coupling),
+        k0: usize,
+        n: usize,
+        l: SideInput,
+        f: SideInput,
+    ) -> (V3, V3) {
         let mut out = (V3::zeros(), V3::zeros());
         for k in k0..k0 + n {
             let t = k as f64 * DT;
@@ -474,12 +477,27 @@ mod tests {
     fn engaging_starts_from_where_each_arm_is_and_then_the_follower_is_pulled_along() {
         let cfg = always();
         let mut p = sides(&cfg);
-        let (lf, ff) = run(&mut p, 0, 20, input(0.0, [10.0, 0.0, 0.0]), input(0.0, [-5.0, 3.0, 0.0]));
-        assert_eq!((p.0.state(), p.1.state()), (TeleopState::Engaged, TeleopState::Engaged));
+        let (lf, ff) = run(
+            &mut p,
+            0,
+            20,
+            input(0.0, [10.0, 0.0, 0.0]),
+            input(0.0, [-5.0, 3.0, 0.0]),
+        );
+        assert_eq!(
+            (p.0.state(), p.1.state()),
+            (TeleopState::Engaged, TeleopState::Engaged)
+        );
         assert!(lf.norm() < 1e-12 && ff.norm() < 1e-12, "{lf:?} {ff:?}");
         // The leader moves 1 mm along x: the follower is pulled 1 mm's worth, the leader held
         // back as much (position–position), the follower not having moved yet.
-        let (lf, ff) = run(&mut p, 20, 3, input(0.0, [11.0, 0.0, 0.0]), input(0.0, [-5.0, 3.0, 0.0]));
+        let (lf, ff) = run(
+            &mut p,
+            20,
+            3,
+            input(0.0, [11.0, 0.0, 0.0]),
+            input(0.0, [-5.0, 3.0, 0.0]),
+        );
         let k = cfg.stiffness_n_per_mm;
         assert!((ff - V3::new(k, 0.0, 0.0)).norm() < 1e-9, "{ff:?}");
         assert!((lf - V3::new(-k, 0.0, 0.0)).norm() < 1e-9, "{lf:?}");
@@ -489,9 +507,21 @@ mod tests {
     fn the_clutch_holds_the_follower_frees_the_leader_and_re_indexes_on_release() {
         let cfg = always();
         let mut p = sides(&cfg);
-        run(&mut p, 0, 10, input(0.0, [0.0; 3]), input(0.0, [50.0, 0.0, 0.0]));
+        run(
+            &mut p,
+            0,
+            10,
+            input(0.0, [0.0; 3]),
+            input(0.0, [50.0, 0.0, 0.0]),
+        );
         // The leader moves 2 mm; the follower gets there.
-        run(&mut p, 10, 10, input(0.0, [2.0, 0.0, 0.0]), input(0.0, [52.0, 0.0, 0.0]));
+        run(
+            &mut p,
+            10,
+            10,
+            input(0.0, [2.0, 0.0, 0.0]),
+            input(0.0, [52.0, 0.0, 0.0]),
+        );
         // Clutch: the leader goes back 5 mm; the follower's target stays at 52.
         let clutched = SideInput {
             buttons: [false, true],
@@ -503,8 +533,20 @@ mod tests {
         assert!(lf.norm() < 1e-12, "leader not freed: {lf:?}");
         assert!(ff.norm() < 1e-9, "follower pulled while clutched: {ff:?}");
         // Released at −3: from there, +1 mm of the leader is +1 mm of target (53).
-        run(&mut p, 120, 5, input(0.0, [-3.0, 0.0, 0.0]), input(0.0, [52.0, 0.0, 0.0]));
-        let (_, ff) = run(&mut p, 125, 3, input(0.0, [-2.0, 0.0, 0.0]), input(0.0, [52.0, 0.0, 0.0]));
+        run(
+            &mut p,
+            120,
+            5,
+            input(0.0, [-3.0, 0.0, 0.0]),
+            input(0.0, [52.0, 0.0, 0.0]),
+        );
+        let (_, ff) = run(
+            &mut p,
+            125,
+            3,
+            input(0.0, [-2.0, 0.0, 0.0]),
+            input(0.0, [52.0, 0.0, 0.0]),
+        );
         assert!((ff[0] - cfg.stiffness_n_per_mm).abs() < 1e-9, "{ff:?}");
     }
 
@@ -513,12 +555,33 @@ mod tests {
         let cfg = always();
         let mut p = sides(&cfg);
         run(&mut p, 0, 10, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
-        run(&mut p, 10, 10, input(0.0, [0.0, 4.0, 0.0]), input(0.0, [0.0, 4.0, 0.0]));
+        run(
+            &mut p,
+            10,
+            10,
+            input(0.0, [0.0, 4.0, 0.0]),
+            input(0.0, [0.0, 4.0, 0.0]),
+        );
         p.0.set_motion_scale(0.5);
-        let (_, ff) = run(&mut p, 20, 5, input(0.0, [0.0, 4.0, 0.0]), input(0.0, [0.0, 4.0, 0.0]));
-        assert!(ff.norm() < 1e-9, "the scale change moved the target: {ff:?}");
+        let (_, ff) = run(
+            &mut p,
+            20,
+            5,
+            input(0.0, [0.0, 4.0, 0.0]),
+            input(0.0, [0.0, 4.0, 0.0]),
+        );
+        assert!(
+            ff.norm() < 1e-9,
+            "the scale change moved the target: {ff:?}"
+        );
         // 2 mm of the leader at scale 0.5 is 1 mm of the follower.
-        let (_, ff) = run(&mut p, 25, 3, input(0.0, [0.0, 6.0, 0.0]), input(0.0, [0.0, 4.0, 0.0]));
+        let (_, ff) = run(
+            &mut p,
+            25,
+            3,
+            input(0.0, [0.0, 6.0, 0.0]),
+            input(0.0, [0.0, 4.0, 0.0]),
+        );
         assert!((ff[1] - cfg.stiffness_n_per_mm).abs() < 1e-9, "{ff:?}");
     }
 
@@ -537,7 +600,10 @@ mod tests {
             };
             run(&mut p, 0, 10, input(0.0, [0.0; 3]), pressed);
             let (before, _) = run(&mut p, 10, 50, input(0.0, [0.0, 0.0, -0.3]), pressed);
-            assert!(before.norm() > 0.5, "{arch:?}: no force to fade: {before:?}");
+            assert!(
+                before.norm() > 0.5,
+                "{arch:?}: no force to fade: {before:?}"
+            );
             // The follower goes silent at tick 60.
             let mut last = before;
             let mut zero_at = None;
@@ -558,13 +624,22 @@ mod tests {
             assert_eq!(p.0.state(), TeleopState::LinkLost);
             // The leader goes silent for the follower: it holds where it is.
             for k in 200..260 {
-                p.1.step(&SideInput { t: k as f64 * DT, ..pressed });
+                p.1.step(&SideInput {
+                    t: k as f64 * DT,
+                    ..pressed
+                });
             }
             assert_eq!(p.1.state(), TeleopState::LinkLost);
             let held = p.1.step(&SideInput { t: 0.26, ..pressed });
             assert!(held.norm() < 1e-9, "{arch:?}: {held:?}");
-            let pushed = p.1.step(&SideInput { t: 0.261, ..input(0.0, [0.0, 0.0, 1.0]) });
-            assert!((pushed[2] + cfg.stiffness_n_per_mm).abs() < 1e-9, "{arch:?}: {pushed:?}");
+            let pushed = p.1.step(&SideInput {
+                t: 0.261,
+                ..input(0.0, [0.0, 0.0, 1.0])
+            });
+            assert!(
+                (pushed[2] + cfg.stiffness_n_per_mm).abs() < 1e-9,
+                "{arch:?}: {pushed:?}"
+            );
         }
     }
 
@@ -590,7 +665,11 @@ mod tests {
         assert_eq!(ff, V3::zeros());
         assert_eq!(p.1.state(), TeleopState::Down);
         assert_eq!(p.0.state(), TeleopState::LinkLost);
-        assert_eq!(lf, V3::zeros(), "faded within fade_ms, not after the timeout");
+        assert_eq!(
+            lf,
+            V3::zeros(),
+            "faded within fade_ms, not after the timeout"
+        );
     }
 
     #[test]
@@ -602,7 +681,16 @@ mod tests {
         };
         let mut p = sides(&cfg);
         let away = input(0.0, [0.0; 3]);
-        run(&mut p, 0, 20, SideInput { tip_mm: V3::new(5.0, 0.0, 0.0), ..away }, away);
+        run(
+            &mut p,
+            0,
+            20,
+            SideInput {
+                tip_mm: V3::new(5.0, 0.0, 0.0),
+                ..away
+            },
+            away,
+        );
         assert_eq!(p.0.state(), TeleopState::Waiting);
         let (_, ff) = run(&mut p, 20, 3, away, away);
         assert!(ff.norm() < 1e-9, "followed without the operator: {ff:?}");

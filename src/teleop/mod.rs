@@ -142,8 +142,20 @@ impl TeleopConfig {
                 100.0,
                 "0 ..= 100 N·s/m",
             ),
-            ("teleop.integral_hz", self.integral_hz, 0.0, 20.0, "0 ..= 20 Hz"),
-            ("teleop.motion_scale", self.motion_scale, 0.05, 20.0, "0.05 ..= 20"),
+            (
+                "teleop.integral_hz",
+                self.integral_hz,
+                0.0,
+                20.0,
+                "0 ..= 20 Hz",
+            ),
+            (
+                "teleop.motion_scale",
+                self.motion_scale,
+                0.05,
+                20.0,
+                "0.05 ..= 20",
+            ),
             ("teleop.force_scale", self.force_scale, 0.0, 5.0, "0 ..= 5"),
             (
                 "teleop.stiffness_n_per_mm",
@@ -159,7 +171,13 @@ impl TeleopConfig {
                 100.0,
                 "0 ..= 100 N·s/m",
             ),
-            ("teleop.max_force_n", self.max_force_n, 0.0, 10.0, "0 ..= 10 N"),
+            (
+                "teleop.max_force_n",
+                self.max_force_n,
+                0.0,
+                10.0,
+                "0 ..= 10 N",
+            ),
             ("teleop.ramp_s", self.ramp_s, 0.0, 10.0, "0 ..= 10 s"),
             (
                 "teleop.force_deadband_n",
@@ -201,7 +219,10 @@ impl TeleopConfig {
             1e9,
             "1 ..= 1e9 rad²/s⁵",
         )?;
-        for (side, imp) in [("to_leader", &self.to_leader), ("to_follower", &self.to_follower)] {
+        for (side, imp) in [
+            ("to_leader", &self.to_leader),
+            ("to_follower", &self.to_follower),
+        ] {
             let max = channel::MAX_DELAY_MS;
             check::in_range(
                 &format!("teleop.{side}.delay_ms"),
@@ -217,7 +238,13 @@ impl TeleopConfig {
                 max - imp.delay_ms,
                 "0 ..= 1500 ms minus the delay",
             )?;
-            check::in_range(&format!("teleop.{side}.loss"), imp.loss, 0.0, 1.0, "0 ..= 1")?;
+            check::in_range(
+                &format!("teleop.{side}.loss"),
+                imp.loss,
+                0.0,
+                1.0,
+                "0 ..= 1",
+            )?;
         }
         Ok(())
     }

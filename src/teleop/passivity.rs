@@ -13,7 +13,7 @@ use nalgebra::Vector3;
 const MIN_SPEED_SQ: f64 = 1e-8;
 
 /// One side's port.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy)]
 pub struct Port {
     /// Energy the arm pushed into the channel here, J.
     pub energy_in: f64,
@@ -23,22 +23,40 @@ pub struct Port {
     pub dissipated: f64,
     /// The damping it used on the last tick, N·s/m.
     pub damping: f64,
+    /// Most energy kept in hand from the far side, J.
+    reserve_j: f64,
+    /// Largest damping the controller adds, N·s/m.
+    max_damping: f64,
+    /// The controller acts (else the port only observes).
+    enforce: bool,
 }
 
 impl Port {
+    /// A port keeping at most `reserve_j` J in hand, damping with at most `max_damping`
+    /// N·s/m; with `enforce` false it only observes.
+    pub fn new(reserve_j: f64, max_damping: f64, enforce: bool) -> Port {
+        Port {
+            energy_in: 0.0,
+            energy_out: 0.0,
+            dissipated: 0.0,
+            damping: 0.0,
+            reserve_j,
+            max_damping,
+            enforce,
+        }
+    }
+
     /// The force to apply this tick: `force` (N) from the coupling, on an arm moving at `v`
-    /// (m/s) for `dt` s, allowed at most what the far side has put in (`remote_in`, J), when
-    /// `enforce`; the energies are observed either way.
+    /// (m/s) for `dt` s, allowed at most what the far side has put in (`remote_in`, J); the
+    /// energies are observed either way.
     pub fn pass(
         &mut self,
         force: Vector3<f64>,
         v: &Vector3<f64>,
         dt: f64,
         remote_in: f64,
-        reserve_j: f64,
-        max_damping: f64,
-        enforce: bool,
     ) -> Vector3<f64> {
+        let (reserve_j, max_damping, enforce) = (self.reserve_j, self.max_damping, self.enforce);
         // A budget that has grown past the reserve was dissipated somewhere: forget it.
         self.energy_out = self.energy_out.max(remote_in - reserve_j);
         let mut f = force;
@@ -73,9 +91,9 @@ mod tests {
     fn with_no_energy_from_the_far_side_the_port_puts_out_nothing() {
         // A force along the velocity would push energy into the arm; the far side has put in
         // nothing, so the controller damps it to zero power (the cap is large enough).
-        let mut p = Port::default();
+        let mut p = Port::new(1.0, 1e6, true);
         let v = Vector3::new(0.05, 0.0, 0.0);
-        let f = p.pass(Vector3::new(1.0, 0.5, 0.0), &v, 1e-3, 0.0, 1.0, 1e6, true);
+        let f = p.pass(Vector3::new(1.0, 0.5, 0.0), &v, 1e-3, 0.0);
         assert!(f.dot(&v).abs() < 1e-12, "{f:?}");
         assert!(p.energy_out.abs() < 1e-15);
         // The component across the velocity is untouched (it does no work).
@@ -87,7 +105,7 @@ mod tests {
         // Random forces and velocities; the far side's energy grows slowly. At every tick the
         // port's total output stays within what arrived (the passivity condition), checked
         // against energies summed independently here.
-        let mut p = Port::default();
+        let mut p = Port::new(10.0, 1e9, true);
         let mut out = 0.0;
         let mut remote = 0.0;
         let mut x: u64 = 0x9E37_79B9_7F4A_7C15;
@@ -101,7 +119,7 @@ mod tests {
             remote += 1e-5 * (rnd() + 1.0);
             let f = Vector3::new(rnd(), rnd(), rnd()) * 2.0;
             let v = Vector3::new(rnd(), rnd(), rnd()) * 0.1;
-            let applied = p.pass(f, &v, 1e-3, remote, 10.0, 1e9, true);
+            let applied = p.pass(f, &v, 1e-3, remote);
             let w = applied.dot(&v) * 1e-3;
             if w > 0.0 {
                 out += w;
@@ -113,12 +131,12 @@ mod tests {
 
     #[test]
     fn off_it_observes_but_never_changes_the_force() {
-        let mut p = Port::default();
+        let mut p = Port::new(1.0, 1e3, false);
         let v = Vector3::new(0.0, 0.1, 0.0);
         let f = Vector3::new(0.0, 2.0, 0.0);
-        assert_eq!(p.pass(f, &v, 1e-3, 0.0, 1.0, 1e3, false), f);
+        assert_eq!(p.pass(f, &v, 1e-3, 0.0), f);
         assert!((p.energy_out - 2e-4).abs() < 1e-15);
-        let f = p.pass(-f, &v, 1e-3, 0.0, 1.0, 1e3, false);
+        let f = p.pass(-f, &v, 1e-3, 0.0);
         assert!((p.energy_in - 2e-4).abs() < 1e-15 && f[1] == -2.0);
     }
 }
