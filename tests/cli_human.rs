@@ -21,7 +21,16 @@ fn stdout(out: &std::process::Output) -> String {
 fn ctl_status_is_a_readable_block_and_json_on_request() {
     let d = Served::start(&["--device", "sim"], None, &["sim"]);
     stdout(&d.omnid(&["ctl", "mode", "hold"]));
-    let text = stdout(&d.omnid(&["ctl", "status"]));
+    // The servo applies the mode at its next tick, and its timing has lines once it has
+    // ticked: ask until it says so (a loaded machine can start the loop late).
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    let text = loop {
+        let text = stdout(&d.omnid(&["ctl", "status"]));
+        if text.contains("hold (holding the pose)") || std::time::Instant::now() > deadline {
+            break text;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
     assert!(!text.contains('{'), "JSON where a person reads:\n{text}");
     assert!(text.starts_with("arm sim (sim) on "), "{text}");
     for label in [
