@@ -155,3 +155,52 @@ fn the_shipped_weights_notice_is_said_once() {
         "{err}"
     );
 }
+
+/// `omnid experiment teleop --quick`: every run in results.json with the metrics,
+/// the report's tables and the press figure, through the command line.
+#[test]
+fn the_teleop_experiment_writes_its_report_results_and_figure() {
+    state_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_omnid"))
+        .args(["experiment", "teleop", "--quick", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let results: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("results.json")).unwrap()).unwrap();
+    let runs = results["runs"].as_array().unwrap();
+    // pp and pf, passivity on and off, four scenes, four channels.
+    assert_eq!(runs.len(), 2 * 2 * 4 * 4);
+    for r in runs {
+        for key in [
+            "position_rms_mm",
+            "force_rms_n",
+            "stiffness_ratio",
+            "stable",
+            "channel_energy_j",
+            "packets_per_s",
+            "fext_rms_n",
+        ] {
+            assert!(r.get(key).is_some(), "{key} missing in {r}");
+        }
+        // Both ways every tick, less what the channel lost.
+        let pps = r["packets_per_s"].as_f64().unwrap();
+        assert!(pps > 0.0 && pps <= 2001.0, "{r}");
+    }
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    for heading in [
+        "## Summary",
+        "## Position–position with passivity control",
+        "## Position–force without passivity control",
+    ] {
+        assert!(report.contains(heading), "{heading}");
+    }
+    assert!(dir.path().join("teleop-press.png").is_file());
+    assert!(dir.path().join("teleop-press.svg").is_file());
+}
