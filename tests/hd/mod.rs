@@ -1,5 +1,5 @@
-//! The libHD test kit: build and install the library once per test binary, compile the C
-//! call-order replays against the installed headers, run `omnid serve --device sim`.
+//! The libHD test kit: install the library and compile the C call-order replays against the
+//! installed headers once for every test process (`HD::get`), run `omnid serve --device sim`.
 #![allow(dead_code)]
 
 use omnid::serve::client::Client;
@@ -10,18 +10,29 @@ use std::time::{Duration, Instant};
 
 /// The installed library and the compiled programs.
 pub struct HD {
-    _dir: tempfile::TempDir,
-    /// `lib/libHD.so*`, `include/HD/…` as `install.sh` lays them out.
+    /// `lib/libHD.so*`, `include/HD/…` as `install.sh` lays them out (shared, read only).
     pub prefix: PathBuf,
+    /// The call-order replays every test uses (shared, read only).
     bin: PathBuf,
+    /// Programs a test compiles itself (`compile_with`): this process's own.
+    own: tempfile::TempDir,
 }
 
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// `cargo build -p omnid-hd`: the path of the cdylib it made.
+/// The cdylib this test binary was built with: `omnid-hd` is a dev-dependency, so `cargo
+/// test` built it (every crate type of a dependency, with this build's features) beside the
+/// test executable before linking it. Else (a test executable moved away from its build)
+/// `cargo build -p omnid-hd`, which compiles the library a second time.
 fn build_library() -> PathBuf {
+    let exe = std::env::current_exe().expect("the test executable's path");
+    if let Some(lib) = exe.parent().map(|d| d.join("libomnid_hd.so")) {
+        if lib.is_file() {
+            return lib;
+        }
+    }
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let out = Command::new(cargo)
         .args(["build", "-p", "omnid-hd", "--message-format=json"])
@@ -46,60 +57,100 @@ fn build_library() -> PathBuf {
         .expect("cargo reported the cdylib")
 }
 
+/// The programs of `tests/c/` every test runs: (name, source, compiler, flags).
+const PROGRAMS: &[(&str, &str, &str, &[&str])] = &[
+    ("abi", "abi.c", "cc", &["-std=c11"]),
+    ("chai", "chai.c", "cc", &["-std=c11"]),
+    ("ros", "ros.c", "cc", &["-std=c11"]),
+    ("jhu", "jhu.c", "cc", &["-std=c11"]),
+    ("vrpn", "vrpn.c", "cc", &["-std=c11"]),
+    ("nodaemon", "nodaemon.c", "cc", &["-std=c11"]),
+    ("bench", "bench.c", "cc", &["-std=c11"]),
+    ("gone", "gone.c", "cc", &["-std=c11"]),
+    ("two", "two.c", "cc", &["-std=c11"]),
+    ("slow", "slow.c", "cc", &["-std=c11"]),
+    ("temp", "temp.c", "cc", &["-std=c11"]),
+    ("occasional", "occasional.c", "cc", &["-std=c11"]),
+    ("query", "query.c", "cc", &["-std=c11"]),
+    ("inkwell", "inkwell.c", "cc", &["-std=c11"]),
+    ("speed", "speed.c", "cc", &["-std=c11"]),
+    ("stall", "stall.c", "cc", &["-std=c11"]),
+    ("abi_cpp", "abi.c", "c++", &["-x", "c++", "-std=c++11"]),
+];
+
+/// A digest of everything the installed fixture is made from: the library's bytes, every file
+/// under `clients/hdapi/{include,hdu,tests/c}` and `install.sh` (paths and bytes), the program
+/// list and the compilers' versions. A change to any of them makes a new fixture.
+fn fixture_key(lib: &Path) -> String {
+    fn add_tree(h: &mut xxhash_rust::xxh3::Xxh3, dir: &Path) {
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+            .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+            .map(|e| e.unwrap().path())
+            .collect();
+        entries.sort();
+        for p in entries {
+            if p.is_dir() {
+                add_tree(h, &p);
+            } else {
+                h.update(
+                    p.strip_prefix(root())
+                        .unwrap_or(&p)
+                        .as_os_str()
+                        .as_encoded_bytes(),
+                );
+                h.update(&std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    h.update(&std::fs::read(lib).expect("the library is readable"));
+    let hd = root().join("clients/hdapi");
+    for d in ["include", "hdu", "tests/c"] {
+        add_tree(&mut h, &hd.join(d));
+    }
+    h.update(&std::fs::read(hd.join("install.sh")).unwrap());
+    h.update(format!("{PROGRAMS:?}").as_bytes());
+    for compiler in ["cc", "c++"] {
+        if let Ok(v) = Command::new(compiler).arg("--version").output() {
+            h.update(&v.stdout);
+        }
+    }
+    format!("{:032x}", h.digest128())
+}
+
 impl HD {
+    /// The library installed and the programs compiled once for every test process:
+    /// in `CARGO_TARGET_TMPDIR/hd-<digest of what they are made from>`, made by the first
+    /// process under a file lock (the others wait for it, then use it) and marked complete
+    /// last, so half a fixture (a maker killed) is made again. Fixtures made more than an hour
+    /// ago are removed then.
     pub fn get() -> &'static HD {
         static HD: OnceLock<HD> = OnceLock::new();
         HD.get_or_init(|| {
             let lib = build_library();
-            let dir = tempfile::tempdir().unwrap();
-            let prefix = dir.path().join("prefix");
-            let install = Command::new("sh")
-                .arg(root().join("clients/hdapi/install.sh"))
-                .arg("--lib")
-                .arg(&lib)
-                .arg(&prefix)
-                .output()
-                .expect("install.sh runs");
-            assert!(
-                install.status.success(),
-                "install.sh: {}",
-                String::from_utf8_lossy(&install.stderr)
-            );
-            let bin = dir.path().join("bin");
-            std::fs::create_dir_all(&bin).unwrap();
-            let hd = HD {
-                _dir: dir,
-                prefix,
-                bin,
-            };
-            for name in [
-                "abi",
-                "chai",
-                "ros",
-                "jhu",
-                "vrpn",
-                "nodaemon",
-                "bench",
-                "gone",
-                "two",
-                "slow",
-                "temp",
-                "occasional",
-                "query",
-                "inkwell",
-                "speed",
-                "stall",
-            ] {
-                hd.compile(name, &format!("{name}.c"), "cc", &["-std=c11"]);
+            let tmp = Path::new(env!("CARGO_TARGET_TMPDIR"));
+            std::fs::create_dir_all(tmp).unwrap();
+            let ready = tmp.join(format!("hd-{}", fixture_key(&lib)));
+            let lock = std::fs::File::create(tmp.join("hd.lock")).unwrap();
+            // SAFETY: a valid descriptor; the lock is released when `lock` is closed.
+            let locked =
+                unsafe { libc::flock(std::os::fd::AsRawFd::as_raw_fd(&lock), libc::LOCK_EX) };
+            assert_eq!(locked, 0, "flock: {}", std::io::Error::last_os_error());
+            let complete = ready.join("complete");
+            if !complete.exists() {
+                prune_fixtures(tmp);
+                let _ = std::fs::remove_dir_all(&ready);
+                std::fs::create_dir_all(&ready).unwrap();
+                make_fixture(&lib, &ready);
+                std::fs::write(&complete, "").unwrap();
             }
-            hd.compile("abi_cpp", "abi.c", "c++", &["-x", "c++", "-std=c++11"]);
-            hd
+            drop(lock);
+            HD {
+                prefix: ready.join("prefix"),
+                bin: ready.join("bin"),
+                own: tempfile::tempdir().unwrap(),
+            }
         })
-    }
-
-    /// Compile `tests/c/<src>` against the installed headers and library.
-    fn compile(&self, name: &str, src: &str, compiler: &str, flags: &[&str]) {
-        self.compile_with(name, src, compiler, flags, &["-lHDU", "-lHD", "-lpthread"]);
     }
 
     /// Compile `tests/c/<src>` against the installed headers, linking `libs` from the
@@ -112,29 +163,96 @@ impl HD {
         flags: &[&str],
         libs: &[&str],
     ) {
-        let lib = self.prefix.join("lib");
-        let out = Command::new(compiler)
-            .args(flags)
-            .args(["-Wall", "-Werror", "-O1", "-D_DEFAULT_SOURCE", "-I"])
-            .arg(self.prefix.join("include"))
-            .arg(root().join("clients/hdapi/tests/c").join(src))
-            .arg("-o")
-            .arg(self.exe(name))
-            .arg(format!("-L{}", lib.display()))
-            .arg(format!("-Wl,-rpath,{}", lib.display()))
-            .args(libs)
-            .output()
-            .unwrap_or_else(|e| panic!("{compiler}: {e} (a C/C++ compiler is needed)"));
-        assert!(
-            out.status.success(),
-            "{compiler} {src}:\n{}",
-            String::from_utf8_lossy(&out.stderr)
+        compile(
+            &self.prefix,
+            &self.own.path().join(name),
+            src,
+            compiler,
+            flags,
+            libs,
         );
     }
 
+    /// A program compiled by `compile_with` in this process, else one of the shared ones.
     pub fn exe(&self, name: &str) -> PathBuf {
-        self.bin.join(name)
+        let own = self.own.path().join(name);
+        if own.exists() {
+            own
+        } else {
+            self.bin.join(name)
+        }
     }
+}
+
+/// Remove the fixtures in `tmp` made more than an hour ago (other digests: an older library or
+/// test program; each process holds its fixture's lock only while it looks for or makes it).
+fn prune_fixtures(tmp: &Path) {
+    let Ok(entries) = std::fs::read_dir(tmp) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let old = e
+            .metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|age| age > Duration::from_secs(3600));
+        if old && e.file_name().to_string_lossy().starts_with("hd-") {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
+/// Install `lib` with `install.sh` into `dir/prefix` and compile `PROGRAMS` into `dir/bin`.
+fn make_fixture(lib: &Path, dir: &Path) {
+    let prefix = dir.join("prefix");
+    let install = Command::new("sh")
+        .arg(root().join("clients/hdapi/install.sh"))
+        .arg("--lib")
+        .arg(lib)
+        .arg(&prefix)
+        .output()
+        .expect("install.sh runs");
+    assert!(
+        install.status.success(),
+        "install.sh: {}",
+        String::from_utf8_lossy(&install.stderr)
+    );
+    let bin = dir.join("bin");
+    std::fs::create_dir_all(&bin).unwrap();
+    for (name, src, compiler, flags) in PROGRAMS {
+        compile(
+            &prefix,
+            &bin.join(name),
+            src,
+            compiler,
+            flags,
+            &["-lHDU", "-lHD", "-lpthread"],
+        );
+    }
+}
+
+/// Compile `tests/c/<src>` against the headers and library installed in `prefix` into `exe`,
+/// linking `libs` from its `lib/` (panics with the compiler's messages if it fails).
+fn compile(prefix: &Path, exe: &Path, src: &str, compiler: &str, flags: &[&str], libs: &[&str]) {
+    let lib = prefix.join("lib");
+    let out = Command::new(compiler)
+        .args(flags)
+        .args(["-Wall", "-Werror", "-O1", "-D_DEFAULT_SOURCE", "-I"])
+        .arg(prefix.join("include"))
+        .arg(root().join("clients/hdapi/tests/c").join(src))
+        .arg("-o")
+        .arg(exe)
+        .arg(format!("-L{}", lib.display()))
+        .arg(format!("-Wl,-rpath,{}", lib.display()))
+        .args(libs)
+        .output()
+        .unwrap_or_else(|e| panic!("{compiler}: {e} (a C/C++ compiler is needed)"));
+    assert!(
+        out.status.success(),
+        "{compiler} {src}:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// Run a program to its end (at most 60 s): its stdout; fails on a non-zero exit.
