@@ -185,6 +185,8 @@ pub struct Servo {
     measurement_var: f64,
     /// The stylus buttons at this tick's sample.
     buttons: [bool; 2],
+    /// The stylus sits in its inkwell at this tick's sample: the inkwell holds the arm.
+    docked: bool,
     cmd_seq: u64,
     stream_deadline: f64,
     event: Option<ServoEvent>,
@@ -310,6 +312,7 @@ impl Servo {
             teleop_kalman: KalmanBank::new(cfg.kalman),
             measurement_var: cfg.kalman.measurement_var,
             buttons: [false; 2],
+            docked: false,
             cmd_seq: 0,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
@@ -426,6 +429,7 @@ impl Servo {
         // Control, with the weights as they are; the update below then learns from this
         // sample at the same point (one network pass serves both).
         self.buttons = s.buttons;
+        self.docked = s.inkwell;
         let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
         let (tau_hat, ident_flag) = self.identify(s.t, &est);
         let tau_model = self.oracle(&est);
@@ -515,7 +519,10 @@ impl Servo {
             // (docs/HAPTICS.md §3). Predict only.
             // A wall or a limit acted: the torque was not the controller's, and learning from a
             // wall's push teaches the model the wall (anti-windup).
-            Some(_) if !self.activity.learns() || self.limited => {
+            // The stylus in its inkwell: the inkwell holds the arm up, and learning there
+            // teaches the model that nothing is needed to hold it (then the first motion out of
+            // the inkwell runs on a model without gravity).
+            Some(_) if !self.activity.learns() || self.limited || self.docked => {
                 tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
             }
             Some(acting) => {
@@ -531,6 +538,9 @@ impl Servo {
             None => tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into(),
         }
         if !id.healthy() {
+            // Stopped (whether or not it would learn now): said every tick, so the station
+            // announces it.
+            ident_flag = flags::IDENT_FAULT;
             // Stopped on a non-finite value: its last good weights still predict.
             let p: [f64; 3] = id.predict(&est.q, &est.qd, &est.qdd).into();
             if p.iter().all(|v| v.is_finite()) {
@@ -1351,8 +1361,19 @@ mod tests {
     }
 
     fn linked_servo() -> (Servo, crossbeam_channel::Receiver<TickRecord>, Commands) {
+        linked_servo_docked(true)
+    }
+
+    /// A served servo on the simulator, its stylus starting in the inkwell or not.
+    fn linked_servo_docked(
+        docked: bool,
+    ) -> (Servo, crossbeam_channel::Receiver<TickRecord>, Commands) {
         let mut cfg = Config::default();
         cfg.sim.torque_noise_nm = 0.0;
+        if !docked {
+            cfg.sim.start_pose = cfg.reference.center;
+            cfg.sim.docked = false;
+        }
         let (tx, rx) = crossbeam_channel::unbounded();
         let mut servo = Servo::new(
             &cfg,
@@ -1530,7 +1551,7 @@ mod tests {
                 ttl_s: 10.0,
             },
         ] {
-            let (mut servo, rx, tx) = linked_servo();
+            let (mut servo, rx, tx) = linked_servo_docked(false);
             tx.send(cmd).unwrap();
             next(&mut servo, &rx);
             let before = prediction(&servo);
@@ -1541,6 +1562,22 @@ mod tests {
         }
         assert!(learned[0] > 0.0, "hold: learned {}", learned[0]);
         assert_eq!(&learned[1..], &[0.0, 0.0], "free, servo_cf");
+    }
+
+    #[test]
+    fn the_identifier_learns_nothing_while_the_inkwell_holds_the_arm() {
+        // Holding with the stylus in its inkwell, the inkwell carries the arm's weight: what
+        // the motors give is not what the arm needs, and a model learnt there has no gravity
+        // (a daemon's first move out of the inkwell then ran on it and tripped).
+        let (mut servo, rx, tx) = linked_servo_docked(true);
+        tx.send(ServoCommand::Hold).unwrap();
+        let first = next(&mut servo, &rx);
+        assert!(first.live.inkwell, "the simulator starts docked");
+        let before = prediction(&servo);
+        for _ in 0..300 {
+            assert!(next(&mut servo, &rx).live.inkwell);
+        }
+        assert_eq!((prediction(&servo) - before).norm(), 0.0);
     }
 
     #[test]
