@@ -197,8 +197,6 @@ fn side_config(scene: &Scene, leader: bool, quick: bool) -> Config {
     cfg.sim.start_pose = cfg.reference.center;
     cfg.sim.docked = false;
     cfg.safety.persist_heat = false;
-    // The coupling's forces are the teleoperation's own; the haptic continuous-force limit is
-    // for rendered scenes (docs/HAPTICS.md), not in the coupling's path.
     if leader {
         cfg.haptics.hand = HandConfig {
             pattern: match scene {

@@ -172,9 +172,9 @@ pub struct Servo {
     /// The outside's force on the tip, from the motors and a model (docs/TELEOP.md §2).
     external: ExternalForce,
     external_model: ExternalModel,
-    /// The parametric rigid-body model, for that estimate.
+    /// The parametric rigid-body model, for that estimate (and its geometry for the
+    /// coupling's tip and Jᵀ F).
     parametric: Dynamics,
-    geometry: Geometry,
     /// This arm's side of a teleoperation pair (docs/TELEOP.md), and the force it put on the
     /// tip this tick.
     teleop: Option<Box<crate::teleop::Coupling>>,
@@ -306,7 +306,6 @@ impl Servo {
                 m.friction = true;
                 m
             },
-            geometry: *cfg.geometry,
             teleop: None,
             teleop_force: Force3::zeros(),
             teleop_kalman: KalmanBank::new(cfg.kalman),
@@ -530,8 +529,6 @@ impl Servo {
                 if id.healthy() {
                     tau_hat = predicted.into();
                     self.stats.identifier.record(&acting, &tau_hat);
-                } else {
-                    ident_flag = flags::IDENT_FAULT;
                 }
             }
             // First sample: nothing has acted yet; log the prediction alone.
@@ -563,8 +560,12 @@ impl Servo {
         let healthy = self.identifier.as_ref().is_some_and(|id| id.healthy());
         let acting = Joint3::from(self.acting_tau.unwrap_or([0.0; 3]));
         if learned && healthy {
-            self.external
-                .update(&self.geometry, &est.q, &Joint3::from(*tau_hat), &acting);
+            self.external.update(
+                &self.parametric.geometry,
+                &est.q,
+                &Joint3::from(*tau_hat),
+                &acting,
+            );
         } else {
             self.external
                 .observe(&self.parametric, &est.q, &est.qd, &acting);
@@ -872,8 +873,8 @@ impl Servo {
             let fast = self.teleop_kalman.update(t, q);
             let side = crate::teleop::SideInput {
                 t,
-                tip_mm: tip_position_mm(&self.geometry, q),
-                vel_mm_s: jacobian(&self.geometry, q) * fast.qd * 1e3,
+                tip_mm: tip_position_mm(&self.parametric.geometry, q),
+                vel_mm_s: jacobian(&self.parametric.geometry, q) * fast.qd * 1e3,
                 fext_n: self.external.force,
                 buttons: self.buttons,
                 active: self.activity == Activity::Teleop,
@@ -885,7 +886,7 @@ impl Servo {
             Activity::Teleop => (
                 here,
                 self.controllers.compensation(t, est, id)
-                    + tip_force_torque(&self.geometry, q, &self.teleop_force),
+                    + tip_force_torque(&self.parametric.geometry, q, &self.teleop_force),
             ),
             Activity::Track | Activity::Hold | Activity::ServoJp => {
                 (reference, self.controllers.torque(&input, id))
