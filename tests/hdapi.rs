@@ -502,10 +502,13 @@ fn two_devices_by_their_vendor_names_in_one_scheduler_callback() {
         line.split_whitespace().nth(2).unwrap().parse().unwrap()
     };
     // Both start docked at x = 0 (the base turned to the middle); +0.5 N along x turns the left
-    // arm to +x, -0.5 N the right one to -x.
+    // arm to +x, -0.5 N the right one to -x. How far depends on how many device ticks the
+    // program's 1500 frames span (fewer on a loaded machine: 4.5 mm seen in a full run), so
+    // the bound is out of the inkwell's hold (0.02 rad, about 2.6 mm at the tip), not a
+    // distance in time.
     let (xl, xr) = (x("left "), x("right "));
     assert!(
-        xl > 5.0 && xr < -5.0,
+        xl > 3.0 && xr < -3.0,
         "left x {xl} mm, right x {xr} mm\n{out}"
     );
 }
