@@ -55,6 +55,9 @@ pub enum DeviceError {
 #[derive(Default, Clone)]
 pub struct Frame {
     pub depth: u32,
+    /// The thread that began the outermost frame: the scheduler closes only frames its own
+    /// callbacks left open, never one a program's main thread has in progress.
+    pub opened_by: Option<std::thread::ThreadId>,
     /// The sample of the scheduler's tick in progress: what reads outside a frame see while
     /// the scheduler runs, so a callback without a frame (VRPN) reads one sample throughout.
     pub tick: Option<State>,
@@ -83,6 +86,31 @@ pub struct Frame {
     /// When each limit of [`LIMITS`] was last raised: a limit that comes and goes with the
     /// force (a program pushing at the limit) is raised at most once a second.
     pub limit_raised_at: [Option<Instant>; LIMITS.len()],
+}
+
+impl Frame {
+    /// Begin a frame on the calling thread; the outermost takes `latest` and clears the
+    /// forces.
+    pub fn begin(&mut self, latest: Option<State>) {
+        self.depth += 1;
+        if self.depth == 1 {
+            self.opened_by = Some(std::thread::current().id());
+            self.current = latest;
+            self.force = [0.0; 3];
+            self.joint_torque = [0.0; 3];
+            self.gimbal_torque = [0.0; 3];
+            self.torque = [0.0; 3];
+        }
+    }
+
+    /// The scheduler's tick is over (`scheduler` is its thread): a frame its callbacks left
+    /// open is closed without committing, so the next tick starts clean. A frame another
+    /// thread has open (a program framing its own reads between ticks) is that thread's to end.
+    pub fn close_left_open(&mut self, scheduler: std::thread::ThreadId) {
+        if self.opened_by == Some(scheduler) {
+            self.depth = 0;
+        }
+    }
 }
 
 /// The least time between two raises of the same limit.
@@ -263,15 +291,7 @@ impl Device {
     /// gone (the frame still opens, on the last sample).
     pub fn begin_frame(&self) -> bool {
         let latest = self.latest();
-        let mut f = lock(&self.frame);
-        f.depth += 1;
-        if f.depth == 1 {
-            f.current = latest;
-            f.force = [0.0; 3];
-            f.joint_torque = [0.0; 3];
-            f.gimbal_torque = [0.0; 3];
-            f.torque = [0.0; 3];
-        }
+        lock(&self.frame).begin(latest);
         !self.is_closed()
     }
 
@@ -430,6 +450,33 @@ fn greet(conn: &Conn) -> Result<Hello, DeviceError> {
             _ if sent.is_err() => return Err(DeviceError::Closed),
             _ => {}
         }
+    }
+}
+
+#[cfg(test)]
+mod frame_tests {
+    use super::Frame;
+
+    /// A program's main thread frames a read while the scheduler ticks: the tick's end must
+    /// not close that frame under it (it did, and the program's `hdEndFrame` failed with
+    /// HD_ILLEGAL_END about one run in a hundred under load).
+    #[test]
+    fn a_tick_closes_only_the_frames_its_own_thread_left_open() {
+        let scheduler = std::thread::spawn(|| std::thread::current().id())
+            .join()
+            .unwrap();
+        let mut f = Frame::default();
+        f.begin(None);
+        f.close_left_open(scheduler);
+        assert_eq!(f.depth, 1, "the main thread's frame was closed by the tick");
+        // The scheduler's own callback left one open: closed.
+        f.close_left_open(std::thread::current().id());
+        assert_eq!(f.depth, 0);
+        // Nested begins on the same thread are closed together.
+        f.begin(None);
+        f.begin(None);
+        f.close_left_open(std::thread::current().id());
+        assert_eq!(f.depth, 0);
     }
 }
 

@@ -110,10 +110,12 @@ impl Ticker for Registry {
     }
 
     fn after_tick(&self) {
-        // A frame a callback left open is closed without committing: the next tick's frame
-        // starts clean.
+        let me = std::thread::current().id();
         for d in self.all() {
-            d.frame.lock().unwrap_or_else(|e| e.into_inner()).depth = 0;
+            d.frame
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .close_left_open(me);
         }
     }
 }
