@@ -210,9 +210,57 @@ fn replay_allocates_nothing_per_tick() {
 
 #[test]
 fn replay_of_an_mcap_log_allocates_nothing_per_tick() {
-    // Decoded chunk by chunk on the servo thread: the chunks' CRC checks and decompression
-    // reuse their buffers too (6000 ticks span several chunks).
+    // Decoded on a thread of its own and handed over in blocks that go back and forth (6000
+    // ticks span several blocks).
     replay_ticks_allocate_nothing("sim.mcap");
+}
+
+/// The replay's reader waits for its decoding thread when that falls behind (a loaded
+/// machine): the wait must not allocate either. A slow source makes every block late, so the
+/// reading thread waits on each (a blocking channel receive allocated its waiter on the first
+/// wait: 2 allocations, seen once in a full run under load).
+#[test]
+fn reading_an_mcap_log_that_decodes_late_allocates_nothing() {
+    use omnid::telemetry::mcap_log::read::McapPrefetch;
+    use std::io::Read;
+    struct Slow(std::fs::File);
+    impl Read for Slow {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            std::thread::sleep(std::time::Duration::from_millis(2));
+            let n = buf.len().min(4096);
+            self.0.read(&mut buf[..n])
+        }
+    }
+    let cfg = Config::default();
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("sim.mcap");
+    let opts = omnid::run::RunOptions {
+        controller: ControllerKind::Pd,
+        trajectory: Trajectory::Multisine,
+        duration_s: 3.0,
+        log: Some(log.clone()),
+        fast: true,
+        ..omnid::run::RunOptions::default()
+    };
+    let mut sim_cfg = cfg.clone();
+    sim_cfg.safety.persist_heat = false;
+    omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
+
+    let mut text = McapPrefetch::new(Slow(std::fs::File::open(&log).unwrap()), false).unwrap();
+    let mut buf = [0u8; 512];
+    let mut total = 0usize;
+    let n = count_allocations(|| loop {
+        match text.read(&mut buf) {
+            Ok(0) => break,
+            Ok(k) => total += k,
+            Err(e) => panic!("{e}"),
+        }
+    });
+    assert!(
+        total > 1 << 17,
+        "only {total} bytes: the wait was never taken"
+    );
+    assert_eq!(n, 0, "{n} allocations while waiting for late blocks");
 }
 
 fn replay_ticks_allocate_nothing(name: &str) {

@@ -559,13 +559,36 @@ impl McapPrefetch {
     }
 }
 
+impl McapPrefetch {
+    /// The next block of text (empty at the end). Waits by polling: a blocking `recv` would
+    /// allocate its waiter the first time this thread ever waits, which is only when the
+    /// decoding thread falls behind (a loaded machine), so an allocation in a replay's servo
+    /// tick would come and go with the load.
+    fn next_block(&self) -> io::Result<Vec<u8>> {
+        let mut polls = 0u32;
+        loop {
+            match self.blocks.try_recv() {
+                Ok(block) => return block,
+                Err(crossbeam_channel::TryRecvError::Disconnected) => return Ok(Vec::new()),
+                Err(crossbeam_channel::TryRecvError::Empty) if polls < 64 => {
+                    polls += 1;
+                    std::hint::spin_loop();
+                }
+                Err(crossbeam_channel::TryRecvError::Empty) => {
+                    std::thread::sleep(std::time::Duration::from_micros(20));
+                }
+            }
+        }
+    }
+}
+
 impl Read for McapPrefetch {
     fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
         while self.at == self.current.len() {
             if self.done {
                 return Ok(0);
             }
-            let next = self.blocks.recv().unwrap_or_else(|_| Ok(Vec::new()))?;
+            let next = self.next_block()?;
             let old = std::mem::replace(&mut self.current, next);
             if old.capacity() > 0 {
                 let _ = self.spent.try_send(old);
