@@ -358,6 +358,44 @@ enum CtlCommand {
     Dock,
     /// Simulator: the hand takes the stylus out of its inkwell and holds it lightly.
     Undock,
+    /// Teleoperation between two arms of the daemon (docs/TELEOP.md): `start` couples them
+    /// and watches until Ctrl-C, which uncouples them (both hold).
+    Teleop {
+        #[command(subcommand)]
+        action: TeleopAction,
+    },
+}
+
+#[derive(Subcommand)]
+enum TeleopAction {
+    /// Couple a leader arm (a person moves it) and a follower arm (it copies the leader),
+    /// with `[teleop]`'s settings and the changes given; runs until Ctrl-C or --seconds.
+    Start {
+        /// The leader arm, by name or alias.
+        #[arg(long, value_name = "ARM")]
+        leader: String,
+        /// The follower arm, by name or alias.
+        #[arg(long, value_name = "ARM")]
+        follower: String,
+        /// pp (position–position) or pf (position–force, from the follower's estimate).
+        #[arg(long)]
+        architecture: Option<String>,
+        /// Follower mm per leader mm.
+        #[arg(long)]
+        motion_scale: Option<f64>,
+        /// The leader feels this times the force.
+        #[arg(long)]
+        force_scale: Option<f64>,
+        /// When the operator counts as present: button1 (held) or always.
+        #[arg(long)]
+        operator: Option<String>,
+        /// Time-domain passivity off (on by default).
+        #[arg(long)]
+        no_passivity: bool,
+        /// Uncouple after this many seconds.
+        #[arg(long)]
+        seconds: Option<f64>,
+    },
 }
 
 #[derive(clap::Args)]
@@ -961,6 +999,9 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
 
 fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     use serde_json::json;
+    if let CtlCommand::Teleop { action } = args.command {
+        return teleop_console(action);
+    }
     let request = match &args.command {
         CtlCommand::Status => json!({ "op": "status" }),
         CtlCommand::Mode { mode, trajectory } => {
@@ -1002,6 +1043,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
         },
         CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
         CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
+        CtlCommand::Teleop { .. } => unreachable!("handled above"),
     };
     // Paths are the daemon's to open: make relative ones relative to where ctl runs.
     let mut request = request;
@@ -1038,6 +1080,72 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
         }
         Err(e) => {
             omnid::errln!("omnid ctl: {e}");
+            Ok(EXIT_REFUSED)
+        }
+    }
+}
+
+/// `omnid ctl teleop start`: the pair's console, until Ctrl-C, SIGTERM or --seconds.
+fn teleop_console(action: TeleopAction) -> Result<u8, anyhow::Error> {
+    use omnid::teleop::console::{self, ConsoleEnd, PairSettings};
+    let TeleopAction::Start {
+        leader,
+        follower,
+        architecture,
+        motion_scale,
+        force_scale,
+        operator,
+        no_passivity,
+        seconds,
+    } = action;
+    if seconds.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+        omnid::errln!("omnid ctl teleop: --seconds must be a number > 0");
+        return Ok(EXIT_BAD_INPUT);
+    }
+    let stop = stop_on_signal()?;
+    let mut l = match connect(None, Some(&leader), "omnid ctl teleop (leader)") {
+        Ok(c) => c,
+        Err(code) => return Ok(code),
+    };
+    let mut f = match connect(None, Some(&follower), "omnid ctl teleop (follower)") {
+        Ok(c) => c,
+        Err(code) => return Ok(code),
+    };
+    let settings = PairSettings {
+        architecture,
+        motion_scale,
+        force_scale,
+        operator,
+        passivity: no_passivity.then_some(false),
+    };
+    let mut say = |line: &str| omnid::outln!("{line}");
+    match console::run(&mut l, &mut f, &settings, seconds, &stop, &mut say) {
+        Ok(ConsoleEnd::Elapsed) => {
+            omnid::outln!(
+                "teleop: uncoupled after {} s; both arms hold",
+                seconds.unwrap_or(0.0)
+            );
+            Ok(0)
+        }
+        Ok(ConsoleEnd::Stopped) => {
+            omnid::errln!(
+                "omnid ctl teleop: stopped by the operator; both arms uncoupled, holding"
+            );
+            Ok(EXIT_OPERATOR_STOP)
+        }
+        Ok(ConsoleEnd::ArmLeft { arm, mode }) => {
+            omnid::errln!(
+                "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled (the \
+                 follower holds, the leader's force faded); `omnid ctl --arm {arm} status` says why"
+            );
+            Ok(EXIT_DEVICE_FAULT)
+        }
+        Ok(ConsoleEnd::Gone(arm)) => {
+            omnid::errln!("omnid ctl teleop: {arm}'s daemon closed the connection");
+            Ok(EXIT_DEVICE_FAULT)
+        }
+        Err(e) => {
+            omnid::errln!("omnid ctl teleop: {e}");
             Ok(EXIT_REFUSED)
         }
     }

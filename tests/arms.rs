@@ -173,3 +173,136 @@ fn an_arm_a_daemon_serves_is_refused_to_run_and_probe_naming_the_holder() {
         "{err}"
     );
 }
+
+/// The pair's console in a running daemon (`omnid ctl teleop start`, issue "Teleoperation"):
+/// each side taken up on its own arm's socket, the follower copying the leader that the
+/// simulated hand moves, both arms holding when the console ends; a console whose arm is
+/// held by someone else, or that names an arm the daemon does not have, is refused.
+#[test]
+fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
+    let (leader, follower) = (unique("lead"), unique("follow"));
+    let config = format!(
+        "[teleop]\noperator = \"always\"\n\n[[arm]]\nname = \"{leader}\"\n\
+         [arm.haptics.hand]\npattern = \"path\"\nspeed_m_s = 0.05\n\n[[arm]]\nname = \"{follower}\"\n"
+    );
+    let d = Served::start(&[], Some(&config), &[&leader, &follower]);
+    // Someone else holds the follower: the console is refused, naming the lease.
+    let mut other = d.client(&follower, "someone");
+    other
+        .request(json!({"op": "mode", "mode": "hold"}))
+        .unwrap();
+    let out = d.omnid(&[
+        "ctl",
+        "teleop",
+        "start",
+        "--leader",
+        &leader,
+        "--follower",
+        &follower,
+        "--seconds",
+        "1",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("lease is held by"), "{err}");
+    drop(other);
+    // An arm this daemon does not serve, as the peer: named, with the arms it has.
+    let mut c = d.client(&leader, "asker");
+    let e = c
+        .request(json!({"op": "teleop", "role": "leader", "peer": "nobody"}))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("no arm `nobody`") && e.contains(&follower),
+        "{e}"
+    );
+    drop(c);
+
+    // Watch both arms while a console couples them for 3 s.
+    let mut watch = [d.client(&leader, "watch-l"), d.client(&follower, "watch-f")];
+    for w in &mut watch {
+        w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    }
+    let console = omnid_cmd_in(&d)
+        .args([
+            "ctl",
+            "teleop",
+            "start",
+            "--leader",
+            &leader,
+            "--follower",
+            &follower,
+            "--seconds",
+            "3",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // (leader tip, follower tip) at the same tick numbers while both are engaged.
+    let mut engaged: Vec<([f64; 3], [f64; 3])> = Vec::new();
+    let mut last_f: Option<omnid::serve::protocol::State> = None;
+    let until = Instant::now() + Duration::from_secs(30);
+    while engaged.len() < 150 {
+        assert!(Instant::now() < until, "never 1.5 s engaged: {last_f:?}");
+        let f = watch[1].next_state(5000).unwrap();
+        let l = loop {
+            let l = watch[0].next_state(5000).unwrap();
+            if l.t >= f.t - 0.005 {
+                break l;
+            }
+        };
+        if l.teleop.as_deref() == Some("engaged") && f.teleop.as_deref() == Some("engaged") {
+            assert_eq!((l.mode.as_str(), f.mode.as_str()), ("teleop", "teleop"));
+            engaged.push((l.tip_mm, f.tip_mm));
+        }
+        last_f = Some(f);
+    }
+    let out = console.wait_with_output().unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains(&format!("{leader} leads, {follower} follows (pp")),
+        "{stdout}"
+    );
+    assert!(stdout.contains("leader engaged"), "{stdout}");
+    // The follower copied the leader's motion since engaging: the hand moved the leader by
+    // centimetres, the follower stayed within a few millimetres of where it should be.
+    let (l0, f0) = engaged[0];
+    let (mut moved, mut err2) = (0.0f64, 0.0);
+    for (l, f) in &engaged {
+        let dl: Vec<f64> = (0..3).map(|k| l[k] - l0[k]).collect();
+        let df: Vec<f64> = (0..3).map(|k| f[k] - f0[k]).collect();
+        moved = moved.max(dl.iter().map(|v| v * v).sum::<f64>().sqrt());
+        err2 += (0..3).map(|k| (df[k] - dl[k]).powi(2)).sum::<f64>();
+    }
+    let rms = (err2 / engaged.len() as f64).sqrt();
+    assert!(moved > 10.0, "the hand moved the leader only {moved:.1} mm");
+    assert!(
+        rms < 3.0,
+        "follower off the leader's motion by {rms:.2} mm RMS"
+    );
+    // Uncoupled: both arms hold.
+    for (w, name) in watch.iter_mut().zip([&leader, &follower]) {
+        let until = Instant::now() + Duration::from_secs(10);
+        loop {
+            let s = w.next_state(5000).unwrap();
+            if s.mode == "hold" {
+                assert_eq!(s.teleop, None, "{name}: {s:?}");
+                break;
+            }
+            assert!(Instant::now() < until, "{name} never held: {s:?}");
+        }
+    }
+}
+
+fn omnid_cmd_in(d: &Served) -> std::process::Command {
+    let mut c = common::omnid();
+    c.env("XDG_RUNTIME_DIR", d.dir.path())
+        .env_remove("RUNTIME_DIRECTORY")
+        .env_remove("OMNID_SOCKET");
+    c
+}

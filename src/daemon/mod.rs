@@ -264,6 +264,9 @@ pub fn prepare_arm(
         seed: cfg.sim.seed,
         state_dir: dump_dir(global),
         realtime: pipeline.realtime_taken.clone(),
+        teleop: global.teleop.clone(),
+        // This arm alone; `serve` joins the daemon's arms at one rendezvous.
+        rendezvous: crate::teleop::Rendezvous::new(vec![arm.name.clone()]),
     };
     Ok(Prepared {
         pipeline,
@@ -319,6 +322,11 @@ pub fn serve(
     let mut prepared = Vec::with_capacity(arms.len());
     for arm in &arms {
         prepared.push(prepare_arm(arm, opts, cfg, stop.clone())?);
+    }
+    // The pairs a `teleop` op can form are between this daemon's arms.
+    let rendezvous = crate::teleop::Rendezvous::new(arms.iter().map(|a| a.name.clone()).collect());
+    for p in &mut prepared {
+        p.hub.station.rendezvous = rendezvous.clone();
     }
     for p in &prepared {
         crate::errln!(

@@ -147,6 +147,36 @@ pub(crate) enum Request {
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
+    /// Couple this arm as one side of a teleoperation pair with `peer`, another arm of this
+    /// daemon (docs/TELEOP.md §8): `role` leader or follower. The pair's settings are
+    /// `[teleop]`'s, changed by those given; both sides must be started with the same.
+    Teleop {
+        role: String,
+        peer: String,
+        #[serde(default)]
+        architecture: Option<String>,
+        #[serde(default)]
+        motion_scale: Option<f64>,
+        #[serde(default)]
+        force_scale: Option<f64>,
+        #[serde(default)]
+        operator: Option<String>,
+        #[serde(default)]
+        passivity: Option<bool>,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// Uncouple this arm: it holds where it is.
+    TeleopStop {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
+    /// The leader's motion scale, changed live without a jump.
+    TeleopScale {
+        motion_scale: f64,
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
     /// Stop the daemon: zero torque, amplifiers off, socket removed.
     Shutdown {
         #[serde(default)]
@@ -177,6 +207,9 @@ impl Request {
             Request::RecordStart { .. } => "record_start",
             Request::RecordStop { .. } => "record_stop",
             Request::Stylus { .. } => "stylus",
+            Request::Teleop { .. } => "teleop",
+            Request::TeleopStop { .. } => "teleop_stop",
+            Request::TeleopScale { .. } => "teleop_scale",
             Request::Shutdown { .. } => "shutdown",
         }
     }
@@ -203,6 +236,9 @@ impl Request {
             | Request::RecordStart { id, .. }
             | Request::RecordStop { id }
             | Request::Stylus { id, .. }
+            | Request::Teleop { id, .. }
+            | Request::TeleopStop { id }
+            | Request::TeleopScale { id, .. }
             | Request::Shutdown { id } => id.as_ref(),
         }
     }

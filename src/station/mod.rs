@@ -18,7 +18,9 @@ mod taps;
 mod view;
 
 pub use files::FileRights;
-pub use ops::{ModeRequest, Op, OpError, Reply, SessionId, SessionInfo, Status};
+pub use ops::{
+    ModeRequest, Op, OpError, Reply, SessionId, SessionInfo, Status, TeleopReply, TeleopRequest,
+};
 pub use taps::Tap;
 pub use view::ArmState;
 
@@ -80,6 +82,10 @@ pub struct StationSetup {
     pub state_dir: PathBuf,
     /// The realtime steps the servo thread took (set before its first tick).
     pub realtime: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
+    /// `[teleop]`: a pair's settings unless its `teleop` op changes them.
+    pub teleop: crate::teleop::TeleopConfig,
+    /// Where this arm meets the other side of a pair (shared by the daemon's arms).
+    pub rendezvous: crate::teleop::Rendezvous,
 }
 
 /// The station's share of `[serve]` (the rest is the transports').
@@ -257,6 +263,9 @@ pub struct Station {
     latched: Option<String>,
     /// Events and answers produced by requests, handed out at the next pump.
     pending: Vec<PendingOut>,
+    /// This arm's side of a pair as started, and its token at the rendezvous (kept while
+    /// the side is on the line).
+    teleop: Option<(TeleopReply, Arc<()>)>,
 }
 
 enum PendingOut {
@@ -301,6 +310,7 @@ impl Station {
             recording: None,
             taps: Vec::new(),
             faults: Vec::new(),
+            teleop: None,
             dumps: Vec::new(),
             shutdown_requested: false,
             last_dump: None,
@@ -530,6 +540,33 @@ impl Station {
                 Some((path, rows, error)) => now(Reply::RecordStop { path, rows, error }),
                 None => Err(OpError::Failed("not recording".into())),
             },
+            Op::Teleop(request) => self.teleop_start(k, &request).map(Answer::Now),
+            Op::TeleopStop => {
+                if self.teleop.take().is_some() {
+                    self.send(ServoCommand::TeleopEnd)?;
+                }
+                now(Reply::Done {})
+            }
+            Op::TeleopScale(scale) => {
+                let Some((side, _)) = self.teleop.as_mut() else {
+                    return Err(OpError::Invalid(
+                        "teleop_scale: this arm is not in a pair (`teleop` first)".into(),
+                    ));
+                };
+                if side.role != crate::teleop::Role::Leader {
+                    return Err(OpError::Invalid(format!(
+                        "teleop_scale: the motion scale is the leader's; ask `{}`",
+                        side.peer
+                    )));
+                }
+                crate::config_check::in_range("motion_scale", scale, 0.05, 20.0, "0.05 ..= 20")
+                    .map_err(|e| OpError::Invalid(e.to_string()))?;
+                side.motion_scale = scale;
+                self.send(ServoCommand::TeleopScale(scale))?;
+                now(Reply::TeleopScale {
+                    motion_scale: scale,
+                })
+            }
             Op::Stylus(action) => {
                 if self.s.arm.kind != "sim" {
                     return Err(OpError::Invalid(format!(
@@ -651,8 +688,39 @@ impl Station {
         if self.lease.take().is_none() {
             return;
         }
+        // The pair was the holder's: the servo ends its side itself (it sees the owner go).
+        self.teleop = None;
         self.epoch = self.s.signals.end_owner();
         self.lease_fallback = None;
+    }
+
+    /// `teleop`: join the pair at the rendezvous and couple the servo (the mode becomes
+    /// `teleop`). Like a mode, it re-arms an arm a trip or a stop left idle.
+    fn teleop_start(&mut self, k: usize, request: &TeleopRequest) -> Result<Reply, OpError> {
+        let cfg = request.settings(&self.s.teleop)?;
+        let role = request.role.unwrap_or(crate::teleop::Role::Leader);
+        let seed = self.s.seed ^ u64::from(role == crate::teleop::Role::Follower);
+        let (endpoint, token) = self
+            .s
+            .rendezvous
+            .join(&self.s.arm.name, &request.peer, role, &cfg, seed)
+            .map_err(|e| OpError::Invalid(format!("teleop: {e}")))?;
+        let dt = self.s.period_ns as f64 * 1e-9;
+        let coupling = Box::new(crate::teleop::Coupling::new(role, &cfg, endpoint, dt));
+        self.sessions[k].stopped_by = None;
+        self.latched = None;
+        self.send(ServoCommand::Teleop(coupling))?;
+        let side = TeleopReply {
+            role,
+            peer: request.peer.clone(),
+            architecture: cfg.architecture.as_str(),
+            motion_scale: cfg.motion_scale,
+            force_scale: cfg.force_scale,
+            operator: cfg.operator,
+            passivity: cfg.passivity,
+        };
+        self.teleop = Some((side.clone(), token));
+        Ok(Reply::Teleop { teleop: side })
     }
 
     /// Any command takes the lease while it is free; another session's lease refuses it.

@@ -158,6 +158,124 @@ pub enum Op {
     Shutdown,
     /// The simulator's hand acts on the stylus: a button, the inkwell (simulator only).
     Stylus(crate::device::StylusAction),
+    /// Couple this arm as one side of a teleoperation pair.
+    Teleop(TeleopRequest),
+    /// Uncouple this arm (it holds).
+    TeleopStop,
+    /// The leader's motion scale, live.
+    TeleopScale(f64),
+}
+
+/// This arm's side of a pair, as started (the reply to `teleop`, and in `status`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TeleopReply {
+    /// Leader or follower.
+    pub role: crate::teleop::Role,
+    /// The other arm.
+    pub peer: String,
+    /// pp or pf.
+    pub architecture: &'static str,
+    /// Follower mm per leader mm.
+    pub motion_scale: f64,
+    /// Leader's force per coupling force.
+    pub force_scale: f64,
+    /// When the operator counts as present.
+    pub operator: crate::teleop::Operator,
+    /// Time-domain passivity on.
+    pub passivity: bool,
+}
+
+/// This arm's side of a pair, as asked: `[teleop]` with the changes given.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct TeleopRequest {
+    /// Leader or follower.
+    pub role: Option<crate::teleop::Role>,
+    /// The other arm, by name.
+    pub peer: String,
+    /// `[teleop] architecture`, if changed.
+    pub architecture: Option<crate::teleop::Architecture>,
+    /// `[teleop] motion_scale`, if changed.
+    pub motion_scale: Option<f64>,
+    /// `[teleop] force_scale`, if changed.
+    pub force_scale: Option<f64>,
+    /// `[teleop] operator`, if changed.
+    pub operator: Option<crate::teleop::Operator>,
+    /// `[teleop] passivity`, if changed.
+    pub passivity: Option<bool>,
+}
+
+impl TeleopRequest {
+    /// `base` with this request's changes, checked as the config is.
+    pub fn settings(
+        &self,
+        base: &crate::teleop::TeleopConfig,
+    ) -> Result<crate::teleop::TeleopConfig, OpError> {
+        let mut cfg = base.clone();
+        if let Some(a) = self.architecture {
+            cfg.architecture = a;
+        }
+        if let Some(s) = self.motion_scale {
+            cfg.motion_scale = s;
+        }
+        if let Some(s) = self.force_scale {
+            cfg.force_scale = s;
+        }
+        if let Some(o) = self.operator {
+            cfg.operator = o;
+        }
+        if let Some(p) = self.passivity {
+            cfg.passivity = p;
+        }
+        cfg.validate()
+            .map_err(|e| OpError::Invalid(e.to_string().replace("teleop.", "")))?;
+        Ok(cfg)
+    }
+}
+
+/// A teleop request's names parsed.
+pub fn parse_teleop(
+    role: &str,
+    peer: String,
+    architecture: Option<&str>,
+    operator: Option<&str>,
+) -> Result<TeleopRequest, OpError> {
+    let role = match role {
+        "leader" => crate::teleop::Role::Leader,
+        "follower" => crate::teleop::Role::Follower,
+        other => {
+            return Err(OpError::Invalid(format!(
+                "teleop role `{}`: expected leader or follower",
+                crate::text::cut(other)
+            )))
+        }
+    };
+    let architecture = architecture
+        .map(|a| {
+            crate::teleop::Architecture::parse(a).ok_or_else(|| {
+                OpError::Invalid(format!(
+                    "teleop architecture `{}`: expected pp or pf",
+                    crate::text::cut(a)
+                ))
+            })
+        })
+        .transpose()?;
+    let operator = operator
+        .map(|o| match o {
+            "button1" => Ok(crate::teleop::Operator::Button1),
+            "always" => Ok(crate::teleop::Operator::Always),
+            other => Err(OpError::Invalid(format!(
+                "teleop operator `{}`: expected button1 or always",
+                crate::text::cut(other)
+            ))),
+        })
+        .transpose()?;
+    Ok(TeleopRequest {
+        role: Some(role),
+        peer,
+        architecture,
+        operator,
+        ..TeleopRequest::default()
+    })
 }
 
 impl Op {
@@ -279,6 +397,16 @@ pub enum Reply {
         /// The button it acted on, 1 or 2.
         #[serde(skip_serializing_if = "Option::is_none")]
         button: Option<u8>,
+    },
+    /// This arm's side of a pair, as started.
+    Teleop {
+        /// The side.
+        teleop: TeleopReply,
+    },
+    /// The leader's motion scale now.
+    TeleopScale {
+        /// The scale.
+        motion_scale: f64,
     },
     /// The daemon's status.
     Status {

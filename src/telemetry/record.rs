@@ -214,6 +214,8 @@ pub(crate) struct Live {
     /// The outside's force on the tip estimated from the motors and the model, N
     /// (docs/TELEOP.md §2).
     pub(crate) fext: [f64; 3],
+    /// This arm's side of a teleoperation pair, if it has one.
+    pub(crate) teleop: Option<crate::teleop::TeleopState>,
 }
 
 /// Which optional column groups a log carries.

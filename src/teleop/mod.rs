@@ -5,11 +5,14 @@
 //! ([`passivity`]) keeps the pair stable under delay and loss. `[teleop]` configures it.
 
 pub mod channel;
+pub mod console;
 pub mod coupling;
 pub mod passivity;
+pub mod rendezvous;
 
 pub use channel::{pair, Endpoint, Impairment, Packet};
 pub use coupling::{Coupling, Role, SideInput, TeleopState};
+pub use rendezvous::{Rendezvous, RendezvousError};
 
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};

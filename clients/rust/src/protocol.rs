@@ -53,6 +53,10 @@ pub struct ArmState {
     /// and the arm's model, N, OpenHaptics frame.
     #[serde(default)]
     pub fext: [f64; 3],
+    /// This arm's side of a teleoperation pair, when it has one: waiting, engaged,
+    /// clutched, link_lost or down (docs/TELEOP.md §3–§4).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub teleop: Option<String>,
 }
 
 /// The state stream's message (`type: "state"`), as the protocol names it.

@@ -210,6 +210,23 @@ pub(crate) fn to_op(request: Request) -> Result<Op, OpError> {
         Request::RecordStart { path, .. } => Op::RecordStart(path.map(PathBuf::from)),
         Request::RecordStop { .. } => Op::RecordStop,
         Request::Shutdown { .. } => Op::Shutdown,
+        Request::Teleop {
+            role,
+            peer,
+            architecture,
+            motion_scale,
+            force_scale,
+            operator,
+            passivity,
+            ..
+        } => Op::Teleop(ops::TeleopRequest {
+            motion_scale,
+            force_scale,
+            passivity,
+            ..ops::parse_teleop(&role, peer, architecture.as_deref(), operator.as_deref())?
+        }),
+        Request::TeleopStop { .. } => Op::TeleopStop,
+        Request::TeleopScale { motion_scale, .. } => Op::TeleopScale(motion_scale),
         Request::Stylus { action, button, .. } => Op::Stylus(
             crate::device::StylusAction::parse(&action, button).map_err(|(field, allowed)| {
                 let value = match field {
