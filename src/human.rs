@@ -145,6 +145,22 @@ pub fn status_block(s: &Value) -> String {
             format!("{} (1 = a motor at its continuous torque)", h.trim_end()),
         );
     }
+    let t = &s["teleop"];
+    if !t.is_null() {
+        line(
+            "teleop",
+            format!(
+                "{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {})",
+                text(&t["role"]).unwrap_or_default(),
+                text(&t["peer"]).unwrap_or_default(),
+                text(&t["architecture"]).unwrap_or_default(),
+                t["motion_scale"],
+                t["force_scale"],
+                text(&t["operator"]).unwrap_or_default(),
+                if t["passivity"] == true { "on" } else { "off" }
+            ),
+        );
+    }
     let rec = &s["recording"];
     line(
         "recording",
@@ -269,6 +285,8 @@ pub fn reply_line(r: &Value) -> String {
         "weights_save" => format!("weights saved to {path}"),
         "weights_load" => format!("weights loaded from {path}"),
         "shutdown" => "the daemon is stopping".to_string(),
+        "teleop_stop" => "uncoupled: the arm holds".to_string(),
+        "teleop_scale" => format!("motion scale {}", r["motion_scale"]),
         "stylus" => match (
             text(&r["stylus"]).unwrap_or_default().as_str(),
             r["button"].as_u64(),

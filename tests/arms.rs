@@ -218,7 +218,7 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
     );
     drop(c);
 
-    // Watch both arms while a console couples them for 3 s.
+    // Watch both arms while a console couples them for 5 s.
     let mut watch = [d.client(&leader, "watch-l"), d.client(&follower, "watch-f")];
     for w in &mut watch {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
@@ -233,7 +233,7 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
             "--follower",
             &follower,
             "--seconds",
-            "3",
+            "5",
         ])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -258,6 +258,13 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
         }
         last_f = Some(f);
     }
+    // The follower's status says whose follower it is.
+    let out = d.omnid(&["ctl", "--arm", &follower, "status"]);
+    let status = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        status.contains(&format!("follower of {leader} (pp, motion ×1")),
+        "{status}"
+    );
     let out = console.wait_with_output().unwrap();
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
@@ -305,4 +312,49 @@ fn omnid_cmd_in(d: &Served) -> std::process::Command {
         .env_remove("RUNTIME_DIRECTORY")
         .env_remove("OMNID_SOCKET");
     c
+}
+
+/// A trip on the follower ends the pair: the console says which arm left teleop and exits
+/// non-zero, the follower is idle (the trip's), the leader holds.
+#[test]
+fn a_trip_on_the_follower_ends_the_console_and_leaves_the_leader_holding() {
+    let (leader, follower) = (unique("lead2"), unique("follow2"));
+    let config = format!(
+        "[teleop]\noperator = \"always\"\n\n[[arm]]\nname = \"{leader}\"\n\
+         [arm.haptics.hand]\npattern = \"path\"\nspeed_m_s = 0.05\n\n[[arm]]\nname = \"{follower}\"\n\
+         [arm.safety]\nmax_velocity_rad_s = [0.1, 0.1, 0.1]\n"
+    );
+    let d = Served::start(&[], Some(&config), &[&leader, &follower]);
+    let mut watch = d.client(&leader, "watch-l");
+    watch
+        .request(json!({"op": "stream", "rate_hz": 100}))
+        .unwrap();
+    let out = omnid_cmd_in(&d)
+        .args([
+            "ctl",
+            "teleop",
+            "start",
+            "--leader",
+            &leader,
+            "--follower",
+            &follower,
+            "--seconds",
+            "20",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(
+        err.contains(&format!("{follower} left teleop (now idle)")),
+        "{err}"
+    );
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        let s = watch.next_state(5000).unwrap();
+        if s.mode == "hold" {
+            break;
+        }
+        assert!(Instant::now() < until, "the leader never held: {s:?}");
+    }
 }

@@ -1110,6 +1110,7 @@ impl Station {
                 dropped: r.dropped(),
             }),
             heat: snap.heat,
+            teleop: self.teleop.as_ref().map(|(side, _)| side.clone()),
         }
     }
 

@@ -455,6 +455,8 @@ pub struct Status {
     pub recording: Option<RecordingStatus>,
     /// Motor heat per joint.
     pub heat: [f64; 3],
+    /// This arm's side of a teleoperation pair, as started (`null`: none).
+    pub teleop: Option<TeleopReply>,
 }
 
 /// Why an op was refused.
