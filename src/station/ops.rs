@@ -226,8 +226,14 @@ impl TeleopRequest {
         if let Some(p) = self.passivity {
             cfg.passivity = p;
         }
-        cfg.validate()
-            .map_err(|e| OpError::Invalid(e.to_string().replace("teleop.", "")))?;
+        // The config's wording, naming the request's field rather than the file's key.
+        cfg.validate().map_err(|e| {
+            OpError::Invalid(
+                e.to_string()
+                    .replacen("config: ", "teleop: ", 1)
+                    .replace("teleop.", ""),
+            )
+        })?;
         Ok(cfg)
     }
 }

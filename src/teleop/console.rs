@@ -144,7 +144,7 @@ fn watch(
                 }
                 Ok(Message::Other(v)) => {
                     if let Some(line) = crate::human::event_line(&v) {
-                        say(&format!("{}: {line}", c.hello().arm));
+                        say(&format!("{}: {}", c.hello().arm, line.trim_start()));
                     }
                 }
                 Err(ClientError::Timeout(_)) => {}
