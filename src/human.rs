@@ -150,7 +150,10 @@ pub fn status_block(s: &Value) -> String {
         line(
             "teleop",
             format!(
-                "{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {})",
+                "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {})",
+                text(&t["state"])
+                    .map(|s| format!("{s}: "))
+                    .unwrap_or_default(),
                 text(&t["role"]).unwrap_or_default(),
                 text(&t["peer"]).unwrap_or_default(),
                 text(&t["architecture"]).unwrap_or_default(),

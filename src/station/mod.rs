@@ -718,6 +718,7 @@ impl Station {
             force_scale: cfg.force_scale,
             operator: cfg.operator,
             passivity: cfg.passivity,
+            state: None,
         };
         self.teleop = Some((side.clone(), token));
         Ok(Reply::Teleop { teleop: side })
@@ -1110,7 +1111,10 @@ impl Station {
                 dropped: r.dropped(),
             }),
             heat: snap.heat,
-            teleop: self.teleop.as_ref().map(|(side, _)| side.clone()),
+            teleop: self.teleop.as_ref().map(|(side, _)| TeleopReply {
+                state: last.and_then(|r| r.live.teleop).map(|s| s.as_str()),
+                ..side.clone()
+            }),
         }
     }
 

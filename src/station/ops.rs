@@ -183,6 +183,10 @@ pub struct TeleopReply {
     pub operator: crate::teleop::Operator,
     /// Time-domain passivity on.
     pub passivity: bool,
+    /// In `status`: the side's state at the last tick (`down` once the arm has left
+    /// `teleop`: a trip, another mode).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub state: Option<&'static str>,
 }
 
 /// This arm's side of a pair, as asked: `[teleop]` with the changes given.

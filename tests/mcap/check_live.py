@@ -4,8 +4,8 @@
     python check_live.py --stuck URL SECONDS    # subscribe, then never read
     python check_live.py --old URL              # offer only the old subprotocol
 
-The first form prints one JSON line: per topic, messages received and their rate (from their
-log times), and the number that failed to decode against their advertised schema (every
+The first form prints one JSON line: per topic, messages received over SECONDS of the
+stream's own log time, and their rate (from their log times), and the number that failed to decode against their advertised schema (every
 payload is decoded with PyPI's mcap-ros2-support). The second holds a subscription without
 reading for SECONDS (its queue fills on the server). The third prints the HTTP status the
 server answers a client offering only `foxglove.websocket.v1`.
@@ -47,15 +47,22 @@ async def watch(url, secs):
         subs = await subscribe_all(ws)
         decoders = {sid: decoder_for(ch) for sid, ch in subs.items()}
         count, bad, first, last = {}, {}, {}, {}
-        end = time.monotonic() + secs
-        while time.monotonic() < end:
+        # `secs` of the daemon's time (the messages' log times), not of this script's: on a
+        # loaded machine this decoder falls behind the stream, and a wall-clock window would
+        # then see less than `secs` of it. The wall clock only bounds a stream that stalls.
+        start = None
+        give_up = time.monotonic() + 6 * secs
+        while time.monotonic() < give_up:
             try:
-                m = await asyncio.wait_for(ws.recv(), max(0.01, end - time.monotonic()))
+                m = await asyncio.wait_for(ws.recv(), max(0.01, give_up - time.monotonic()))
             except asyncio.TimeoutError:
                 break
             if isinstance(m, str) or m[0] != 0x01:  # 0x01: message data
                 continue
             sid, log_time = struct.unpack_from("<IQ", m, 1)
+            start = log_time if start is None else start
+            if (log_time - start) / 1e9 >= secs:
+                break
             topic = subs[sid]["topic"]
             count[topic] = count.get(topic, 0) + 1
             first.setdefault(topic, log_time)
