@@ -179,11 +179,17 @@ class State(NamedTuple):
     """The identifier's prediction of the torque that acted, N·m."""
     controller: str
     mode: str
-    """idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, or stop (the last tick)."""
+    """idle, hold, blend, track, free, servo_jp, servo_jf, servo_cf, teleop, or stop (the last
+    tick)."""
     amps: bool
     flags: int
     cmd_seq: int
     """``seq`` of the last servo_jp/servo_jf/servo_cf command applied."""
+    fext: Tuple[float, float, float] = _NAN3
+    """The outside's force on the tip estimated from the motors and the arm's model, N."""
+    teleop: Optional[str] = None
+    """This arm's side of a teleoperation pair: waiting, engaged, clutched, link_lost, down
+    (None: not in a pair)."""
 
     @classmethod
     def from_message(cls, m: Dict[str, Any]) -> "State":
@@ -204,6 +210,8 @@ class State(NamedTuple):
             amps=bool(g("amps", False)),
             flags=int(g("flags", 0)),
             cmd_seq=int(g("cmd_seq", 0)),
+            fext=tuple(g("fext", _NAN3)),
+            teleop=g("teleop"),
         )
 
 
@@ -869,6 +877,24 @@ class Client:
     def passivity(self, on: bool = True) -> bool:
         """Turn the passivity controller on the effects on or off."""
         return bool(self.request("passivity", on=bool(on))["passivity"])
+
+    # ---------------------------------------------------------------- teleoperation
+
+    def teleop(self, role: str, peer: str, **settings: Any) -> Dict[str, Any]:
+        """Couple this arm as ``role`` (``"leader"`` or ``"follower"``) of a pair with
+        ``peer``, another arm of the same daemon; the other side is started the same way on
+        ``peer``'s own connection, with the same ``settings`` (changes to ``[teleop]``:
+        ``architecture``, ``motion_scale``, ``force_scale``, ``operator``, ``passivity``).
+        Returns the side as started (docs/TELEOP.md §8)."""
+        return self.request("teleop", role=role, peer=peer, **settings)["teleop"]
+
+    def teleop_stop(self) -> None:
+        """Uncouple this arm; it holds where it is."""
+        self.request("teleop_stop")
+
+    def teleop_scale(self, motion_scale: float) -> float:
+        """The leader's motion scale, changed live without a jump."""
+        return float(self.request("teleop_scale", motion_scale=float(motion_scale))["motion_scale"])
 
     # ---------------------------------------------------------------- reading
 

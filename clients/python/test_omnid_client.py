@@ -495,6 +495,30 @@ class CommandTests(DaemonTestCase):
         self.assertFalse(c.passivity(False))
         self.assertTrue(c.passivity(True))
 
+    def test_teleop_refusals_name_the_problem(self):
+        # One arm here: a pair needs a peer this daemon serves, and a scale needs a pair.
+        c = self.c
+        arm = c.hello["arm"]
+        with self.assertRaises(RefusedError) as cm:
+            c.teleop("leader", "nobody")
+        self.assertIn("no arm `nobody`", cm.exception.message)
+        self.assertIn(arm, cm.exception.message)
+        with self.assertRaises(RefusedError) as cm:
+            c.teleop("leader", arm)
+        self.assertIn("its own follower", cm.exception.message)
+        with self.assertRaises(RefusedError) as cm:
+            c.teleop("boss", "nobody")
+        self.assertIn("leader or follower", cm.exception.message)
+        with self.assertRaises(RefusedError) as cm:
+            c.teleop_scale(0.5)
+        self.assertIn("not in a pair", cm.exception.message)
+        self.assertIsNone(c.teleop_stop())
+        # Every state carries the force estimate; `teleop` only while in a pair.
+        s = c.latest_state()
+        self.assertEqual(len(s.fext), 3)
+        self.assertTrue(all(math.isfinite(v) for v in s.fext), s.fext)
+        self.assertIsNone(s.teleop)
+
     def test_lease(self):
         c = self.c
         holder = c.take_lease()
