@@ -406,10 +406,10 @@ while True:
     let seen = states_until(&mut watcher, 2000, |s| s.mode != "servo_jf");
     let (gap, first) = fallback_gap(&seen, "servo_jf");
     assert_eq!(first.mode, "hold");
-    assert!(
-        gap <= 0.020 + 0.0015,
-        "fell back {gap} s after the last command"
-    );
+    // The disconnect ended the stream, not its 1 s time to live. (The gap runs from the
+    // victim's last applied command: under load a Python victim answers late, so its last
+    // command can come tens of ms before the kill; this bound only tells the two causes apart.)
+    assert!(gap < 0.25, "fell back {gap} s after the last command");
     loop {
         if let Message::Other(v) = watcher.recv(5000).unwrap() {
             if v["event"] == "stream-ended" {
