@@ -695,7 +695,7 @@ impl Servo {
                 event,
                 heat: self.safety.heat(),
                 fext: self.external.force.into(),
-                teleop: self.teleop.as_ref().map(|c| c.state()),
+                teleop: self.teleop.as_ref().map(|c| c.state().as_str()),
             },
         });
         self.last_t = t;

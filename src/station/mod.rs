@@ -1112,7 +1112,7 @@ impl Station {
             }),
             heat: snap.heat,
             teleop: self.teleop.as_ref().map(|(side, _)| TeleopReply {
-                state: last.and_then(|r| r.live.teleop).map(|s| s.as_str()),
+                state: last.and_then(|r| r.live.teleop),
                 ..side.clone()
             }),
         }

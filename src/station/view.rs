@@ -26,6 +26,6 @@ pub fn arm_state(r: &TickRecord, geometry: &Geometry) -> ArmState {
         cmd_seq: r.live.cmd_seq,
         heat: r.live.heat,
         fext: r.live.fext,
-        teleop: r.live.teleop.map(|s| s.as_str().to_string()),
+        teleop: r.live.teleop.map(str::to_string),
     }
 }

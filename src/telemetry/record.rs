@@ -214,8 +214,9 @@ pub(crate) struct Live {
     /// The outside's force on the tip estimated from the motors and the model, N
     /// (docs/TELEOP.md §2).
     pub(crate) fext: [f64; 3],
-    /// This arm's side of a teleoperation pair, if it has one.
-    pub(crate) teleop: Option<crate::teleop::TeleopState>,
+    /// This arm's side of a teleoperation pair, if it has one: its state's name
+    /// (`teleop::TeleopState::as_str`; a name, so telemetry does not depend on teleop).
+    pub(crate) teleop: Option<&'static str>,
 }
 
 /// Which optional column groups a log carries.

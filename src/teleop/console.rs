@@ -6,8 +6,8 @@
 //! console's sessions: if the console dies, the daemon ends it as for any lease holder that
 //! leaves (the follower holds, the leader's force fades).
 
-use crate::serve::client::{Client, ClientError, Message};
-use crate::serve::protocol::State;
+use omnid_client::client::{Client, ClientError, Message};
+use omnid_client::protocol::State;
 use serde_json::{json, Value};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
