@@ -714,6 +714,52 @@ mod tests {
     }
 
     #[test]
+    fn each_side_measures_the_round_trip_from_echoes_and_softens_its_spring_beyond_it() {
+        let cfg = always();
+        // In process (lockstep, the leader first): the follower's echo reaches the leader a
+        // tick later; the leader's reaches the follower after the follower's next send.
+        let mut p = sides(&cfg);
+        run(&mut p, 0, 50, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
+        for side in [&p.0, &p.1] {
+            assert!(
+                side.round_trip_s() <= 2.0 * DT + 1e-9,
+                "{}",
+                side.round_trip_s()
+            );
+            assert_eq!(side.delay_gain(), 1.0);
+        }
+        // 100 ms each way: both measure a 200 ms round trip and scale the spring by 3/200.
+        let slow = Impairment {
+            delay_ms: 100.0,
+            ..Impairment::default()
+        };
+        let (l, f) = pair(slow, slow, 5);
+        let mut p = (
+            Coupling::new(Role::Leader, &cfg, l, DT),
+            Coupling::new(Role::Follower, &cfg, f, DT),
+        );
+        // (The first samples, taken as the link comes up, are longer; the estimate comes down
+        // over a second.)
+        run(&mut p, 0, 3000, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
+        for side in [&p.0, &p.1] {
+            let rtt = side.round_trip_s();
+            assert!((rtt - 0.2).abs() <= 2.0 * DT, "{rtt}");
+            assert!((side.delay_gain() - cfg.delay_gain_ms * 1e-3 / rtt).abs() < 1e-12);
+        }
+        // The follower's pull for 1 mm of the leader's motion is the softened spring's.
+        let (_, ff) = run(
+            &mut p,
+            3000,
+            300,
+            input(0.0, [1.0, 0.0, 0.0]),
+            input(0.0, [0.0; 3]),
+        );
+        let k = cfg.stiffness_n_per_mm * p.1.delay_gain();
+        assert!((ff[0] - k).abs() < 1e-9, "{ff:?} vs {k}");
+        assert!(k < 0.1 * cfg.stiffness_n_per_mm);
+    }
+
+    #[test]
     fn with_operator_button1_the_pair_follows_only_while_it_is_held() {
         let cfg = TeleopConfig {
             operator: Operator::Button1,
