@@ -125,3 +125,31 @@ fn passivity_control_keeps_a_pair_stable_at_500_ms_that_is_unstable_without_it()
     );
     assert!(with.channel_energy_min_j > without.channel_energy_min_j);
 }
+
+#[test]
+fn with_passivity_control_both_architectures_stay_stable_pressing_at_500_ms_and_at_10_percent_loss()
+{
+    // Issue #31's floor: with passivity control, stable at every delay up to 500 ms round trip
+    // and at 10 % loss, hand on. The hand presses 1 N into the 1 N/mm floor through the pair;
+    // with the controller's damping capped (the first version) both architectures oscillated
+    // here, or tripped a joint's speed limit.
+    let base = TeleopConfig::default();
+    let lossy = *CHANNELS
+        .iter()
+        .find(|c| c.loss == 0.10)
+        .expect("the 10 % loss channel");
+    for arch in [Architecture::Pp, Architecture::Pf] {
+        for c in [channel(500.0), lossy] {
+            let (r, _) = run_pair(&base, arch, true, &PRESS, &c, false).unwrap();
+            assert!(r.stable, "{arch:?}, {}: {:?}", c.name, r.why);
+            // The channel made no energy: what its ports put out never exceeded what went in,
+            // beyond the reserve a port may keep in hand.
+            assert!(
+                r.channel_energy_min_j >= -2.0 * base.passivity_reserve_j,
+                "{arch:?}, {}: channel energy {} J",
+                c.name,
+                r.channel_energy_min_j
+            );
+        }
+    }
+}

@@ -40,6 +40,11 @@ pub struct Packet {
     /// Energy that has entered the channel at the sender's port so far, J (time-domain
     /// passivity: the other side may put out at most this much).
     pub energy_in_j: f64,
+    /// The sender's copy of the newest packet it has received from this end: that packet's
+    /// `t` (this end's clock), or 0 before any. This end measures the round trip from it
+    /// without the two clocks agreeing (docs/TELEOP.md §5).
+    #[serde(default)]
+    pub echo_t: f64,
 }
 
 /// Delay, jitter and loss injected at a receiving end (docs/TELEOP.md §3).

@@ -108,7 +108,14 @@ pub struct Coupling {
     fade_at: f64,
     /// The last own tip (a scale change re-measures from it).
     last_tip: V3,
+    /// The `t` of the newest packet from the other side (echoed back in ours), s.
+    peer_t: f64,
+    /// The round trip as measured from the echoes, s: up at once, down over a second.
+    rtt_s: f64,
 }
+
+/// The measured round trip comes down over this time constant, s (it goes up at once).
+const RTT_FALL_S: f64 = 1.0;
 
 impl Coupling {
     /// A side in `role` over `endpoint`, stepped every `dt` s.
@@ -141,6 +148,8 @@ impl Coupling {
             fade_from: V3::zeros(),
             fade_at: f64::NEG_INFINITY,
             last_tip: V3::zeros(),
+            peer_t: 0.0,
+            rtt_s: 0.0,
         }
     }
 
@@ -167,6 +176,22 @@ impl Coupling {
     /// This side's passivity port (energies in, out and dissipated).
     pub fn port(&self) -> &Port {
         &self.port
+    }
+
+    /// The round trip this side measures from the echoes of its packets, s (0 before any).
+    pub fn round_trip_s(&self) -> f64 {
+        self.rtt_s
+    }
+
+    /// What the coupling's stiffness is scaled by now: 1 up to a round trip of
+    /// `delay_gain_ms`, then inversely with the round trip (docs/TELEOP.md §5).
+    pub fn delay_gain(&self) -> f64 {
+        let tau = self.cfg.delay_gain_ms * 1e-3;
+        if tau > 0.0 && self.rtt_s > tau {
+            tau / self.rtt_s
+        } else {
+            1.0
+        }
     }
 
     /// This side's channel counters.
@@ -210,6 +235,15 @@ impl Coupling {
         if let Some(p) = self.endpoint.receive(x.t) {
             if self.peer_at < x.t - self.cfg.link_timeout_ms * 1e-3 || self.peer.is_none() {
                 self.up_since = x.t;
+            }
+            self.peer_t = p.t;
+            if p.echo_t > 0.0 && p.echo_t <= x.t {
+                let sample = x.t - p.echo_t;
+                self.rtt_s = if sample > self.rtt_s {
+                    sample
+                } else {
+                    self.rtt_s + (sample - self.rtt_s) * (self.dt / RTT_FALL_S).min(1.0)
+                };
             }
             self.peer = Some(p);
             self.peer_at = x.t;
@@ -300,12 +334,12 @@ impl Coupling {
             .filter(|p| p.engage == self.epoch && self.epoch != 0);
         match (self.state, peer) {
             (TeleopState::Engaged, Some(p)) if link_up => {
+                let k = self.cfg.stiffness_n_per_mm * self.delay_gain();
                 let raw = match self.cfg.architecture {
                     Architecture::Pp => {
                         let e = V3::from(p.pos_mm) - d;
                         let ev = V3::from(p.vel_mm_s) - dv;
-                        (e * self.cfg.stiffness_n_per_mm
-                            + ev * (self.cfg.leader_damping_n_s_per_m * 1e-3))
+                        (e * k + ev * (self.cfg.leader_damping_n_s_per_m * 1e-3))
                             * self.cfg.force_scale
                     }
                     Architecture::Pf => {
@@ -371,13 +405,19 @@ impl Coupling {
             Some(p) => (self.origin_mm + V3::from(p.pos_mm), V3::from(p.vel_mm_s)),
             None => (self.hold_mm, V3::zeros()),
         };
+        // Under delay the spring is softened (docs/TELEOP.md §5); holding is the arm's own.
+        let k = if leader.is_some() {
+            self.cfg.stiffness_n_per_mm * self.delay_gain()
+        } else {
+            self.cfg.stiffness_n_per_mm
+        };
         if leader.is_some() && self.cfg.architecture == Architecture::Pf {
             // Bounded, so a follower held off its target cannot wind up a push.
-            let ki = self.cfg.stiffness_n_per_mm * std::f64::consts::TAU * self.cfg.integral_hz;
+            let ki = k * std::f64::consts::TAU * self.cfg.integral_hz;
             let i = self.integral_n + (target - x.tip_mm) * (ki * self.dt);
             self.integral_n = crate::haptics::limit_force(&i, 0.5 * self.cfg.max_force_n);
         }
-        let pull = (target - x.tip_mm) * self.cfg.stiffness_n_per_mm
+        let pull = (target - x.tip_mm) * k
             + (target_v - x.vel_mm_s) * (self.cfg.damping_n_s_per_m * 1e-3)
             + self.integral_n;
         let f = crate::haptics::limit_force(&pull, self.cfg.max_force_n);
@@ -417,6 +457,7 @@ impl Coupling {
             vel_mm_s: vel.into(),
             force_n: x.fext_n.into(),
             energy_in_j: self.port.energy_in,
+            echo_t: self.peer_t,
         });
     }
 }
@@ -670,6 +711,52 @@ mod tests {
             V3::zeros(),
             "faded within fade_ms, not after the timeout"
         );
+    }
+
+    #[test]
+    fn each_side_measures_the_round_trip_from_echoes_and_softens_its_spring_beyond_it() {
+        let cfg = always();
+        // In process (lockstep, the leader first): the follower's echo reaches the leader a
+        // tick later; the leader's reaches the follower after the follower's next send.
+        let mut p = sides(&cfg);
+        run(&mut p, 0, 50, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
+        for side in [&p.0, &p.1] {
+            assert!(
+                side.round_trip_s() <= 2.0 * DT + 1e-9,
+                "{}",
+                side.round_trip_s()
+            );
+            assert_eq!(side.delay_gain(), 1.0);
+        }
+        // 100 ms each way: both measure a 200 ms round trip and scale the spring by 3/200.
+        let slow = Impairment {
+            delay_ms: 100.0,
+            ..Impairment::default()
+        };
+        let (l, f) = pair(slow, slow, 5);
+        let mut p = (
+            Coupling::new(Role::Leader, &cfg, l, DT),
+            Coupling::new(Role::Follower, &cfg, f, DT),
+        );
+        // (The first samples, taken as the link comes up, are longer; the estimate comes down
+        // over a second.)
+        run(&mut p, 0, 3000, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
+        for side in [&p.0, &p.1] {
+            let rtt = side.round_trip_s();
+            assert!((rtt - 0.2).abs() <= 2.0 * DT, "{rtt}");
+            assert!((side.delay_gain() - cfg.delay_gain_ms * 1e-3 / rtt).abs() < 1e-12);
+        }
+        // The follower's pull for 1 mm of the leader's motion is the softened spring's.
+        let (_, ff) = run(
+            &mut p,
+            3000,
+            300,
+            input(0.0, [1.0, 0.0, 0.0]),
+            input(0.0, [0.0; 3]),
+        );
+        let k = cfg.stiffness_n_per_mm * p.1.delay_gain();
+        assert!((ff[0] - k).abs() < 1e-9, "{ff:?} vs {k}");
+        assert!(k < 0.1 * cfg.stiffness_n_per_mm);
     }
 
     #[test]

@@ -94,7 +94,15 @@ pub struct TeleopConfig {
     pub operator: Operator,
     /// Time-domain passivity on both ports.
     pub passivity: bool,
-    /// Largest damping the passivity controller adds, N·s/m.
+    /// Delay-aware gains: beyond this round trip (measured on the channel) the coupling's
+    /// spring is softened in proportion, so the energy its delayed springs make stays within
+    /// what the arms' damping takes, ms (0: fixed gains).
+    pub delay_gain_ms: f64,
+    /// Largest damping the passivity controller adds, N·s/m; 0: no cap but its own (it never
+    /// takes back more than the coupling force's work, so it never pushes back). A cap lets a
+    /// demand beyond it pass (the port is then not strictly passive); without one the damper
+    /// switching on and off on a noisy velocity is itself felt as a vibration
+    /// (docs/TELEOP.md §5).
     pub passivity_max_damping_n_s_per_m: f64,
     /// Most energy a port keeps in hand from the far side, J.
     pub passivity_reserve_j: f64,
@@ -125,7 +133,8 @@ impl Default for TeleopConfig {
             fade_ms: 20.0,
             operator: Operator::Button1,
             passivity: true,
-            passivity_max_damping_n_s_per_m: 15.0,
+            delay_gain_ms: 3.0,
+            passivity_max_damping_n_s_per_m: 10.0,
             passivity_reserve_j: 0.02,
             velocity_jerk_psd: 1e6,
             to_leader: Impairment::default(),
@@ -137,7 +146,14 @@ impl Default for TeleopConfig {
 impl TeleopConfig {
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let ranges: [(&str, f64, f64, f64, &str); 13] = [
+        let ranges: [(&str, f64, f64, f64, &str); 14] = [
+            (
+                "teleop.delay_gain_ms",
+                self.delay_gain_ms,
+                0.0,
+                1000.0,
+                "0 ..= 1000 ms",
+            ),
             (
                 "teleop.leader_damping_n_s_per_m",
                 self.leader_damping_n_s_per_m,

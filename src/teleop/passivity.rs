@@ -25,7 +25,7 @@ pub struct Port {
     pub damping: f64,
     /// Most energy kept in hand from the far side, J.
     reserve_j: f64,
-    /// Largest damping the controller adds, N·s/m.
+    /// Largest damping the controller adds, N·s/m (0: only the force's own bound).
     max_damping: f64,
     /// The controller acts (else the port only observes).
     enforce: bool,
@@ -33,7 +33,8 @@ pub struct Port {
 
 impl Port {
     /// A port keeping at most `reserve_j` J in hand, damping with at most `max_damping`
-    /// N·s/m; with `enforce` false it only observes.
+    /// N·s/m (0: no cap but the force's own, see [`Port::pass`]); with `enforce` false it only
+    /// observes.
     pub fn new(reserve_j: f64, max_damping: f64, enforce: bool) -> Port {
         Port {
             energy_in: 0.0,
@@ -67,7 +68,16 @@ impl Port {
             let excess = power * dt - allowed;
             let speed_sq = v.norm_squared();
             if excess > 0.0 && speed_sq > MIN_SPEED_SQ {
-                let alpha = (excess / (dt * speed_sq)).min(max_damping);
+                // The damping takes back at most the force's own work this tick (the allowance
+                // is never negative, so excess ≤ power·dt): the force it removes along the
+                // velocity is at most the coupling force's component along it — it never
+                // pushes back, so it needs no cap to stay bounded on a noisy velocity. A cap
+                // (`max_damping` > 0) lets a demand beyond it pass, and the port is then not
+                // passive (docs/TELEOP.md §5).
+                let mut alpha = excess / (dt * speed_sq);
+                if max_damping > 0.0 {
+                    alpha = alpha.min(max_damping);
+                }
                 f -= v * alpha;
                 self.damping = alpha;
                 self.dissipated += alpha * speed_sq * dt;
