@@ -150,7 +150,7 @@ pub fn status_block(s: &Value) -> String {
         line(
             "teleop",
             format!(
-                "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {})",
+                "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {}){}",
                 text(&t["state"])
                     .map(|s| format!("{s}: "))
                     .unwrap_or_default(),
@@ -160,7 +160,11 @@ pub fn status_block(s: &Value) -> String {
                 t["motion_scale"],
                 t["force_scale"],
                 text(&t["operator"]).unwrap_or_default(),
-                if t["passivity"] == true { "on" } else { "off" }
+                if t["passivity"] == true { "on" } else { "off" },
+                t["round_trip_ms"]
+                    .as_f64()
+                    .map(|ms| format!("; round trip {ms:.1} ms"))
+                    .unwrap_or_default()
             ),
         );
     }

@@ -265,6 +265,18 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
         status.contains(&format!("follower of {leader} (pp, motion ×1")),
         "{status}"
     );
+    // And, for programs, the side's live state and the round trip it measures (its own
+    // packets' times echoed back by the other side: docs/TELEOP.md §5, §8).
+    let out = d.omnid(&["ctl", "--arm", &follower, "--json", "status"]);
+    let status: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let side = &status["teleop"];
+    assert_eq!(
+        (&side["role"], &side["peer"]),
+        (&json!("follower"), &json!(leader))
+    );
+    assert_eq!(side["state"], "engaged", "{side}");
+    let rtt = side["round_trip_ms"].as_f64().unwrap_or(f64::NAN);
+    assert!(rtt.is_finite() && rtt > 0.0, "{side}");
     let out = console.wait_with_output().unwrap();
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),

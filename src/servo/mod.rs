@@ -696,6 +696,7 @@ impl Servo {
                 heat: self.safety.heat(),
                 fext: self.external.force.into(),
                 teleop: self.teleop.as_ref().map(|c| c.state().as_str()),
+                teleop_round_trip_s: self.teleop.as_ref().map_or(0.0, |c| c.round_trip_s()),
             },
         });
         self.last_t = t;

@@ -719,6 +719,7 @@ impl Station {
             operator: cfg.operator,
             passivity: cfg.passivity,
             state: None,
+            round_trip_ms: None,
         };
         self.teleop = Some((side.clone(), token));
         Ok(Reply::Teleop { teleop: side })
@@ -1113,6 +1114,7 @@ impl Station {
             heat: snap.heat,
             teleop: self.teleop.as_ref().map(|(side, _)| TeleopReply {
                 state: last.and_then(|r| r.live.teleop),
+                round_trip_ms: last.map(|r| r.live.teleop_round_trip_s * 1e3),
                 ..side.clone()
             }),
         }

@@ -187,6 +187,10 @@ pub struct TeleopReply {
     /// `teleop`: a trip, another mode).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub state: Option<&'static str>,
+    /// In `status`: the round trip this side measures, ms (in one daemon the channel adds
+    /// at most a tick each way: about 2 ms).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub round_trip_ms: Option<f64>,
 }
 
 /// This arm's side of a pair, as asked: `[teleop]` with the changes given.

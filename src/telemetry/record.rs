@@ -217,6 +217,9 @@ pub(crate) struct Live {
     /// This arm's side of a teleoperation pair, if it has one: its state's name
     /// (`teleop::TeleopState::as_str`; a name, so telemetry does not depend on teleop).
     pub(crate) teleop: Option<&'static str>,
+    /// The pair's round trip as this side measures it (its own packets' times echoed back),
+    /// s; 0 without a pair.
+    pub(crate) teleop_round_trip_s: f64,
 }
 
 /// Which optional column groups a log carries.
