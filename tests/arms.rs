@@ -223,18 +223,7 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
     for w in &mut watch {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     }
-    let console = omnid_cmd_in(&d)
-        .args([
-            "ctl",
-            "teleop",
-            "start",
-            "--leader",
-            &leader,
-            "--follower",
-            &follower,
-            "--seconds",
-            "5",
-        ])
+    let console = console_cmd(&d, &leader, &follower, "5")
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -318,11 +307,22 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
     }
 }
 
-fn omnid_cmd_in(d: &Served) -> std::process::Command {
+/// `omnid ctl teleop start` on this daemon's arms, for `seconds`.
+fn console_cmd(d: &Served, leader: &str, follower: &str, seconds: &str) -> std::process::Command {
     let mut c = common::omnid();
     c.env("XDG_RUNTIME_DIR", d.dir.path())
         .env_remove("RUNTIME_DIRECTORY")
-        .env_remove("OMNID_SOCKET");
+        .env_remove("OMNID_SOCKET")
+        .args([
+            "ctl",
+            "teleop",
+            "start",
+            "--leader",
+            leader,
+            "--follower",
+            follower,
+        ])
+        .args(["--seconds", seconds]);
     c
 }
 
@@ -341,20 +341,7 @@ fn a_trip_on_the_follower_ends_the_console_and_leaves_the_leader_holding() {
     watch
         .request(json!({"op": "stream", "rate_hz": 100}))
         .unwrap();
-    let out = omnid_cmd_in(&d)
-        .args([
-            "ctl",
-            "teleop",
-            "start",
-            "--leader",
-            &leader,
-            "--follower",
-            &follower,
-            "--seconds",
-            "20",
-        ])
-        .output()
-        .unwrap();
+    let out = console_cmd(&d, &leader, &follower, "20").output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(3), "{err}");
     assert!(
