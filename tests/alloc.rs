@@ -231,20 +231,9 @@ fn reading_an_mcap_log_that_decodes_late_allocates_nothing() {
             self.0.read(&mut buf[..n])
         }
     }
-    let cfg = Config::default();
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("sim.mcap");
-    let opts = omnid::run::RunOptions {
-        controller: ControllerKind::Pd,
-        trajectory: Trajectory::Multisine,
-        duration_s: 3.0,
-        log: Some(log.clone()),
-        fast: true,
-        ..omnid::run::RunOptions::default()
-    };
-    let mut sim_cfg = cfg.clone();
-    sim_cfg.safety.persist_heat = false;
-    omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
+    record_sim_log(&Config::default(), &log, 3.0);
 
     let mut text = McapPrefetch::new(Slow(std::fs::File::open(&log).unwrap()), false).unwrap();
     let mut buf = [0u8; 512];
@@ -263,23 +252,29 @@ fn reading_an_mcap_log_that_decodes_late_allocates_nothing() {
     assert_eq!(n, 0, "{n} allocations while waiting for late blocks");
 }
 
-fn replay_ticks_allocate_nothing(name: &str) {
-    // The replay device reads the next row of the file inside `exchange`: that must reuse its
-    // buffers too. Record a simulator log first (outside the watched window).
-    let cfg = Config::default();
-    let dir = tempfile::tempdir().unwrap();
-    let log = dir.path().join(name);
+/// A simulator run of `duration_s` with PD on the multisine, logged to `log` (its format
+/// from the extension).
+fn record_sim_log(cfg: &Config, log: &std::path::Path, duration_s: f64) {
     let opts = omnid::run::RunOptions {
         controller: ControllerKind::Pd,
         trajectory: Trajectory::Multisine,
-        duration_s: 8.0,
-        log: Some(log.clone()),
+        duration_s,
+        log: Some(log.to_path_buf()),
         fast: true,
         ..omnid::run::RunOptions::default()
     };
     let mut sim_cfg = cfg.clone();
     sim_cfg.safety.persist_heat = false;
     omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
+}
+
+fn replay_ticks_allocate_nothing(name: &str) {
+    // The replay device reads the next row of the file inside `exchange`: that must reuse its
+    // buffers too. Record a simulator log first (outside the watched window).
+    let cfg = Config::default();
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join(name);
+    record_sim_log(&cfg, &log, 8.0);
 
     let device = Box::new(
         omnid::device::replay::ReplayDevice::open(&log, &cfg.device, false, false, &Arc::default())
