@@ -272,3 +272,102 @@ fn without_allow_commands_a_remote_client_is_read_only() {
     );
     drop(d);
 }
+
+// Teleoperation between two daemons over zenoh (docs/TELEOP.md §10).
+
+mod teleop_over_zenoh {
+    use omnid::experiment::teleop::{run_pair, run_pair_over, Link, PairSim, Scene, CHANNELS};
+    use omnid::teleop::{Architecture, TeleopConfig};
+
+    const PRESS: Scene = Scene::Press {
+        force_n: 1.0,
+        wall_n_per_mm: 1.0,
+    };
+
+    #[test]
+    fn a_pair_over_zenoh_on_loopback_does_what_the_local_pair_does() {
+        // Two sessions as two daemons' (each its own zenoh session on TCP loopback), ticked in
+        // real time; the in-process run of the same row beside it.
+        let base = TeleopConfig::default();
+        let (z, _) = run_pair_over(
+            &base,
+            Architecture::Pf,
+            true,
+            &PRESS,
+            &CHANNELS[0],
+            true,
+            Link::Zenoh,
+        )
+        .unwrap();
+        let (local, _) =
+            run_pair(&base, Architecture::Pf, true, &PRESS, &CHANNELS[0], true).unwrap();
+        assert_eq!(z.link, "zenoh");
+        assert!(z.stable, "{:?}", z.why);
+        // The local floors hold over the network too.
+        assert!(z.force_rms_n <= 0.15, "force RMS {} N", z.force_rms_n);
+        assert!(z.stiffness_ratio >= 0.7, "k ratio {}", z.stiffness_ratio);
+        assert!(
+            (z.force_rms_n - local.force_rms_n).abs() < 0.1,
+            "zenoh {} N vs local {} N",
+            z.force_rms_n,
+            local.force_rms_n
+        );
+        // A packet each way every tick (a few lost to a loaded machine's scheduling at most).
+        assert!(z.packets_per_s > 1500.0, "{} packets/s", z.packets_per_s);
+        // Loopback adds a tick or two at most on top of the lockstep's own.
+        assert!(
+            z.measured_rt_ms > 0.0 && z.measured_rt_ms < 20.0,
+            "measured round trip {} ms",
+            z.measured_rt_ms
+        );
+    }
+
+    #[test]
+    fn a_cut_zenoh_link_fades_the_leaders_force_within_50_ms_and_the_follower_holds() {
+        let base = TeleopConfig::default();
+        let mut sim = PairSim::build(
+            &base,
+            Architecture::Pf,
+            true,
+            &PRESS,
+            &CHANNELS[0],
+            10.0,
+            false,
+            Link::Zenoh,
+        )
+        .unwrap();
+        let mut last = None;
+        for _ in 0..2500 {
+            last = Some(sim.tick().unwrap());
+        }
+        let pressed = last.unwrap();
+        let f0 = nalgebra::Vector3::from(pressed.leader.haptic_force());
+        assert!(f0.norm() > 0.5, "no force to fade: {f0:?}");
+        let held = nalgebra::Vector3::from(pressed.follower.tip_mm());
+        // The follower's daemon's session closes: nothing crosses any more.
+        sim.cut_network();
+        let mut prev = f0;
+        let mut zero_at = None;
+        for k in 1..=200 {
+            let t = sim.tick().unwrap();
+            let f = nalgebra::Vector3::from(t.leader.haptic_force());
+            assert!(
+                (f - prev).norm() <= f0.norm() * 1e-3 / (base.fade_ms * 1e-3) + 0.05,
+                "a step of {} N at tick {k}",
+                (f - prev).norm()
+            );
+            prev = f;
+            if f.norm() == 0.0 && zero_at.is_none() {
+                zero_at = Some(k);
+            }
+        }
+        let ms = zero_at.expect("the leader's force reached zero");
+        assert!(ms <= 50, "zero {ms} ms after the cut");
+        assert_eq!(sim.leader.teleop().unwrap().state().as_str(), "link_lost");
+        assert_eq!(sim.follower.teleop().unwrap().state().as_str(), "link_lost");
+        // The follower holds where it was (pressed into its floor), within a millimetre.
+        let t = sim.tick().unwrap();
+        let moved = (nalgebra::Vector3::from(t.follower.tip_mm()) - held).norm();
+        assert!(moved < 1.0, "the follower moved {moved} mm after the cut");
+    }
+}

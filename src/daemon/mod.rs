@@ -323,11 +323,6 @@ pub fn serve(
     for arm in &arms {
         prepared.push(prepare_arm(arm, opts, cfg, stop.clone())?);
     }
-    // The pairs a `teleop` op can form are between this daemon's arms.
-    let rendezvous = crate::teleop::Rendezvous::new(arms.iter().map(|a| a.name.clone()).collect());
-    for p in &mut prepared {
-        p.hub.station.rendezvous = rendezvous.clone();
-    }
     for p in &prepared {
         crate::errln!(
             "omnid serve: arm `{}` ({}) on {} (amplifiers off until a client asks for a mode; \
@@ -382,6 +377,16 @@ pub fn serve(
     } else {
         None
     };
+    // The pairs a `teleop` op can form: between this daemon's arms, and with zenoh up with
+    // other daemons' arms.
+    let mut rendezvous =
+        crate::teleop::Rendezvous::new(arms.iter().map(|a| a.name.clone()).collect());
+    if let Some(n) = &net {
+        rendezvous = rendezvous.with_remote(n.teleop());
+    }
+    for p in &mut prepared {
+        p.hub.station.rendezvous = rendezvous.clone();
+    }
     let several = prepared.len() > 1;
     let mut threads = Vec::new();
     for p in prepared {

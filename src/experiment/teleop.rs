@@ -12,10 +12,13 @@ use crate::haptics::{HandConfig, HandPattern};
 use crate::pipeline::{assemble, RunOptions};
 use crate::plot::figures::Role;
 use crate::plot::render::{Figure, Line, Panel};
+use crate::serve::zenoh::{ZenohConfig, ZenohNet};
 use crate::servo::Servo;
 use crate::telemetry::record::TickRecord;
+use crate::teleop::channel::packet_flags;
 use crate::teleop::{
-    pair, Architecture, Coupling, Impairment, Operator, Role as Side, TeleopConfig,
+    pair, Architecture, Coupling, Endpoint, Impairment, Operator, Packet, RemoteLine, Role as Side,
+    TeleopConfig,
 };
 use nalgebra::Vector3;
 use serde::Serialize;
@@ -23,6 +26,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 type V3 = Vector3<f64>;
 
@@ -147,8 +151,13 @@ pub struct PairResult {
     pub scene: String,
     /// The channel's name.
     pub channel: &'static str,
-    /// Round trip, ms.
+    /// Round trip injected, ms.
     pub rt_ms: f64,
+    /// Where the channel ran: `in_process` or `zenoh` (two sessions on loopback).
+    pub link: &'static str,
+    /// The round trip the leader measured at the end (the injected one plus the channel's
+    /// own: a tick each way in process), ms.
+    pub measured_rt_ms: f64,
     /// Follower vs the leader delayed by the forward delay (motion since engaging), mm.
     pub position_rms_mm: f64,
     /// Force displayed at the leader vs the environment's on the follower delayed by the
@@ -258,6 +267,35 @@ fn side_servo(
     Ok((p.servo, rx))
 }
 
+/// Where a pair's channel runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Link {
+    /// Both arms in one process, ticked unpaced (the daemon's in-process channel).
+    InProcess,
+    /// Each arm with its own zenoh session, as two daemons' (peer mode on TCP loopback, one
+    /// connecting to the other), the channel opened as a daemon opens it to another daemon's
+    /// arm; ticked in real time at 1 kHz.
+    Zenoh,
+}
+
+impl Link {
+    /// Its name in the results.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Link::InProcess => "in_process",
+            Link::Zenoh => "zenoh",
+        }
+    }
+}
+
+/// Two zenoh sessions on loopback (as two daemons' would be) and a channel's two network sides.
+struct ZenohPair {
+    follower_net: Option<ZenohNet>,
+    _leader_net: ZenohNet,
+    _lines: [Box<dyn RemoteLine>; 2],
+}
+
 /// Two simulated Omnis coupled in one process, ticked in lockstep (the leader first).
 pub struct PairSim {
     /// The leader's servo (the simulated hand on it).
@@ -266,6 +304,9 @@ pub struct PairSim {
     pub follower: Servo,
     lrx: crossbeam_channel::Receiver<TickRecord>,
     frx: crossbeam_channel::Receiver<TickRecord>,
+    /// Over zenoh: the sessions, and the real-time pace (start, ticks so far).
+    zenoh: Option<ZenohPair>,
+    pace: Option<(Instant, u64)>,
 }
 
 /// One lockstep tick's records.
@@ -288,7 +329,37 @@ impl PairSim {
         secs: f64,
         quick: bool,
     ) -> Result<PairSim, ExperimentError> {
-        let name = format!("{} {} {}", arch.as_str(), scene.name(), channel.name);
+        PairSim::build(
+            base,
+            arch,
+            passivity,
+            scene,
+            channel,
+            secs,
+            quick,
+            Link::InProcess,
+        )
+    }
+
+    /// As [`PairSim::new`], the channel over `link`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn build(
+        base: &TeleopConfig,
+        arch: Architecture,
+        passivity: bool,
+        scene: &Scene,
+        channel: &Channel,
+        secs: f64,
+        quick: bool,
+        link: Link,
+    ) -> Result<PairSim, ExperimentError> {
+        let name = format!(
+            "{} {} {} {}",
+            arch.as_str(),
+            scene.name(),
+            channel.name,
+            link.as_str()
+        );
         let lcfg = side_config(scene, true, quick);
         let fcfg = side_config(scene, false, quick);
         let one_way = channel.rt_ms / 2.0;
@@ -309,7 +380,17 @@ impl PairSim {
             ..base.clone()
         };
         let dt = 1.0 / lcfg.device.rate_hz;
-        let (le, fe) = pair(imp, imp, 0x7E1E);
+        let (le, fe, zenoh) = match link {
+            Link::InProcess => {
+                let (le, fe) = pair(imp, imp, 0x7E1E);
+                (le, fe, None)
+            }
+            Link::Zenoh => {
+                let (le, fe, z) = zenoh_channel(&tcfg)
+                    .map_err(|why| ExperimentError::Internal(format!("{name}: {why}")))?;
+                (le, fe, Some(z))
+            }
+        };
         let (mut leader, lrx) = side_servo(&name, &lcfg, secs)?;
         let (mut follower, frx) = side_servo(&name, &fcfg, secs)?;
         leader.set_teleop(Box::new(Coupling::new(Side::Leader, &tcfg, le, dt)));
@@ -319,11 +400,41 @@ impl PairSim {
             follower,
             lrx,
             frx,
+            pace: zenoh.as_ref().map(|_| (Instant::now(), 0)),
+            zenoh,
         })
+    }
+
+    /// Over zenoh: close the follower's session, as a cut network or a daemon that died
+    /// (both sides keep ticking; nothing crosses any more).
+    pub fn cut_network(&mut self) {
+        if let Some(net) = self.zenoh.as_mut().and_then(|z| z.follower_net.take()) {
+            net.close();
+        }
+    }
+
+    /// The round trip the leader measures, ms.
+    pub fn round_trip_ms(&self) -> f64 {
+        self.leader
+            .teleop()
+            .map_or(f64::NAN, |c| c.round_trip_s() * 1e3)
+    }
+
+    /// Over zenoh, wait for the next millisecond (the servos tick in real time).
+    fn pace(&mut self) {
+        if let Some((start, k)) = self.pace.as_mut() {
+            *k += 1;
+            let due = *start + Duration::from_micros(*k * 1000);
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+        }
     }
 
     /// Tick both sides (the leader first); `Err` names why either loop ended.
     pub fn tick(&mut self) -> Result<PairTick, String> {
+        self.pace();
         let ends = [self.leader.tick(), self.follower.tick()];
         if let Some(end) = ends.iter().flatten().next() {
             return Err(format!("{end:?}"));
@@ -336,6 +447,7 @@ impl PairSim {
 
     /// Tick the leader alone (the follower has gone silent: a cut link).
     pub fn tick_leader(&mut self) -> Result<TickRecord, String> {
+        self.pace();
         if let Some(end) = self.leader.tick() {
             return Err(format!("{end:?}"));
         }
@@ -353,6 +465,74 @@ impl PairSim {
     }
 }
 
+/// The zenoh settings of one of the experiment's two daemons: peer mode on loopback, nothing
+/// else served, commands allowed (the channel moves the arm).
+fn zenoh_side(listen: &str, connect: Option<&str>) -> ZenohConfig {
+    ZenohConfig {
+        enabled: true,
+        listen: vec![listen.to_string()],
+        connect: connect.map(|c| vec![c.to_string()]).unwrap_or_default(),
+        multicast_scouting: false,
+        ros2: false,
+        bridge: false,
+        protocol: false,
+        allow_commands: true,
+        ..ZenohConfig::default()
+    }
+}
+
+/// Two sessions on loopback, the leader's and the follower's ends of a channel between them
+/// opened as a daemon opens one to another daemon's arm, and the link checked up both ways.
+fn zenoh_channel(tcfg: &TeleopConfig) -> Result<(Endpoint, Endpoint, ZenohPair), String> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map_err(|e| format!("no free loopback port: {e}"))?
+        .port();
+    let at = format!("tcp/127.0.0.1:{port}");
+    let lnet = ZenohNet::start(&zenoh_side(&at, None)).map_err(|e| e.to_string())?;
+    let fnet =
+        ZenohNet::start(&zenoh_side("tcp/127.0.0.1:0", Some(&at))).map_err(|e| e.to_string())?;
+    let (mut le, ll) = lnet
+        .teleop()
+        .open("leader", "follower", Side::Leader, tcfg, 0x7E1E)?;
+    let (mut fe, fl) = fnet
+        .teleop()
+        .open("follower", "leader", Side::Follower, tcfg, 0x7E1F)?;
+    // The sessions meet and the subscriptions spread: a packet each way before the run.
+    let (to_leader, to_follower) = (tcfg.to_leader, tcfg.to_follower);
+    le.set_impairment(Impairment::default());
+    fe.set_impairment(Impairment::default());
+    let until = Instant::now() + Duration::from_secs(10);
+    let (mut l_heard, mut f_heard) = (false, false);
+    while !(l_heard && f_heard) {
+        if Instant::now() > until {
+            return Err("the two zenoh sessions on loopback did not connect within 10 s".into());
+        }
+        let probe = Packet {
+            flags: packet_flags::DOWN,
+            ..Packet::default()
+        };
+        le.send(probe);
+        fe.send(probe);
+        std::thread::sleep(Duration::from_millis(5));
+        l_heard |= le.receive(0.0).is_some();
+        f_heard |= fe.receive(0.0).is_some();
+    }
+    le.clear();
+    fe.clear();
+    le.set_impairment(to_leader);
+    fe.set_impairment(to_follower);
+    Ok((
+        le,
+        fe,
+        ZenohPair {
+            follower_net: Some(fnet),
+            _leader_net: lnet,
+            _lines: [ll, fl],
+        },
+    ))
+}
+
 /// Run one pair: `arch`, passivity on or off, `scene` over `channel`, the coupling's other
 /// settings from `base`.
 pub fn run_pair(
@@ -363,8 +543,29 @@ pub fn run_pair(
     channel: &Channel,
     quick: bool,
 ) -> Result<(PairResult, Trace), ExperimentError> {
+    run_pair_over(
+        base,
+        arch,
+        passivity,
+        scene,
+        channel,
+        quick,
+        Link::InProcess,
+    )
+}
+
+/// As [`run_pair`], the channel over `link`.
+pub fn run_pair_over(
+    base: &TeleopConfig,
+    arch: Architecture,
+    passivity: bool,
+    scene: &Scene,
+    channel: &Channel,
+    quick: bool,
+    link: Link,
+) -> Result<(PairResult, Trace), ExperimentError> {
     let secs = scene.secs(quick);
-    let mut sim = PairSim::new(base, arch, passivity, scene, channel, secs, quick)?;
+    let mut sim = PairSim::build(base, arch, passivity, scene, channel, secs, quick, link)?;
     let mut tr = Trace::default();
     let mut why = None;
     let ticks = (secs * 1000.0).round() as usize;
@@ -399,7 +600,9 @@ pub fn run_pair(
         .filter_map(|s| s.teleop())
         .map(|c| c.channel().delivered)
         .sum::<u64>();
-    let result = measure(arch, passivity, scene, channel, &tr, why, delivered, quick);
+    let mut result = measure(arch, passivity, scene, channel, &tr, why, delivered, quick);
+    result.link = link.as_str();
+    result.measured_rt_ms = sim.round_trip_ms();
     Ok((result, tr))
 }
 
@@ -498,6 +701,8 @@ fn measure(
         scene: scene.name(),
         channel: channel.name,
         rt_ms: channel.rt_ms,
+        link: Link::InProcess.as_str(),
+        measured_rt_ms: f64::NAN,
         position_rms_mm,
         force_rms_n,
         stiffness_ratio,

@@ -265,7 +265,7 @@ pub struct Station {
     pending: Vec<PendingOut>,
     /// This arm's side of a pair as started, and its token at the rendezvous (kept while
     /// the side is on the line).
-    teleop: Option<(TeleopReply, Arc<()>)>,
+    teleop: Option<(TeleopReply, crate::teleop::OnTheLine)>,
 }
 
 enum PendingOut {
@@ -700,7 +700,7 @@ impl Station {
         let cfg = request.settings(&self.s.teleop)?;
         let role = request.role.unwrap_or(crate::teleop::Role::Leader);
         let seed = self.s.seed ^ u64::from(role == crate::teleop::Role::Follower);
-        let (endpoint, token) = self
+        let (endpoint, line) = self
             .s
             .rendezvous
             .join(&self.s.arm.name, &request.peer, role, &cfg, seed)
@@ -720,8 +720,10 @@ impl Station {
             passivity: cfg.passivity,
             state: None,
             round_trip_ms: None,
+            channel: line.channel(),
+            network: None,
         };
-        self.teleop = Some((side.clone(), token));
+        self.teleop = Some((side.clone(), line));
         Ok(Reply::Teleop { teleop: side })
     }
 
@@ -1112,9 +1114,10 @@ impl Station {
                 dropped: r.dropped(),
             }),
             heat: snap.heat,
-            teleop: self.teleop.as_ref().map(|(side, _)| TeleopReply {
+            teleop: self.teleop.as_ref().map(|(side, line)| TeleopReply {
                 state: last.and_then(|r| r.live.teleop),
                 round_trip_ms: last.map(|r| r.live.teleop_round_trip_s * 1e3),
+                network: line.network(),
                 ..side.clone()
             }),
         }

@@ -191,6 +191,12 @@ pub struct TeleopReply {
     /// at most a tick each way: about 2 ms).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub round_trip_ms: Option<f64>,
+    /// The channel: `in_process` (both arms in this daemon) or `zenoh` (the peer is another
+    /// daemon's arm).
+    pub channel: &'static str,
+    /// In `status`, over zenoh: what the network channel has carried.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub network: Option<crate::teleop::LineStats>,
 }
 
 /// This arm's side of a pair, as asked: `[teleop]` with the changes given.

@@ -146,6 +146,11 @@ impl TickRecord {
         self.haptic.force
     }
 
+    /// The stylus tip, mm.
+    pub fn tip_mm(&self) -> [f64; 3] {
+        self.haptic.tip_mm
+    }
+
     /// The mode's name, as the log's `mode` column writes it.
     pub fn mode_name(&self) -> &'static str {
         self.mode.as_str()

@@ -187,6 +187,16 @@ impl Endpoint {
         newest
     }
 
+    /// Forget everything queued and on its way (a fresh start: what a link check sent
+    /// before a run is not delivered in it).
+    pub fn clear(&mut self) {
+        while self.rx.try_recv().is_ok() {}
+        self.head = 0;
+        self.len = 0;
+        self.last_due = f64::NEG_INFINITY;
+        self.stats = ChannelStats::default();
+    }
+
     /// This end's counters.
     pub fn stats(&self) -> ChannelStats {
         self.stats

@@ -9,10 +9,13 @@ pub mod console;
 pub mod coupling;
 pub mod passivity;
 pub mod rendezvous;
+pub mod wire;
 
 pub use channel::{pair, Endpoint, Impairment, Packet};
 pub use coupling::{Coupling, Role, SideInput, TeleopState};
-pub use rendezvous::{Rendezvous, RendezvousError};
+pub use rendezvous::{
+    LineStats, OnTheLine, RemoteChannels, RemoteLine, Rendezvous, RendezvousError,
+};
 
 use crate::config_check::{self as check, ConfigError};
 use serde::{Deserialize, Serialize};

@@ -1,10 +1,13 @@
 //! Where the two sides of a pair meet in one daemon (docs/TELEOP.md §8): each arm's station
 //! takes up its side on its own client's request (so each side passes its own arm's lease and
 //! checks), and the first side to come opens the channel and leaves the other end here for the
-//! second. Off the servo threads (the stations' hub threads), so a lock is fine.
+//! second. A peer that is not an arm of this daemon is served by another: with zenoh up, the
+//! side opens a network channel to it instead ([`RemoteChannels`], docs/TELEOP.md §10). Off
+//! the servo threads (the stations' hub threads), so a lock is fine.
 
 use super::channel::{pair, Endpoint};
 use super::{Role, TeleopConfig};
+use serde::Serialize;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, Weak};
 use thiserror::Error;
@@ -16,13 +19,19 @@ pub enum RendezvousError {
     #[error("an arm cannot be its own {0}")]
     SelfPeer(&'static str),
     /// The peer is not an arm of this daemon.
-    #[error("no arm `{peer}` in this daemon (its arms: {arms})")]
+    #[error(
+        "no arm `{peer}` in this daemon (its arms: {arms}); an arm of another daemon is reached \
+         when both serve over zenoh (`omnid serve --zenoh`, docs/TELEOP.md §10)"
+    )]
     UnknownPeer {
         /// The name asked for.
         peer: String,
         /// The daemon's arms.
         arms: String,
     },
+    /// The peer is served by another daemon, and the network channel could not open.
+    #[error("{0}")]
+    Remote(String),
     /// The other side started with other settings.
     #[error(
         "`{other}` started its side of this pair with other [teleop] settings \
@@ -46,11 +55,70 @@ struct Waiting {
     opener: Weak<()>,
 }
 
+/// Opens a channel to a peer arm served by another daemon (zenoh: src/serve/zenoh/teleop.rs).
+pub trait RemoteChannels: Send + Sync {
+    /// Arm `me`'s end of a channel to `peer` (another daemon's arm) as `role`, with `config`;
+    /// and what keeps the network side open (dropped when the side ends).
+    fn open(
+        &self,
+        me: &str,
+        peer: &str,
+        role: Role,
+        config: &TeleopConfig,
+        seed: u64,
+    ) -> Result<(Endpoint, Box<dyn RemoteLine>), String>;
+}
+
+/// The network side of a channel to another daemon's arm, kept open while it lives.
+pub trait RemoteLine: Send {
+    /// What it has carried so far.
+    fn stats(&self) -> LineStats;
+}
+
+/// What a network channel has carried (in `status`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct LineStats {
+    /// The zenoh session the peer's packets come from, once one has been heard.
+    pub peer_session: Option<String>,
+    /// Frames sent to the peer.
+    pub sent: u64,
+    /// Well-formed frames received from the peer.
+    pub received: u64,
+    /// Frames refused (malformed, other settings, another sender, a full queue).
+    pub refused: u64,
+    /// Why the last refused frame was refused.
+    pub last_refusal: Option<String>,
+}
+
+/// What a side keeps while it is on the line: its token at the rendezvous, and for a peer of
+/// another daemon the network side of its channel.
+pub struct OnTheLine {
+    _token: Arc<()>,
+    remote: Option<Box<dyn RemoteLine>>,
+}
+
+impl OnTheLine {
+    /// The channel's kind: `in_process` or `zenoh`.
+    pub fn channel(&self) -> &'static str {
+        if self.remote.is_some() {
+            "zenoh"
+        } else {
+            "in_process"
+        }
+    }
+
+    /// What the network channel has carried (none in process).
+    pub fn network(&self) -> Option<LineStats> {
+        self.remote.as_ref().map(|r| r.stats())
+    }
+}
+
 /// The daemon's meeting point; cheap to clone (every station holds one).
 #[derive(Clone, Default)]
 pub struct Rendezvous {
     arms: Arc<Vec<String>>,
     waiting: Arc<Mutex<HashMap<(String, String), Waiting>>>,
+    remote: Option<Arc<dyn RemoteChannels>>,
 }
 
 impl Rendezvous {
@@ -59,14 +127,54 @@ impl Rendezvous {
         Rendezvous {
             arms: Arc::new(arms),
             waiting: Arc::default(),
+            remote: None,
         }
+    }
+
+    /// Peers that are not this daemon's arms are reached through `remote`.
+    pub fn with_remote(mut self, remote: Arc<dyn RemoteChannels>) -> Rendezvous {
+        self.remote = Some(remote);
+        self
     }
 
     /// Arm `me` joins the pair with `peer` as `role`, with `config` (the pair's settings
     /// and channel impairments): its end of the channel, and a token to keep while it is on
     /// the line. The first side opens the channel; the second takes the other end, if the
-    /// opener is still on the line (else it opens a fresh one).
+    /// opener is still on the line (else it opens a fresh one). A peer of another daemon is
+    /// reached over the network, when this daemon has one.
     pub fn join(
+        &self,
+        me: &str,
+        peer: &str,
+        role: Role,
+        config: &TeleopConfig,
+        seed: u64,
+    ) -> Result<(Endpoint, OnTheLine), RendezvousError> {
+        if me != peer && !self.arms.iter().any(|a| a == peer) {
+            if let Some(remote) = &self.remote {
+                let (endpoint, net) = remote
+                    .open(me, peer, role, config, seed)
+                    .map_err(RendezvousError::Remote)?;
+                return Ok((
+                    endpoint,
+                    OnTheLine {
+                        _token: Arc::new(()),
+                        remote: Some(net),
+                    },
+                ));
+            }
+        }
+        let (endpoint, token) = self.join_here(me, peer, role, config, seed)?;
+        Ok((
+            endpoint,
+            OnTheLine {
+                _token: token,
+                remote: None,
+            },
+        ))
+    }
+
+    fn join_here(
         &self,
         me: &str,
         peer: &str,
@@ -180,9 +288,10 @@ mod tests {
             .join("left", "nobody", Role::Leader, &cfg, 1)
             .err()
             .unwrap();
-        assert_eq!(
-            e.to_string(),
-            "no arm `nobody` in this daemon (its arms: left, right, third)"
+        assert!(
+            e.to_string()
+                .starts_with("no arm `nobody` in this daemon (its arms: left, right, third); "),
+            "{e}"
         );
         let e = r.join("left", "left", Role::Leader, &cfg, 1).err().unwrap();
         assert_eq!(e, RendezvousError::SelfPeer("follower"));

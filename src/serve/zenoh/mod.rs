@@ -2,7 +2,8 @@
 //! - the ROS 2 topics of CRTK's arm under `/<arm>/`, in rmw_zenoh's format (`ros`), so a ROS 2
 //!   graph on rmw_zenoh sees omnid as a node with no ROS build here;
 //! - omnid's own protocol for remote clients under `omnid/<arm>/` (`remote`): the socket's JSON
-//!   messages, one stream each way per client.
+//!   messages, one stream each way per client;
+//! - a teleoperation channel per pair with another daemon's arm (`teleop`).
 //!
 //! Nothing here runs on the servo thread: ticks arrive through the station's taps, commands go
 //! to the arm's hub through a bounded inbox (`door`) and become the same station ops, lease
@@ -12,6 +13,7 @@ pub mod config;
 pub(crate) mod door;
 mod remote;
 mod ros;
+mod teleop;
 
 pub use config::{ZenohConfig, ZenohMode};
 pub use door::ZenohStats;
@@ -149,6 +151,16 @@ impl ZenohNet {
             next_entity: Arc::new(AtomicU64::new(1)),
             _node_token: node_token,
         })
+    }
+
+    /// What opens teleoperation channels to other daemons' arms on this session.
+    pub fn teleop(&self) -> std::sync::Arc<dyn crate::teleop::RemoteChannels> {
+        Arc::new(teleop::TeleopNet::new(self.session.clone(), &self.cfg))
+    }
+
+    /// Close the session now (its peers see it go at once, as when the daemon ends).
+    pub fn close(self) {
+        let _ = self.session.close().wait();
     }
 
     /// This session's id (32 hex digits), as peers and ROS 2's graph name it.
