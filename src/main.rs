@@ -1103,14 +1103,40 @@ fn teleop_console(action: TeleopAction) -> Result<u8, anyhow::Error> {
         return Ok(EXIT_BAD_INPUT);
     }
     let stop = stop_on_signal()?;
-    let mut l = match connect(None, Some(&leader), "omnid ctl teleop (leader)") {
-        Ok(c) => c,
-        Err(code) => return Ok(code),
-    };
-    let mut f = match connect(None, Some(&follower), "omnid ctl teleop (follower)") {
-        Ok(c) => c,
-        Err(code) => return Ok(code),
-    };
+    // Each arm on this PC, or served by another daemon (then its side is started there).
+    let found = [&leader, &follower].map(|arm| omnid::serve::find_arm_socket(arm));
+    if let [Err(a), Err(b)] = &found {
+        omnid::errln!("omnid: {a}");
+        omnid::errln!("omnid: {b}");
+        return Ok(EXIT_DEVICE_FAULT);
+    }
+    let mut clients = Vec::new();
+    for (p, who) in found.iter().zip(["leader", "follower"]) {
+        clients.push(match p {
+            Ok(p) => {
+                let name = format!("omnid ctl teleop ({who})");
+                match omnid::serve::client::Client::connect(p, &name) {
+                    Ok(c) => Some(c),
+                    Err(e) => {
+                        omnid::errln!("omnid: {e}");
+                        return Ok(match e {
+                            omnid::serve::client::ClientError::Refused(_) => EXIT_REFUSED,
+                            _ => EXIT_DEVICE_FAULT,
+                        });
+                    }
+                }
+            }
+            Err(_) => None,
+        });
+    }
+    let mut f_client = clients.pop().flatten();
+    let mut l_client = clients.pop().flatten();
+    fn side<'a>(c: Option<&'a mut omnid::serve::client::Client>, name: &str) -> console::Side<'a> {
+        match c {
+            Some(c) => console::Side::Here(c),
+            None => console::Side::Elsewhere(name.to_string()),
+        }
+    }
     let settings = PairSettings {
         architecture,
         motion_scale,
@@ -1119,7 +1145,14 @@ fn teleop_console(action: TeleopAction) -> Result<u8, anyhow::Error> {
         passivity: no_passivity.then_some(false),
     };
     let mut say = |line: &str| omnid::outln!("{line}");
-    match console::run(&mut l, &mut f, &settings, seconds, &stop, &mut say) {
+    match console::run(
+        side(l_client.as_mut(), &leader),
+        side(f_client.as_mut(), &follower),
+        &settings,
+        seconds,
+        &stop,
+        &mut say,
+    ) {
         Ok(ConsoleEnd::Elapsed) => {
             omnid::outln!(
                 "teleop: uncoupled after {} s; both arms hold",

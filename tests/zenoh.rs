@@ -5,6 +5,7 @@
 mod common;
 use common::Served;
 use omnid::ros2::rmw_zenoh::{self as rmw, parse_token, read_attachment};
+use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -370,4 +371,130 @@ mod teleop_over_zenoh {
         let moved = (nalgebra::Vector3::from(t.follower.tip_mm()) - held).norm();
         assert!(moved < 1.0, "the follower moved {moved} mm after the cut");
     }
+}
+
+/// `omnid ctl teleop start` with the runtime directory of daemon `d` (as on its PC).
+fn console_on(d: &Served, leader: &str, follower: &str, seconds: &str) -> std::process::Child {
+    common::omnid()
+        .env("XDG_RUNTIME_DIR", d.dir.path())
+        .env_remove("RUNTIME_DIRECTORY")
+        .env_remove("OMNID_SOCKET")
+        .args([
+            "ctl",
+            "teleop",
+            "start",
+            "--leader",
+            leader,
+            "--follower",
+            follower,
+        ])
+        .args(["--seconds", seconds])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Two daemons, as on two PCs (each its own runtime directory, so each console finds only
+/// its own arm), joined by zenoh on loopback: a console on each takes up its side; the
+/// follower copies the leader over the network; the follower's daemon killed, the leader
+/// loses the link and stays coupled, free.
+#[test]
+fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_link_lost() {
+    let (leader, follower) = (
+        format!("zl-{}", std::process::id()),
+        format!("zf-{}", std::process::id()),
+    );
+    let port = free_port();
+    let common = "ros2 = false\nallow_commands = true\n";
+    let a = Served::start(
+        &[],
+        Some(&format!(
+            "[teleop]\noperator = \"always\"\n\n[zenoh]\nenabled = true\n{common}\
+             listen = [\"tcp/127.0.0.1:{port}\"]\nconnect = []\n\n[[arm]]\nname = \"{leader}\"\n\
+             [arm.haptics.hand]\npattern = \"path\"\nspeed_m_s = 0.05\n"
+        )),
+        &[&leader],
+    );
+    let mut b = Served::start(
+        &[],
+        Some(&format!(
+            "[teleop]\noperator = \"always\"\n\n[zenoh]\nenabled = true\n{common}\
+             listen = [\"tcp/127.0.0.1:0\"]\nconnect = [\"tcp/127.0.0.1:{port}\"]\n\n\
+             [[arm]]\nname = \"{follower}\"\n"
+        )),
+        &[&follower],
+    );
+    let mut wl = a.client(&leader, "watch-l");
+    let mut wf = b.client(&follower, "watch-f");
+    for w in [&mut wl, &mut wf] {
+        w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    }
+    let ca = console_on(&a, &leader, &follower, "60");
+    let cb = console_on(&b, &leader, &follower, "60");
+    // Both engaged; the tips sampled together (the daemons' clocks differ: pair by arrival).
+    let mut engaged: Vec<([f64; 3], [f64; 3])> = Vec::new();
+    let (mut l, mut f) = (wl.next_state(5000).unwrap(), wf.next_state(5000).unwrap());
+    let until = Instant::now() + Duration::from_secs(40);
+    while engaged.len() < 200 {
+        assert!(Instant::now() < until, "never 2 s engaged: {l:?}\n{f:?}");
+        l = wl.next_state(5000).unwrap();
+        f = wf.next_state(5000).unwrap();
+        if l.teleop.as_deref() == Some("engaged") && f.teleop.as_deref() == Some("engaged") {
+            engaged.push((l.tip_mm, f.tip_mm));
+        }
+    }
+    let (l0, f0) = engaged[0];
+    let (mut moved, mut err2) = (0.0f64, 0.0);
+    for (l, f) in &engaged {
+        let d: Vec<f64> = (0..3).map(|k| (f[k] - f0[k]) - (l[k] - l0[k])).collect();
+        moved = moved.max((0..3).map(|k| (l[k] - l0[k]).powi(2)).sum::<f64>().sqrt());
+        err2 += d.iter().map(|v| v * v).sum::<f64>();
+    }
+    let rms = (err2 / engaged.len() as f64).sqrt();
+    assert!(moved > 10.0, "the hand moved the leader only {moved:.1} mm");
+    assert!(
+        rms < 3.0,
+        "follower off the leader's motion by {rms:.2} mm RMS"
+    );
+    // Each side's status: the zenoh channel, frames flowing, none refused, a round trip.
+    for (d, arm) in [(&a, &leader), (&b, &follower)] {
+        let out = d.omnid(&["ctl", "--arm", arm, "--json", "status"]);
+        let status: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let side = &status["teleop"];
+        assert_eq!(side["channel"], "zenoh", "{side}");
+        let net = &side["network"];
+        assert!(net["received"].as_u64().unwrap_or(0) > 1000, "{side}");
+        assert_eq!(net["refused"], 0, "{side}");
+        let rtt = side["round_trip_ms"].as_f64().unwrap_or(f64::NAN);
+        assert!(rtt > 0.0 && rtt < 500.0, "{side}");
+    }
+    // The follower's PC goes: its daemon is killed outright.
+    // SAFETY: kill with a live child's pid.
+    unsafe { libc::kill(b.pid(), libc::SIGKILL) };
+    let _ = b.child.take().unwrap().wait();
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        let s = wl.next_state(5000).unwrap();
+        if s.teleop.as_deref() == Some("link_lost") {
+            assert_eq!(s.mode, "teleop", "{s:?}");
+            assert!(s.amps, "the leader stays powered, its force faded: {s:?}");
+            break;
+        }
+        assert!(
+            Instant::now() < until,
+            "the leader never saw the link go: {s:?}"
+        );
+    }
+    // The follower's console sees its daemon go; the leader's is stopped by its operator.
+    let out = cb.wait_with_output().unwrap();
+    assert!(!out.status.success());
+    unsafe { libc::kill(ca.id() as i32, libc::SIGINT) };
+    let out = ca.wait_with_output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(130), "{stdout}");
+    assert!(
+        stdout.contains(&format!("`{follower}` is not served on this PC")),
+        "{stdout}"
+    );
 }

@@ -155,9 +155,11 @@ pub struct PairResult {
     pub rt_ms: f64,
     /// Where the channel ran: `in_process` or `zenoh` (two sessions on loopback).
     pub link: &'static str,
-    /// The round trip the leader measured at the end (the injected one plus the channel's
-    /// own: a tick each way in process), ms.
+    /// The round trip the leader measured (the injected one plus the channel's own: a tick
+    /// each way in process), median over the run, ms.
     pub measured_rt_ms: f64,
+    /// Its largest value, ms.
+    pub measured_rt_max_ms: f64,
     /// Follower vs the leader delayed by the forward delay (motion since engaging), mm.
     pub position_rms_mm: f64,
     /// Force displayed at the leader vs the environment's on the follower delayed by the
@@ -567,6 +569,7 @@ pub fn run_pair_over(
     let secs = scene.secs(quick);
     let mut sim = PairSim::build(base, arch, passivity, scene, channel, secs, quick, link)?;
     let mut tr = Trace::default();
+    let mut rtt = Vec::with_capacity((secs * 1000.0) as usize);
     let mut why = None;
     let ticks = (secs * 1000.0).round() as usize;
     for _ in 0..ticks {
@@ -594,6 +597,7 @@ pub fn run_pair_over(
         );
         tr.fext.push(sim.follower.external_force().into());
         tr.energy.push(sim.channel_energy());
+        rtt.push(sim.round_trip_ms());
     }
     let delivered = [&sim.leader, &sim.follower]
         .iter()
@@ -602,7 +606,11 @@ pub fn run_pair_over(
         .sum::<u64>();
     let mut result = measure(arch, passivity, scene, channel, &tr, why, delivered, quick);
     result.link = link.as_str();
-    result.measured_rt_ms = sim.round_trip_ms();
+    // The leader's measured round trip over the run, once the link was up.
+    let mut rtt: Vec<f64> = rtt.into_iter().filter(|v| *v > 0.0).collect();
+    rtt.sort_by(f64::total_cmp);
+    result.measured_rt_ms = rtt.get(rtt.len() / 2).copied().unwrap_or(f64::NAN);
+    result.measured_rt_max_ms = rtt.last().copied().unwrap_or(f64::NAN);
     Ok((result, tr))
 }
 
@@ -703,6 +711,7 @@ fn measure(
         rt_ms: channel.rt_ms,
         link: Link::InProcess.as_str(),
         measured_rt_ms: f64::NAN,
+        measured_rt_max_ms: f64::NAN,
         position_rms_mm,
         force_rms_n,
         stiffness_ratio,
@@ -772,6 +781,16 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
                 for c in [CHANNELS[0], CHANNELS[4]] {
                     results.push(run_pair(&base, arch, passivity, scene, &c, quick)?.0);
                 }
+            }
+        }
+    }
+    // The same rows between two daemons over zenoh on loopback, at 0 and 100 ms, with
+    // control on (real time: these take as long as they last).
+    let zenoh_scenes: Vec<Scene> = if quick { vec![main[1]] } else { main.clone() };
+    for arch in [Architecture::Pp, Architecture::Pf] {
+        for scene in &zenoh_scenes {
+            for c in [CHANNELS[0], CHANNELS[4]] {
+                results.push(run_pair_over(&base, arch, true, scene, &c, quick, Link::Zenoh)?.0);
             }
         }
     }
@@ -877,7 +896,9 @@ fn num(v: f64, digits: usize) -> String {
     }
 }
 
-fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
+fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
+    let local: Vec<&PairResult> = all.iter().filter(|r| r.link == "in_process").collect();
+    let results = &local;
     let mut md = String::from(
         "# Teleoperation between two simulated Omnis\n\n\
          Two simulated Omnis in one process, ticking in lockstep at 1 kHz: the simulated hand on \
@@ -901,8 +922,9 @@ fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
     md.push_str("## Summary\n\n| architecture | passivity control | stable runs | worst channel energy (mJ) |\n|---|---|---|---|\n");
     for arch in ["pp", "pf"] {
         for pc in [true, false] {
-            let runs: Vec<&PairResult> = results
+            let runs: Vec<&PairResult> = local
                 .iter()
+                .copied()
                 .filter(|r| r.architecture == arch && r.passivity == pc)
                 .collect();
             let stable = runs.iter().filter(|r| r.stable).count();
@@ -935,7 +957,7 @@ fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
             md.push_str("| channel | free: position mm | free: stable | press 1 N: force N | press: k ratio | press: stable | tapping: stable | let go: stable | min energy mJ |\n|---|---|---|---|---|---|---|---|---|\n");
             for c in channels {
                 let find = |scene: &str| {
-                    results.iter().find(|r| {
+                    results.iter().copied().find(|r| {
                         r.architecture == arch
                             && r.passivity == pc
                             && r.channel == c.name
@@ -951,6 +973,7 @@ fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
                 let press = find("press 1 N, 1 N/mm");
                 let min_e = results
                     .iter()
+                    .copied()
                     .filter(|r| r.architecture == arch && r.passivity == pc && r.channel == c.name)
                     .map(|r| r.channel_energy_min_j)
                     .fold(0.0, f64::min);
@@ -973,6 +996,7 @@ fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
     }
     let presses: Vec<&PairResult> = results
         .iter()
+        .copied()
         .filter(|r| r.scene.starts_with("press") && r.passivity && r.rt_ms == 0.0)
         .collect();
     if !presses.is_empty() {
@@ -992,20 +1016,71 @@ fn report(results: &[PairResult], channels: &[Channel], quick: bool) -> String {
         md.push('\n');
     }
     md.push_str("![press](teleop-press.png)\n\n");
-    let unstable: Vec<&PairResult> = results.iter().filter(|r| !r.stable).collect();
+    zenoh_table(&mut md, all);
+    let unstable: Vec<&PairResult> = all.iter().filter(|r| !r.stable).collect();
     if !unstable.is_empty() {
         md.push_str("## Why the unstable runs were called so\n\n");
         for r in unstable {
             let _ = writeln!(
                 md,
-                "- {} {} passivity, {}, {}: {}",
+                "- {} {} passivity, {}, {}{}: {}",
                 r.architecture,
                 if r.passivity { "with" } else { "without" },
                 r.scene,
                 r.channel,
+                if r.link == "zenoh" { " over zenoh" } else { "" },
                 r.why.as_deref().unwrap_or("")
             );
         }
     }
     md
+}
+
+/// The rows run between two daemons over zenoh, each beside the same row in process.
+fn zenoh_table(md: &mut String, all: &[PairResult]) {
+    let over: Vec<&PairResult> = all.iter().filter(|r| r.link == "zenoh").collect();
+    if over.is_empty() {
+        return;
+    }
+    md.push_str(
+        "## Two daemons over zenoh\n\nThe same rows with each arm behind its own zenoh \
+         session, as two daemons' (peer mode on TCP loopback, one connecting to the other), \
+         the channel opened as a daemon opens one to another daemon's arm (docs/TELEOP.md §10), \
+         ticked in real time at 1 kHz; passivity control on. Beside each, the same row in \
+         process (unpaced lockstep). *measured RTT* is the round trip the leader measured from \
+         the echoed packet times (median over the run, and its largest): the injected delay \
+         plus what the channel itself adds.\n\n\
+         | architecture | scene | channel | position mm (zenoh / local) | force N (zenoh / local) \
+         | k ratio (zenoh / local) | stable (zenoh / local) | measured RTT ms (zenoh / local) \
+         | largest measured RTT ms (zenoh) | packets/s (zenoh) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for z in over {
+        let local = all.iter().find(|r| {
+            r.link == "in_process"
+                && r.passivity
+                && r.architecture == z.architecture
+                && r.scene == z.scene
+                && r.channel == z.channel
+        });
+        let pair = |f: fn(&PairResult) -> f64, d: usize| {
+            format!("{} / {}", num(f(z), d), num(local.map_or(f64::NAN, f), d))
+        };
+        let yes = |r: &PairResult| if r.stable { "yes" } else { "**no**" };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} |",
+            z.architecture,
+            z.scene,
+            z.channel,
+            pair(|r| r.position_rms_mm, 2),
+            pair(|r| r.force_rms_n, 3),
+            pair(|r| r.stiffness_ratio, 2),
+            yes(z),
+            local.map_or("–", yes),
+            pair(|r| r.measured_rt_ms, 1),
+            num(z.measured_rt_max_ms, 1),
+            num(z.packets_per_s, 0),
+        );
+    }
+    md.push('\n');
 }

@@ -5,6 +5,10 @@
 //! `teleop` (a trip, someone's `mode idle`) or when the daemon goes. The pair belongs to the
 //! console's sessions: if the console dies, the daemon ends it as for any lease holder that
 //! leaves (the follower holds, the leader's force fades).
+//!
+//! When one arm is served on another PC (two daemons over zenoh, docs/TELEOP.md §10), the
+//! console takes up only the side whose arm is here; the same command on the other PC takes
+//! up the other.
 
 use omnid_client::client::{Client, ClientError, Message};
 use omnid_client::protocol::State;
@@ -69,25 +73,67 @@ pub fn side_request(role: &str, peer: &str, s: &PairSettings) -> Value {
     r
 }
 
-/// Start both sides, watch until the end, stop both sides. `say` gets the human lines.
+/// The pair's two arms, each reached here on its socket or served by another daemon.
+pub enum Side<'a> {
+    /// Served on this PC: its side is taken up on this client.
+    Here(&'a mut Client),
+    /// Served by another daemon (over zenoh): its name; its side is taken up there.
+    Elsewhere(String),
+}
+
+impl Side<'_> {
+    fn name(&self) -> String {
+        match self {
+            Side::Here(c) => c.hello().arm.clone(),
+            Side::Elsewhere(n) => n.clone(),
+        }
+    }
+}
+
+/// Start the sides served here, watch until the end, stop them. `say` gets the human lines.
 pub fn run(
-    leader: &mut Client,
-    follower: &mut Client,
+    leader: Side<'_>,
+    follower: Side<'_>,
     settings: &PairSettings,
     seconds: Option<f64>,
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
 ) -> Result<ConsoleEnd, ClientError> {
-    let (l_name, f_name) = (leader.hello().arm.clone(), follower.hello().arm.clone());
+    let (l_name, f_name) = (leader.name(), follower.name());
     if l_name == f_name {
         return Err(ClientError::Refused(format!(
             "the leader and the follower are the same arm `{l_name}`"
         )));
     }
-    let reply = leader.request(side_request("leader", &f_name, settings))?;
-    if let Err(e) = follower.request(side_request("follower", &l_name, settings)) {
-        let _ = leader.request(json!({"op": "teleop_stop"}));
-        return Err(e);
+    // The sides served here, with the role each takes and its peer.
+    let mut here: Vec<(&mut Client, &str, &str)> = Vec::new();
+    if let Side::Here(c) = leader {
+        here.push((c, "leader", &f_name));
+    }
+    if let Side::Here(c) = follower {
+        here.push((c, "follower", &l_name));
+    }
+    if here.is_empty() {
+        return Err(ClientError::Refused(format!(
+            "neither `{l_name}` nor `{f_name}` is served on this PC"
+        )));
+    }
+    let mut reply = Value::Null;
+    for k in 0..here.len() {
+        let (c, role, peer) = &mut here[k];
+        match c.request(side_request(role, peer, settings)) {
+            Ok(r) => {
+                if k == 0 {
+                    reply = r;
+                }
+            }
+            Err(e) => {
+                for (c, _, _) in here.iter_mut().take(k) {
+                    let _ = c.request(json!({"op": "teleop_stop"}));
+                }
+                return Err(e);
+            }
+        }
     }
     let t = &reply["teleop"];
     say(&format!(
@@ -103,32 +149,40 @@ pub fn run(
             "off"
         }
     ));
+    if here.len() == 1 {
+        let (c, role, peer) = &here[0];
+        say(&format!(
+            "teleop: `{peer}` is not served on this PC: {} is the {role} of a pair with another \
+             daemon's arm (over zenoh); start the other side on its PC with the same command",
+            c.hello().arm
+        ));
+    }
     if t["operator"] == "button1" {
         say(&format!(
             "teleop: hold {l_name}'s button 1 to follow; button 2 is the clutch"
         ));
     }
-    let end = watch(leader, follower, seconds, stop, say);
-    for c in [&mut *leader, &mut *follower] {
+    let mut clients: Vec<&mut Client> = here.into_iter().map(|(c, _, _)| c).collect();
+    let end = watch(&mut clients, seconds, stop, say);
+    for c in clients {
         let _ = c.request(json!({"op": "teleop_stop"}));
     }
     end
 }
 
-/// Both arms' latest states, a line a second, until an end.
+/// The latest states of the arms served here, a line a second, until an end.
 fn watch(
-    leader: &mut Client,
-    follower: &mut Client,
+    sides: &mut [&mut Client],
     seconds: Option<f64>,
     stop: &AtomicBool,
     say: &mut dyn FnMut(&str),
 ) -> Result<ConsoleEnd, ClientError> {
-    for c in [&mut *leader, &mut *follower] {
+    for c in sides.iter_mut() {
         c.request(json!({"op": "stream", "rate_hz": WATCH_HZ}))?;
     }
     let start = Instant::now();
     let mut next_line = start + Duration::from_secs(1);
-    let mut latest: [Option<State>; 2] = [None, None];
+    let mut latest: Vec<Option<State>> = vec![None; sides.len()];
     loop {
         if stop.load(Ordering::SeqCst) {
             return Ok(ConsoleEnd::Stopped);
@@ -136,7 +190,7 @@ fn watch(
         if seconds.is_some_and(|s| start.elapsed().as_secs_f64() >= s) {
             return Ok(ConsoleEnd::Elapsed);
         }
-        for (k, c) in [&mut *leader, &mut *follower].into_iter().enumerate() {
+        for (k, c) in sides.iter_mut().enumerate() {
             match c.recv(10) {
                 Ok(Message::State(s)) => latest[k] = Some(s),
                 Ok(Message::Other(v)) if v["type"] == "bye" => {
@@ -154,7 +208,7 @@ fn watch(
         }
         // An arm that has left `teleop` ends the pair (the servo has already disabled it).
         if start.elapsed().as_secs_f64() > ENTER_S {
-            for (k, c) in [&*leader, &*follower].into_iter().enumerate() {
+            for (k, c) in sides.iter().enumerate() {
                 if let Some(s) = &latest[k] {
                     if s.mode != "teleop" {
                         return Ok(ConsoleEnd::ArmLeft {
@@ -167,8 +221,10 @@ fn watch(
         }
         if Instant::now() >= next_line {
             next_line += Duration::from_secs(1);
-            if let [Some(l), Some(f)] = &latest {
-                say(&status_line(l, f));
+            match latest.as_slice() {
+                [Some(l), Some(f)] => say(&status_line(l, f)),
+                [Some(s)] => say(&side_line(s)),
+                _ => {}
             }
         }
     }
@@ -190,6 +246,20 @@ pub fn status_line(leader: &State, follower: &State) -> String {
         follower.tip_mm[0],
         follower.tip_mm[1],
         follower.tip_mm[2],
+    )
+}
+
+/// One line on the side served here (its peer is another daemon's): its state, its tip, and
+/// the round trip is in `status`.
+pub fn side_line(s: &State) -> String {
+    format!(
+        "{:>8.1} s  {:<9}  contact {:>5.2} N  tip {:>6.1} {:>6.1} {:>6.1} mm",
+        s.t,
+        s.teleop.as_deref().unwrap_or(&s.mode),
+        (s.fext[0] * s.fext[0] + s.fext[1] * s.fext[1] + s.fext[2] * s.fext[2]).sqrt(),
+        s.tip_mm[0],
+        s.tip_mm[1],
+        s.tip_mm[2],
     )
 }
 

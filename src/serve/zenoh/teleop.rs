@@ -14,7 +14,7 @@
 use super::ZenohConfig;
 use crate::teleop::wire::{self, Agreement};
 use crate::teleop::{Endpoint, LineStats, Packet, RemoteChannels, RemoteLine, Role, TeleopConfig};
-use crossbeam_channel::Sender;
+use crossbeam_channel::{Sender, TrySendError};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -207,7 +207,11 @@ fn receiver(
             Ok(()) => {
                 shared.received.fetch_add(1, Ordering::Relaxed);
             }
-            Err(_) => shared.refuse(&arm, "the queue to the arm is full (a flood)".into()),
+            Err(TrySendError::Full(_)) => {
+                shared.refuse(&arm, "the queue to the arm is full (a flood)".into())
+            }
+            // This side has ended; the subscriber goes with it.
+            Err(TrySendError::Disconnected(_)) => {}
         }
     }
 }
