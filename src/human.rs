@@ -167,6 +167,22 @@ pub fn status_block(s: &Value) -> String {
                     .unwrap_or_default()
             ),
         );
+        let net = &t["network"];
+        if !net.is_null() {
+            line(
+                "teleop net",
+                format!(
+                    "zenoh, peer session {}; frames sent {}, received {}, refused {}{}",
+                    text(&net["peer_session"]).unwrap_or_else(|| "not heard yet".into()),
+                    net["sent"],
+                    net["received"],
+                    net["refused"],
+                    text(&net["last_refusal"])
+                        .map(|w| format!(" (last: {w})"))
+                        .unwrap_or_default()
+                ),
+            );
+        }
     }
     let rec = &s["recording"];
     line(

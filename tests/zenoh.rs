@@ -323,6 +323,103 @@ mod teleop_over_zenoh {
         );
     }
 
+    /// Two sessions on loopback as two daemons', and a third: an intruder on the same keys.
+    fn zenoh_cfg(listen: &str, connect: &[String]) -> omnid::serve::zenoh::ZenohConfig {
+        omnid::serve::zenoh::ZenohConfig {
+            enabled: true,
+            listen: vec![listen.to_string()],
+            connect: connect.to_vec(),
+            ros2: false,
+            protocol: false,
+            allow_commands: true,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn frames_that_are_malformed_disagree_or_come_from_a_second_sender_are_refused_and_counted() {
+        use omnid::serve::zenoh::ZenohNet;
+        use omnid::teleop::wire::{encode, Agreement};
+        use omnid::teleop::{Packet, Role};
+        use zenoh::Wait;
+        let port = super::free_port();
+        let at = vec![format!("tcp/127.0.0.1:{port}")];
+        let lnet = ZenohNet::start(&zenoh_cfg(&at[0], &[])).unwrap();
+        let fnet = ZenohNet::start(&zenoh_cfg("tcp/127.0.0.1:0", &at)).unwrap();
+        let cfg = TeleopConfig::default();
+        let (mut le, _ll) = lnet.teleop().open("l", "f", Role::Leader, &cfg, 1).unwrap();
+        let (mut fe, fl) = fnet
+            .teleop()
+            .open("f", "l", Role::Follower, &cfg, 2)
+            .unwrap();
+        // The leader is heard first: its session is the peer.
+        let until = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        while fe.receive(0.0).is_none() {
+            assert!(std::time::Instant::now() < until, "the link never came up");
+            le.send(Packet {
+                seq: 1,
+                ..Packet::default()
+            });
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        // An intruder's session puts on the follower's key: garbage, a frame of the other
+        // architecture, a frame with a NaN, and well-formed frames as a second sender.
+        let evil = super::peer(port);
+        let key = "omnid/teleop/l/f/to_follower/intruder";
+        let good = Agreement::of(&cfg);
+        let pf = Agreement {
+            architecture: Architecture::Pf,
+            passivity: true,
+        };
+        let mut nan = encode(&Packet::default(), good);
+        nan[32..40].copy_from_slice(&f64::NAN.to_le_bytes());
+        let frames: Vec<(Vec<u8>, &str)> = vec![
+            (
+                b"not a frame".to_vec(),
+                "a frame is 120 bytes; this one is 11",
+            ),
+            (
+                encode(&Packet::default(), pf).to_vec(),
+                "the peer runs pf, passivity on; this side runs pp",
+            ),
+            (nan.to_vec(), "bytes 32..40: pos_mm = NaN"),
+            (
+                encode(
+                    &Packet {
+                        seq: 666,
+                        ..Packet::default()
+                    },
+                    good,
+                )
+                .to_vec(),
+                "session intruder sends as the peer while session",
+            ),
+        ];
+        for (frame, why) in &frames {
+            let before = fl.stats().refused;
+            let until = std::time::Instant::now() + std::time::Duration::from_secs(10);
+            while fl.stats().refused == before {
+                assert!(std::time::Instant::now() < until, "{why}: {:?}", fl.stats());
+                evil.put(key, frame.clone()).wait().unwrap();
+                // The real leader keeps talking.
+                le.send(Packet {
+                    seq: 2,
+                    ..Packet::default()
+                });
+                std::thread::sleep(std::time::Duration::from_millis(20));
+                while let Some(p) = fe.receive(0.0) {
+                    assert_ne!(p.seq, 666, "a second sender's frame reached the arm");
+                }
+            }
+            let last = fl.stats().last_refusal.unwrap_or_default();
+            assert!(last.contains(why), "{last}");
+        }
+        let stats = fl.stats();
+        assert!(stats.received >= 2, "{stats:?}");
+        assert_eq!(stats.peer_session, Some(lnet.zid()), "{stats:?}");
+        evil.close().wait().unwrap();
+    }
+
     #[test]
     fn a_cut_zenoh_link_fades_the_leaders_force_within_50_ms_and_the_follower_holds() {
         let base = TeleopConfig::default();
@@ -469,6 +566,12 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
         let rtt = side["round_trip_ms"].as_f64().unwrap_or(f64::NAN);
         assert!(rtt > 0.0 && rtt < 500.0, "{side}");
     }
+    let out = b.omnid(&["ctl", "--arm", &follower, "status"]);
+    let human = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        human.contains("teleop net  zenoh, peer session "),
+        "{human}"
+    );
     // The follower's PC goes: its daemon is killed outright.
     // SAFETY: kill with a live child's pid.
     unsafe { libc::kill(b.pid(), libc::SIGKILL) };
