@@ -557,6 +557,44 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
 }
 
 #[test]
+fn a_pair_coupled_over_zenoh_allocates_nothing_per_tick_on_its_servo_thread() {
+    // The channel to another daemon's arm: the servo hands its packet to the publishing
+    // thread's queue and takes the peer's from the subscriber's; zenoh's own work (encoding,
+    // the socket) is on those threads, not this one.
+    use omnid::experiment::teleop::{Link, PairSim, Scene, CHANNELS};
+    use omnid::teleop::{Architecture, TeleopConfig};
+    let scene = Scene::Press {
+        force_n: 1.0,
+        wall_n_per_mm: 1.0,
+    };
+    let mut sim = PairSim::build(
+        &TeleopConfig::default(),
+        Architecture::Pf,
+        true,
+        &scene,
+        &CHANNELS[0],
+        10.0,
+        false,
+        Link::Zenoh,
+    )
+    .unwrap();
+    for _ in 0..500 {
+        sim.tick().unwrap();
+    }
+    let n = count_allocations(|| {
+        for _ in 0..2000 {
+            std::hint::black_box(sim.tick().unwrap());
+        }
+    });
+    assert_eq!(n, 0, "{n} allocations over 2000 ticks coupled over zenoh");
+    assert_eq!(
+        sim.leader.teleop().unwrap().state().as_str(),
+        "engaged",
+        "the pair was coupled throughout"
+    );
+}
+
+#[test]
 fn a_coupled_teleoperation_pair_allocates_nothing_per_tick() {
     // Two servos coupled in one process, each with its side of the pair (the channel, the
     // delay line, the passivity port, the fast velocity filter), over a delayed, lossy

@@ -280,6 +280,62 @@ mod tests {
         assert!(joined(&mut b, &mut f));
     }
 
+    /// Another daemon's arms, as a network would reach them: records who asked.
+    struct FakeNet(Mutex<Vec<(String, String, Role)>>);
+
+    struct FakeLine;
+    impl RemoteLine for FakeLine {
+        fn stats(&self) -> LineStats {
+            LineStats {
+                received: 42,
+                ..LineStats::default()
+            }
+        }
+    }
+
+    impl RemoteChannels for FakeNet {
+        fn open(
+            &self,
+            me: &str,
+            peer: &str,
+            role: Role,
+            config: &TeleopConfig,
+            seed: u64,
+        ) -> Result<(Endpoint, Box<dyn RemoteLine>), String> {
+            if peer == "unreachable" {
+                return Err("teleop: the network says no".into());
+            }
+            self.0.lock().unwrap().push((me.into(), peer.into(), role));
+            let (end, _) = pair(config.to_leader, config.to_follower, seed);
+            Ok((end, Box::new(FakeLine)))
+        }
+    }
+
+    #[test]
+    fn a_peer_of_another_daemon_goes_over_the_network_and_one_of_this_daemon_does_not() {
+        let net = Arc::new(FakeNet(Mutex::default()));
+        let r = arms().with_remote(net.clone());
+        let cfg = TeleopConfig::default();
+        let (_e, line) = r.join("left", "far", Role::Leader, &cfg, 1).unwrap();
+        assert_eq!(line.channel(), "zenoh");
+        assert_eq!(line.network().map(|s| s.received), Some(42));
+        let (_e, line) = r.join("right", "left", Role::Follower, &cfg, 1).unwrap();
+        assert_eq!(line.channel(), "in_process");
+        assert_eq!(line.network(), None);
+        assert_eq!(
+            *net.0.lock().unwrap(),
+            vec![("left".to_string(), "far".to_string(), Role::Leader)]
+        );
+        let e = r
+            .join("left", "unreachable", Role::Leader, &cfg, 1)
+            .err()
+            .unwrap();
+        assert_eq!(e.to_string(), "teleop: the network says no");
+        // Itself is never a remote peer.
+        let e = r.join("left", "left", Role::Leader, &cfg, 1).err().unwrap();
+        assert_eq!(e, RendezvousError::SelfPeer("follower"));
+    }
+
     #[test]
     fn a_peer_that_is_not_an_arm_here_or_is_itself_or_disagrees_is_refused() {
         let r = arms();
