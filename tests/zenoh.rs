@@ -274,7 +274,7 @@ fn without_allow_commands_a_remote_client_is_read_only() {
     drop(d);
 }
 
-// Teleoperation between two daemons over zenoh (docs/TELEOP.md §10).
+// Teleoperation between two daemons over zenoh (docs/TELEOP.md §9).
 
 mod teleop_over_zenoh {
     use omnid::experiment::teleop::{run_pair, run_pair_over, Link, PairSim, Scene, CHANNELS};

@@ -1045,7 +1045,7 @@ fn zenoh_table(md: &mut String, all: &[PairResult]) {
     md.push_str(
         "## Two daemons over zenoh\n\nThe same rows with each arm behind its own zenoh \
          session, as two daemons' (peer mode on TCP loopback, one connecting to the other), \
-         the channel opened as a daemon opens one to another daemon's arm (docs/TELEOP.md §10), \
+         the channel opened as a daemon opens one to another daemon's arm (docs/TELEOP.md §9), \
          ticked in real time at 1 kHz; passivity control on. Beside each, the same row in \
          process (unpaced lockstep). *measured RTT* is the round trip the leader measured from \
          the echoed packet times (median over the run, and its largest): the injected delay \

@@ -6,7 +6,7 @@
 //! console's sessions: if the console dies, the daemon ends it as for any lease holder that
 //! leaves (the follower holds, the leader's force fades).
 //!
-//! When one arm is served on another PC (two daemons over zenoh, docs/TELEOP.md §10), the
+//! When one arm is served on another PC (two daemons over zenoh, docs/TELEOP.md §9), the
 //! console takes up only the side whose arm is here; the same command on the other PC takes
 //! up the other.
 

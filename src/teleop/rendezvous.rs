@@ -2,7 +2,7 @@
 //! takes up its side on its own client's request (so each side passes its own arm's lease and
 //! checks), and the first side to come opens the channel and leaves the other end here for the
 //! second. A peer that is not an arm of this daemon is served by another: with zenoh up, the
-//! side opens a network channel to it instead ([`RemoteChannels`], docs/TELEOP.md §10). Off
+//! side opens a network channel to it instead ([`RemoteChannels`], docs/TELEOP.md §9). Off
 //! the servo threads (the stations' hub threads), so a lock is fine.
 
 use super::channel::{pair, Endpoint};
@@ -21,7 +21,7 @@ pub enum RendezvousError {
     /// The peer is not an arm of this daemon.
     #[error(
         "no arm `{peer}` in this daemon (its arms: {arms}); an arm of another daemon is reached \
-         when both serve over zenoh (`omnid serve --zenoh`, docs/TELEOP.md §10)"
+         when both serve over zenoh (`omnid serve --zenoh`, docs/TELEOP.md §9)"
     )]
     UnknownPeer {
         /// The name asked for.

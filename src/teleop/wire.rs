@@ -1,4 +1,4 @@
-//! A channel packet as bytes on a network (docs/TELEOP.md §10): a fixed 120-byte little-endian
+//! A channel packet as bytes on a network (docs/TELEOP.md §9): a fixed 120-byte little-endian
 //! frame, so two daemons on two PCs (zenoh) exchange exactly what two arms of one daemon do.
 //! What arrives is checked before it can move an arm: its size, its magic and version, that
 //! the sender runs the same architecture and passivity setting, and that every number is
@@ -229,7 +229,7 @@ mod tests {
 
     #[test]
     fn the_layout_is_the_documented_one() {
-        // Offsets as docs/TELEOP.md §10 lists them, read back independently of `decode`.
+        // Offsets as docs/TELEOP.md §9 lists them, read back independently of `decode`.
         let b = encode(&sample(), PP);
         assert_eq!(&b[0..8], b"OMTP\x01\x00\x01\x00");
         assert_eq!(

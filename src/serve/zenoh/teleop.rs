@@ -1,4 +1,4 @@
-//! A teleoperation channel between two daemons over zenoh (docs/TELEOP.md §10). Each side
+//! A teleoperation channel between two daemons over zenoh (docs/TELEOP.md §9). Each side
 //! puts its packet every tick on `omnid/teleop/<leader>/<follower>/to_<other role>/<its zid>`
 //! and takes the other's from `…/to_<own role>/*`, a fixed frame (`teleop::wire`). The servo
 //! thread never touches zenoh: it hands its packet to a bounded queue that a publishing thread
@@ -125,7 +125,7 @@ impl RemoteChannels for TeleopNet {
             return Err(format!(
                 "teleop: `{peer}` is not an arm of this daemon; a pair with another daemon's arm \
                  moves this arm from the network, which `[zenoh] allow_commands = false` refuses \
-                 here (set it to true on both daemons; docs/ZENOH.md, docs/TELEOP.md §10)"
+                 here (set it to true on both daemons; docs/ZENOH.md, docs/TELEOP.md §9)"
             ));
         }
         let (leader, follower, mine, theirs, impairment) = match role {
