@@ -421,6 +421,33 @@ mod teleop_over_zenoh {
     }
 
     #[test]
+    fn a_channel_to_another_daemon_needs_allow_commands_and_a_plain_arm_name() {
+        use omnid::serve::zenoh::ZenohNet;
+        use omnid::teleop::Role;
+        let cfg = TeleopConfig::default();
+        let closed = ZenohNet::start(&omnid::serve::zenoh::ZenohConfig {
+            allow_commands: false,
+            ..zenoh_cfg("tcp/127.0.0.1:0", &[])
+        })
+        .unwrap();
+        let e = closed
+            .teleop()
+            .open("l", "f", Role::Leader, &cfg, 1)
+            .err()
+            .unwrap();
+        assert!(e.contains("allow_commands = false"), "{e}");
+        let open = ZenohNet::start(&zenoh_cfg("tcp/127.0.0.1:0", &[])).unwrap();
+        for bad in ["f/*", "**", "a b", ""] {
+            let e = open
+                .teleop()
+                .open("l", bad, Role::Leader, &cfg, 1)
+                .err()
+                .unwrap();
+            assert!(e.contains("arm name"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
     fn a_cut_zenoh_link_fades_the_leaders_force_within_50_ms_and_the_follower_holds() {
         let base = TeleopConfig::default();
         let mut sim = PairSim::build(
