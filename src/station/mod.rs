@@ -1117,7 +1117,7 @@ impl Station {
             teleop: self.teleop.as_ref().map(|(side, line)| TeleopReply {
                 state: last.and_then(|r| r.live.teleop),
                 round_trip_ms: last.map(|r| r.live.teleop_round_trip_s * 1e3),
-                network: line.network(),
+                network: line.network().map(Box::new),
                 ..side.clone()
             }),
         }

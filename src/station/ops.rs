@@ -196,7 +196,7 @@ pub struct TeleopReply {
     pub channel: &'static str,
     /// In `status`, over zenoh: what the network channel has carried.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub network: Option<crate::teleop::LineStats>,
+    pub network: Option<Box<crate::teleop::LineStats>>,
 }
 
 /// This arm's side of a pair, as asked: `[teleop]` with the changes given.
