@@ -175,8 +175,20 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
     let results: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("results.json")).unwrap()).unwrap();
     let runs = results["runs"].as_array().unwrap();
-    // pp and pf, passivity on and off, four scenes, four channels.
-    assert_eq!(runs.len(), 2 * 2 * 4 * 4);
+    // pp and pf, passivity on and off, four scenes, four channels in process; and the press
+    // of each architecture over zenoh at 0 and 100 ms (docs/TELEOP.md §9).
+    assert_eq!(runs.len(), 2 * 2 * 4 * 4 + 2 * 2);
+    let over: Vec<&serde_json::Value> = runs.iter().filter(|r| r["link"] == "zenoh").collect();
+    assert_eq!(over.len(), 4);
+    for r in &over {
+        assert_eq!(r["stable"], true, "{r}");
+        // The round trip the leader measured covers the injected one.
+        let (rt, measured) = (
+            r["rt_ms"].as_f64().unwrap(),
+            r["measured_rt_ms"].as_f64().unwrap(),
+        );
+        assert!(measured >= rt && measured < rt + 50.0, "{r}");
+    }
     for r in runs {
         for key in [
             "position_rms_mm",
@@ -198,6 +210,7 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
         "## Summary",
         "## Position–position with passivity control",
         "## Position–force without passivity control",
+        "## Two daemons over zenoh",
     ] {
         assert!(report.contains(heading), "{heading}");
     }
