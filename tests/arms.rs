@@ -357,3 +357,50 @@ fn a_trip_on_the_follower_ends_the_console_and_leaves_the_leader_holding() {
         assert!(Instant::now() < until, "the leader never held: {s:?}");
     }
 }
+
+/// A console killed outright (SIGKILL: no chance to uncouple) loses its sessions, and with them
+/// the pair: each side is its lease holder's, so both arms leave teleop and hold.
+#[test]
+fn a_console_killed_outright_leaves_both_arms_uncoupled_and_holding() {
+    let (leader, follower) = (unique("lead3"), unique("follow3"));
+    let config = format!(
+        "[teleop]\noperator = \"always\"\n\n[[arm]]\nname = \"{leader}\"\n\
+         [arm.haptics.hand]\npattern = \"path\"\nspeed_m_s = 0.05\n\n[[arm]]\nname = \"{follower}\"\n"
+    );
+    let d = Served::start(&[], Some(&config), &[&leader, &follower]);
+    let mut watch = [d.client(&leader, "watch-l"), d.client(&follower, "watch-f")];
+    for w in &mut watch {
+        w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    }
+    let mut console = console_cmd(&d, &leader, &follower, "60")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Both sides engaged (each stream read up to now).
+    let until = Instant::now() + Duration::from_secs(30);
+    loop {
+        let l = watch[0].next_state(5000).unwrap();
+        let f = watch[1].next_state(5000).unwrap();
+        if l.teleop.as_deref() == Some("engaged") && f.teleop.as_deref() == Some("engaged") {
+            break;
+        }
+        assert!(Instant::now() < until, "never engaged: {l:?}\n{f:?}");
+    }
+    console.kill().unwrap();
+    console.wait().unwrap();
+    for (w, name) in watch.iter_mut().zip([&leader, &follower]) {
+        let until = Instant::now() + Duration::from_secs(10);
+        loop {
+            let s = w.next_state(5000).unwrap();
+            if s.mode != "teleop" {
+                // Its side is down (it tells the other side so every tick) and it holds.
+                assert_eq!(s.mode, "hold", "{name}: {s:?}");
+                assert!(s.amps, "{name}: {s:?}");
+                assert_eq!(s.teleop.as_deref(), Some("down"), "{name}: {s:?}");
+                break;
+            }
+            assert!(Instant::now() < until, "{name} stayed coupled: {s:?}");
+        }
+    }
+}
