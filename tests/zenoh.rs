@@ -556,30 +556,50 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
     }
     let ca = console_on(&a, &leader, &follower, "60");
     let cb = console_on(&b, &leader, &follower, "60");
-    // Both engaged; the tips sampled together (the daemons' clocks differ: pair by arrival).
+    // Both engaged; the tips sampled together every 10 ms, each the newest its stream has
+    // (the daemons' clocks differ: pair by arrival).
+    fn newest(c: &mut omnid::serve::client::Client) -> omnid::serve::protocol::State {
+        let mut s = c.next_state(5000).unwrap();
+        while let Ok(n) = c.next_state(0) {
+            s = n;
+        }
+        s
+    }
     let mut engaged: Vec<([f64; 3], [f64; 3])> = Vec::new();
-    let (mut l, mut f) = (wl.next_state(5000).unwrap(), wf.next_state(5000).unwrap());
     let until = Instant::now() + Duration::from_secs(40);
-    while engaged.len() < 200 {
-        assert!(Instant::now() < until, "never 2 s engaged: {l:?}\n{f:?}");
-        l = wl.next_state(5000).unwrap();
-        f = wf.next_state(5000).unwrap();
+    while engaged.len() < 300 {
+        let (l, f) = (newest(&mut wl), newest(&mut wf));
+        assert!(Instant::now() < until, "never 3 s engaged: {l:?}\n{f:?}");
         if l.teleop.as_deref() == Some("engaged") && f.teleop.as_deref() == Some("engaged") {
             engaged.push((l.tip_mm, f.tip_mm));
         }
+        std::thread::sleep(Duration::from_millis(10));
     }
+    // The follower's motion since engaging against the leader's, allowing for the lag of the
+    // path through two daemons (up to 200 ms: the samples' own skew on a loaded machine).
     let (l0, f0) = engaged[0];
-    let (mut moved, mut err2) = (0.0f64, 0.0);
-    for (l, f) in &engaged {
-        let d: Vec<f64> = (0..3).map(|k| (f[k] - f0[k]) - (l[k] - l0[k])).collect();
-        moved = moved.max((0..3).map(|k| (l[k] - l0[k]).powi(2)).sum::<f64>().sqrt());
-        err2 += d.iter().map(|v| v * v).sum::<f64>();
-    }
-    let rms = (err2 / engaged.len() as f64).sqrt();
+    let motion = |p: [f64; 3], o: [f64; 3]| nalgebra::Vector3::from(p) - nalgebra::Vector3::from(o);
+    let moved = engaged
+        .iter()
+        .map(|(l, _)| motion(*l, l0).norm())
+        .fold(0.0, f64::max);
+    let rms_at = |lag: usize| {
+        let n = engaged.len() - lag;
+        let e2: f64 = (0..n)
+            .map(|k| (motion(engaged[k + lag].1, f0) - motion(engaged[k].0, l0)).norm_squared())
+            .sum();
+        (e2 / n as f64).sqrt()
+    };
+    let (lag, rms) = (0..=20)
+        .map(|lag| (lag, rms_at(lag)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap();
     assert!(moved > 10.0, "the hand moved the leader only {moved:.1} mm");
     assert!(
         rms < 3.0,
-        "follower off the leader's motion by {rms:.2} mm RMS"
+        "follower off the leader's motion by {rms:.2} mm RMS (best lag {} ms; none: {:.2} mm)",
+        lag * 10,
+        rms_at(0)
     );
     // Each side's status: the zenoh channel, frames flowing, none refused, a round trip.
     for (d, arm) in [(&a, &leader), (&b, &follower)] {
