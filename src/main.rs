@@ -308,7 +308,8 @@ struct CtlArgs {
     #[arg(long, value_name = "NAME", conflicts_with = "socket")]
     arm: Option<String>,
     /// Print the daemon's reply as JSON (for programs; `status`: the keys of
-    /// docs/DESIGN.md §2.3) instead of the readable form.
+    /// docs/DESIGN.md §2.3) instead of the readable form; `teleop start`: a JSON object a line
+    /// (`note`s, and each second a `pair` with each arm's latest state).
     #[arg(long, global = true)]
     json: bool,
     #[command(subcommand)]
@@ -1000,7 +1001,7 @@ fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
 fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     use serde_json::json;
     if let CtlCommand::Teleop { action } = args.command {
-        return teleop_console(action);
+        return teleop_console(action, args.json);
     }
     let request = match &args.command {
         CtlCommand::Status => json!({ "op": "status" }),
@@ -1086,7 +1087,7 @@ fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
 }
 
 /// `omnid ctl teleop start`: the pair's console, until Ctrl-C, SIGTERM or --seconds.
-fn teleop_console(action: TeleopAction) -> Result<u8, anyhow::Error> {
+fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, anyhow::Error> {
     use omnid::teleop::console::{self, ConsoleEnd, PairSettings};
     let TeleopAction::Start {
         leader,
@@ -1144,7 +1145,11 @@ fn teleop_console(action: TeleopAction) -> Result<u8, anyhow::Error> {
         operator,
         passivity: no_passivity.then_some(false),
     };
-    let mut say = |line: &str| omnid::outln!("{line}");
+    let mut out = |line: &str| omnid::outln!("{line}");
+    let mut say = console::Say {
+        json,
+        out: &mut out,
+    };
     match console::run(
         side(l_client.as_mut(), &leader),
         side(f_client.as_mut(), &follower),

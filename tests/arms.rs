@@ -373,10 +373,29 @@ fn a_console_killed_outright_leaves_both_arms_uncoupled_and_holding() {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     }
     let mut console = console_cmd(&d, &leader, &follower, "60")
-        .stdout(std::process::Stdio::null())
+        .arg("--json")
+        .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
+    // For programs: a JSON object a line, notes and once a second both arms' states.
+    let mut lines =
+        std::io::BufRead::lines(std::io::BufReader::new(console.stdout.take().unwrap()));
+    loop {
+        let line = lines
+            .next()
+            .expect("a pair line before the console ends")
+            .unwrap();
+        let v: serde_json::Value = serde_json::from_str(&line).expect(&line);
+        if v["type"] == "pair" {
+            let sides = v["sides"].as_array().unwrap();
+            assert_eq!(sides.len(), 2, "{v}");
+            assert_eq!(sides[0]["arm"], json!(leader), "{v}");
+            assert_eq!(sides[1]["state"]["mode"], "teleop", "{v}");
+            break;
+        }
+        assert_eq!(v["type"], "note", "{v}");
+    }
     // Both sides engaged (each stream read up to now).
     let until = Instant::now() + Duration::from_secs(30);
     loop {

@@ -90,14 +90,51 @@ impl Side<'_> {
     }
 }
 
-/// Start the sides served here, watch until the end, stop them. `say` gets the human lines.
+/// How the console speaks: to people, or a JSON object a line (`{"type":"note","text"}` for
+/// what it says, `{"type":"pair","sides":[{"arm","state"}…]}` once a second).
+pub struct Say<'a> {
+    /// JSON lines.
+    pub json: bool,
+    /// Where each line goes.
+    pub out: &'a mut dyn FnMut(&str),
+}
+
+impl Say<'_> {
+    fn note(&mut self, text: &str) {
+        if self.json {
+            (self.out)(&json!({"type": "note", "text": text}).to_string())
+        } else {
+            (self.out)(text)
+        }
+    }
+
+    /// Each watched arm's latest state.
+    fn pair(&mut self, sides: &[&mut Client], latest: &[Option<State>]) {
+        if self.json {
+            let sides: Vec<Value> = sides
+                .iter()
+                .zip(latest)
+                .map(|(c, s)| json!({"arm": c.hello().arm, "state": s}))
+                .collect();
+            (self.out)(&json!({"type": "pair", "sides": sides}).to_string());
+            return;
+        }
+        match latest {
+            [Some(l), Some(f)] => (self.out)(&status_line(l, f)),
+            [Some(s)] => (self.out)(&side_line(s)),
+            _ => {}
+        }
+    }
+}
+
+/// Start the sides served here, watch until the end, stop them.
 pub fn run(
     leader: Side<'_>,
     follower: Side<'_>,
     settings: &PairSettings,
     seconds: Option<f64>,
     stop: &AtomicBool,
-    say: &mut dyn FnMut(&str),
+    say: &mut Say<'_>,
 ) -> Result<ConsoleEnd, ClientError> {
     let (l_name, f_name) = (leader.name(), follower.name());
     if l_name == f_name {
@@ -136,7 +173,7 @@ pub fn run(
         }
     }
     let t = &reply["teleop"];
-    say(&format!(
+    say.note(&format!(
         "teleop: {l_name} leads, {f_name} follows ({}, motion ×{}, force ×{}, operator {}, \
          passivity {}); Ctrl-C ends the pair",
         t["architecture"].as_str().unwrap_or("?"),
@@ -151,14 +188,14 @@ pub fn run(
     ));
     if here.len() == 1 {
         let (c, role, peer) = &here[0];
-        say(&format!(
+        say.note(&format!(
             "teleop: `{peer}` is not served on this PC: {} is the {role} of a pair with another \
              daemon's arm (over zenoh); start the other side on its PC with the same command",
             c.hello().arm
         ));
     }
     if t["operator"] == "button1" {
-        say(&format!(
+        say.note(&format!(
             "teleop: hold {l_name}'s button 1 to follow; button 2 is the clutch"
         ));
     }
@@ -175,7 +212,7 @@ fn watch(
     sides: &mut [&mut Client],
     seconds: Option<f64>,
     stop: &AtomicBool,
-    say: &mut dyn FnMut(&str),
+    say: &mut Say<'_>,
 ) -> Result<ConsoleEnd, ClientError> {
     for c in sides.iter_mut() {
         c.request(json!({"op": "stream", "rate_hz": WATCH_HZ}))?;
@@ -198,7 +235,7 @@ fn watch(
                 }
                 Ok(Message::Other(v)) => {
                     if let Some(line) = crate::human::event_line(&v) {
-                        say(&format!("{}: {}", c.hello().arm, line.trim_start()));
+                        say.note(&format!("{}: {}", c.hello().arm, line.trim_start()));
                     }
                 }
                 Err(ClientError::Timeout(_)) => {}
@@ -221,11 +258,7 @@ fn watch(
         }
         if Instant::now() >= next_line {
             next_line += Duration::from_secs(1);
-            match latest.as_slice() {
-                [Some(l), Some(f)] => say(&status_line(l, f)),
-                [Some(s)] => say(&side_line(s)),
-                _ => {}
-            }
+            say.pair(sides, &latest);
         }
     }
 }
