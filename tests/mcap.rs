@@ -81,6 +81,8 @@ fn a_ten_second_recording_reads_back_with_independent_readers_value_for_value() 
         "/tf",
         "/robot_description",
         "/omnid/tip/pose",
+        "/omnid/external/force",
+        "/omnid/torque/external",
     ] {
         assert!(topics.iter().any(|x| x == t), "no {t}: {topics:?}");
     }
@@ -190,7 +192,10 @@ fn replaying_an_mcap_log_reproduces_it_and_csv_to_mcap_to_csv_is_identical() {
     convert(&p("sim.mcap"), &p("sim.csv"));
     let (sim, replay) = (Log::read(&p("sim.csv")), Log::read(&p("replay.csv")));
     assert_eq!(sim.rows.len(), replay.rows.len());
-    for c in ["q1", "q3", "tau2", "qf1", "qd2", "qdd3", "enc1"] {
+    // The force estimate too: the replay's servo estimates it again from the same samples.
+    for c in [
+        "q1", "q3", "tau2", "qf1", "qd2", "qdd3", "enc1", "tau_ext1", "fext1", "fext2", "fext3",
+    ] {
         let (a, b) = (sim.col(c), replay.col(c));
         for (k, (x, y)) in sim.rows.iter().zip(&replay.rows).enumerate() {
             assert_eq!(x[a], y[b], "{c} row {k}: the replay differs from the run");
