@@ -625,7 +625,12 @@ mod tests {
         text
     }
 
-    fn ticks(mcap: &Path) -> (crate::telemetry::LogSchema, Vec<crate::telemetry::TickRecord>) {
+    fn ticks(
+        mcap: &Path,
+    ) -> (
+        crate::telemetry::LogSchema,
+        Vec<crate::telemetry::TickRecord>,
+    ) {
         let mut t = crate::telemetry::mcap_log::read::McapTicks::new(
             std::fs::File::open(mcap).unwrap(),
             false,
@@ -645,7 +650,11 @@ mod tests {
         let now = log_text(LogSchema::new(true), [0.25, -1.5, 0.0]);
         std::fs::write(p("now.csv"), &now).unwrap();
         let rep = log(&p("now.csv"), &p("now.mcap")).unwrap();
-        assert!(rep.columns.iter().any(|c| c == "fext3"), "{:?}", rep.columns);
+        assert!(
+            rep.columns.iter().any(|c| c == "fext3"),
+            "{:?}",
+            rep.columns
+        );
         let (schema, rows) = ticks(&p("now.mcap"));
         assert_eq!(schema, LogSchema::new(true));
         assert_eq!(rows.len(), 3);
@@ -663,17 +672,23 @@ mod tests {
         let old = log_text(old_schema, [9.0; 3]);
         let header = String::from_utf8_lossy(&old[..old.iter().position(|b| *b == b'\n').unwrap()])
             .to_string();
-        assert!(!header.contains("fext") && !header.contains("tau_ext") && header.contains("fhand1"));
+        assert!(
+            !header.contains("fext") && !header.contains("tau_ext") && header.contains("fhand1")
+        );
         std::fs::write(p("old.csv"), &old).unwrap();
         log(&p("old.csv"), &p("old.mcap")).unwrap();
         let (schema, rows) = ticks(&p("old.mcap"));
         assert_eq!(schema, old_schema);
-        assert!(rows.iter().all(|r| r.haptic.fext.iter().all(|v| v.is_nan())));
+        assert!(rows
+            .iter()
+            .all(|r| r.haptic.fext.iter().all(|v| v.is_nan())));
         log(&p("old.mcap"), &p("old-again.csv")).unwrap();
         assert_eq!(std::fs::read(p("old-again.csv")).unwrap(), old);
 
         // Half a group is a broken header, named, not an absent group.
-        let cut = String::from_utf8(now.clone()).unwrap().replacen("fext2", "fextra", 1);
+        let cut = String::from_utf8(now.clone())
+            .unwrap()
+            .replacen("fext2", "fextra", 1);
         std::fs::write(p("cut.csv"), cut).unwrap();
         let e = log(&p("cut.csv"), &p("cut.mcap")).unwrap_err().to_string();
         assert!(e.contains("line 1") && e.contains("`fext2`"), "{e}");
