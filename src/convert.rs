@@ -295,8 +295,15 @@ fn whole_log<W: Write>(
     use crate::telemetry::reader::RowFault;
     use crate::telemetry::record::{HapticRecord, LogSchema, Mode, TickRecord};
     let mut reader = ColumnReader::open(input, &["t"], lenient, stop)?;
+    // An optional group is there when any of its columns is (a partial group is then a
+    // missing column, named); logs written before the force estimate was logged have none of
+    // `tau_ext`/`fext` and convert without them.
+    let any = |names: &[&str]| reader.header().iter().any(|h| names.contains(&h.as_str()));
     let schema = LogSchema {
-        model: reader.header().iter().any(|h| h == "tau_model1"),
+        model: any(&["tau_model1"]),
+        external: any(&[
+            "tau_ext1", "tau_ext2", "tau_ext3", "fext1", "fext2", "fext3",
+        ]),
     };
     let columns = schema.columns();
     let names: Vec<&str> = columns.iter().map(String::as_str).collect();
@@ -316,6 +323,7 @@ fn whole_log<W: Write>(
     let (reference, tau_cmd, tau_hat) = (three("ref"), three("tau_cmd"), three("tau_hat"));
     let (tip, fcmd, enc) = (three("tip"), three("fcmd"), three("enc"));
     let model = schema.model.then(|| (three("tau_model"), three("fhand")));
+    let external = schema.external.then(|| (three("tau_ext"), three("fext")));
     let (amps, mode, flags) = (col("amps"), col("mode"), col("flags"));
     let format = LogFormat::for_path(out, crate::omni::kinematics::Geometry::default());
     let mut rec = crate::telemetry::recorder::recorder(schema, format);
@@ -344,6 +352,10 @@ fn whole_log<W: Write>(
                 Some((tm, fh)) => (nums(tm)?, nums(fh)?),
                 None => ([f64::NAN; 3], [f64::NAN; 3]),
             };
+            let (tau_ext, fext) = match external {
+                Some((te, fe)) => (nums(te)?, nums(fe)?),
+                None => ([f64::NAN; 3], [f64::NAN; 3]),
+            };
             Ok(TickRecord {
                 t: row.t,
                 q: nums(q)?,
@@ -355,6 +367,7 @@ fn whole_log<W: Write>(
                 tau_cmd: nums(tau_cmd)?,
                 tau_hat: nums(tau_hat)?,
                 tau_model,
+                tau_ext,
                 enc: [row.i64(enc[0])?, row.i64(enc[1])?, row.i64(enc[2])?],
                 amps: row.i64(amps)? != 0,
                 mode: m,
@@ -364,6 +377,7 @@ fn whole_log<W: Write>(
                     tip_mm: nums(tip)?,
                     force: nums(fcmd)?,
                     hand,
+                    fext,
                 },
                 live: Default::default(),
             })
@@ -591,6 +605,94 @@ mod tests {
         let rep = convert(SourceFormat::RosTouch, &input, &out, true, None).unwrap();
         assert_eq!((rep.rows, rep.skipped.count), (1, 1));
         assert!(convert(SourceFormat::RosTouch, &out, &out, false, None).is_err());
+    }
+
+    /// A whole log of `schema` (three rows, the last `stop`), written by the CSV recorder, with
+    /// a force estimate of `fext` N on every row (the middle row's differs).
+    fn log_text(schema: crate::telemetry::LogSchema, fext: [f64; 3]) -> Vec<u8> {
+        use crate::telemetry::record::{Mode, TickRecord};
+        let mut text = schema.columns().join(",").into_bytes();
+        text.push(b'\n');
+        for (k, mode) in [Mode::Hold, Mode::Hold, Mode::Stop].into_iter().enumerate() {
+            let mut r = TickRecord::at(k as u64, mode);
+            r.q = [0.1, -0.2, 1.0 / 3.0];
+            r.tau_model = [f64::NAN; 3];
+            r.haptic.hand = [f64::NAN; 3];
+            r.tau_ext = [0.01 * k as f64, -0.02, 1e-17];
+            r.haptic.fext = fext.map(|v| v * (1 + k % 2) as f64);
+            crate::telemetry::recorder::format_row(&mut text, &r, &schema);
+        }
+        text
+    }
+
+    fn ticks(
+        mcap: &Path,
+    ) -> (
+        crate::telemetry::LogSchema,
+        Vec<crate::telemetry::TickRecord>,
+    ) {
+        let mut t = crate::telemetry::mcap_log::read::McapTicks::new(
+            std::fs::File::open(mcap).unwrap(),
+            false,
+        );
+        let rows = std::iter::from_fn(|| t.next_tick().unwrap()).collect();
+        (t.schema(), rows)
+    }
+
+    #[test]
+    fn the_force_estimate_passes_csv_to_mcap_to_csv_and_older_logs_convert_without_it() {
+        use crate::telemetry::LogSchema;
+        let dir = tempfile::tempdir().unwrap();
+        let p = |n: &str| dir.path().join(n);
+        let log = |from: &Path, to: &Path| convert(SourceFormat::Log, from, to, false, None);
+        // Today's log: its estimate comes back from the MCAP value for value, then as the
+        // same CSV bytes.
+        let now = log_text(LogSchema::new(true), [0.25, -1.5, 0.0]);
+        std::fs::write(p("now.csv"), &now).unwrap();
+        let rep = log(&p("now.csv"), &p("now.mcap")).unwrap();
+        assert!(
+            rep.columns.iter().any(|c| c == "fext3"),
+            "{:?}",
+            rep.columns
+        );
+        let (schema, rows) = ticks(&p("now.mcap"));
+        assert_eq!(schema, LogSchema::new(true));
+        assert_eq!(rows.len(), 3);
+        assert_eq!(rows[1].haptic.fext, [0.5, -3.0, 0.0]);
+        assert_eq!(rows[2].tau_ext, [0.02, -0.02, 1e-17]);
+        log(&p("now.mcap"), &p("again.csv")).unwrap();
+        assert_eq!(std::fs::read(p("again.csv")).unwrap(), now);
+
+        // A log from before the estimate was logged: no `tau_ext`, no `fext`, no channels for
+        // them; it converts both ways unchanged, the estimate absent (not made up as zeros).
+        let old_schema = LogSchema {
+            model: true,
+            external: false,
+        };
+        let old = log_text(old_schema, [9.0; 3]);
+        let header = String::from_utf8_lossy(&old[..old.iter().position(|b| *b == b'\n').unwrap()])
+            .to_string();
+        assert!(
+            !header.contains("fext") && !header.contains("tau_ext") && header.contains("fhand1")
+        );
+        std::fs::write(p("old.csv"), &old).unwrap();
+        log(&p("old.csv"), &p("old.mcap")).unwrap();
+        let (schema, rows) = ticks(&p("old.mcap"));
+        assert_eq!(schema, old_schema);
+        assert!(rows
+            .iter()
+            .all(|r| r.haptic.fext.iter().all(|v| v.is_nan())));
+        log(&p("old.mcap"), &p("old-again.csv")).unwrap();
+        assert_eq!(std::fs::read(p("old-again.csv")).unwrap(), old);
+
+        // Half a group is a broken header, named, not an absent group.
+        let cut = String::from_utf8(now.clone())
+            .unwrap()
+            .replacen("fext2", "fextra", 1);
+        std::fs::write(p("cut.csv"), cut).unwrap();
+        let e = log(&p("cut.csv"), &p("cut.mcap")).unwrap_err().to_string();
+        assert!(e.contains("line 1") && e.contains("`fext2`"), "{e}");
+        assert!(!p("cut.mcap").exists());
     }
 
     #[test]

@@ -213,9 +213,7 @@ pub(crate) fn assemble(
             stop.clone(),
         ));
     }
-    let schema = LogSchema {
-        model: device.plant_model().is_some(),
-    };
+    let schema = LogSchema::new(device.plant_model().is_some());
     let reference = Reference::new(opts.trajectory, &cfg.reference, cfg.sim.seed);
     // A replay limits itself in device time (its rows need not come at rate_hz).
     let max_ticks = (!replay && opts.duration_s.is_finite())

@@ -139,6 +139,23 @@ fn run_free_with_a_scene_and_a_hand_logs_the_tip_and_the_forces() {
     assert!((fhand[end] + 1.0).abs() < 0.05, "hand {}", fhand[end]);
     assert!((fcmd[end] - 1.0).abs() < 0.15, "floor {}", fcmd[end]);
     assert!(tip[end] < -33.3 && tip[end] > -34.0, "tip {}", tip[end]);
+    // The servo's external-force estimate is logged (docs/TELEOP.md §2): the floor is the
+    // motors' own force, so what pushes from outside is the hand alone, and the estimate
+    // finds it from the torques and the model, on every axis.
+    for axis in 1..=3 {
+        let (fext, fhand) = (
+            l.f64s(&format!("fext{axis}")),
+            l.f64s(&format!("fhand{axis}")),
+        );
+        assert!(
+            (fext[end] - fhand[end]).abs() < 0.1,
+            "axis {axis}: estimate {} N, hand {} N",
+            fext[end],
+            fhand[end]
+        );
+    }
+    let tau_ext = l.f64s("tau_ext2");
+    assert!(tau_ext[end].abs() > 0.01, "tau_ext2 {}", tau_ext[end]);
 }
 
 #[test]

@@ -340,6 +340,10 @@ fn a_haptic_run_is_drawn_as_one() {
     assert!(svg.contains("y (up)"), "panels are not the tip's axes");
     let force = std::fs::read_to_string(out.join("tip_force.svg")).unwrap();
     assert!(force.contains("(fhand, simulator)") && force.contains("rendered (fcmd"));
+    assert!(
+        force.contains("estimated from the motors (fext)"),
+        "no force estimate"
+    );
 
     // A tracking run: today's figures, no haptic ones.
     let track = dir.path().join("track.csv");

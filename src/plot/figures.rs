@@ -22,6 +22,9 @@ pub enum Signal {
     Fcmd,
     /// The simulated hand's force on the tip, N, per axis.
     Fhand,
+    /// The outside's force on the tip estimated from the motors and the model, N, per axis
+    /// (docs/TELEOP.md §2).
+    Fext,
 }
 
 impl Signal {
@@ -35,6 +38,7 @@ impl Signal {
             Signal::Tip => "tip",
             Signal::Fcmd => "fcmd",
             Signal::Fhand => "fhand",
+            Signal::Fext => "fext",
         }
     }
 
@@ -48,6 +52,7 @@ impl Signal {
             Signal::Tip => "the stylus tip",
             Signal::Fcmd => "the tip force commanded",
             Signal::Fhand => "the simulated hand's force",
+            Signal::Fext => "the estimated outside force",
         }
     }
 }
@@ -240,7 +245,7 @@ pub const FIGURES: &[FigureDef] = &[
     },
     FigureDef {
         name: "tip_force",
-        title: "Force on the tip: rendered by omnid and the hand's push",
+        title: "Force on the tip: rendered by omnid, the hand's push, the estimate",
         y_desc: "force (N)",
         scale: 1.0,
         zero_line: true,
@@ -258,6 +263,12 @@ pub const FIGURES: &[FigureDef] = &[
                 quantity: Quantity::Of(Signal::Fcmd),
                 role: Role::Measured,
                 required: true,
+            },
+            LineDef {
+                label: "outside force estimated from the motors (fext)",
+                quantity: Quantity::Of(Signal::Fext),
+                role: Role::Estimate,
+                required: false,
             },
         ],
     },
@@ -447,15 +458,15 @@ mod tests {
     fn full_log_gets_every_figure_and_shares_columns() {
         let mut cols = vec!["t".to_string()];
         for g in [
-            "q", "tau", "ref", "tau_cmd", "tau_hat", "tip", "fcmd", "fhand",
+            "q", "tau", "ref", "tau_cmd", "tau_hat", "tip", "fcmd", "fhand", "fext",
         ] {
             cols.extend((1..=3).map(|j| format!("{g}{j}")));
         }
         let p = plan(&Header::new(cols));
         assert_eq!(p.figures.len(), FIGURES.len());
         assert!(p.skipped.is_empty() && p.notes.is_empty());
-        // 8 signals × 3 joints or axes + 2 differences × 3 joints.
-        assert_eq!(p.formulas.len(), 30);
+        // 9 signals × 3 joints or axes + 2 differences × 3 joints.
+        assert_eq!(p.formulas.len(), 33);
     }
 
     #[test]

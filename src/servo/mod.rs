@@ -680,6 +680,7 @@ impl Servo {
             tau_cmd: o.tau_cmd,
             tau_hat: o.tau_hat,
             tau_model: o.tau_model,
+            tau_ext: self.external.tau.into(),
             enc: s.enc,
             amps: self.command.amps_on,
             mode,
@@ -694,7 +695,6 @@ impl Servo {
                 cmd_seq: self.cmd_seq,
                 event,
                 heat: self.safety.heat(),
-                fext: self.external.force.into(),
                 teleop: self.teleop.as_ref().map(|c| c.state().as_str()),
                 teleop_round_trip_s: self.teleop.as_ref().map_or(0.0, |c| c.round_trip_s()),
             },
@@ -768,6 +768,7 @@ impl Servo {
                 self.haptics.force
             },
             hand: self.device.hand_force().unwrap_or([f64::NAN; 3]),
+            fext: self.external.force.into(),
         }
     }
 
@@ -1234,6 +1235,7 @@ impl Servo {
             tau_cmd: [0.0; 3],
             tau_hat: self.last_tau_hat,
             tau_model: self.last_tau_model,
+            tau_ext: self.external.tau.into(),
             enc,
             amps: false,
             mode: Mode::Stop,

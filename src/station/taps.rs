@@ -222,7 +222,7 @@ mod tests {
         let (reader, writer) =
             unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
         let log = LogFile::on("pipe".into(), std::fs::File::from(writer));
-        let mut rec = Recording::start(log, LogSchema { model: false }, LogFormat::Csv).unwrap();
+        let mut rec = Recording::start(log, LogSchema::new(false), LogFormat::Csv).unwrap();
         // The reader goes away: every write from now on fails (EPIPE).
         drop(reader);
         let mut said = Vec::new();

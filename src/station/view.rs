@@ -25,7 +25,7 @@ pub fn arm_state(r: &TickRecord, geometry: &Geometry) -> ArmState {
         flags: r.flags,
         cmd_seq: r.live.cmd_seq,
         heat: r.live.heat,
-        fext: r.live.fext,
+        fext: r.haptic.fext,
         teleop: r.live.teleop.map(str::to_string),
     }
 }

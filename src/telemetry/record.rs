@@ -123,6 +123,9 @@ pub struct TickRecord {
     pub(crate) tau_hat: [f64; 3],
     /// The plant's exact model on the estimated states (simulator only, else NaN).
     pub(crate) tau_model: [f64; 3],
+    /// The outside's torque on each joint estimated from the motors and the model, N·m
+    /// (τ̂_ext, docs/TELEOP.md §2; NaN when read from a log without it).
+    pub(crate) tau_ext: [f64; 3],
     /// Continuous encoder counts.
     pub(crate) enc: [i64; 3],
     pub(crate) amps: bool,
@@ -172,6 +175,7 @@ impl TickRecord {
             tau_cmd: [0.0; 3],
             tau_hat: [0.0; 3],
             tau_model: [0.0; 3],
+            tau_ext: [0.0; 3],
             enc: [0; 3],
             amps: true,
             mode,
@@ -194,6 +198,10 @@ pub(crate) struct HapticRecord {
     pub(crate) force: [f64; 3],
     /// Simulator: the force the simulated hand put on the tip, N (`fhand1..3`; NaN elsewhere).
     pub(crate) hand: [f64; 3],
+    /// The outside's force on the tip estimated from the motors and the model, N, OpenHaptics
+    /// frame (`fext1..3`, the state stream's `fext`; docs/TELEOP.md §2; NaN when read from a
+    /// log without it).
+    pub(crate) fext: [f64; 3],
 }
 
 /// Per-tick facts for `omnid serve`'s clients: fixed-size, so the record stays `Copy`.
@@ -216,9 +224,6 @@ pub(crate) struct Live {
     /// Motor heat per joint from the safety layer's thermal model (1 = the steady state at the
     /// continuous torque; `[safety] thermal_limit` holds the motor to it).
     pub(crate) heat: [f64; 3],
-    /// The outside's force on the tip estimated from the motors and the model, N
-    /// (docs/TELEOP.md §2).
-    pub(crate) fext: [f64; 3],
     /// This arm's side of a teleoperation pair, if it has one: its state's name
     /// (`teleop::TeleopState::as_str`; a name, so telemetry does not depend on teleop).
     pub(crate) teleop: Option<&'static str>,
@@ -232,26 +237,59 @@ pub(crate) struct Live {
 pub struct LogSchema {
     /// `tau_model1..3` and `fhand1..3` (simulator runs).
     pub(crate) model: bool,
+    /// `tau_ext1..3` and `fext1..3`, the external-force estimate (every log this omnid
+    /// writes; absent from logs written before it was logged).
+    pub(crate) external: bool,
+}
+
+/// A group of log columns (and its MCAP channels) that a log may carry or not.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Group {
+    /// In every log.
+    Always,
+    /// Simulator runs only ([`LogSchema::model`]).
+    Model,
+    /// The external-force estimate ([`LogSchema::external`]).
+    External,
 }
 
 /// The seven columns every log starts with, and every replayable file must have.
 pub const REQUIRED_COLUMNS: [&str; 7] = ["t", "q1", "q2", "q3", "tau1", "tau2", "tau3"];
 
 impl LogSchema {
+    /// What this omnid writes: with the simulator's columns when `model`.
+    pub(crate) fn new(model: bool) -> LogSchema {
+        LogSchema {
+            model,
+            external: true,
+        }
+    }
+
+    /// Whether logs of this schema carry `group`.
+    pub(crate) fn has(&self, group: Group) -> bool {
+        match group {
+            Group::Always => true,
+            Group::Model => self.model,
+            Group::External => self.external,
+        }
+    }
+
     pub(crate) fn columns(&self) -> Vec<String> {
         let mut c: Vec<String> = REQUIRED_COLUMNS.iter().map(|s| s.to_string()).collect();
+        let three = |c: &mut Vec<String>, group: &str, on: bool| {
+            if on {
+                c.extend((1..=3).map(|j| format!("{group}{j}")));
+            }
+        };
         for group in ["qf", "qd", "qdd", "ref", "tau_cmd", "tau_hat"] {
-            c.extend((1..=3).map(|j| format!("{group}{j}")));
+            three(&mut c, group, true);
         }
-        if self.model {
-            c.extend((1..=3).map(|j| format!("tau_model{j}")));
-        }
-        for group in ["tip", "fcmd"] {
-            c.extend((1..=3).map(|j| format!("{group}{j}")));
-        }
-        if self.model {
-            c.extend((1..=3).map(|j| format!("fhand{j}")));
-        }
+        three(&mut c, "tau_model", self.model);
+        three(&mut c, "tau_ext", self.external);
+        three(&mut c, "tip", true);
+        three(&mut c, "fcmd", true);
+        three(&mut c, "fhand", self.model);
+        three(&mut c, "fext", self.external);
         c.extend((1..=3).map(|j| format!("enc{j}")));
         c.extend(["amps", "mode", "flags"].map(String::from));
         c

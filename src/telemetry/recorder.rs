@@ -71,18 +71,16 @@ pub(crate) fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema)
         &r.tau_cmd,
         &r.tau_hat,
     ];
-    let model = if schema.model {
-        Some(&r.tau_model)
-    } else {
-        None
-    };
-    let hand = if schema.model {
-        Some(&r.haptic.hand)
-    } else {
-        None
-    };
-    let haptic = [&r.haptic.tip_mm, &r.haptic.force];
-    for group in groups.into_iter().chain(model).chain(haptic).chain(hand) {
+    // docs/DESIGN.md §2.2's order: each optional group beside its kind.
+    let rest = [
+        schema.model.then_some(&r.tau_model),
+        schema.external.then_some(&r.tau_ext),
+        Some(&r.haptic.tip_mm),
+        Some(&r.haptic.force),
+        schema.model.then_some(&r.haptic.hand),
+        schema.external.then_some(&r.haptic.fext),
+    ];
+    for group in groups.into_iter().chain(rest.into_iter().flatten()) {
         for v in group {
             line.push(b',');
             line.extend_from_slice(f.format(*v).as_bytes());
@@ -134,7 +132,7 @@ mod tests {
         let (tx, rx) = crossbeam_channel::bounded(16);
         let writer = spawn_writer_with(
             log,
-            LogSchema { model: false },
+            LogSchema::new(false),
             Box::new(SeqLines),
             rx,
             Default::default(),
@@ -150,7 +148,7 @@ mod tests {
         let text = std::fs::read_to_string(dir.path().join("run.seq")).unwrap();
         assert_eq!(text, "# seq mode\n0 hold\n1 hold\n2 stop\n# end\n");
         // CSV, the format every log has: its header is the schema's columns.
-        let mut csv = recorder(LogSchema { model: false }, LogFormat::Csv);
+        let mut csv = recorder(LogSchema::new(false), LogFormat::Csv);
         let mut out = Vec::new();
         csv.header(&mut out).unwrap();
         assert!(String::from_utf8(out)

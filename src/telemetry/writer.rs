@@ -710,7 +710,7 @@ mod tests {
         // The header already fails: a log on a full disk is refused before the run.
         let (_tx, rx) = crossbeam_channel::bounded(1);
         let log = LogFile::create(Path::new("/dev/full")).unwrap();
-        assert!(spawn_writer(log, LogSchema { model: false }, rx).is_err());
+        assert!(spawn_writer(log, LogSchema::new(false), rx).is_err());
     }
 
     #[test]
@@ -718,7 +718,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("sub/run.csv");
         let (tx, rx) = crossbeam_channel::bounded(4);
-        let schema = LogSchema { model: true };
+        let schema = LogSchema::new(true);
         let handle = spawn_writer(LogFile::create(&path).unwrap(), schema, rx).unwrap();
         let rec = TickRecord {
             q: [0.1, 0.2, 1.0 / 3.0],
@@ -730,7 +730,9 @@ mod tests {
                 tip_mm: [1.5, -2.0, 3.0],
                 force: [0.25, 0.0, -1.0],
                 hand: [0.0, 0.75, 0.0],
+                fext: [-0.5, 0.125, 2.0],
             },
+            tau_ext: [0.0, -0.03, 0.0],
             ..TickRecord::at(1, Mode::Track)
         };
         tx.send(rec).unwrap();
@@ -757,6 +759,15 @@ mod tests {
             (col("tip2"), col("fcmd3"), col("fhand2")),
             ("-2.0", "-1.0", "0.75")
         );
+        // The force estimate, beside the other tip forces and torques.
+        assert_eq!(
+            (col("fext1"), col("fext2"), col("fext3"), col("tau_ext2")),
+            ("-0.5", "0.125", "2.0", "-0.03")
+        );
+        let at = |name: &str| header.iter().position(|h| *h == name).unwrap();
+        assert_eq!(at("tau_ext1"), at("tau_model3") + 1);
+        assert_eq!(at("fext1"), at("fhand3") + 1);
+        assert_eq!(at("enc1"), at("fext3") + 1);
     }
 
     #[test]

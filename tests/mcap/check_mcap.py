@@ -45,9 +45,14 @@ ARRAYS = {
     "/omnid/torque/controller": "tau_cmd",
     "/omnid/torque/predicted": "tau_hat",
     "/omnid/torque/model": "tau_model",
+    "/omnid/torque/external": "tau_ext",
     "/omnid/tip/position_mm": "tip",
 }
-WRENCHES = {"/omnid/tip/force": "fcmd", "/omnid/hand/force": "fhand"}
+WRENCHES = {
+    "/omnid/tip/force": "fcmd",
+    "/omnid/hand/force": "fhand",
+    "/omnid/external/force": "fext",
+}
 
 
 def main(mcap_path, csv_path):

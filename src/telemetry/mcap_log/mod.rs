@@ -12,6 +12,7 @@ pub mod read;
 pub mod write;
 
 use crate::ros2::msgs::{self, MsgType};
+use crate::telemetry::record::Group;
 
 /// A channel of an omnid MCAP log.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -20,8 +21,8 @@ pub(crate) struct Topic {
     pub(crate) id: usize,
     pub(crate) name: &'static str,
     pub(crate) ty: MsgType,
-    /// Only in logs of the simulator's schema (`tau_model`, `fhand`).
-    pub(crate) model_only: bool,
+    /// The column group it carries: only in logs whose schema has it.
+    pub(crate) group: Group,
 }
 
 const fn topic(id: usize, name: &'static str, ty: MsgType) -> Topic {
@@ -29,7 +30,7 @@ const fn topic(id: usize, name: &'static str, ty: MsgType) -> Topic {
         id,
         name,
         ty,
-        model_only: false,
+        group: Group::Always,
     }
 }
 
@@ -46,29 +47,37 @@ pub(crate) const TORQUE_CONTROLLER: Topic =
 pub(crate) const TORQUE_PREDICTED: Topic =
     topic(6, "/omnid/torque/predicted", msgs::FLOAT64_MULTI_ARRAY);
 pub(crate) const TORQUE_MODEL: Topic = Topic {
-    model_only: true,
+    group: Group::Model,
     ..topic(7, "/omnid/torque/model", msgs::FLOAT64_MULTI_ARRAY)
 };
-pub(crate) const TIP_MM: Topic = topic(8, "/omnid/tip/position_mm", msgs::FLOAT64_MULTI_ARRAY);
-pub(crate) const TIP_POSE: Topic = topic(9, "/omnid/tip/pose", msgs::POSE_STAMPED);
-pub(crate) const TIP_FORCE: Topic = topic(10, "/omnid/tip/force", msgs::WRENCH_STAMPED);
-pub(crate) const HAND_FORCE: Topic = Topic {
-    model_only: true,
-    ..topic(11, "/omnid/hand/force", msgs::WRENCH_STAMPED)
+pub(crate) const TORQUE_EXTERNAL: Topic = Topic {
+    group: Group::External,
+    ..topic(8, "/omnid/torque/external", msgs::FLOAT64_MULTI_ARRAY)
 };
-pub(crate) const ENCODERS: Topic = topic(12, "/omnid/encoders", msgs::INT64_MULTI_ARRAY);
-pub(crate) const FLAGS: Topic = topic(13, "/omnid/safety/flags", msgs::UINT32);
-pub(crate) const MODE: Topic = topic(14, "/omnid/mode", msgs::STRING);
-pub(crate) const AMPLIFIERS: Topic = topic(15, "/omnid/amplifiers", msgs::BOOL);
-pub(crate) const BUTTONS: Topic = topic(16, "/omnid/buttons", msgs::JOY);
-pub(crate) const CONTROLLER: Topic = topic(17, "/omnid/controller", msgs::STRING);
-pub(crate) const EVENTS: Topic = topic(18, "/omnid/events", msgs::STRING);
-pub(crate) const HEAT: Topic = topic(19, "/omnid/motor/heat", msgs::FLOAT64_MULTI_ARRAY);
-pub(crate) const TF: Topic = topic(20, "/tf", msgs::TF_MESSAGE);
-pub(crate) const JOINT_STATES: Topic = topic(21, "/joint_states", msgs::JOINT_STATE);
+pub(crate) const TIP_MM: Topic = topic(9, "/omnid/tip/position_mm", msgs::FLOAT64_MULTI_ARRAY);
+pub(crate) const TIP_POSE: Topic = topic(10, "/omnid/tip/pose", msgs::POSE_STAMPED);
+pub(crate) const TIP_FORCE: Topic = topic(11, "/omnid/tip/force", msgs::WRENCH_STAMPED);
+pub(crate) const HAND_FORCE: Topic = Topic {
+    group: Group::Model,
+    ..topic(12, "/omnid/hand/force", msgs::WRENCH_STAMPED)
+};
+pub(crate) const EXTERNAL_FORCE: Topic = Topic {
+    group: Group::External,
+    ..topic(13, "/omnid/external/force", msgs::WRENCH_STAMPED)
+};
+pub(crate) const ENCODERS: Topic = topic(14, "/omnid/encoders", msgs::INT64_MULTI_ARRAY);
+pub(crate) const FLAGS: Topic = topic(15, "/omnid/safety/flags", msgs::UINT32);
+pub(crate) const MODE: Topic = topic(16, "/omnid/mode", msgs::STRING);
+pub(crate) const AMPLIFIERS: Topic = topic(17, "/omnid/amplifiers", msgs::BOOL);
+pub(crate) const BUTTONS: Topic = topic(18, "/omnid/buttons", msgs::JOY);
+pub(crate) const CONTROLLER: Topic = topic(19, "/omnid/controller", msgs::STRING);
+pub(crate) const EVENTS: Topic = topic(20, "/omnid/events", msgs::STRING);
+pub(crate) const HEAT: Topic = topic(21, "/omnid/motor/heat", msgs::FLOAT64_MULTI_ARRAY);
+pub(crate) const TF: Topic = topic(22, "/tf", msgs::TF_MESSAGE);
+pub(crate) const JOINT_STATES: Topic = topic(23, "/joint_states", msgs::JOINT_STATE);
 
 /// Every channel, in the order a tick writes them (`/joint_states` last).
-pub(crate) const TOPICS: [Topic; 22] = [
+pub(crate) const TOPICS: [Topic; 24] = [
     ROBOT_DESCRIPTION,
     TIME,
     ESTIMATE_POSITION,
@@ -77,10 +86,12 @@ pub(crate) const TOPICS: [Topic; 22] = [
     TORQUE_CONTROLLER,
     TORQUE_PREDICTED,
     TORQUE_MODEL,
+    TORQUE_EXTERNAL,
     TIP_MM,
     TIP_POSE,
     TIP_FORCE,
     HAND_FORCE,
+    EXTERNAL_FORCE,
     ENCODERS,
     FLAGS,
     MODE,

@@ -88,6 +88,7 @@ fn blank() -> TickRecord {
         tau_cmd: [f64::NAN; 3],
         tau_hat: [f64::NAN; 3],
         tau_model: [f64::NAN; 3],
+        tau_ext: [f64::NAN; 3],
         enc: [0; 3],
         amps: false,
         mode: Mode::Stop,
@@ -96,6 +97,7 @@ fn blank() -> TickRecord {
             tip_mm: [f64::NAN; 3],
             force: [f64::NAN; 3],
             hand: [f64::NAN; 3],
+            fext: [f64::NAN; 3],
         },
         live: Default::default(),
     }
@@ -220,6 +222,8 @@ impl State {
     fn schema(&self) -> LogSchema {
         LogSchema {
             model: self.channels.present[super::TORQUE_MODEL.id],
+            // Absent from logs written before the estimate was logged: those read as before.
+            external: self.channels.present[super::TORQUE_EXTERNAL.id],
         }
     }
 
@@ -335,6 +339,7 @@ impl State {
             t if t == super::TORQUE_CONTROLLER => r.tau_cmd = arr(data)?,
             t if t == super::TORQUE_PREDICTED => r.tau_hat = arr(data)?,
             t if t == super::TORQUE_MODEL => r.tau_model = arr(data)?,
+            t if t == super::TORQUE_EXTERNAL => r.tau_ext = arr(data)?,
             t if t == super::TIP_MM => r.haptic.tip_mm = arr(data)?,
             t if t == super::HEAT => r.live.heat = arr(data)?,
             t if t == super::TIP_POSE => {
@@ -345,6 +350,9 @@ impl State {
             }
             t if t == super::HAND_FORCE => {
                 r.haptic.hand = msgs::read_wrench_stamped(data).map_err(cdr)?.1
+            }
+            t if t == super::EXTERNAL_FORCE => {
+                r.haptic.fext = msgs::read_wrench_stamped(data).map_err(cdr)?.1
             }
             t if t == super::ENCODERS => r.enc = msgs::read_i64_array_n::<3>(data).map_err(cdr)?,
             t if t == super::FLAGS => {
@@ -386,13 +394,15 @@ impl State {
             super::TORQUE_CONTROLLER,
             super::TORQUE_PREDICTED,
             super::TORQUE_MODEL,
+            super::TORQUE_EXTERNAL,
             super::TIP_MM,
             super::TIP_FORCE,
             super::HAND_FORCE,
+            super::EXTERNAL_FORCE,
             super::ENCODERS,
         ];
         for t in per_tick {
-            if (!t.model_only || schema.model) && self.seen & (1 << t.id) == 0 {
+            if schema.has(t.group) && self.seen & (1 << t.id) == 0 {
                 return Err(format!(
                     "the tick at t = {} has no {} message",
                     self.row.t, t.name

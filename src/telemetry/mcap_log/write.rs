@@ -98,7 +98,7 @@ impl TickEncoder {
 
     /// Whether logs of this schema have `topic`.
     pub(crate) fn writes(&self, topic: &Topic) -> bool {
-        !topic.model_only || self.schema.model
+        self.schema.has(topic.group)
     }
 
     /// The tick's messages, each handed to `put` with its topic and log time (ns since the
@@ -136,9 +136,10 @@ impl TickEncoder {
             (super::TORQUE_CONTROLLER, &r.tau_cmd),
             (super::TORQUE_PREDICTED, &r.tau_hat),
             (super::TORQUE_MODEL, &r.tau_model),
+            (super::TORQUE_EXTERNAL, &r.tau_ext),
         ];
         for (topic, v) in arrays {
-            if !topic.model_only || self.schema.model {
+            if self.schema.has(topic.group) {
                 m.clear();
                 msgs::write_f64_array(m, "joint", v);
                 put(topic, time, m)?;
@@ -154,10 +155,16 @@ impl TickEncoder {
         m.clear();
         msgs::write_wrench_stamped(m, &based, r.haptic.force, [0.0; 3]);
         put(super::TIP_FORCE, time, m)?;
-        if self.schema.model {
-            m.clear();
-            msgs::write_wrench_stamped(m, &based, r.haptic.hand, [0.0; 3]);
-            put(super::HAND_FORCE, time, m)?;
+        let wrenches = [
+            (super::HAND_FORCE, r.haptic.hand),
+            (super::EXTERNAL_FORCE, r.haptic.fext),
+        ];
+        for (topic, force) in wrenches {
+            if self.schema.has(topic.group) {
+                m.clear();
+                msgs::write_wrench_stamped(m, &based, force, [0.0; 3]);
+                put(topic, time, m)?;
+            }
         }
         m.clear();
         msgs::write_i64_array(m, "joint", &r.enc);
