@@ -153,3 +153,25 @@ fn with_passivity_control_both_architectures_stay_stable_pressing_at_500_ms_and_
         }
     }
 }
+
+#[test]
+fn position_force_pressing_2_n_into_a_2_n_per_mm_floor_in_process_is_not_oscillating() {
+    // The stiffest press of the experiment, in one process, passivity control on: the leader
+    // displays the follower's estimate of a 2 N/mm floor, which lags the contact (the
+    // estimate's 15 Hz bandwidth and a tick each way), so the loop through the hand makes
+    // energy the leader's port must take back. With the controller's damping capped at
+    // 10 N·s/m whatever the round trip, it could not, and the leader's force oscillated at
+    // about 0.4 N RMS (docs/TELEOP.md §5).
+    let base = TeleopConfig::default();
+    let stiff = Scene::Press {
+        force_n: 2.0,
+        wall_n_per_mm: 2.0,
+    };
+    let (r, tr) = run_pair(&base, Architecture::Pf, true, &stiff, &channel(0.0), false).unwrap();
+    assert!(r.stable, "{:?}", r.why);
+    // The hand really pressed: the floor pushes back with about 2 N over the last second.
+    let n = tr.t.len();
+    let floor: f64 = tr.environment[n - 1000..].iter().map(|f| f[1]).sum::<f64>() / 1000.0;
+    assert!((floor - 2.0).abs() < 0.3, "the floor pushed {floor} N");
+    assert!(r.force_rms_n <= 0.15, "force RMS {} N", r.force_rms_n);
+}

@@ -114,6 +114,10 @@ pub struct Coupling {
     rtt_s: f64,
 }
 
+/// pf: beyond this round trip the passivity damping cap falls inversely with it, s
+/// ([`Coupling::damping_cap`]).
+pub const PF_LONG_RTT_S: f64 = 0.5;
+
 /// The measured round trip comes down over this time constant, s (it goes up at once).
 const RTT_FALL_S: f64 = 1.0;
 
@@ -191,6 +195,26 @@ impl Coupling {
             tau / self.rtt_s
         } else {
             1.0
+        }
+    }
+
+    /// The passivity controller's damping cap now, N·s/m (0: no cap): `[teleop]
+    /// passivity_max_damping_n_s_per_m`, and in position–force that times 1 + tick / round
+    /// trip (the round trip taken as at least a tick) and, beyond a round trip of
+    /// [`PF_LONG_RTT_S`], times that over the round trip: twice the cap in one process, the
+    /// cap itself from some 10 ms to 500 ms, half of it at 1 s (docs/TELEOP.md §5). In pf the
+    /// leader displays the floor through the estimate's lag, which at a stiff floor makes
+    /// energy faster than 10 N·s/m takes back (a 2 N press into 2 N/mm oscillated); at a long
+    /// round trip the leader's port has no budget for what arrives and its damper, switching
+    /// with the velocity's sign, is itself felt (the let-go at 1 s). In pp the higher cap is
+    /// itself felt in a stiff press, and the configured one is quiet everywhere.
+    pub fn damping_cap(&self) -> f64 {
+        let cap = self.cfg.passivity_max_damping_n_s_per_m;
+        if cap > 0.0 && self.cfg.architecture == Architecture::Pf {
+            let rtt = self.rtt_s.max(self.dt);
+            cap * (1.0 + self.dt / rtt) * (PF_LONG_RTT_S / rtt).min(1.0)
+        } else {
+            cap
         }
     }
 
@@ -430,6 +454,8 @@ impl Coupling {
 
     /// The force through this side's passivity port.
     fn passive(&mut self, f: V3, x: &SideInput, remote_in: f64) -> V3 {
+        let cap = self.damping_cap();
+        self.port.set_max_damping(cap);
         self.port.pass(f, &(x.vel_mm_s * 1e-3), self.dt, remote_in)
     }
 
@@ -757,6 +783,37 @@ mod tests {
         let k = cfg.stiffness_n_per_mm * p.1.delay_gain();
         assert!((ff[0] - k).abs() < 1e-9, "{ff:?} vs {k}");
         assert!(k < 0.1 * cfg.stiffness_n_per_mm);
+    }
+
+    #[test]
+    fn the_pf_damping_cap_is_raised_in_process_and_halved_at_a_one_second_round_trip() {
+        let cap = TeleopConfig::default().passivity_max_damping_n_s_per_m;
+        for (arch, rt_ms, lo, hi) in [
+            // In process a side measures a round trip of a tick or two: 1.5 to 2 times the cap.
+            (Architecture::Pf, 0.0, 1.5 * cap - 1e-9, 2.0 * cap + 1e-9),
+            (Architecture::Pf, 200.0, cap, 1.01 * cap),
+            (Architecture::Pf, 1000.0, 0.49 * cap, 0.51 * cap),
+            // pp keeps the configured cap at every round trip.
+            (Architecture::Pp, 0.0, cap, cap),
+            (Architecture::Pp, 1000.0, cap, cap),
+        ] {
+            let cfg = TeleopConfig {
+                architecture: arch,
+                ..always()
+            };
+            let imp = Impairment {
+                delay_ms: rt_ms / 2.0,
+                ..Impairment::default()
+            };
+            let (l, f) = pair(imp, imp, 9);
+            let mut p = (
+                Coupling::new(Role::Leader, &cfg, l, DT),
+                Coupling::new(Role::Follower, &cfg, f, DT),
+            );
+            run(&mut p, 0, 4000, input(0.0, [0.0; 3]), input(0.0, [0.0; 3]));
+            let c = p.0.damping_cap();
+            assert!((lo..=hi).contains(&c), "{arch:?} at {rt_ms} ms: cap {c}");
+        }
     }
 
     #[test]

@@ -47,6 +47,20 @@ impl Port {
         }
     }
 
+    /// Change the largest damping the controller adds from the next tick, N·s/m (0: no cap
+    /// but the force's own). The coupling sets it every tick from the measured round trip
+    /// (docs/TELEOP.md §5).
+    pub fn set_max_damping(&mut self, max_damping: f64) {
+        if max_damping.is_finite() && max_damping >= 0.0 {
+            self.max_damping = max_damping;
+        }
+    }
+
+    /// The largest damping the controller adds now, N·s/m (0: no cap).
+    pub fn max_damping(&self) -> f64 {
+        self.max_damping
+    }
+
     /// The force to apply this tick: `force` (N) from the coupling, on an arm moving at `v`
     /// (m/s) for `dt` s, allowed at most what the far side has put in (`remote_in`, J); the
     /// energies are observed either way.
