@@ -223,7 +223,8 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
     for w in &mut watch {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     }
-    let console = console_cmd(&d, &leader, &follower, "5")
+    let console = d
+        .teleop_console(&leader, &follower, "5")
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -307,25 +308,6 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
     }
 }
 
-/// `omnid ctl teleop start` on this daemon's arms, for `seconds`.
-fn console_cmd(d: &Served, leader: &str, follower: &str, seconds: &str) -> std::process::Command {
-    let mut c = common::omnid();
-    c.env("XDG_RUNTIME_DIR", d.dir.path())
-        .env_remove("RUNTIME_DIRECTORY")
-        .env_remove("OMNID_SOCKET")
-        .args([
-            "ctl",
-            "teleop",
-            "start",
-            "--leader",
-            leader,
-            "--follower",
-            follower,
-        ])
-        .args(["--seconds", seconds]);
-    c
-}
-
 /// A trip on the follower ends the pair: the console says which arm left teleop and exits
 /// non-zero, the follower is idle (the trip's), the leader holds.
 #[test]
@@ -341,7 +323,7 @@ fn a_trip_on_the_follower_ends_the_console_and_leaves_the_leader_holding() {
     watch
         .request(json!({"op": "stream", "rate_hz": 100}))
         .unwrap();
-    let out = console_cmd(&d, &leader, &follower, "20").output().unwrap();
+    let out = d.teleop_console(&leader, &follower, "20").output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(3), "{err}");
     assert!(
@@ -372,7 +354,8 @@ fn a_console_killed_outright_leaves_both_arms_uncoupled_and_holding() {
     for w in &mut watch {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     }
-    let mut console = console_cmd(&d, &leader, &follower, "60")
+    let mut console = d
+        .teleop_console(&leader, &follower, "60")
         .arg("--json")
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())

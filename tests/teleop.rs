@@ -3,6 +3,8 @@
 //! a cut link, and passivity control under delay. Each run is the experiment's own runner
 //! (`omnid experiment teleop`), unpaced and seeded.
 
+mod common;
+
 use omnid::experiment::teleop::{run_pair, Channel, PairSim, Scene, CHANNELS};
 use omnid::teleop::{Architecture, TeleopConfig};
 
@@ -85,23 +87,9 @@ fn a_cut_link_fades_the_leaders_force_within_50_ms_without_a_step_and_leaves_it_
     let f0 = nalgebra::Vector3::from(pressed.leader.haptic_force());
     assert!(f0.norm() > 0.5, "no force to fade: {f0:?}");
     // The follower goes silent: only the leader ticks.
-    let mut prev = f0;
-    let mut zero_at = None;
-    for k in 1..=100 {
-        let r = sim.tick_leader().unwrap();
-        let f = nalgebra::Vector3::from(r.haptic_force());
-        // No step: at most the fade's slope (the force over fade_ms) per tick, plus the
-        // change the force had anyway while the link was still thought up.
-        assert!(
-            (f - prev).norm() <= f0.norm() * 1e-3 / (base.fade_ms * 1e-3) + 0.05,
-            "a step of {} N at tick {k}",
-            (f - prev).norm()
-        );
-        prev = f;
-        if f.norm() == 0.0 && zero_at.is_none() {
-            zero_at = Some(k);
-        }
-    }
+    let zero_at = common::ticks_to_fade(f0.into(), base.fade_ms, 100, || {
+        sim.tick_leader().unwrap().haptic_force()
+    });
     let ms = zero_at.expect("the leader's force reached zero");
     assert!(ms <= 50, "zero after {ms} ms");
     // The leader stays coupled in teleop (its compensation on, its force zero): free, not

@@ -471,21 +471,9 @@ mod teleop_over_zenoh {
         let held = nalgebra::Vector3::from(pressed.follower.tip_mm());
         // The follower's daemon's session closes: nothing crosses any more.
         sim.cut_network();
-        let mut prev = f0;
-        let mut zero_at = None;
-        for k in 1..=200 {
-            let t = sim.tick().unwrap();
-            let f = nalgebra::Vector3::from(t.leader.haptic_force());
-            assert!(
-                (f - prev).norm() <= f0.norm() * 1e-3 / (base.fade_ms * 1e-3) + 0.05,
-                "a step of {} N at tick {k}",
-                (f - prev).norm()
-            );
-            prev = f;
-            if f.norm() == 0.0 && zero_at.is_none() {
-                zero_at = Some(k);
-            }
-        }
+        let zero_at = crate::common::ticks_to_fade(f0.into(), base.fade_ms, 200, || {
+            sim.tick().unwrap().leader.haptic_force()
+        });
         let ms = zero_at.expect("the leader's force reached zero");
         assert!(ms <= 50, "zero {ms} ms after the cut");
         assert_eq!(sim.leader.teleop().unwrap().state().as_str(), "link_lost");
@@ -497,23 +485,8 @@ mod teleop_over_zenoh {
     }
 }
 
-/// `omnid ctl teleop start` with the runtime directory of daemon `d` (as on its PC).
-fn console_on(d: &Served, leader: &str, follower: &str, seconds: &str) -> std::process::Child {
-    common::omnid()
-        .env("XDG_RUNTIME_DIR", d.dir.path())
-        .env_remove("RUNTIME_DIRECTORY")
-        .env_remove("OMNID_SOCKET")
-        .args([
-            "ctl",
-            "teleop",
-            "start",
-            "--leader",
-            leader,
-            "--follower",
-            follower,
-        ])
-        .args(["--seconds", seconds])
-        .stdout(std::process::Stdio::piped())
+fn spawn_piped(mut c: Command) -> std::process::Child {
+    c.stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap()
@@ -554,8 +527,8 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
     for w in [&mut wl, &mut wf] {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     }
-    let ca = console_on(&a, &leader, &follower, "60");
-    let cb = console_on(&b, &leader, &follower, "60");
+    let ca = spawn_piped(a.teleop_console(&leader, &follower, "60"));
+    let cb = spawn_piped(b.teleop_console(&leader, &follower, "60"));
     // Both engaged; the tips sampled together every 10 ms, each the newest its stream has
     // (the daemons' clocks differ: pair by arrival).
     fn newest(c: &mut omnid::serve::client::Client) -> omnid::serve::protocol::State {

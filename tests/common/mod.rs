@@ -134,6 +134,18 @@ impl Served {
             .unwrap()
     }
 
+    /// `omnid ctl teleop start --leader L --follower F --seconds S` with this daemon's runtime
+    /// directory (as on its PC: it finds this daemon's arms).
+    pub fn teleop_console(&self, leader: &str, follower: &str, seconds: &str) -> Command {
+        let mut c = omnid();
+        c.env("XDG_RUNTIME_DIR", self.dir.path())
+            .env_remove("RUNTIME_DIRECTORY")
+            .env_remove("OMNID_SOCKET")
+            .args(["ctl", "teleop", "start", "--leader", leader])
+            .args(["--follower", follower, "--seconds", seconds]);
+        c
+    }
+
     pub fn pid(&self) -> i32 {
         self.child.as_ref().unwrap().id() as i32
     }
@@ -219,4 +231,32 @@ pub fn venv(name: &str, packages: &[&str], probe: &str) -> Option<std::path::Pat
         return None;
     }
     panic!("pip install {packages:?} failed:\n{err}");
+}
+
+/// A pair's link has just been cut: tick `ticks` times (`next` ticks and gives the leader's
+/// force, N) from its force `f0` when the link went. The tick at which the force first reached
+/// zero; on the way, no step larger than the fade's slope (the force over `fade_ms`) per tick,
+/// plus the change the force had anyway while the link was still thought up.
+pub fn ticks_to_fade(
+    f0: [f64; 3],
+    fade_ms: f64,
+    ticks: usize,
+    mut next: impl FnMut() -> [f64; 3],
+) -> Option<usize> {
+    let f0 = nalgebra::Vector3::from(f0);
+    let mut prev = f0;
+    let mut zero_at = None;
+    for k in 1..=ticks {
+        let f = nalgebra::Vector3::from(next());
+        assert!(
+            (f - prev).norm() <= f0.norm() * 1e-3 / (fade_ms * 1e-3) + 0.05,
+            "a step of {} N at tick {k}",
+            (f - prev).norm()
+        );
+        prev = f;
+        if f.norm() == 0.0 && zero_at.is_none() {
+            zero_at = Some(k);
+        }
+    }
+    zero_at
 }
