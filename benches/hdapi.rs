@@ -9,7 +9,7 @@
 //! writes `target/hdapi-bench.json`. Timing on a shared machine is noisy: this prints, it
 //! never fails on numbers.
 
-#[path = "../tests/hd/mod.rs"]
+#[path = "../tests/suite/hd.rs"]
 mod hd;
 
 use hd::{Daemon, HD};

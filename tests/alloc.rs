@@ -1,9 +1,11 @@
 //! The servo loop allocates nothing per tick: a counting global allocator watches the servo
 //! thread (only) over thousands of ticks after warm-up.
 
+use nalgebra::Vector3;
 use omnid::config::Config;
 use omnid::control::{ControllerKind, ControllerSet, Reference, Trajectory};
 use omnid::device::sim::SimOmni;
+use omnid::identifier::{Identifier, IdentifierConfig};
 use omnid::servo::{EndReason, Servo};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -626,5 +628,56 @@ fn a_coupled_teleoperation_pair_allocates_nothing_per_tick() {
             }
         });
         assert_eq!(n, 0, "{arch:?}: {n} allocations over 3000 coupled ticks");
+    }
+}
+
+// The identifier's per-tick path (update, predict, the model accessors) on its own.
+
+fn tick_inputs(k: usize) -> [Vector3<f64>; 4] {
+    let t = k as f64 * 1e-3;
+    let q = Vector3::new(
+        0.4 * t.sin(),
+        0.65 + 0.3 * (1.3 * t).sin(),
+        0.3 + 0.3 * t.cos(),
+    );
+    let qd = Vector3::new(0.4 * t.cos(), 0.39 * (1.3 * t).cos(), -0.3 * t.sin());
+    let qdd = Vector3::new(-0.4 * t.sin(), -0.5 * (1.3 * t).sin(), -0.3 * t.cos());
+    let tau = Vector3::new(0.01 * t.sin(), 0.03, -0.05 * q[2].sin());
+    [q, qd, qdd, tau]
+}
+
+#[test]
+fn update_and_accessors_do_not_allocate() {
+    for cfg in [
+        IdentifierConfig::default(),
+        IdentifierConfig {
+            friction_net: false,
+            hidden: 5,
+            // Tight eigenvalue bounds: the eigen-decomposition path runs every tick.
+            eig_min: 3e-3,
+            eig_max: 3.1e-3,
+            ..IdentifierConfig::default()
+        },
+    ] {
+        let mut id = Identifier::new(&cfg).unwrap();
+        let mut sink = 0.0;
+        let n = count_allocations(|| {
+            for k in 0..2000 {
+                let [q, qd, qdd, tau] = tick_inputs(k);
+                let tau_hat = id.update(&q, &qd, &qdd, &tau, 1e-3);
+                let v = id.inverse_dynamics(&q, &qd, &qdd);
+                sink += tau_hat.sum() + v.sum() + id.last_errors().modified_norm;
+                sink += id.mass(&q).sum() + id.coriolis(&q, &qd).sum();
+                sink += id.gravity(&q).sum() + id.friction(&qd).sum();
+                sink += id.weights_norm()[0] + id.weight_change_norm();
+            }
+        });
+        assert!(sink.is_finite());
+        assert!(id.healthy());
+        assert_eq!(
+            n, 0,
+            "{n} allocations in 2000 ticks (hidden {})",
+            cfg.hidden
+        );
     }
 }

@@ -597,7 +597,7 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
          identifier starts from the same weights (the shipped pre-tuned ones) and adapts on \
          every sample with the log's {:.0} ms, `unit_gain_filter = true` (α sets only the \
          filter's bandwidth) and σ = 0 (no leakage toward the start weights), as in \
-         `tests/identifier_paper.rs`.{}\n\n\
+         `tests/suite/identifier_paper.rs`.{}\n\n\
          Time to threshold: the first time (after the first {ALPHA_WINDOW_S} s) the running RMS \
          of ‖e1‖ (exponential window, {ALPHA_WINDOW_S} s) drops below {} mN·m; `> {span:.3}` \
          means never within the log.\n",

@@ -1,4 +1,4 @@
-"""An independent ROS 2-over-zenoh peer for tests/zenoh.rs: PyPI's eclipse-zenoh, rosbags and
+"""An independent ROS 2-over-zenoh peer for tests/suite/zenoh_peers.rs: PyPI's eclipse-zenoh, rosbags and
 xxhash, nothing of omnid's but its stdlib socket client (to compare with the socket's stream).
 
     check_ros.py MODE ENDPOINT ARM SOCKET CLIENT_DIR

@@ -1,5 +1,5 @@
 """pyOpenHaptics (from PyPI, unmodified) on omnid's libHD: read the stylus, then render a
-spring that pulls the tip 20 mm along +x, until it gets there (tests/hdapi.rs runs this with
+spring that pulls the tip 20 mm along +x, until it gets there (tests/suite/hdapi.rs runs this with
 the library on LD_LIBRARY_PATH against `omnid serve --device sim`)."""
 
 import sys

@@ -1,6 +1,6 @@
 /* ABI of our headers (docs/HDAPI.md, Types and ABI): type sizes and HDErrorInfo's layout are
  * checked at compile time; every constant is printed as "NAME VALUE" for the table test in
- * tests/hdapi.rs. Also compiled as C++ (the HDU helpers). */
+ * tests/suite/hdapi.rs. Also compiled as C++ (the HDU helpers). */
 #include <HD/hd.h>
 #include <HDU/hduError.h>
 #include <stddef.h>

@@ -1,4 +1,4 @@
-/* Helpers shared by the call-order replays (tests/hdapi.rs runs them against omnid serve). */
+/* Helpers shared by the call-order replays (tests/suite/hdapi.rs runs them against omnid serve). */
 #ifndef HDTEST_H
 #define HDTEST_H
 

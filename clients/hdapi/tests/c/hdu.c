@@ -1,7 +1,7 @@
 /* libHDU from C as the SDK's HD console examples use it (docs/HDAPI.md, libHDU): vectors as
  * HDdouble[3] through the hduVec* functions, the error helpers on a real error (no daemon),
  * hduMath. Built with exactly the examples' "-lHDU -lHD -lrt -lncurses"; every result is
- * printed as "key values..." and checked against Rust's own computation in tests/hdapi.rs. */
+ * printed as "key values..." and checked against Rust's own computation in tests/suite/hdapi.rs. */
 #include <HDU/hdu.h>
 #include <stdio.h>
 

@@ -1,7 +1,7 @@
 //! Real-hardware paths on a machine without the device: a clear message, fast, no panic.
 //! (With a device attached these tests would see it; they only assert on the absent case.)
 
-mod common;
+use crate::common;
 use common::omnid;
 use std::time::{Duration, Instant};
 

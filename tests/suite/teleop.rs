@@ -3,7 +3,7 @@
 //! a cut link, and passivity control under delay. Each run is the experiment's own runner
 //! (`omnid experiment teleop`), unpaced and seeded.
 
-mod common;
+use crate::common;
 
 use omnid::experiment::teleop::{run_pair, Channel, PairSim, Scene, CHANNELS};
 use omnid::teleop::{Architecture, TeleopConfig};

@@ -1,6 +1,6 @@
 //! Bad configuration files: one line naming the field and the allowed range, exit 2, no panic.
 
-mod common;
+use crate::common;
 use common::{omnid, run_ok};
 
 /// Run 0.1 s with this config: (exit code, stderr, whether a log was written).

@@ -2,7 +2,7 @@
 //! configuration that cannot follow the arm is refused before any torque is sent, and the
 //! speed limit also watches the encoders.
 
-mod common;
+use crate::common;
 use common::omnid;
 
 #[test]

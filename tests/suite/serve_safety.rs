@@ -2,7 +2,7 @@
 //! client that made it, whichever way it leaves; `mode idle` cannot be refused or crowded out;
 //! a trip latches; a holder that stops reading loses its lease; fault dumps are bounded.
 
-mod common;
+use crate::common;
 
 use common::Served;
 use omnid::serve::client::{Client, ClientError, Message};

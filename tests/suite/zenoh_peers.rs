@@ -2,7 +2,7 @@
 //! of the test's own, and PyPI's eclipse-zenoh, rosbags and xxhash (tests/zenoh/check_ros.py,
 //! in a virtual environment; skipped, loudly, only when PyPI is out of reach).
 
-mod common;
+use crate::common;
 use common::Served;
 use omnid::ros2::rmw_zenoh::{self as rmw, parse_token, read_attachment};
 use serde_json::json;

@@ -2,7 +2,7 @@
 //! command, the lease, stale and abandoned streams, a bumpless controller switch mid-motion,
 //! bad messages, a refused peer, a second daemon, and SIGTERM.
 
-mod common;
+use crate::common;
 
 use common::omnid;
 use omnid::serve::client::{Client, ClientError, Message};

@@ -2,7 +2,7 @@
 //! device time restarts the estimator instead of tripping on its extrapolation (and a trip
 //! just after a gap names it); faults scheduled past the end of a run are reported.
 
-mod common;
+use crate::common;
 use common::omnid;
 
 /// Joint 1 moving at `speed` rad/s for 0.1 s, a `gap` with no data, then `after(t)` for 0.5 s.

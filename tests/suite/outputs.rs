@@ -2,7 +2,7 @@
 //! never destroys what is not ours (class 3), and every output path is checked before the
 //! work starts (class 8).
 
-mod common;
+use crate::common;
 use common::{omnid, Log};
 use std::os::unix::fs::{FileTypeExt, MetadataExt};
 use std::os::unix::process::CommandExt;

@@ -2,7 +2,7 @@
 //! stored state — is taken exactly as written or refused naming where, never cut, ignored or
 //! guessed at; and however long a line or a file goes on, reading it takes bounded memory.
 
-mod common;
+use crate::common;
 use common::{omnid, Log};
 use std::io::Write;
 use std::path::Path;

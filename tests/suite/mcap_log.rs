@@ -2,7 +2,7 @@
 //! `mcap-ros2-support` (tests/mcap/check_mcap.py, in a virtual environment; skipped, loudly,
 //! only when PyPI is out of reach), plus omnid's own readers on damaged, cut and foreign files.
 
-mod common;
+use crate::common;
 use common::{omnid, run_ok, Log};
 use omnid::telemetry::mcap_log::read::McapTicks;
 use omnid::telemetry::reader::LogReader;

@@ -1,7 +1,7 @@
 //! The real Geomagic Touch recording (shipped in `data/`, ROS joint convention): converted with
 //! `omnid convert --from ros-touch`, checked against the recorded tip, and replayed end to end.
 
-mod common;
+use crate::common;
 use common::{run_ok, Log};
 use omnid::omni::{tip_position_mm, Geometry, Joint3};
 use omnid::telemetry::reader::LogReader;

@@ -3,8 +3,8 @@
 //! spring (clients/hdapi/tests/pyopenhaptics_spring.py). Skipped, loudly, only when the
 //! package registry cannot be reached.
 
-mod common;
-pub mod hd;
+use crate::common;
+use crate::hd;
 
 use hd::{wait_output, Daemon, HD};
 use omnid::omni::kinematics::{tip_position_mm, Geometry};

@@ -5,7 +5,7 @@
 //! the usual safe ending (the log's last row is the `stop` packet). A FIFO given as a replay,
 //! which cannot be read twice, is refused at once.
 
-mod common;
+use crate::common;
 use common::{omnid, Log};
 use std::io::Write;
 use std::path::{Path, PathBuf};

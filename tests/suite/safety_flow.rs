@@ -4,7 +4,7 @@
 //! then `omnid ctl mode track` under each controller, and the README's Python examples. None
 //! may trip the safety layer, and tracking must reach what `omnid run` gets.
 
-mod common;
+use crate::common;
 
 use common::{omnid, Served};
 use std::time::Duration;

@@ -3,7 +3,7 @@
 //! 500-tick dump beside it, the fault in the summary — and the device itself sees zero torque
 //! with the amplifiers off within one exchange of detection.
 
-mod common;
+use crate::common;
 use common::{omnid, Log};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, ControllerSet, Reference, Trajectory};

@@ -14,7 +14,7 @@
 //! background one with 0 (or 130, stopped here), and a background command that reports a
 //! safety trip (the daemon) fails the walk-through.
 
-mod common;
+use crate::common;
 
 use std::io::Read;
 use std::os::unix::process::{CommandExt, ExitStatusExt};

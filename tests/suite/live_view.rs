@@ -3,7 +3,7 @@
 //! `mcap-ros2-support` decoding every payload against its advertised schema). Skipped, loudly,
 //! only when PyPI is out of reach.
 
-mod common;
+use crate::common;
 use common::omnid;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

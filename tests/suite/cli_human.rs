@@ -1,7 +1,7 @@
 //! What a person sees from `omnid ctl status` and `omnid watch` (issue 33, item 5): readable
 //! forms by default, the daemon's JSON with `--json`.
 
-mod common;
+use crate::common;
 
 use common::Served;
 use std::io::BufRead;

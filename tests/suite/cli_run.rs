@@ -1,6 +1,6 @@
 //! End-to-end runs of the `omnid` binary on the simulated Omni.
 
-mod common;
+use crate::common;
 use common::{omnid, run_ok, Log};
 use std::time::{Duration, Instant};
 

@@ -1,10 +1,10 @@
 //! The OpenHaptics-compatible libHD (clients/hdapi, docs/HDAPI.md) against this build's
 //! `omnid serve --device sim`: the ABI and constants of our headers, the exported names and
 //! the SONAME, C programs replaying the call orders of CHAI3D, the ROS driver, the JHU driver
-//! and VRPN, and pyOpenHaptics from PyPI (tests/hdapi_python.rs).
+//! and VRPN, and pyOpenHaptics from PyPI (tests/suite/hdapi_python.rs).
 
-mod common;
-pub mod hd;
+use crate::common;
+use crate::hd;
 
 use hd::{run, Daemon, HD};
 use omnid::omni::kinematics::{jacobian, tip_position_mm, Geometry};

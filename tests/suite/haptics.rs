@@ -2,7 +2,7 @@
 //! (transparency, walls at the vendor's stiffness, static force accuracy), and `omnid run`'s
 //! free mode with a scene and a simulated hand.
 
-mod common;
+use crate::common;
 
 use common::{omnid, run_ok, Log};
 use serde_json::Value;

@@ -1,7 +1,7 @@
 //! `omnid plot` end to end: on a simulator log, on a seven-column log from another tool, on a
 //! log with the identifier's estimate, and on logs it must refuse.
 
-mod common;
+use crate::common;
 use common::{omnid, run_ok, Log};
 use std::fs::File;
 use std::path::Path;

@@ -1,7 +1,7 @@
 //! A daemon whose stderr nobody drains (a paused pager, a stalled log collector) keeps serving
 //! its clients, and a stop signal still ends it within a bounded time.
 
-mod common;
+use crate::common;
 
 use common::omnid;
 use omnid::serve::client::Client;

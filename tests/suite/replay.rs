@@ -1,7 +1,7 @@
 //! The replay (mock) device end to end: deterministic re-runs of simulator logs, irregular time
 //! steps, the recorded sessions in `mock/`, the duration limit and `--lenient` on the CLI.
 
-mod common;
+use crate::common;
 use common::{omnid, Log};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};

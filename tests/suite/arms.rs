@@ -2,7 +2,7 @@
 //! its own lease and safety, a trip on one leaving the other tracking, clients choosing an arm
 //! by name or alias, and an arm held by one process refused to another, which is named.
 
-mod common;
+use crate::common;
 
 use common::Served;
 use omnid::serve::client::{Client, Message};
