@@ -25,7 +25,7 @@ pub enum HandPattern {
         /// Its direction, +1.0 or −1.0.
         sign: f64,
     },
-    /// Tap along `dir` from the centre: out to `path_radius_m` and back, [`TAP_HZ`] times a
+    /// Tap along `dir` from the centre: out to `path_radius_m` and back, `TAP_HZ` times a
     /// second (a teleoperation follower tapping a surface).
     Tap {
         /// The axis, 0..=2 for x, y, z.

@@ -170,7 +170,7 @@ fn parse_request(bytes: &[u8]) -> Result<Request, String> {
         .map_err(|e| format!("bad request: {}", crate::text::cut_quoted(&e.to_string())))
 }
 
-/// One client message as the hub reads it, up to the station: [`parse_request`] and its turn
+/// One client message as the hub reads it, up to the station: `parse_request` and its turn
 /// into the station's op, the same two steps the hub takes (public for the fuzz target and its
 /// smoke test).
 pub fn decode_request(bytes: &[u8]) -> Result<Op, String> {

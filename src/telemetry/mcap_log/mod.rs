@@ -3,7 +3,7 @@
 //! transforms for the arm's URDF, buttons, events). Profile `ros2`, zstd chunks, statistics and
 //! indexes, so `ros2 bag play`, Foxglove, Lichtblick and Rerun open the file.
 //!
-//! Each tick's messages are written in [`Topic`] order and `/joint_states` comes last: a reader
+//! Each tick's messages are written in `Topic` order and `/joint_states` comes last: a reader
 //! has a whole row when it reads a `/joint_states`. Chunks close only between rows, so a file cut
 //! short (a killed run) reads back as whole rows.
 
