@@ -35,6 +35,7 @@ fn stream_and_command(mut c: Client, n: usize) -> (Vec<u64>, bool) {
 }
 
 #[test]
+#[ignore = "paced"]
 fn two_simulated_arms_are_served_side_by_side_each_with_its_own_client() {
     let d = Served::start(
         &["--device", "sim", "--device", "sim"],
@@ -76,6 +77,7 @@ fn two_simulated_arms_are_served_side_by_side_each_with_its_own_client() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_trip_on_one_arm_leaves_the_other_tracking() {
     let (left, right) = (unique("left"), unique("right"));
     let config = format!(
@@ -133,6 +135,7 @@ fn a_trip_on_one_arm_leaves_the_other_tracking() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn an_arm_a_daemon_serves_is_refused_to_run_and_probe_naming_the_holder() {
     let name = unique("bench");
     let config = format!("[[arm]]\nname = \"{name}\"\n");
@@ -179,6 +182,7 @@ fn an_arm_a_daemon_serves_is_refused_to_run_and_probe_naming_the_holder() {
 /// simulated hand moves, both arms holding when the console ends; a console whose arm is
 /// held by someone else, or that names an arm the daemon does not have, is refused.
 #[test]
+#[ignore = "paced"]
 fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
     let (leader, follower) = (unique("lead"), unique("follow"));
     let config = format!(
@@ -311,6 +315,7 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
 /// A trip on the follower ends the pair: the console says which arm left teleop and exits
 /// non-zero, the follower is idle (the trip's), the leader holds.
 #[test]
+#[ignore = "paced"]
 fn a_trip_on_the_follower_ends_the_console_and_leaves_the_leader_holding() {
     let (leader, follower) = (unique("lead2"), unique("follow2"));
     let config = format!(
@@ -343,6 +348,7 @@ fn a_trip_on_the_follower_ends_the_console_and_leaves_the_leader_holding() {
 /// A console killed outright (SIGKILL: no chance to uncouple) loses its sessions, and with them
 /// the pair: each side is its lease holder's, so both arms leave teleop and hold.
 #[test]
+#[ignore = "paced"]
 fn a_console_killed_outright_leaves_both_arms_uncoupled_and_holding() {
     let (leader, follower) = (unique("lead3"), unique("follow3"));
     let config = format!(

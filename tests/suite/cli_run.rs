@@ -68,6 +68,7 @@ fn ten_second_pd_run_writes_log_and_summary() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn fast_run_gives_the_same_rows_as_a_paced_run() {
     let dir = tempfile::tempdir().unwrap();
     let (paced, fast) = (dir.path().join("paced.csv"), dir.path().join("fast.csv"));

@@ -165,12 +165,17 @@ proptest! {
                 let line = format!("line {}, ", at + 1);
                 prop_assert!(message.starts_with(&line), "`{key} = {v}`: {message}");
             }
-            Err(ConfigError::InvalidIn { field, place, .. }) => {
+            Err(ConfigError::InvalidIn { field, place, allowed, .. }) => {
                 // Range errors name the field that was changed (its element, or the group of
                 // fields checked together, like `model.k1..k7`), at its line when it is that
-                // field.
+                // field; a value checked against another section's (the reference's centre
+                // inside the joint limits) names the changed key in what is allowed.
                 let section = &key[..=key.find('.').unwrap()];
-                prop_assert!(field.starts_with(section), "`{key} = {v}`: field `{field}`");
+                let base = key.split('[').next().unwrap();
+                prop_assert!(
+                    field.starts_with(section) || allowed.contains(base),
+                    "`{key} = {v}`: field `{field}`, allowed `{allowed}`"
+                );
                 if &field == key {
                     prop_assert_eq!(place.map(|p| p.line), Some(at + 1), "`{} = {}`", key, v);
                 }

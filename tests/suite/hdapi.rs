@@ -160,6 +160,7 @@ const EXPORTS: [&str; 36] = [
 ];
 
 #[test]
+#[ignore = "paced"]
 fn headers_match_the_abi_and_every_constant_of_the_table() {
     let hd = HD::get();
     for exe in ["abi", "abi_cpp"] {
@@ -187,6 +188,7 @@ fn headers_match_the_abi_and_every_constant_of_the_table() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn library_exports_the_36_names_under_its_soname_with_the_links() {
     let hd = HD::get();
     let lib = hd.prefix.join("lib");
@@ -219,6 +221,7 @@ fn library_exports_the_36_names_under_its_soname_with_the_links() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn no_daemon_is_a_communication_error_not_a_crash() {
     let hd = HD::get();
     let dir = tempfile::tempdir().unwrap();
@@ -286,6 +289,7 @@ fn field<'a>(out: &'a str, key: &str) -> &'a str {
 }
 
 #[test]
+#[ignore = "paced"]
 fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
     let hd = HD::get();
     let daemon = Daemon::start(&[]);
@@ -353,6 +357,7 @@ fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
 /// CHAI3D's order (constructor init, blocking set-force) puts a force on the simulated arm
 /// and killing the program takes it off.
 #[test]
+#[ignore = "paced"]
 fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     let hd = HD::get();
     // No compensation: the motors' torque is exactly the program's (Jᵀ F). The daemon's
@@ -439,6 +444,7 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
 /// The daemon stopping under a running program is a communication error in its servo
 /// callback (which ends on it), never a hang.
 #[test]
+#[ignore = "paced"]
 fn a_daemon_that_stops_is_a_communication_error_in_the_servo_callback() {
     let hd = HD::get();
     let mut daemon = Daemon::start(&[]);
@@ -461,6 +467,7 @@ fn a_daemon_that_stops_is_a_communication_error_in_the_servo_callback() {
 /// A test that fails while its C program runs must not leave the program behind (one outlived
 /// a failed run by an hour before the watchdog killed children on a panic).
 #[test]
+#[ignore = "paced"]
 fn a_failing_test_does_not_leave_its_program_running() {
     use std::os::unix::process::ExitStatusExt;
     let mut child = std::process::Command::new("sleep")
@@ -479,6 +486,7 @@ fn a_failing_test_does_not_leave_its_program_running() {
 /// Two arms of one daemon opened by the vendor's dual-device names (`[[arm]] aliases`), forces
 /// rendered on both in one scheduler callback: each arm turns the way its own force pushes.
 #[test]
+#[ignore = "paced"]
 fn two_devices_by_their_vendor_names_in_one_scheduler_callback() {
     let hd = HD::get();
     let (left, right) = (
@@ -517,6 +525,7 @@ fn two_devices_by_their_vendor_names_in_one_scheduler_callback() {
 /// frames (the amplifiers do not cycle), and frames further apart than a force can be held
 /// (100 ms) raise HD_TIMER_ERROR instead of losing the force silently.
 #[test]
+#[ignore = "paced"]
 fn a_slow_servo_callback_keeps_its_force_or_is_told() {
     let hd = HD::get();
     // 30 ms frames: slower than the default time to live (20 ms), 70 ms inside the longest.
@@ -606,6 +615,7 @@ fn compile_snippet(compiler: &str, lang: &str, flags: &[&str], source: &str) -> 
 }
 
 #[test]
+#[ignore = "paced"]
 fn every_hdu_header_compiles_alone_in_c_and_in_cpp() {
     let hd = HD::get();
     let mut installed: Vec<String> = std::fs::read_dir(hd.prefix.join("include/HDU"))
@@ -637,6 +647,7 @@ fn every_hdu_header_compiles_alone_in_c_and_in_cpp() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn hl_stops_the_build_with_one_error_naming_hd_hdu_and_the_docs() {
     let source = "#include <HL/hl.h>\nint main(void) { return 0; }\n";
     for (compiler, lang) in [("cc", "c"), ("c++", "c++")] {
@@ -681,6 +692,7 @@ fn assert_close(out: &str, key: &str, expected: &[f64], tol: f64) {
 const SDK_LIBS: [&str; 4] = ["-lHDU", "-lHD", "-lrt", "-lncurses"];
 
 #[test]
+#[ignore = "paced"]
 fn hdu_c_functions_and_error_helpers_link_as_the_sdk_examples_do() {
     use nalgebra::Vector3;
     let hd = HD::get();
@@ -787,6 +799,7 @@ fn hdu_c_functions_and_error_helpers_link_as_the_sdk_examples_do() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn hdu_cpp_vectors_matrices_and_quaternions_agree_with_nalgebra() {
     use nalgebra::{Matrix4, Rotation3, Unit, UnitQuaternion, Vector3};
     let hd = HD::get();
@@ -878,6 +891,7 @@ fn hdu_cpp_vectors_matrices_and_quaternions_agree_with_nalgebra() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
     use nalgebra::Vector3;
     let hd = HD::get();
@@ -906,6 +920,7 @@ fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn motor_temperature_comes_from_the_thermal_model_and_an_unsupported_parameter_is_refused_once() {
     let hd = HD::get();
     let daemon = Daemon::start(&[]);
@@ -943,6 +958,7 @@ fn motor_temperature_comes_from_the_thermal_model_and_an_unsupported_parameter_i
 }
 
 #[test]
+#[ignore = "paced"]
 fn occasional_frames_that_push_nothing_leave_the_arm_alone() {
     let hd = HD::get();
     let daemon = Daemon::start(&[]);
@@ -984,6 +1000,7 @@ fn occasional_frames_that_push_nothing_leave_the_arm_alone() {
 /// The SDK's QueryDevice way of waiting for button 1 (synchronous reads on the main thread)
 /// sees the simulator's hand click it on the schedule of `[sim] stylus`, and exits.
 #[test]
+#[ignore = "paced"]
 fn a_program_waiting_for_button_1_sees_the_scheduled_click() {
     let hd = HD::get();
     // A click a second from the daemon's start, then one every second (so a program that
@@ -1007,6 +1024,7 @@ fn a_program_waiting_for_button_1_sees_the_scheduled_click() {
 /// dock, a button pressed and released shows in HD_CURRENT_BUTTONS; a read-only request, an
 /// unknown action and a third button are refused by name.
 #[test]
+#[ignore = "paced"]
 fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
     let hd = HD::get();
     let daemon = Daemon::start(&[]);
@@ -1074,6 +1092,7 @@ fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
 /// A program that drives the arm faster than `[safety] max_velocity_rad_s`: the daemon's
 /// speed trip comes back as HD_EXCEEDED_MAX_VELOCITY, a force error with its own string.
 #[test]
+#[ignore = "paced"]
 fn driving_the_arm_too_fast_is_an_exceeded_max_velocity_error() {
     let hd = HD::get();
     let daemon = Daemon::start_with_config(
@@ -1104,6 +1123,7 @@ fn driving_the_arm_too_fast_is_an_exceeded_max_velocity_error() {
 /// exchange) comes back to a running program as a scheduler error: HD_TIMER_ERROR with the
 /// internal code of a servo stall.
 #[test]
+#[ignore = "paced"]
 fn a_servo_stall_is_a_scheduler_error() {
     let hd = HD::get();
     // A stall every 3 s of device time, so a program that starts late still meets one.

@@ -86,6 +86,7 @@ fn coriolis_error(id: &mut Identifier, samples: &[Sample]) -> (f64, f64) {
 /// 30 s PD multisine log of seed 11, 6 epochs), evaluated on the states of a 10 s multisine
 /// log of seed 21.
 #[test]
+#[ignore = "paced"]
 fn skew_symmetry_terms_bring_c_hat_closer_to_the_plant() {
     let dir = tempfile::tempdir().unwrap();
     let train = multisine_samples(dir.path(), 11, 30.0);
@@ -133,6 +134,7 @@ fn skew_symmetry_terms_bring_c_hat_closer_to_the_plant() {
 /// flips with small changes of the setting (σ, start weights). So the weight change is
 /// printed, not asserted.
 #[test]
+#[ignore = "paced"]
 fn larger_alpha_converges_sooner_and_moves_the_weights_more() {
     let dir = tempfile::tempdir().unwrap();
     let samples = multisine_samples(dir.path(), 5, 30.0);
@@ -194,6 +196,7 @@ fn larger_alpha_converges_sooner_and_moves_the_weights_more() {
 /// `mock/nnidc-3net.toml`: `friction_net = false`, σ = 0.05), all adapting online. Tracking
 /// and the control effort (RMS, total variation) are printed for docs/IDENTIFIER.md.
 #[test]
+#[ignore = "paced"]
 fn three_net_nnidc_beats_pd_and_stays_near_computed_torque() {
     let dir = tempfile::tempdir().unwrap();
     let mock = Path::new(env!("CARGO_MANIFEST_DIR")).join("mock");

@@ -101,6 +101,7 @@ fn assert_all_decode(report: &serde_json::Value) {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_viewer_gets_every_arm_channel_at_the_device_rate_and_every_payload_decodes() {
     let Some(py) = python() else { return };
     let d = Daemon::start(&["--device", "sim"]);
@@ -138,6 +139,7 @@ fn a_viewer_gets_every_arm_channel_at_the_device_rate_and_every_payload_decodes(
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_viewer_that_never_reads_costs_the_other_viewers_nothing() {
     let Some(py) = python() else { return };
     let d = Daemon::start(&["--device", "sim"]);
@@ -185,6 +187,7 @@ fn a_viewer_that_never_reads_costs_the_other_viewers_nothing() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn the_old_subprotocol_is_refused_and_bad_addresses_are_input_errors() {
     // Bad addresses need no viewer.
     for (addr, want) in [("localhost", "HOST:PORT"), ("127.0.0.1:99999", "HOST:PORT")] {

@@ -51,6 +51,7 @@ fn sim_run(seconds: &str, log: &Path) {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_ten_second_recording_reads_back_with_independent_readers_value_for_value() {
     let dir = tempfile::tempdir().unwrap();
     let (mcap, csv) = (dir.path().join("run.mcap"), dir.path().join("run.csv"));
@@ -89,6 +90,7 @@ fn a_ten_second_recording_reads_back_with_independent_readers_value_for_value() 
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_file_cut_at_60_percent_yields_its_complete_chunks_and_strict_readers_say_so() {
     let dir = tempfile::tempdir().unwrap();
     let (mcap, cut) = (dir.path().join("run.mcap"), dir.path().join("cut.mcap"));
@@ -122,6 +124,7 @@ fn a_file_cut_at_60_percent_yields_its_complete_chunks_and_strict_readers_say_so
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_run_killed_mid_way_leaves_its_complete_chunks() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("killed.mcap");

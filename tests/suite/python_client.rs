@@ -4,6 +4,7 @@
 use std::process::Command;
 
 #[test]
+#[ignore = "paced"]
 fn python_client_suite_passes_against_a_real_daemon() {
     let root = env!("CARGO_MANIFEST_DIR");
     let output = match Command::new("python3")

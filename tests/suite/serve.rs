@@ -136,6 +136,7 @@ fn states_until(c: &mut Client, max: usize, mut pred: impl FnMut(&State) -> bool
 }
 
 #[test]
+#[ignore = "paced"]
 fn every_command_works_and_shutdown_ends_cleanly() {
     let mut d = Daemon::start(&[]);
     let mut c = d.client("test");
@@ -224,6 +225,7 @@ fn every_command_works_and_shutdown_ends_cleanly() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn one_commander_many_readers_and_lease_handover() {
     let d = Daemon::start(&[]);
     let mut a = d.client("a");
@@ -286,6 +288,7 @@ fn fallback_gap(seen: &[State], mode: &str) -> (f64, State) {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_stale_stream_holds_within_its_time_to_live() {
     let d = Daemon::start(&[]);
     let mut c = d.client("jp");
@@ -317,6 +320,7 @@ fn a_stale_stream_holds_within_its_time_to_live() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn what_clients_are_told_is_exact_printable_and_meaningful() {
     let d = Daemon::start(&[]);
     let mut w = d.client("watcher");
@@ -369,6 +373,7 @@ fn what_clients_are_told_is_exact_printable_and_meaningful() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_killed_commander_leaves_the_arm_holding() {
     let d = Daemon::start(&[]);
     let mut watcher = d.client("watcher");
@@ -420,6 +425,7 @@ while True:
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_holder_that_asked_for_idle_leaves_zero_torque_when_killed() {
     let d = Daemon::start(&[]);
     let mut watcher = d.client("watcher");
@@ -470,6 +476,7 @@ while True:
 }
 
 #[test]
+#[ignore = "paced"]
 fn controller_switches_mid_motion_are_bumpless() {
     let d = Daemon::start(&["--controller", "pd"]);
     let mut c = d.client("switcher");
@@ -514,6 +521,7 @@ fn controller_switches_mid_motion_are_bumpless() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn bad_messages_hurt_only_their_sender() {
     let d = Daemon::start(&[]);
     let mut reader = d.client("reader");
@@ -574,6 +582,7 @@ fn bad_messages_hurt_only_their_sender() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_slow_reader_loses_its_oldest_samples_and_is_told() {
     let d = Daemon::start_with_config(&[], Some("[serve]\nclient_queue = 16\n"));
     let mut slow = d.client("slow");
@@ -617,6 +626,7 @@ fn a_slow_reader_loses_its_oldest_samples_and_is_told() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
     let mut d = Daemon::start(&[]);
     let mut c = d.client("c");
@@ -633,6 +643,7 @@ fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_clean_shutdown_leaves_the_runtime_directory_empty() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
@@ -667,6 +678,7 @@ fn a_clean_shutdown_leaves_the_runtime_directory_empty() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn client_named_files_replace_nothing_follow_nothing_and_quote_nothing() {
     let d = Daemon::start(&[]);
     let mut c = d.client("files");
@@ -703,6 +715,7 @@ fn client_named_files_replace_nothing_follow_nothing_and_quote_nothing() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_client_that_does_not_read_is_held_to_a_byte_budget() {
     let d = Daemon::start(&[]);
     // An id is a tag, not a payload: a long one is refused, not echoed.
@@ -746,6 +759,7 @@ fn a_client_that_does_not_read_is_held_to_a_byte_budget() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_full_daemon_refuses_with_its_reason() {
     let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
     let _only = d.client("only");
@@ -766,6 +780,7 @@ fn a_full_daemon_refuses_with_its_reason() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_second_daemon_on_the_same_socket_is_refused() {
     let d = Daemon::start(&[]);
     let out = omnid()
@@ -782,6 +797,7 @@ fn a_second_daemon_on_the_same_socket_is_refused() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn ctl_and_watch_drive_the_daemon() {
     let d = Daemon::start(&[]);
     let ctl = |args: &[&str]| {
@@ -848,6 +864,7 @@ fn ctl_and_watch_drive_the_daemon() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_peer_outside_the_groups_is_refused() {
     // Only root can connect as another user; CI runs as root.
     // SAFETY: no arguments.
@@ -898,6 +915,7 @@ fn drift(c: &mut Client, ticks: usize) -> [f64; 3] {
 }
 
 #[test]
+#[ignore = "paced"]
 fn free_mode_compensates_and_servo_jf_adds_torque() {
     let d = Daemon::start(&[]);
     let mut c = d.client("haptics");
@@ -960,6 +978,7 @@ fn free_mode_compensates_and_servo_jf_adds_torque() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
     let d = Daemon::start(&["--controller", "ct"]);
     let mut c = d.client("forces");
@@ -1016,6 +1035,7 @@ fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn effects_render_in_free_mode_and_bad_ones_are_refused() {
     let d = Daemon::start(&["--controller", "ct"]);
     let mut c = d.client("effects");
@@ -1055,6 +1075,7 @@ fn effects_render_in_free_mode_and_bad_ones_are_refused() {
 /// them waiting nor spins on its listener), says so once on stderr, and serves again when
 /// clients leave.
 #[test]
+#[ignore = "paced"]
 fn a_daemon_out_of_descriptors_refuses_with_the_reason_and_recovers() {
     let dir = tempfile::tempdir().unwrap();
     let socket = dir.path().join("sim.sock");

@@ -23,6 +23,7 @@ fn until(c: &mut Client, secs: f64, mut pred: impl FnMut(&State) -> bool) -> Sta
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_killed_clients_effects_and_free_mode_end_with_it() {
     let d = Served::start(&[], None, &["sim"]);
     let mut watch = d.client("sim", "watch");
@@ -85,6 +86,7 @@ time.sleep(60)
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_hung_holder_and_silent_connections_cannot_stop_mode_idle() {
     let d = Served::start(&[], None, &["sim"]);
     // The holder takes the arm and then never reads again (as if SIGSTOPped).
@@ -128,6 +130,7 @@ fn a_hung_holder_and_silent_connections_cannot_stop_mode_idle() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_trip_latches_until_a_mode_is_asked_for_and_dumps_are_bounded() {
     // A speed limit the tracking motion exceeds: every `track` trips.
     let config = "[safety]\nmax_velocity_rad_s = [0.1, 0.1, 0.1]\n\
@@ -164,6 +167,7 @@ fn a_trip_latches_until_a_mode_is_asked_for_and_dumps_are_bounded() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_holder_that_stops_reading_loses_its_lease() {
     let config = "[serve]\nlease_lapse_ms = 200\nclient_queue = 16\n";
     let d = Served::start(&[], Some(config), &["sim"]);

@@ -61,6 +61,7 @@ fn tokens(s: &zenoh::Session, want: usize) -> Vec<String> {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_zenoh_peer_finds_the_node_and_reads_measured_js_with_rmw_zenohs_attachments() {
     let port = free_port();
     let mut d = serve(port, "");
@@ -156,6 +157,7 @@ fn check(python: &Path, mode: &str, port: u16, d: &Served) -> serde_json::Value 
 const COMMANDS: &str = "allow_commands = true\n";
 
 #[test]
+#[ignore = "paced"]
 fn ros2_tools_see_omnid_as_rmw_zenoh_does_and_servo_cf_pushes_the_arm() {
     let Some(py) = python() else { return };
     let port = free_port();
@@ -199,6 +201,7 @@ fn ros2_tools_see_omnid_as_rmw_zenoh_does_and_servo_cf_pushes_the_arm() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn a_remote_python_client_streams_and_commands_and_loses_its_command_when_it_dies() {
     let Some(py) = python() else { return };
     let port = free_port();
@@ -225,6 +228,7 @@ fn a_remote_python_client_streams_and_commands_and_loses_its_command_when_it_die
 }
 
 #[test]
+#[ignore = "paced"]
 fn bad_samples_and_floods_from_the_network_are_refused_and_counted() {
     let Some(py) = python() else { return };
     let port = free_port();
@@ -244,6 +248,7 @@ fn bad_samples_and_floods_from_the_network_are_refused_and_counted() {
 }
 
 #[test]
+#[ignore = "paced"]
 fn without_allow_commands_a_remote_client_is_read_only() {
     let Some(py) = python() else { return };
     let port = free_port();
@@ -286,6 +291,7 @@ mod teleop_over_zenoh {
     };
 
     #[test]
+    #[ignore = "paced"]
     fn a_pair_over_zenoh_on_loopback_does_what_the_local_pair_does() {
         // Two sessions as two daemons' (each its own zenoh session on TCP loopback), ticked in
         // real time; the in-process run of the same row beside it.
@@ -337,6 +343,7 @@ mod teleop_over_zenoh {
     }
 
     #[test]
+    #[ignore = "paced"]
     fn frames_that_are_malformed_disagree_or_come_from_a_second_sender_are_refused_and_counted() {
         use omnid::serve::zenoh::ZenohNet;
         use omnid::teleop::wire::{encode, Agreement};
@@ -421,6 +428,7 @@ mod teleop_over_zenoh {
     }
 
     #[test]
+    #[ignore = "paced"]
     fn a_channel_to_another_daemon_needs_allow_commands_and_a_plain_arm_name() {
         use omnid::serve::zenoh::ZenohNet;
         use omnid::teleop::Role;
@@ -448,6 +456,7 @@ mod teleop_over_zenoh {
     }
 
     #[test]
+    #[ignore = "paced"]
     fn a_cut_zenoh_link_fades_the_leaders_force_within_50_ms_and_the_follower_holds() {
         let base = TeleopConfig::default();
         let mut sim = PairSim::build(
@@ -497,6 +506,7 @@ fn spawn_piped(mut c: Command) -> std::process::Child {
 /// follower copies the leader over the network; the follower's daemon killed, the leader
 /// loses the link and stays coupled, free.
 #[test]
+#[ignore = "paced"]
 fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_link_lost() {
     let (leader, follower) = (
         format!("zl-{}", std::process::id()),
