@@ -7,7 +7,7 @@
 //! Both configurations run in one invocation, interleaved over three rounds, so the machine's
 //! load falls on both alike; the median round is compared.
 
-use omnid::serve::client::{Client, Message};
+use omnid::transport::client::{Client, Message};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

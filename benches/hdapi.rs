@@ -13,7 +13,7 @@
 mod hd;
 
 use hd::{Daemon, HD};
-use omnid::serve::client::{Client, Message};
+use omnid::transport::client::{Client, Message};
 use serde_json::json;
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};

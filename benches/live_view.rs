@@ -7,8 +7,8 @@
 //! The viewers are a few lines of WebSocket by hand (handshake, one masked text frame to
 //! subscribe): a test client, not a protocol omnid speaks.
 
+use omnid::cmd::serve::{serve, ServeOptions};
 use omnid::config::Config;
-use omnid::daemon::{serve, ServeOptions};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -110,7 +110,7 @@ fn main() {
                 .local_addr()
                 .unwrap();
             let opts = ServeOptions {
-                devices: vec![omnid::run::DeviceSpec::Sim],
+                devices: vec![omnid::cmd::run::DeviceSpec::Sim],
                 arms: Vec::new(),
                 controller: omnid::control::ControllerKind::Nnidc,
                 socket: Some(dir.path().join("bench.sock")),

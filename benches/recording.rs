@@ -2,8 +2,8 @@
 //! interleaved, each round's lateness and compute percentiles, then the median over rounds.
 //! `cargo bench --bench recording -- [SECONDS] [ROUNDS]` (default 20 s, 3 rounds).
 
+use omnid::cmd::run::{execute, RunOptions};
 use omnid::config::Config;
-use omnid::run::{execute, RunOptions};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 

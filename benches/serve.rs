@@ -11,7 +11,7 @@
 //! and writes the numbers to `target/serve-bench.json`. Timing on a shared machine is noisy:
 //! this prints, it never fails on numbers.
 
-use omnid::serve::client::{Client, ClientError, Message};
+use omnid::transport::client::{Client, ClientError, Message};
 use serde_json::{json, Value};
 use std::fs::File;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};

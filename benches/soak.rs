@@ -1,9 +1,9 @@
 //! Soak: a long paced run on the simulated Omni, reporting memory at start and end, faults and
 //! telemetry drops. `cargo bench --bench soak -- SECONDS [CONTROLLER]` (default 600 s, nnidc).
 
+use omnid::cmd::run::{execute, RunOptions};
 use omnid::config::Config;
 use omnid::control::ControllerKind;
-use omnid::run::{execute, RunOptions};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;

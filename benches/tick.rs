@@ -2,6 +2,7 @@
 //! throughput on the simulated Omni. `cargo bench --bench tick`.
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
+use omnid::cmd::run::{make_controller, make_identifier};
 use omnid::config::Config;
 use omnid::control::{ControlInput, Controller, Pd, Reference, Trajectory};
 use omnid::control::{ControllerKind, ControllerSet};
@@ -13,7 +14,6 @@ use omnid::device::{
 };
 use omnid::estimate::KalmanBank;
 use omnid::omni::Joint3;
-use omnid::run::{make_controller, make_identifier};
 use omnid::servo::Servo;
 use omnid::telemetry::writer;
 use std::sync::atomic::AtomicBool;

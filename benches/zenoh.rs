@@ -6,8 +6,8 @@
 //! measured in the same run between two sessions of this process; samples received vs ticks
 //! and sequence gaps. `cargo bench --bench zenoh -- [SECONDS] [ROUNDS]` (default 10 s, 2).
 
+use omnid::cmd::serve::{serve, ServeOptions};
 use omnid::config::Config;
-use omnid::daemon::{serve, ServeOptions};
 use omnid::ros2::{msgs, rmw_zenoh as rmw};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -70,7 +70,7 @@ fn main() {
             cfg.zenoh.listen = vec![format!("tcp/127.0.0.1:{port}")];
             cfg.zenoh.connect = vec![];
             let opts = ServeOptions {
-                devices: vec![omnid::run::DeviceSpec::Sim],
+                devices: vec![omnid::cmd::run::DeviceSpec::Sim],
                 arms: Vec::new(),
                 controller: omnid::control::ControllerKind::Nnidc,
                 socket: Some(dir.path().join("bench.sock")),

@@ -22,13 +22,13 @@
 //!
 //! - A run (`omnid run`): fill a [`Config`] and [`RunOptions`], call [`execute`], read the
 //!   [`RunOutcome`] (its [`RunSummary`] and [`EndReason`]).
-//! - The daemon (`omnid serve`): [`daemon::serve`] with [`ServeOptions`]; lab software talks to
+//! - The daemon (`omnid serve`): [`cmd::serve::serve`] with [`ServeOptions`]; lab software talks to
 //!   it through [`Client`] (the protocol is in `docs/PROTOCOL.md`).
 //! - A loop of your own: build a [`Servo`] over any [`Device`] — [`SimOmni`] (the simulated
 //!   arm), [`ReplayDevice`] (a recorded log) or, for fault drills, [`FaultyDevice`] wrapping
 //!   any of them with [`Fault`]s.
 //! - Off the loop: [`plot`] draws figures from a log, [`convert`] turns other recordings into
-//!   omnid logs, [`experiment`] reproduces the paper's experiments, [`log_pretune`] pretunes the
+//!   omnid logs, [`experiment`] reproduces the paper's experiments, [`cmd::identify`] pretunes the
 //!   identifier from a log.
 //! - Around them: [`input`] reads files from outside (no wait beyond Ctrl-C, no unbounded
 //!   row), [`output`] writes files without leaving half-written ones, [`progress`] draws the
@@ -79,11 +79,11 @@ macro_rules! errln {
 
 pub mod arm;
 pub mod clock;
+pub mod cmd;
 pub mod config;
 pub(crate) mod config_check;
 pub mod control;
 pub mod convert;
-pub mod daemon;
 pub mod device;
 pub mod diag;
 pub mod estimate;
@@ -93,31 +93,28 @@ pub mod haptics;
 pub mod human;
 pub mod identifier;
 pub mod input;
-pub mod log_pretune;
 pub mod omni;
 pub mod output;
-pub mod pipeline;
 pub mod plot;
 pub mod progress;
 pub mod ros2;
-pub mod run;
-pub mod serve;
 pub mod servo;
 pub mod station;
 pub mod telemetry;
 pub mod teleop;
 pub mod text;
 pub mod toml_place;
+pub mod transport;
 
+pub use cmd::run::{execute, DeviceSpec, RunError, RunOptions, RunOutcome};
+pub use cmd::serve::{ArmOutcome, ServeOptions, ServeOutcome};
 pub use config::{Config, ConfigError};
 pub use control::{ControllerKind, Trajectory};
-pub use daemon::{ArmOutcome, ServeOptions, ServeOutcome};
 pub use device::inject::{Fault, FaultyDevice};
 pub use device::replay::ReplayDevice;
 pub use device::sim::SimOmni;
 pub use device::{Device, DeviceError, RawSample};
 pub use omni::{Geometry, Joint3};
-pub use run::{execute, DeviceSpec, RunError, RunOptions, RunOutcome};
-pub use serve::client::{Client, ClientError, Message};
 pub use servo::summary::RunSummary;
 pub use servo::{EndReason, Servo};
+pub use transport::client::{Client, ClientError, Message};

@@ -89,7 +89,7 @@ fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
     // is unpaced so the test runs fast).
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     // Adapting identifier on, from the weights a run of this controller would start with.
-    let (id, _) = omnid::run::make_identifier(&cfg, kind, None, false, None).unwrap();
+    let (id, _) = omnid::cmd::run::make_identifier(&cfg, kind, None, false, None).unwrap();
     assert!(cfg.identifier.adapt);
     servo.set_identifier(id);
     for _ in 0..2_500 {
@@ -178,7 +178,7 @@ fn haptic_ticks_allocate_nothing(hand: &str) {
     let stop = Arc::new(AtomicBool::new(false));
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     let (id, _) =
-        omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
+        omnid::cmd::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
     servo.set_identifier(id);
     servo.start_free();
     let centre: [f64; 3] =
@@ -257,17 +257,17 @@ fn reading_an_mcap_log_that_decodes_late_allocates_nothing() {
 /// A simulator run of `duration_s` with PD on the multisine, logged to `log` (its format
 /// from the extension).
 fn record_sim_log(cfg: &Config, log: &std::path::Path, duration_s: f64) {
-    let opts = omnid::run::RunOptions {
+    let opts = omnid::cmd::run::RunOptions {
         controller: ControllerKind::Pd,
         trajectory: Trajectory::Multisine,
         duration_s,
         log: Some(log.to_path_buf()),
         fast: true,
-        ..omnid::run::RunOptions::default()
+        ..omnid::cmd::run::RunOptions::default()
     };
     let mut sim_cfg = cfg.clone();
     sim_cfg.safety.persist_heat = false;
-    omnid::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
+    omnid::cmd::run::execute(&opts, &sim_cfg, Arc::new(AtomicBool::new(false))).unwrap();
 }
 
 fn replay_ticks_allocate_nothing(name: &str) {
@@ -289,7 +289,7 @@ fn replay_ticks_allocate_nothing(name: &str) {
     let controller = ControllerSet::new(&cfg, ControllerKind::Pd, 0.0);
     let mut servo = Servo::new(&cfg, device, controller, reference, tx, stop, None, true);
     let (id, _) =
-        omnid::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
+        omnid::cmd::run::make_identifier(&cfg, ControllerKind::Nnidc, None, false, None).unwrap();
     servo.set_identifier(id);
     for _ in 0..1_000 {
         assert!(servo.tick().is_none());
@@ -307,7 +307,7 @@ fn replay_ticks_allocate_nothing(name: &str) {
 
 #[test]
 fn serve_servo_allocates_nothing_with_clients_connected() {
-    use omnid::serve::client::Client;
+    use omnid::transport::client::Client;
     use serde_json::json;
     use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -316,8 +316,8 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     cfg.safety.persist_heat = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let socket = dir.path().join("sim.sock");
-    let opts = omnid::daemon::ServeOptions {
-        devices: vec![omnid::run::DeviceSpec::Sim],
+    let opts = omnid::cmd::serve::ServeOptions {
+        devices: vec![omnid::cmd::run::DeviceSpec::Sim],
         arms: Vec::new(),
         controller: ControllerKind::Nnidc,
         socket: Some(socket.clone()),
@@ -330,10 +330,10 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     };
     let stop = Arc::new(AtomicBool::new(false));
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
-    let prepared = omnid::daemon::prepare(&opts, &cfg, stop).unwrap();
+    let prepared = omnid::cmd::serve::prepare(&opts, &cfg, stop).unwrap();
     let mut servo = prepared.pipeline.servo;
     // The live view's tap on the hub too: its encoder thread works on every tick.
-    let view = omnid::serve::foxglove::LiveView::start("127.0.0.1:0".parse().unwrap()).unwrap();
+    let view = omnid::transport::foxglove::LiveView::start("127.0.0.1:0".parse().unwrap()).unwrap();
     let tap = view.tap_for(&prepared.hub, false);
     // And zenoh: the ROS 2 topics, read by a peer of this test (so every topic is encoded).
     let port = std::net::TcpListener::bind("127.0.0.1:0")
@@ -341,11 +341,11 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         .local_addr()
         .unwrap()
         .port();
-    let zcfg = omnid::serve::zenoh::ZenohConfig {
+    let zcfg = omnid::transport::zenoh::ZenohConfig {
         listen: vec![format!("tcp/127.0.0.1:{port}")],
         ..Default::default()
     };
-    let net = omnid::serve::zenoh::ZenohNet::start(&zcfg).unwrap();
+    let net = omnid::transport::zenoh::ZenohNet::start(&zcfg).unwrap();
     let (ztap, door) = net.arm(&prepared.hub).unwrap();
     let ros_reader = {
         use zenoh::Wait;
@@ -367,7 +367,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         (s, sub, got)
     };
     let hub = std::thread::spawn(move || {
-        let mut hub = omnid::serve::hub::Hub::new(prepared.hub);
+        let mut hub = omnid::transport::hub::Hub::new(prepared.hub);
         hub.add_tap(tap);
         hub.add_tap(ztap);
         hub.add_zenoh(door);
@@ -480,15 +480,18 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
 
 #[test]
 fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
-    use omnid::serve::client::Client;
+    use omnid::transport::client::Client;
     use serde_json::json;
 
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = Config::default();
     cfg.safety.persist_heat = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
-    let opts = omnid::daemon::ServeOptions {
-        devices: vec![omnid::run::DeviceSpec::Sim, omnid::run::DeviceSpec::Sim],
+    let opts = omnid::cmd::serve::ServeOptions {
+        devices: vec![
+            omnid::cmd::run::DeviceSpec::Sim,
+            omnid::cmd::run::DeviceSpec::Sim,
+        ],
         arms: Vec::new(),
         controller: ControllerKind::Nnidc,
         socket: None,
@@ -503,16 +506,16 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
     let mut servos = Vec::new();
     let mut hubs = Vec::new();
     let mut clients = Vec::new();
-    for (k, mut arm) in omnid::daemon::arms(&opts, &cfg)
+    for (k, mut arm) in omnid::cmd::serve::arms(&opts, &cfg)
         .unwrap()
         .into_iter()
         .enumerate()
     {
         arm.socket = Some(dir.path().join(format!("arm{k}.sock")));
-        let p = omnid::daemon::prepare_arm(&arm, &opts, &cfg, stop.clone()).unwrap();
+        let p = omnid::cmd::serve::prepare_arm(&arm, &opts, &cfg, stop.clone()).unwrap();
         servos.push(p.pipeline.servo);
         hubs.push(std::thread::spawn(move || {
-            omnid::serve::hub::Hub::new(p.hub).run()
+            omnid::transport::hub::Hub::new(p.hub).run()
         }));
         let path = arm.socket.clone().unwrap();
         // A commander per arm: every state answered with a setpoint.

@@ -21,11 +21,11 @@ pub use crate::estimate::kalman::KalmanConfig;
 pub use crate::haptics::HapticsConfig;
 pub use crate::identifier::IdentifierConfig;
 use crate::omni::{Geometry, ModelParams};
-pub use crate::serve::ServeConfig;
 pub use crate::servo::realtime::RealtimeConfig;
 pub use crate::servo::safety::SafetyConfig;
 pub(crate) use crate::servo::ServoSetup;
 pub use crate::telemetry::TelemetryConfig;
+pub use crate::transport::ServeConfig;
 pub use arms::ArmSpec;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -90,7 +90,7 @@ pub struct Config {
     /// Haptics: tip force limits, the passivity controller, and the simulated hand (docs/HAPTICS.md).
     pub haptics: HapticsConfig,
     /// zenoh: the arms past this PC, ROS 2 (rmw_zenoh) and remote clients (docs/ZENOH.md).
-    pub zenoh: crate::serve::zenoh::ZenohConfig,
+    pub zenoh: crate::transport::zenoh::ZenohConfig,
     /// Teleoperation between a leader and a follower arm (docs/TELEOP.md).
     pub teleop: crate::teleop::TeleopConfig,
     /// Several arms in one daemon (`[[arm]]`, see `omnid config --print-default`'s end); none:

@@ -189,12 +189,12 @@ pub fn open<'a>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cmd::assembly::{heat_path, RunOptions};
     use crate::config::Config;
     use crate::device::calibration::Calibration;
     use crate::device::codec::{decode_state, encode_command, MotorCommand};
     use crate::device::firewire::fake::{ArmState, FakeBus};
     use crate::device::firewire::{choose_by_serial, serial};
-    use crate::pipeline::{heat_path, RunOptions};
     use crate::servo::thermal_store;
 
     /// Two FireWire Omnis on one bus, served as two arms: each arm finds its own unit by

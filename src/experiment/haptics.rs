@@ -7,13 +7,13 @@
 //! `report.md`, `results.json`, the logs and figures.
 
 use super::{ExperimentError, ExperimentReport};
+use crate::cmd::run::{execute, RunOptions};
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::haptics::{Effect, HandPattern, HapticRun};
 use crate::omni::{jacobian, tip_position_mm, Joint3};
 use crate::plot::figures::Role;
 use crate::plot::render::{Figure, Line, Panel};
-use crate::run::{execute, RunOptions};
 use crate::telemetry::reader::{ColumnReader, ReadError, Row};
 use serde_json::{json, Value};
 use std::fmt::Write as _;

@@ -1,5 +1,5 @@
 //! `omnid experiment`: the paper's experiments in one command each, on the simulated Omni
-//! (`--fast` runs through [`crate::run::execute`], fixed seeds), each writing `report.md`
+//! (`--fast` runs through [`crate::cmd::run::execute`], fixed seeds), each writing `report.md`
 //! with its tables and figures into an output directory.
 //!
 //! - [`Experiment::Validation`] (Figs. 8–12): pre-tune the networks on PD multisine logs, then
@@ -13,15 +13,15 @@
 mod haptics;
 pub mod teleop;
 
+use crate::cmd::identify::{identify, samples_from_log, IdentifyError};
+use crate::cmd::run::{execute, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::identifier::{Identifier, PretuneConfig, PretuneReport, Progress, Sample, WeightsFile};
-use crate::log_pretune::{identify, samples_from_log, IdentifyError};
 use crate::output::OutputError;
 use crate::plot::figures::{Role, FIGURES};
 use crate::plot::render::{self, Figure, Line, Panel, FORMATS};
 use crate::plot::{plot_log, PlotError};
-use crate::run::{execute, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 use crate::servo::summary::RunSummary;
 use crate::telemetry::reader::ColumnReader;
 use std::fmt::Write as _;

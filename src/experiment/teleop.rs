@@ -6,13 +6,12 @@
 //! `report.md`, `results.json` and figures.
 
 use super::{write_figure, ExperimentError, ExperimentReport};
+use crate::cmd::assembly::{assemble, RunOptions};
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::haptics::{HandConfig, HandPattern};
-use crate::pipeline::{assemble, RunOptions};
 use crate::plot::figures::Role;
 use crate::plot::render::{Figure, Line, Panel};
-use crate::serve::zenoh::{ZenohConfig, ZenohNet};
 use crate::servo::Servo;
 use crate::telemetry::record::TickRecord;
 use crate::teleop::channel::packet_flags;
@@ -20,6 +19,7 @@ use crate::teleop::{
     pair, Architecture, Coupling, Endpoint, Impairment, Operator, Packet, RemoteLine, Role as Side,
     TeleopConfig,
 };
+use crate::transport::zenoh::{ZenohConfig, ZenohNet};
 use nalgebra::Vector3;
 use serde::Serialize;
 use std::fmt::Write as _;

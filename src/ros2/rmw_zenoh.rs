@@ -2,7 +2,7 @@
 //! key of a topic, the liveliness tokens that make a node and its endpoints appear in the ROS
 //! graph, the QoS chunk in its default-omitted form, an endpoint's GID (XXH3-128 of its token)
 //! and the 33-byte attachment every sample carries. Pure functions of strings and numbers: the
-//! transport that uses them is `serve::zenoh`.
+//! transport that uses them is `transport::zenoh`.
 
 // Constants, fields and variants named for what rmw_zenoh and ROS call them (docs/ZENOH.md).
 #![allow(missing_docs)]

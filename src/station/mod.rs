@@ -3,7 +3,7 @@
 //! open on it, the command lease and its checks, and the taps every tick record flows to: the
 //! fault ring, a recording, subscribers' state views, events, and any [`Tap`] added.
 //!
-//! A transport (the Unix socket in `serve::hub`) turns its messages into [`Op`]s, calls
+//! A transport (the Unix socket in `transport::hub`) turns its messages into [`Op`]s, calls
 //! [`Station::request`], and forwards what [`Station::pump`] hands out. Nothing here knows JSON
 //! or sockets; a test can drive a station directly.
 //!

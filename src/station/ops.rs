@@ -1,6 +1,6 @@
 //! The typed operations a session may ask of an arm's station, what they answer, and why one
 //! is refused. Transports turn their own messages into these (the Unix socket's JSON in
-//! `serve::hub`); the names and the messages are the same whichever transport a client uses.
+//! `transport::hub`); the names and the messages are the same whichever transport a client uses.
 
 use crate::control::{ControllerKind, Trajectory};
 use crate::haptics::Effect;

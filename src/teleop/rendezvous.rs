@@ -55,7 +55,7 @@ struct Waiting {
     opener: Weak<()>,
 }
 
-/// Opens a channel to a peer arm served by another daemon (zenoh: src/serve/zenoh/teleop.rs).
+/// Opens a channel to a peer arm served by another daemon (zenoh: src/transport/zenoh/teleop.rs).
 pub trait RemoteChannels: Send + Sync {
     /// Arm `me`'s end of a channel to `peer` (another daemon's arm) as `role`, with `config`;
     /// and what keeps the network side open (dropped when the side ends).

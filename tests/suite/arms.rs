@@ -5,7 +5,7 @@
 use crate::common;
 
 use common::Served;
-use omnid::serve::client::{Client, Message};
+use omnid::transport::client::{Client, Message};
 use serde_json::json;
 use std::time::{Duration, Instant};
 
@@ -235,7 +235,7 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
         .unwrap();
     // (leader tip, follower tip) at the same tick numbers while both are engaged.
     let mut engaged: Vec<([f64; 3], [f64; 3])> = Vec::new();
-    let mut last_f: Option<omnid::serve::protocol::State> = None;
+    let mut last_f: Option<omnid::transport::protocol::State> = None;
     let until = Instant::now() + Duration::from_secs(30);
     while engaged.len() < 150 {
         assert!(Instant::now() < until, "never 1.5 s engaged: {last_f:?}");

@@ -230,7 +230,7 @@ fn closed_stdout_and_stderr_change_no_exit_code_or_file() {
     drop(child.stdout.take());
     drop(child.stderr.take());
     let until = Instant::now() + Duration::from_secs(20);
-    while omnid::serve::client::Client::connect(std::path::Path::new(&socket), "t").is_err() {
+    while omnid::transport::client::Client::connect(std::path::Path::new(&socket), "t").is_err() {
         assert!(Instant::now() < until, "serve did not start");
         std::thread::sleep(Duration::from_millis(20));
     }

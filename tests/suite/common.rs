@@ -110,7 +110,7 @@ impl Served {
     fn wait_for(&self, socket: &Path) {
         let until = std::time::Instant::now() + std::time::Duration::from_secs(30);
         while std::time::Instant::now() < until {
-            if omnid::serve::client::Client::connect(socket, "probe").is_ok() {
+            if omnid::transport::client::Client::connect(socket, "probe").is_ok() {
                 return;
             }
             std::thread::sleep(std::time::Duration::from_millis(20));
@@ -119,8 +119,8 @@ impl Served {
     }
 
     /// A client of arm `name`.
-    pub fn client(&self, name: &str, who: &str) -> omnid::serve::client::Client {
-        omnid::serve::client::Client::connect(&self.socket(name), who).expect("connects")
+    pub fn client(&self, name: &str, who: &str) -> omnid::transport::client::Client {
+        omnid::transport::client::Client::connect(&self.socket(name), who).expect("connects")
     }
 
     /// `omnid ARGS` with this daemon's runtime directory.

@@ -2,7 +2,7 @@
 //! installed headers once for every test process (`HD::get`), run `omnid serve --device sim`.
 #![allow(dead_code)]
 
-use omnid::serve::client::Client;
+use omnid::transport::client::Client;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;

@@ -8,7 +8,7 @@ use crate::hd;
 
 use hd::{run, Daemon, HD};
 use omnid::omni::kinematics::{jacobian, tip_position_mm, Geometry};
-use omnid::serve::client::Message;
+use omnid::transport::client::Message;
 use std::io::{BufRead, BufReader};
 use std::process::Stdio;
 use std::time::{Duration, Instant};

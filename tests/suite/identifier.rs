@@ -2,9 +2,9 @@
 //! online learning from scratch, pre-tuned prediction on an unseen log, the skew-symmetry
 //! terms, and NNIDC's tracking against PD and computed torque.
 
+use omnid::cmd::run::{execute, DeviceSpec, RunOptions, RunOutcome};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
-use omnid::run::{execute, DeviceSpec, RunOptions, RunOutcome};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;

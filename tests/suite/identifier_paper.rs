@@ -4,12 +4,12 @@
 //! networks, pre-tuned and adapting, track better than PD and close to computed torque.
 
 use nalgebra::Matrix3;
+use omnid::cmd::identify::samples_from_log;
+use omnid::cmd::run::{execute, RunOptions, RunOutcome};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
 use omnid::identifier::{pretune, Identifier, IdentifierConfig, PretuneConfig, Sample};
-use omnid::log_pretune::samples_from_log;
 use omnid::omni::{Dynamics, Geometry, ModelParams};
-use omnid::run::{execute, RunOptions, RunOutcome};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;

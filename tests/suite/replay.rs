@@ -3,9 +3,9 @@
 
 use crate::common;
 use common::{omnid, Log};
+use omnid::cmd::run::{execute, DeviceSpec, RunOptions, RunOutcome};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
-use omnid::run::{execute, DeviceSpec, RunOptions, RunOutcome};
 use omnid::servo::EndReason;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;

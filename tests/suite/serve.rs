@@ -5,8 +5,8 @@
 use crate::common;
 
 use common::omnid;
-use omnid::serve::client::{Client, ClientError, Message};
-use omnid::serve::protocol::State;
+use omnid::transport::client::{Client, ClientError, Message};
+use omnid::transport::protocol::State;
 use serde_json::{json, Value};
 use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
@@ -551,7 +551,7 @@ fn bad_messages_hurt_only_their_sender() {
     assert!(matches!(big.recv(5000), Err(ClientError::Closed)));
 
     // An unknown protocol version: refused and dropped.
-    let conn = omnid::serve::socket::Conn::connect(&d.socket).unwrap();
+    let conn = omnid::transport::socket::Conn::connect(&d.socket).unwrap();
     conn.send(br#"{"op":"hello","protocol":99}"#).unwrap();
     let mut buf = vec![0u8; 70_000];
     let n = conn.recv(&mut buf).unwrap();
@@ -563,7 +563,7 @@ fn bad_messages_hurt_only_their_sender() {
     assert_eq!(conn.recv(&mut buf).unwrap(), 0, "closed");
 
     // Not saying hello first: refused and dropped.
-    let conn = omnid::serve::socket::Conn::connect(&d.socket).unwrap();
+    let conn = omnid::transport::socket::Conn::connect(&d.socket).unwrap();
     conn.send(br#"{"op":"status"}"#).unwrap();
     let n = conn.recv(&mut buf).unwrap();
     assert!(String::from_utf8_lossy(&buf[..n]).contains("hello"));

@@ -5,8 +5,8 @@
 use crate::common;
 
 use common::Served;
-use omnid::serve::client::{Client, ClientError, Message};
-use omnid::serve::protocol::State;
+use omnid::transport::client::{Client, ClientError, Message};
+use omnid::transport::protocol::State;
 use serde_json::json;
 use std::time::{Duration, Instant};
 
@@ -96,7 +96,7 @@ fn a_hung_holder_and_silent_connections_cannot_stop_mode_idle() {
         .unwrap();
     // 140 connections that never say hello (more than serve.max_clients).
     let silent: Vec<_> = (0..140)
-        .filter_map(|_| omnid::serve::socket::Conn::connect(&d.socket("sim")).ok())
+        .filter_map(|_| omnid::transport::socket::Conn::connect(&d.socket("sim")).ok())
         .collect();
     assert_eq!(silent.len(), 140);
     let mut watch = d.client("sim", "watch");

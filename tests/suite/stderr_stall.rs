@@ -4,7 +4,7 @@
 use crate::common;
 
 use common::omnid;
-use omnid::serve::client::Client;
+use omnid::transport::client::Client;
 use serde_json::json;
 use std::os::fd::{FromRawFd, OwnedFd};
 use std::process::Stdio;

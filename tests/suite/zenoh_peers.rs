@@ -330,8 +330,8 @@ mod teleop_over_zenoh {
     }
 
     /// Two sessions on loopback as two daemons', and a third: an intruder on the same keys.
-    fn zenoh_cfg(listen: &str, connect: &[String]) -> omnid::serve::zenoh::ZenohConfig {
-        omnid::serve::zenoh::ZenohConfig {
+    fn zenoh_cfg(listen: &str, connect: &[String]) -> omnid::transport::zenoh::ZenohConfig {
+        omnid::transport::zenoh::ZenohConfig {
             enabled: true,
             listen: vec![listen.to_string()],
             connect: connect.to_vec(),
@@ -345,9 +345,9 @@ mod teleop_over_zenoh {
     #[test]
     #[ignore = "paced"]
     fn frames_that_are_malformed_disagree_or_come_from_a_second_sender_are_refused_and_counted() {
-        use omnid::serve::zenoh::ZenohNet;
         use omnid::teleop::wire::{encode, Agreement};
         use omnid::teleop::{Packet, Role};
+        use omnid::transport::zenoh::ZenohNet;
         use zenoh::Wait;
         let port = super::free_port();
         let at = vec![format!("tcp/127.0.0.1:{port}")];
@@ -430,10 +430,10 @@ mod teleop_over_zenoh {
     #[test]
     #[ignore = "paced"]
     fn a_channel_to_another_daemon_needs_allow_commands_and_a_plain_arm_name() {
-        use omnid::serve::zenoh::ZenohNet;
         use omnid::teleop::Role;
+        use omnid::transport::zenoh::ZenohNet;
         let cfg = TeleopConfig::default();
-        let closed = ZenohNet::start(&omnid::serve::zenoh::ZenohConfig {
+        let closed = ZenohNet::start(&omnid::transport::zenoh::ZenohConfig {
             allow_commands: false,
             ..zenoh_cfg("tcp/127.0.0.1:0", &[])
         })
@@ -541,7 +541,7 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
     let cb = spawn_piped(b.teleop_console(&leader, &follower, "60"));
     // Both engaged; the tips sampled together every 10 ms, each the newest its stream has
     // (the daemons' clocks differ: pair by arrival).
-    fn newest(c: &mut omnid::serve::client::Client) -> omnid::serve::protocol::State {
+    fn newest(c: &mut omnid::transport::client::Client) -> omnid::transport::protocol::State {
         let mut s = c.next_state(5000).unwrap();
         while let Ok(n) = c.next_state(0) {
             s = n;

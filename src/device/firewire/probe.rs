@@ -1146,16 +1146,16 @@ mod tests {
         .unwrap();
         assert_eq!(conv.rows, rx as u64);
         let out = dir.path().join("replayed.csv");
-        let run = crate::run::RunOptions {
-            device: crate::run::DeviceSpec::Replay(log.clone()),
+        let run = crate::cmd::run::RunOptions {
+            device: crate::cmd::run::DeviceSpec::Replay(log.clone()),
             controller: crate::control::ControllerKind::Off,
             trajectory: crate::control::Trajectory::Hold,
             duration_s: f64::INFINITY,
             log: Some(out.clone()),
             fast: true,
-            ..crate::run::RunOptions::default()
+            ..crate::cmd::run::RunOptions::default()
         };
-        let outcome = crate::run::execute(
+        let outcome = crate::cmd::run::execute(
             &run,
             &crate::config::Config::default(),
             std::sync::Arc::new(AtomicBool::new(false)),

@@ -1,14 +1,16 @@
 //! `omnid run`: build the pipeline (device, controller, reference, servo, log writer) from the
 //! options, run it on its own thread, and turn the result into the run summary.
 
+pub(crate) use crate::cmd::assembly::{
+    assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME,
+};
+pub use crate::cmd::assembly::{make_identifier, Pipeline, RunError, RunOptions};
 use crate::config::Config;
 pub use crate::control::make_controller;
 use crate::control::{ControllerKind, Trajectory};
 use crate::device::inject::Fault;
 pub use crate::device::registry::DeviceSpec;
 use crate::omni::kinematics::Geometry;
-pub(crate) use crate::pipeline::{assemble, join_servo, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
-pub use crate::pipeline::{make_identifier, Pipeline, RunError, RunOptions};
 use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, ServoReport};
 use crate::telemetry::mcap_log::LogFormat;

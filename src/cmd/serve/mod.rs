@@ -6,15 +6,15 @@
 //! ends that arm only, unless `[serve] fail_together` says the arms stop together.
 
 use crate::arm::ArmIdentity;
+use crate::cmd::assembly::{assemble, join_servo, Ending, ServoThreadResult};
+use crate::cmd::run::{check_device_options, DeviceSpec, RunError, RunOptions};
 use crate::config::ArmSpec;
 use crate::config::Config;
-use crate::pipeline::{assemble, join_servo, Ending, ServoThreadResult};
-use crate::run::{check_device_options, DeviceSpec, RunError, RunOptions};
-use crate::serve::access::Policy;
-use crate::serve::socket::{self, Listener, SocketLock};
-use crate::serve::{default_socket, hub};
 use crate::servo::{ArmSignals, EndReason, ServoLink, Wake};
 use crate::station::{StationLimits, StationSetup};
+use crate::transport::access::Policy;
+use crate::transport::socket::{self, Listener, SocketLock};
+use crate::transport::{default_socket, hub};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -134,7 +134,7 @@ pub(crate) fn socket_permissions(policy: &Policy) -> (libc::mode_t, Option<u32>)
 /// that will serve its socket, bound and locked.
 pub struct Prepared {
     /// The servo loop, attached to the station's mailbox.
-    pub pipeline: crate::pipeline::Pipeline,
+    pub pipeline: crate::cmd::assembly::Pipeline,
     /// What [`hub::Hub::new`] takes.
     pub hub: hub::HubSetup,
     name: String,
@@ -339,7 +339,7 @@ pub fn serve(
     // The live view is up before any arm starts: a port that cannot be had serves nothing.
     let view = match opts.foxglove {
         Some(addr) => {
-            let view = crate::serve::foxglove::LiveView::start(addr)
+            let view = crate::transport::foxglove::LiveView::start(addr)
                 .map_err(|e| RunError::BadInput(e.to_string()))?;
             crate::errln!(
                 "omnid serve: live view on ws://{} (Foxglove, or Lichtblick 1.22.1 or later: open \
@@ -359,7 +359,7 @@ pub fn serve(
     };
     // zenoh is up before any arm starts, like the live view.
     let net = if opts.zenoh || cfg.zenoh.enabled {
-        let net = crate::serve::zenoh::ZenohNet::start(&cfg.zenoh)
+        let net = crate::transport::zenoh::ZenohNet::start(&cfg.zenoh)
             .map_err(|e| RunError::BadInput(e.to_string()))?;
         crate::errln!(
             "omnid serve: zenoh session {} listening on {} (ROS 2 domain {}; commands {}; \
@@ -486,7 +486,7 @@ pub fn arms_table(cfg: &Config) -> Result<String, RunError> {
             .socket
             .clone()
             .unwrap_or_else(|| default_socket(&arm.name));
-        let served = match crate::serve::client::Client::connect(&socket, "omnid devices") {
+        let served = match crate::transport::client::Client::connect(&socket, "omnid devices") {
             Ok(c) if c.hello().arm == arm.name => "served".to_string(),
             Ok(c) => format!("socket answers as arm `{}`", c.hello().arm),
             Err(_) => "not served".to_string(),
@@ -581,7 +581,7 @@ fn serve_clients(
     tap: Option<Box<dyn crate::station::Tap>>,
     zenoh: Option<(
         Box<dyn crate::station::Tap>,
-        crate::serve::zenoh::door::Door,
+        crate::transport::zenoh::door::Door,
     )>,
 ) -> hub::HubReport {
     if fifo_priority > 0 {
@@ -617,7 +617,7 @@ mod tests {
         // No single group could own the file: it is open to connect, and the credentials
         // decide (a control member who is not in the read group is admitted to command).
         assert_eq!(socket_permissions(&both), (0o666, None));
-        let member = crate::serve::socket::Peer {
+        let member = crate::transport::socket::Peer {
             pid: 1,
             uid: 7,
             gid: 7,
@@ -625,7 +625,7 @@ mod tests {
         };
         assert_eq!(
             both.decide(&member),
-            Ok(crate::serve::access::Access::Control)
+            Ok(crate::transport::access::Access::Control)
         );
         let read_only = Policy {
             control_group: None,

@@ -3,9 +3,9 @@
 //! more session, "ROS 2 over zenoh", that holds the lease while its commands keep coming.
 
 use super::{answer, encode, id_too_long, not_greeted, parse_request, to_op, Access, Hub};
-use crate::serve::protocol::{Request, MAX_MESSAGE, PROTOCOL_VERSION};
-use crate::serve::zenoh::door::{Door, Inbound};
 use crate::station::{Answer, FileRights, Op, Reply, SessionId, SessionInfo};
+use crate::transport::protocol::{Request, MAX_MESSAGE, PROTOCOL_VERSION};
+use crate::transport::zenoh::door::{Door, Inbound};
 use serde_json::{json, Value};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -110,7 +110,7 @@ fn error(op: &str, id: Option<&Value>, message: String) -> Value {
 }
 
 impl Hub {
-    /// Serve this arm over zenoh too (`serve::zenoh`).
+    /// Serve this arm over zenoh too (`transport::zenoh`).
     pub fn add_zenoh(&mut self, door: Door) {
         self.remote = Some(Remote::new(door));
     }
@@ -184,7 +184,7 @@ impl Hub {
                 r.clients.len() - 1
             }
             None => {
-                crate::serve::zenoh::ZenohStats::count(&r.door.stats.refused);
+                crate::transport::zenoh::ZenohStats::count(&r.door.stats.refused);
                 return;
             }
         };
@@ -263,7 +263,7 @@ impl Hub {
             return;
         };
         if !r.door.allow_commands {
-            crate::serve::zenoh::ZenohStats::count(&r.door.stats.refused);
+            crate::transport::zenoh::ZenohStats::count(&r.door.stats.refused);
             return;
         }
         let now = Instant::now();
@@ -285,7 +285,7 @@ impl Hub {
             let Some(r) = self.remote.as_mut() else {
                 return;
             };
-            crate::serve::zenoh::ZenohStats::count(&r.door.stats.refused);
+            crate::transport::zenoh::ZenohStats::count(&r.door.stats.refused);
             let now = Instant::now();
             if r.said.is_none_or(|t| now - t >= Duration::from_secs(1)) {
                 r.said = Some(now);

@@ -69,7 +69,7 @@ impl RunOptions {
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
 /// box (see mock/README.md for how they were made).
-pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../mock/nnidc-pretuned.json");
+pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../../mock/nnidc-pretuned.json");
 pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
 
 /// The identifier a run starts with, and a label for the summary.

@@ -181,7 +181,7 @@ impl ZenohNet {
     /// the door its hub takes requests through.
     pub fn arm(
         &self,
-        hub: &crate::serve::hub::HubSetup,
+        hub: &crate::transport::hub::HubSetup,
     ) -> Result<(Box<dyn Tap>, door::Door), ZenohError> {
         let s = &hub.station;
         let (hub_side, mut net_side) = door::Door::pair(

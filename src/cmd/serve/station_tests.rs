@@ -74,7 +74,7 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
     cfg.safety.persist_heat = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let opts = ServeOptions {
-        devices: vec![crate::run::DeviceSpec::Sim],
+        devices: vec![crate::cmd::run::DeviceSpec::Sim],
         arms: Vec::new(),
         controller: crate::control::ControllerKind::Pd,
         socket: Some(dir.path().join("unused.sock")),

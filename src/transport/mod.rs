@@ -1,7 +1,7 @@
 //! The client interface of `omnid serve` (docs/PROTOCOL.md): the hub that serves clients on a
 //! Unix SOCK_SEQPACKET socket, the protocol, access rules, the socket and its default place,
 //! and a Rust client. The daemon itself (assembling the servo and starting the hub) is
-//! `crate::daemon`.
+//! `crate::cmd::serve`.
 
 pub(crate) mod access;
 /// The Rust client (`omnid_client::client`), used by `omnid watch`, `omnid ctl`, the tests

@@ -1,0 +1,302 @@
+//! `omnid ctl`: commands to a running daemon, teleoperation among them.
+
+use crate::{
+    absolute, connect, stop_on_signal, EXIT_BAD_INPUT, EXIT_DEVICE_FAULT, EXIT_OPERATOR_STOP,
+    EXIT_REFUSED,
+};
+use clap::Subcommand;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub(crate) struct CtlArgs {
+    /// The daemon's socket [default: $OMNID_SOCKET, else the one in the default directory].
+    #[arg(long)]
+    socket: Option<PathBuf>,
+    /// The arm, by name or alias (its socket `<name>.sock` in the default directories).
+    #[arg(long, value_name = "NAME", conflicts_with = "socket")]
+    arm: Option<String>,
+    /// Print the daemon's reply as JSON (for programs; `status`: the keys of
+    /// docs/DESIGN.md §2.3) instead of the readable form; `teleop start`: a JSON object a line
+    /// (`note`s, and each second a `pair` with each arm's latest state).
+    #[arg(long, global = true)]
+    json: bool,
+    #[command(subcommand)]
+    command: CtlCommand,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum CtlCommand {
+    /// The mode, controller, lease, clients, faults, tracking, timing and recording (`--json`:
+    /// the run summary so far with them).
+    Status,
+    /// idle, hold, track or free (track follows --trajectory).
+    Mode {
+        mode: String,
+        #[arg(long, default_value = "sine")]
+        trajectory: String,
+    },
+    /// Switch the control law (bumpless): pd, ct, nnidc, off.
+    Controller { controller: String },
+    /// Start or stop recording every tick to a log (CSV, as `omnid run` writes).
+    Record {
+        /// start or stop
+        action: String,
+        path: Option<PathBuf>,
+    },
+    /// Save the identifier's weights to a file, or load them from one.
+    Weights {
+        /// save or load
+        action: String,
+        path: PathBuf,
+    },
+    /// Freeze the identifier's online adaptation.
+    Freeze,
+    /// Resume the identifier's online adaptation.
+    Adapt,
+    /// Stop the daemon (zero torque, amplifiers off).
+    Shutdown,
+    /// Simulator: the hand presses, releases or clicks (press, then release 0.1 s later) a
+    /// stylus button, 1 or 2.
+    Button {
+        /// 1 or 2
+        button: u64,
+        /// press, release or click
+        action: String,
+    },
+    /// Simulator: the hand puts the stylus in its inkwell.
+    Dock,
+    /// Simulator: the hand takes the stylus out of its inkwell and holds it lightly.
+    Undock,
+    /// Teleoperation between two arms of the daemon (docs/TELEOP.md): `start` couples them
+    /// and watches until Ctrl-C, which uncouples them (both hold).
+    Teleop {
+        #[command(subcommand)]
+        action: TeleopAction,
+    },
+}
+
+#[derive(Subcommand)]
+pub(crate) enum TeleopAction {
+    /// Couple a leader arm (a person moves it) and a follower arm (it copies the leader),
+    /// with `[teleop]`'s settings and the changes given; runs until Ctrl-C or --seconds.
+    Start {
+        /// The leader arm, by name or alias.
+        #[arg(long, value_name = "ARM")]
+        leader: String,
+        /// The follower arm, by name or alias.
+        #[arg(long, value_name = "ARM")]
+        follower: String,
+        /// pp (position–position) or pf (position–force, from the follower's estimate).
+        #[arg(long)]
+        architecture: Option<String>,
+        /// Follower mm per leader mm.
+        #[arg(long)]
+        motion_scale: Option<f64>,
+        /// The leader feels this times the force.
+        #[arg(long)]
+        force_scale: Option<f64>,
+        /// When the operator counts as present: button1 (held) or always.
+        #[arg(long)]
+        operator: Option<String>,
+        /// Time-domain passivity off (on by default).
+        #[arg(long)]
+        no_passivity: bool,
+        /// Uncouple after this many seconds.
+        #[arg(long)]
+        seconds: Option<f64>,
+    },
+}
+
+pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
+    use serde_json::json;
+    if let CtlCommand::Teleop { action } = args.command {
+        return teleop_console(action, args.json);
+    }
+    let request = match &args.command {
+        CtlCommand::Status => json!({ "op": "status" }),
+        CtlCommand::Mode { mode, trajectory } => {
+            json!({ "op": "mode", "mode": mode, "trajectory": trajectory })
+        }
+        CtlCommand::Controller { controller } => {
+            json!({ "op": "controller", "controller": controller })
+        }
+        CtlCommand::Record { action, path } => match action.as_str() {
+            "start" => json!({ "op": "record_start", "path": path }),
+            "stop" => json!({ "op": "record_stop" }),
+            other => {
+                omnid::errln!("omnid ctl: record {other}: expected start or stop");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        CtlCommand::Weights { action, path } => match action.as_str() {
+            "save" => json!({ "op": "weights_save", "path": absolute(path) }),
+            "load" => json!({ "op": "weights_load", "path": absolute(path) }),
+            other => {
+                omnid::errln!("omnid ctl: weights {other}: expected save or load");
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
+        CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
+        CtlCommand::Shutdown => json!({ "op": "shutdown" }),
+        CtlCommand::Button { button, action } => match action.as_str() {
+            "press" | "release" | "click" => {
+                json!({ "op": "stylus", "action": action, "button": button })
+            }
+            other => {
+                omnid::errln!(
+                    "omnid ctl: button {button} {}: expected press, release or click",
+                    omnid::text::cut(other)
+                );
+                return Ok(EXIT_BAD_INPUT);
+            }
+        },
+        CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
+        CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
+        CtlCommand::Teleop { .. } => unreachable!("handled above"),
+    };
+    // Paths are the daemon's to open: make relative ones relative to where ctl runs.
+    let mut request = request;
+    if let Some(p) = request
+        .get("path")
+        .and_then(|p| p.as_str())
+        .map(String::from)
+    {
+        request["path"] = json!(absolute(std::path::Path::new(&p)));
+    }
+    let mut client = match connect(args.socket, args.arm.as_deref(), "omnid ctl") {
+        Ok(c) => c,
+        Err(code) => return Ok(code),
+    };
+    match client.request(request) {
+        Ok(reply) => {
+            let text = match &args.command {
+                CtlCommand::Status if args.json => serde_json::to_string_pretty(&reply["status"])?,
+                CtlCommand::Status => omnid::human::status_block(&reply["status"])
+                    .trim_end()
+                    .to_string(),
+                _ if !args.json => omnid::human::reply_line(&reply),
+                _ => {
+                    let mut r = reply.clone();
+                    if let Some(o) = r.as_object_mut() {
+                        o.remove("type");
+                        o.remove("id");
+                    }
+                    r.to_string()
+                }
+            };
+            omnid::outln!("{text}");
+            Ok(0)
+        }
+        Err(e) => {
+            omnid::errln!("omnid ctl: {e}");
+            Ok(EXIT_REFUSED)
+        }
+    }
+}
+
+/// `omnid ctl teleop start`: the pair's console, until Ctrl-C, SIGTERM or --seconds.
+pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, anyhow::Error> {
+    use omnid::teleop::console::{self, ConsoleEnd, PairSettings};
+    let TeleopAction::Start {
+        leader,
+        follower,
+        architecture,
+        motion_scale,
+        force_scale,
+        operator,
+        no_passivity,
+        seconds,
+    } = action;
+    if seconds.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+        omnid::errln!("omnid ctl teleop: --seconds must be a number > 0");
+        return Ok(EXIT_BAD_INPUT);
+    }
+    let stop = stop_on_signal()?;
+    // Each arm on this PC, or served by another daemon (then its side is started there).
+    let found = [&leader, &follower].map(|arm| omnid::transport::find_arm_socket(arm));
+    if let [Err(a), Err(b)] = &found {
+        omnid::errln!("omnid: {a}");
+        omnid::errln!("omnid: {b}");
+        return Ok(EXIT_DEVICE_FAULT);
+    }
+    let mut clients = Vec::new();
+    for (p, who) in found.iter().zip(["leader", "follower"]) {
+        clients.push(match p {
+            Ok(p) => {
+                let name = format!("omnid ctl teleop ({who})");
+                match omnid::transport::client::Client::connect(p, &name) {
+                    Ok(c) => Some(c),
+                    Err(e) => {
+                        omnid::errln!("omnid: {e}");
+                        return Ok(match e {
+                            omnid::transport::client::ClientError::Refused(_) => EXIT_REFUSED,
+                            _ => EXIT_DEVICE_FAULT,
+                        });
+                    }
+                }
+            }
+            Err(_) => None,
+        });
+    }
+    let mut f_client = clients.pop().flatten();
+    let mut l_client = clients.pop().flatten();
+    fn side<'a>(
+        c: Option<&'a mut omnid::transport::client::Client>,
+        name: &str,
+    ) -> console::Side<'a> {
+        match c {
+            Some(c) => console::Side::Here(c),
+            None => console::Side::Elsewhere(name.to_string()),
+        }
+    }
+    let settings = PairSettings {
+        architecture,
+        motion_scale,
+        force_scale,
+        operator,
+        passivity: no_passivity.then_some(false),
+    };
+    let mut out = |line: &str| omnid::outln!("{line}");
+    let mut say = console::Say {
+        json,
+        out: &mut out,
+    };
+    match console::run(
+        side(l_client.as_mut(), &leader),
+        side(f_client.as_mut(), &follower),
+        &settings,
+        seconds,
+        &stop,
+        &mut say,
+    ) {
+        Ok(ConsoleEnd::Elapsed) => {
+            omnid::outln!(
+                "teleop: uncoupled after {} s; both arms hold",
+                seconds.unwrap_or(0.0)
+            );
+            Ok(0)
+        }
+        Ok(ConsoleEnd::Stopped) => {
+            omnid::errln!(
+                "omnid ctl teleop: stopped by the operator; both arms uncoupled, holding"
+            );
+            Ok(EXIT_OPERATOR_STOP)
+        }
+        Ok(ConsoleEnd::ArmLeft { arm, mode }) => {
+            omnid::errln!(
+                "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled (the \
+                 follower holds, the leader's force faded); `omnid ctl --arm {arm} status` says why"
+            );
+            Ok(EXIT_DEVICE_FAULT)
+        }
+        Ok(ConsoleEnd::Gone(arm)) => {
+            omnid::errln!("omnid ctl teleop: {arm}'s daemon closed the connection");
+            Ok(EXIT_DEVICE_FAULT)
+        }
+        Err(e) => {
+            omnid::errln!("omnid ctl teleop: {e}");
+            Ok(EXIT_REFUSED)
+        }
+    }
+}
