@@ -4,7 +4,7 @@
 mod cli;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use cli::{
     convert::convert_cmd, convert::ConvertArgs, ctl::ctl_cmd, ctl::CtlArgs, identify::identify_cmd,
     identify::IdentifyArgs, plot::plot_cmd, probe::probe_cmd, probe::ProbeArgs, run::run,
@@ -25,7 +25,7 @@ const EXIT_OPERATOR_STOP: u8 = 130;
 #[derive(Parser)]
 #[command(
     name = "omnid",
-    version,
+    version = env!("OMNID_VERSION"),
     about = "Hardware I/O daemon for the Phantom Omni haptic device"
 )]
 struct Cli {
@@ -85,6 +85,15 @@ enum Command {
         #[arg(long)]
         quick: bool,
     },
+    /// Print a shell completion script to stdout, e.g.
+    /// `omnid completions bash > ~/.local/share/bash-completion/completions/omnid`.
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
+    /// Print the manual page (roff) to stdout, e.g.
+    /// `omnid manpage > ~/.local/share/man/man1/omnid.1`, then `man omnid`.
+    Manpage,
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -243,6 +252,22 @@ fn run_cli() -> ExitCode {
                     omnid::errln!("omnid experiment {}: {e}", kind.as_str());
                     Ok(error_exit(false, e.is_bad_input()))
                 }
+            }
+        }
+        Command::Completions { shell } => {
+            let mut script = Vec::new();
+            clap_complete::generate(shell, &mut Cli::command(), "omnid", &mut script);
+            omnid::out!("{}", String::from_utf8_lossy(&script));
+            Ok(0)
+        }
+        Command::Manpage => {
+            let mut page = Vec::new();
+            match clap_mangen::Man::new(Cli::command()).render(&mut page) {
+                Ok(()) => {
+                    omnid::out!("{}", String::from_utf8_lossy(&page));
+                    Ok(0)
+                }
+                Err(e) => Err(anyhow::Error::new(e).context("rendering the manual page")),
             }
         }
         Command::Config { print_default } => {

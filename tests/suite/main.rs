@@ -16,6 +16,7 @@ mod cli_human;
 mod cli_input;
 mod cli_run;
 mod config_fuzz_smoke;
+mod ecosystem;
 mod experiment;
 mod faults;
 mod haptics;
