@@ -35,6 +35,7 @@ mod protocol_fuzz_smoke;
 mod python_client;
 mod reader_errors;
 mod readme;
+mod readme_numbers;
 mod replay;
 mod ros_touch;
 mod safety_estimator;
