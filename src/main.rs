@@ -7,8 +7,8 @@ use anyhow::Context;
 use clap::{CommandFactory, Parser, Subcommand};
 use cli::{
     convert::convert_cmd, convert::ConvertArgs, ctl::ctl_cmd, ctl::CtlArgs, identify::identify_cmd,
-    identify::IdentifyArgs, plot::plot_cmd, probe::probe_cmd, probe::ProbeArgs, run::run,
-    run::RunArgs, serve::serve_cmd, serve::ServeArgs, watch::watch_cmd, watch::WatchArgs,
+    identify::IdentifyArgs, plot::plot_cmd, plot::PlotArgs, probe::probe_cmd, probe::ProbeArgs,
+    run::run, run::RunArgs, serve::serve_cmd, serve::ServeArgs, watch::watch_cmd, watch::WatchArgs,
 };
 use omnid::config::Config;
 use std::path::PathBuf;
@@ -62,16 +62,7 @@ enum Command {
     },
     /// Figures (PNG and SVG) from a log: angles, torque vs. the identifier's estimate,
     /// identification and tracking errors, control effort; a haptic run's tip path and forces.
-    Plot {
-        /// The CSV log (at least `t`; figures whose columns are missing are skipped).
-        log: PathBuf,
-        /// Directory for the figures (created if needed).
-        #[arg(long)]
-        out: PathBuf,
-        /// The scene the run rendered: its walls are drawn on the tip path.
-        #[arg(long, value_name = "SCENE.toml")]
-        scene: Option<PathBuf>,
-    },
+    Plot(PlotArgs),
     /// Reproduce the paper's experiments on the simulator, and the haptics experiment: runs,
     /// `DIR/report.md` with the tables, and the figures.
     Experiment {
@@ -236,7 +227,7 @@ fn run_cli() -> ExitCode {
             }
             Err(code) => Ok(code),
         },
-        Command::Plot { log, out, scene } => plot_cmd(&log, &out, scene.as_deref()),
+        Command::Plot(args) => plot_cmd(args),
         Command::Experiment { kind, out, quick } => {
             match omnid::experiment::run_experiment(kind, &out, quick) {
                 Ok(report) => {

@@ -870,6 +870,8 @@ fn press_figure(
         })
         .collect();
     let fig = Figure {
+        size: (crate::plot::render::WIDTH, crate::plot::render::HEIGHT),
+        font_scale: 1.0,
         title: "Press with 1 N into a 1 N/mm floor: the force felt at the leader",
         y_desc: "force up (+y), N",
         x_range: (0.0, x_max.max(1e-3)),
