@@ -447,15 +447,22 @@ fn tick_formatter((lo, hi): (f64, f64), labels: usize) -> impl Fn(&f64) -> Strin
 /// The fewest decimals (up to 6) that print every one of `ticks` exactly; None when there are
 /// none or they need more (scientific notation then).
 fn exact_decimals(ticks: &[f64]) -> Option<usize> {
-    if ticks.is_empty() {
+    // The step between ticks: labels must tell neighbours apart.
+    let step = ticks
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .filter(|d| *d > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    if !step.is_finite() {
         return None;
     }
     (0..=6).find(|&d| {
         let scale = 10f64.powi(d as i32);
-        ticks.iter().all(|&v| {
-            let scaled = v * scale;
-            (scaled - scaled.round()).abs() <= 1e-6 * scaled.abs().max(1.0)
-        })
+        step * scale >= 1.0 - 1e-9
+            && ticks.iter().all(|&v| {
+                let scaled = v * scale;
+                (scaled - scaled.round()).abs() <= 1e-6 * scaled.abs().max(1.0)
+            })
     })
 }
 
@@ -500,6 +507,31 @@ mod tests {
         let f = tick_formatter((-0.5, 0.5), 5);
         assert_eq!(f(&-0.0001), "0.0");
         assert_eq!(f(&-0.2), "-0.2");
+    }
+
+    #[test]
+    fn labels_have_the_decimals_of_the_ticks_plotters_draws() {
+        // The control-effort axis: ticks 0.05 apart need two decimals.
+        for (lo, hi, n) in [
+            (-0.12, 0.22, 5),
+            (-0.11, 0.11, 5),
+            (0.0, 10.0, 12),
+            (-3.3, 7.9, 5),
+        ] {
+            let ticks = RangedCoordf64::from(lo..hi).key_points(n);
+            let fmt = tick_formatter((lo, hi), n);
+            let labels: Vec<String> = ticks.iter().map(|t| fmt(t)).collect();
+            for (t, l) in ticks.iter().zip(&labels) {
+                let back: f64 = l.parse().unwrap();
+                assert!((back - t).abs() < 1e-9, "{lo}..{hi}: {t} printed {l}");
+            }
+            let mut distinct = labels.clone();
+            distinct.dedup();
+            assert_eq!(distinct.len(), labels.len(), "{labels:?}");
+        }
+        assert_eq!(exact_decimals(&[-0.1, -0.05, 0.0, 0.05]), Some(2));
+        assert_eq!(exact_decimals(&[0.0, 0.25, 0.5]), Some(2));
+        assert_eq!(exact_decimals(&[0.0]), None);
     }
 
     #[test]
