@@ -124,14 +124,22 @@ fn connect(
 ) -> Result<omnid::transport::client::Client, u8> {
     let found = match (socket, arm) {
         (Some(p), _) => Ok(p),
-        (None, Some(arm)) => omnid::transport::find_arm_socket(arm),
-        (None, None) => omnid::transport::find_socket(),
+        (None, Some(arm)) => omnid::transport::find_arm_socket(arm).map_err(|e| (e, false)),
+        (None, None) => omnid::transport::find_socket().map_err(|e| {
+            let several = matches!(e, omnid::transport::FindError::Several { .. });
+            (e.to_string(), several)
+        }),
     };
     let path = match found {
         Ok(p) => p,
-        Err(e) => {
+        Err((e, ambiguous)) => {
             omnid::errln!("omnid: {e}");
-            return Err(EXIT_DEVICE_FAULT);
+            // Which arm is the caller's to say (bad input); no daemon is the device missing.
+            return Err(if ambiguous {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_DEVICE_FAULT
+            });
         }
     };
     omnid::transport::client::Client::connect(&path, name).map_err(|e| {

@@ -256,9 +256,10 @@ def find_socket() -> str:
         if len(found) == 1:
             return found[0]
         if len(found) > 1:
+            arms = [os.path.basename(f)[: -len(".sock")] for f in found]
             raise SocketNotFoundError(
-                "several omnid sockets in %s: %s; pass the path (Client(path)) or set "
-                "OMNID_SOCKET" % (d, ", ".join(found))
+                "several arms are served in %s: %s; name one with Client(arm=...) (or pass "
+                "the socket's path)" % (d, ", ".join(arms))
             )
     raise SocketNotFoundError(
         "no omnid socket found in %s: is `omnid serve` running? (or pass the path, "

@@ -284,9 +284,20 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
             Ok(EXIT_OPERATOR_STOP)
         }
         Ok(ConsoleEnd::ArmLeft { arm, mode }) => {
+            // What each side does now: the one that left is in its new mode.
+            let follower_now = if arm == follower {
+                format!("the follower is {mode}")
+            } else {
+                "the follower holds".to_string()
+            };
+            let leader_now = if arm == leader {
+                format!("the leader is {mode}")
+            } else {
+                "the leader's force faded".to_string()
+            };
             omnid::errln!(
-                "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled (the \
-                 follower holds, the leader's force faded); `omnid ctl --arm {arm} status` says why"
+                "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled \
+                 ({follower_now}, {leader_now}); `omnid ctl --arm {arm} status` says why"
             );
             Ok(EXIT_DEVICE_FAULT)
         }

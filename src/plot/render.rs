@@ -520,7 +520,7 @@ mod tests {
         ] {
             let ticks = RangedCoordf64::from(lo..hi).key_points(n);
             let fmt = tick_formatter((lo, hi), n);
-            let labels: Vec<String> = ticks.iter().map(|t| fmt(t)).collect();
+            let labels: Vec<String> = ticks.iter().map(&fmt).collect();
             for (t, l) in ticks.iter().zip(&labels) {
                 let back: f64 = l.parse().unwrap();
                 assert!((back - t).abs() < 1e-9, "{lo}..{hi}: {t} printed {l}");
