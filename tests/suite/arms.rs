@@ -422,10 +422,11 @@ fn a_console_killed_outright_leaves_both_arms_uncoupled_and_holding() {
 #[ignore = "paced"]
 fn ctl_teleop_align_brings_the_follower_to_the_leaders_pose_before_coupling() {
     let (leader, follower) = (unique("alead"), unique("afollow"));
-    // The hand takes the leader out to its path around the workspace centre; the follower
-    // starts in its inkwell, centimetres away.
+    // The leader starts out of its inkwell, the hand then moving it along its path; the
+    // follower starts in its inkwell, centimetres away.
     let config = format!(
         "[teleop]\noperator = \"always\"\n\n[[arm]]\nname = \"{leader}\"\n\
+         [arm.sim]\nstart_pose = [0.3, 0.65, 0.3]\ndocked = false\n\
          [arm.haptics.hand]\npattern = \"path\"\nspeed_m_s = 0.02\n\n[[arm]]\nname = \"{follower}\"\n"
     );
     let d = Served::start(&[], Some(&config), &[&leader, &follower]);
