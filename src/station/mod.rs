@@ -708,7 +708,7 @@ impl Station {
             .s
             .rendezvous
             .join(&self.s.arm.name, &request.peer, role, &cfg, seed)
-            .map_err(|e| OpError::Invalid(format!("teleop: {e}")))?;
+            .map_err(|e| OpError::Invalid(e.to_string()))?;
         let dt = self.s.period_ns as f64 * 1e-9;
         let coupling = Box::new(crate::teleop::Coupling::new(role, &cfg, endpoint, dt));
         self.sessions[k].stopped_by = None;
