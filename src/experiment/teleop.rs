@@ -490,9 +490,10 @@ impl PairSim {
 }
 
 /// The zenoh settings of one of the experiment's two daemons: peer mode on loopback, nothing
-/// else served, commands allowed (the channel moves the arm).
-fn zenoh_side(listen: &str, connect: Option<&str>) -> ZenohConfig {
+/// else served, commands allowed (the channel moves the arm), the pair's key `key`.
+fn zenoh_side(listen: &str, connect: Option<&str>, key: &str) -> ZenohConfig {
     ZenohConfig {
+        teleop_keys: [("leader/follower".to_string(), key.to_string())].into(),
         enabled: true,
         listen: vec![listen.to_string()],
         connect: connect.map(|c| vec![c.to_string()]).unwrap_or_default(),
@@ -513,9 +514,15 @@ fn zenoh_channel(tcfg: &TeleopConfig) -> Result<(Endpoint, Endpoint, ZenohPair),
         .map_err(|e| format!("no free loopback port: {e}"))?
         .port();
     let at = format!("tcp/127.0.0.1:{port}");
-    let lnet = ZenohNet::start(&zenoh_side(&at, None)).map_err(|e| e.to_string())?;
-    let fnet =
-        ZenohNet::start(&zenoh_side("tcp/127.0.0.1:0", Some(&at))).map_err(|e| e.to_string())?;
+    // The pair's key, fresh for the run, as `head -c32 /dev/urandom | base64` makes one.
+    let key = {
+        use base64::Engine;
+        let bytes: [u8; 32] = rand::random();
+        base64::engine::general_purpose::STANDARD.encode(bytes)
+    };
+    let lnet = ZenohNet::start(&zenoh_side(&at, None, &key)).map_err(|e| e.to_string())?;
+    let fnet = ZenohNet::start(&zenoh_side("tcp/127.0.0.1:0", Some(&at), &key))
+        .map_err(|e| e.to_string())?;
     let (mut le, ll) = lnet
         .teleop()
         .open("leader", "follower", Side::Leader, tcfg, 0x7E1E)?;

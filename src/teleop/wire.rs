@@ -3,9 +3,17 @@
 //! What arrives is checked before it can move an arm: its size, its magic and version, that
 //! the sender runs the same architecture and passivity setting, and that every number is
 //! finite and within what an Omni can do. A frame that fails names why.
+//!
+//! Between two daemons a frame travels sealed (docs/TELEOP.md §9): followed by the sending
+//! session's own counter and an HMAC-SHA256, with the pair's pre-shared key, over the frame,
+//! the counter and the key expression it was put on. The receiver checks the code before
+//! anything else and keeps a replay window on the counter, so a frame is taken once, only
+//! from a holder of the key, and only on the key it was sealed for.
 
 use super::channel::{packet_flags, Packet};
 use super::{Architecture, TeleopConfig};
+use hmac::{Hmac, Mac};
+use sha2::Sha256;
 use thiserror::Error;
 
 /// Bytes of a frame.
@@ -92,6 +100,33 @@ pub enum WireError {
     /// Flag bits this build does not know.
     #[error("bytes 28..32: flags {0:#x} has bits this omnid does not know")]
     Flags(u32),
+    /// A bare frame where a sealed one is due: the sender has no key for the pair.
+    #[error(
+        "a frame without an authentication code (the sender has no key for this pair: \
+         `[zenoh.teleop_keys]` on both daemons)"
+    )]
+    Unsealed,
+    /// Neither a bare nor a sealed frame.
+    #[error("a sealed frame is {SEALED_BYTES} bytes; this one is {0}")]
+    SealedSize(usize),
+    /// The authentication code does not match: another key, another key expression, or a
+    /// changed byte.
+    #[error(
+        "the authentication code does not match (a sender without this pair's key, or a frame \
+         sealed for another key expression)"
+    )]
+    Mac,
+    /// A counter already taken, or too far behind the newest to tell.
+    #[error("counter {seq} was already taken or is older than the replay window (newest {top})")]
+    Replay {
+        /// The frame's counter.
+        seq: u64,
+        /// The newest counter taken from its sender.
+        top: u64,
+    },
+    /// A pre-shared key too short to be one.
+    #[error("a pair's key is {0} bytes; at least {MIN_KEY_BYTES} are needed (32 from `head -c32 /dev/urandom | base64`)")]
+    ShortKey(usize),
 }
 
 /// The frame for `p`, sent by a side that runs `agreement`.
@@ -194,6 +229,133 @@ pub fn decode(b: &[u8], ours: Agreement) -> Result<Packet, WireError> {
         energy_in_j: f64_at(104, "energy_in_j", MAX_T)?,
         echo_t: f64_at(112, "echo_t", MAX_T)?,
     })
+}
+
+/// Bytes after a frame when sealed: the sender's counter (u64, little-endian) and the code.
+pub const TRAILER_BYTES: usize = 8 + 32;
+/// Bytes of a sealed frame.
+pub const SEALED_BYTES: usize = FRAME_BYTES + TRAILER_BYTES;
+/// The shortest pre-shared key taken, bytes (32 recommended).
+pub const MIN_KEY_BYTES: usize = 16;
+/// Counters this far behind the newest taken are still taken once (a reordered frame).
+pub const REPLAY_WINDOW: u64 = 64;
+
+/// A pair's pre-shared key, ready to seal and check frames.
+#[derive(Clone)]
+pub struct PairKey(Hmac<Sha256>);
+
+impl std::fmt::Debug for PairKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Never the key.
+        f.write_str("PairKey(..)")
+    }
+}
+
+impl PairKey {
+    /// The key from its bytes (at least [`MIN_KEY_BYTES`]).
+    pub fn new(secret: &[u8]) -> Result<PairKey, WireError> {
+        if secret.len() < MIN_KEY_BYTES {
+            return Err(WireError::ShortKey(secret.len()));
+        }
+        Hmac::<Sha256>::new_from_slice(secret)
+            .map(PairKey)
+            .map_err(|_| WireError::ShortKey(secret.len()))
+    }
+
+    /// The code's state over what a sealed frame binds: a label, the key expression, the
+    /// frame and its counter.
+    fn mac(&self, key_expr: &str, body: &[u8]) -> Hmac<Sha256> {
+        let mut m = self.0.clone();
+        m.update(b"omnid teleop frame 1\0");
+        m.update(key_expr.as_bytes());
+        m.update(&[0]);
+        m.update(body);
+        m
+    }
+}
+
+/// `frame` sealed with `key` for the key expression it is put on, carrying the sending
+/// session's counter `seq` (from 1, never reused while the session lives).
+pub fn seal(
+    frame: &[u8; FRAME_BYTES],
+    seq: u64,
+    key_expr: &str,
+    key: &PairKey,
+) -> [u8; SEALED_BYTES] {
+    let mut b = [0u8; SEALED_BYTES];
+    b[..FRAME_BYTES].copy_from_slice(frame);
+    b[FRAME_BYTES..FRAME_BYTES + 8].copy_from_slice(&seq.to_le_bytes());
+    let tag = key
+        .mac(key_expr, &b[..FRAME_BYTES + 8])
+        .finalize()
+        .into_bytes();
+    b[FRAME_BYTES + 8..].copy_from_slice(&tag);
+    b
+}
+
+/// The frame and its counter in `b`, if `b` was sealed with `key` for `key_expr` (the code
+/// compared in constant time). The frame itself is checked next by [`decode`].
+pub fn unseal(
+    b: &[u8],
+    key_expr: &str,
+    key: &PairKey,
+) -> Result<(u64, [u8; FRAME_BYTES]), WireError> {
+    if b.len() == FRAME_BYTES {
+        return Err(WireError::Unsealed);
+    }
+    if b.len() != SEALED_BYTES {
+        return Err(WireError::SealedSize(b.len()));
+    }
+    let (body, tag) = b.split_at(FRAME_BYTES + 8);
+    key.mac(key_expr, body)
+        .verify_slice(tag)
+        .map_err(|_| WireError::Mac)?;
+    let mut frame = [0u8; FRAME_BYTES];
+    frame.copy_from_slice(&body[..FRAME_BYTES]);
+    let mut seq = [0u8; 8];
+    seq.copy_from_slice(&body[FRAME_BYTES..]);
+    Ok((u64::from_le_bytes(seq), frame))
+}
+
+/// Which counters of one sender have been taken: the newest, and a bit for each of the
+/// [`REPLAY_WINDOW`] before it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReplayWindow {
+    top: u64,
+    seen: u64,
+}
+
+impl ReplayWindow {
+    /// Take counter `seq` if it is new (call only for a frame whose code matched).
+    pub fn accept(&mut self, seq: u64) -> Result<(), WireError> {
+        let refuse = |top| Err(WireError::Replay { seq, top });
+        if seq == 0 {
+            // Counters start at 1.
+            return refuse(self.top);
+        }
+        if seq > self.top {
+            let shift = seq - self.top;
+            self.seen = if shift >= REPLAY_WINDOW {
+                0
+            } else {
+                self.seen << shift
+            };
+            self.seen |= 1;
+            self.top = seq;
+            return Ok(());
+        }
+        let behind = self.top - seq;
+        if behind >= REPLAY_WINDOW || self.seen & (1 << behind) != 0 {
+            return refuse(self.top);
+        }
+        self.seen |= 1 << behind;
+        Ok(())
+    }
+
+    /// The newest counter taken (0: none).
+    pub fn newest(&self) -> u64 {
+        self.top
+    }
 }
 
 #[cfg(test)]
@@ -299,6 +461,93 @@ mod tests {
                 let _ = decode(&b, PP);
             }
             let _ = decode(&good[..i], PP);
+        }
+    }
+
+    const KEY: &[u8] = b"0123456789abcdef0123456789abcdef";
+    const AT: &str = "omnid/teleop/l/f/to_follower/0123";
+
+    #[test]
+    fn a_sealed_frame_opens_only_with_its_key_on_its_key_expression() {
+        let key = PairKey::new(KEY).unwrap();
+        let frame = encode(&sample(), PP);
+        let sealed = seal(&frame, 7, AT, &key);
+        assert_eq!(unseal(&sealed, AT, &key), Ok((7, frame)));
+        // Another key, another key expression (the other direction, another sender).
+        let other = PairKey::new(b"another key of sixteen+ bytes").unwrap();
+        assert_eq!(unseal(&sealed, AT, &other), Err(WireError::Mac));
+        assert_eq!(
+            unseal(&sealed, "omnid/teleop/l/f/to_leader/0123", &key),
+            Err(WireError::Mac)
+        );
+        assert_eq!(
+            unseal(&sealed, "omnid/teleop/l/f/to_follower/4567", &key),
+            Err(WireError::Mac)
+        );
+        // Any changed byte: the frame, the counter, the code.
+        for i in [0, 9, 40, FRAME_BYTES, FRAME_BYTES + 7, SEALED_BYTES - 1] {
+            let mut b = sealed;
+            b[i] ^= 1;
+            assert_eq!(unseal(&b, AT, &key), Err(WireError::Mac), "byte {i}");
+        }
+        // A bare frame, and other sizes, name what they are.
+        assert_eq!(unseal(&frame, AT, &key), Err(WireError::Unsealed));
+        assert!(unseal(&frame, AT, &key)
+            .unwrap_err()
+            .to_string()
+            .contains("[zenoh.teleop_keys]"));
+        assert_eq!(
+            unseal(&sealed[..100], AT, &key),
+            Err(WireError::SealedSize(100))
+        );
+        assert!(matches!(
+            PairKey::new(b"short"),
+            Err(WireError::ShortKey(5))
+        ));
+        assert!(PairKey::new(b"short")
+            .unwrap_err()
+            .to_string()
+            .contains("head -c32 /dev/urandom | base64"));
+        assert_eq!(format!("{key:?}"), "PairKey(..)");
+    }
+
+    #[test]
+    fn the_replay_window_takes_each_counter_once() {
+        let mut w = ReplayWindow::default();
+        assert!(w.accept(0).is_err());
+        for s in [1, 2, 5, 4, 3] {
+            assert_eq!(w.accept(s), Ok(()), "{s}");
+        }
+        for s in [1, 2, 3, 4, 5] {
+            assert_eq!(
+                w.accept(s),
+                Err(WireError::Replay { seq: s, top: 5 }),
+                "{s}"
+            );
+        }
+        assert_eq!(w.accept(5 + REPLAY_WINDOW), Ok(()));
+        // Just inside the window and not yet taken; just outside.
+        assert_eq!(w.accept(6), Ok(()));
+        assert!(w.accept(5).is_err());
+        assert_eq!(w.newest(), 5 + REPLAY_WINDOW);
+        // A jump far ahead forgets the old bits but still refuses what is behind.
+        assert_eq!(w.accept(1_000_000), Ok(()));
+        assert!(w.accept(6 + REPLAY_WINDOW).is_err());
+        assert_eq!(w.accept(999_999), Ok(()));
+        assert!(w.accept(999_999).is_err());
+        assert_eq!(w.accept(u64::MAX), Ok(()));
+        assert!(w.accept(u64::MAX).is_err());
+    }
+
+    #[test]
+    fn no_sealed_byte_pattern_panics() {
+        let key = PairKey::new(KEY).unwrap();
+        let sealed = seal(&encode(&sample(), PP), 1, AT, &key);
+        for i in 0..SEALED_BYTES {
+            let mut b = sealed;
+            b[i] = b[i].wrapping_add(1);
+            let _ = unseal(&b, AT, &key);
+            let _ = unseal(&sealed[..i], AT, &key);
         }
     }
 }

@@ -284,6 +284,8 @@ fn without_allow_commands_a_remote_client_is_read_only() {
 mod teleop_over_zenoh {
     use omnid::experiment::teleop::{run_pair, run_pair_over, Link, PairSim, Scene, CHANNELS};
     use omnid::teleop::{Architecture, TeleopConfig};
+    use std::sync::{Arc, Mutex};
+    use std::time::{Duration, Instant};
 
     const PRESS: Scene = Scene::Press {
         force_n: 1.0,
@@ -329,9 +331,13 @@ mod teleop_over_zenoh {
         );
     }
 
+    /// The pair `l`/`f`'s key in these tests (base64 of 32 bytes).
+    const KEY: &str = "2dEoOzyuZk8W2mWRzN0kqxUJ1NQ3gHc6kBzYw3h0n3U=";
+
     /// Two sessions on loopback as two daemons', and a third: an intruder on the same keys.
     fn zenoh_cfg(listen: &str, connect: &[String]) -> omnid::transport::zenoh::ZenohConfig {
         omnid::transport::zenoh::ZenohConfig {
+            teleop_keys: [("l/f".to_string(), KEY.to_string())].into(),
             enabled: true,
             listen: vec![listen.to_string()],
             connect: connect.to_vec(),
@@ -342,10 +348,19 @@ mod teleop_over_zenoh {
         }
     }
 
+    /// The key as the test's intruders hold it (the lab's, or another).
+    fn pair_key(b64: &str) -> omnid::teleop::wire::PairKey {
+        use base64::Engine;
+        let bytes = base64::engine::general_purpose::STANDARD
+            .decode(b64)
+            .unwrap();
+        omnid::teleop::wire::PairKey::new(&bytes).unwrap()
+    }
+
     #[test]
     #[ignore = "paced"]
     fn frames_that_are_malformed_disagree_or_come_from_a_second_sender_are_refused_and_counted() {
-        use omnid::teleop::wire::{encode, Agreement};
+        use omnid::teleop::wire::{encode, seal, Agreement};
         use omnid::teleop::{Packet, Role};
         use omnid::transport::zenoh::ZenohNet;
         use zenoh::Wait;
@@ -359,67 +374,108 @@ mod teleop_over_zenoh {
             .teleop()
             .open("f", "l", Role::Follower, &cfg, 2)
             .unwrap();
+        // An intruder's session, listening to what the leader sends from the start.
+        let evil = super::peer(port);
+        let heard = Arc::new(Mutex::new(Vec::<(String, Vec<u8>)>::new()));
+        let h = heard.clone();
+        let _tap = evil
+            .declare_subscriber("omnid/teleop/l/f/to_follower/*")
+            .callback(move |s| {
+                h.lock().unwrap().push((
+                    s.key_expr().as_str().to_string(),
+                    s.payload().to_bytes().to_vec(),
+                ))
+            })
+            .wait()
+            .unwrap();
         // The leader is heard first: its session is the peer.
-        let until = std::time::Instant::now() + std::time::Duration::from_secs(10);
-        while fe.receive(0.0).is_none() {
-            assert!(std::time::Instant::now() < until, "the link never came up");
+        let until = Instant::now() + Duration::from_secs(10);
+        while fe.receive(0.0).is_none() || heard.lock().unwrap().is_empty() {
+            assert!(Instant::now() < until, "the link never came up");
             le.send(Packet {
                 seq: 1,
                 ..Packet::default()
             });
-            std::thread::sleep(std::time::Duration::from_millis(5));
+            std::thread::sleep(Duration::from_millis(5));
         }
-        // An intruder's session puts on the follower's key: garbage, a frame of the other
-        // architecture, a frame with a NaN, and well-formed frames as a second sender.
-        let evil = super::peer(port);
-        let key = "omnid/teleop/l/f/to_follower/intruder";
+        let leader_key = format!("omnid/teleop/l/f/to_follower/{}", lnet.zid());
+        let captured = heard.lock().unwrap()[0].clone();
+        assert_eq!(captured.0, leader_key);
+        // The intruder puts on the follower's keys. Without the pair's key: as the leader
+        // itself (its session id as the last segment), bare, sealed with another key, and a
+        // frame the leader sent, put again. With the pair's key (an insider's mistakes): garbage,
+        // the other architecture, a NaN, and well-formed frames as a second session.
+        let lab = pair_key(KEY);
+        let wrong = pair_key("c29tZSBvdGhlciBrZXkgb2YgMzIgYnl0ZXMgLi4uLi4=");
         let good = Agreement::of(&cfg);
         let pf = Agreement {
             architecture: Architecture::Pf,
             passivity: true,
         };
+        let marked = Packet {
+            seq: 666,
+            ..Packet::default()
+        };
         let mut nan = encode(&Packet::default(), good);
         nan[32..40].copy_from_slice(&f64::NAN.to_le_bytes());
-        let frames: Vec<(Vec<u8>, &str)> = vec![
+        let intruder = "omnid/teleop/l/f/to_follower/intruder";
+        let frames: Vec<(&str, Vec<u8>, &str)> = vec![
             (
-                b"not a frame".to_vec(),
-                "a frame is 120 bytes; this one is 11",
+                &leader_key,
+                encode(&marked, good).to_vec(),
+                "a frame without an authentication code",
             ),
             (
-                encode(&Packet::default(), pf).to_vec(),
+                &leader_key,
+                seal(&encode(&marked, good), u64::MAX, &leader_key, &wrong).to_vec(),
+                "the authentication code does not match",
+            ),
+            (
+                // Sealed with the lab's key for the intruder's own key, put on the leader's.
+                &leader_key,
+                seal(&encode(&marked, good), u64::MAX, intruder, &lab).to_vec(),
+                "the authentication code does not match",
+            ),
+            (&captured.0, captured.1.clone(), "was already taken"),
+            (
+                intruder,
+                b"not a frame".to_vec(),
+                "a sealed frame is 160 bytes; this one is 11",
+            ),
+            (
+                intruder,
+                seal(&encode(&marked, pf), 1, intruder, &lab).to_vec(),
                 "the peer runs pf, passivity on; this side runs pp",
             ),
-            (nan.to_vec(), "bytes 32..40: pos_mm = NaN"),
             (
-                encode(
-                    &Packet {
-                        seq: 666,
-                        ..Packet::default()
-                    },
-                    good,
-                )
-                .to_vec(),
+                intruder,
+                seal(&nan, 2, intruder, &lab).to_vec(),
+                "bytes 32..40: pos_mm = NaN",
+            ),
+            (
+                intruder,
+                seal(&encode(&marked, good), 3, intruder, &lab).to_vec(),
                 "session intruder sends as the peer while session",
             ),
         ];
-        for (frame, why) in &frames {
+        for (key, frame, why) in &frames {
             let before = fl.stats().refused;
-            let until = std::time::Instant::now() + std::time::Duration::from_secs(10);
+            let until = Instant::now() + Duration::from_secs(10);
             while fl.stats().refused == before {
-                assert!(std::time::Instant::now() < until, "{why}: {:?}", fl.stats());
-                evil.put(key, frame.clone()).wait().unwrap();
+                assert!(Instant::now() < until, "{why}: {:?}", fl.stats());
+                evil.put(*key, frame.clone()).wait().unwrap();
                 // The real leader keeps talking.
                 le.send(Packet {
                     seq: 2,
                     ..Packet::default()
                 });
-                std::thread::sleep(std::time::Duration::from_millis(20));
+                std::thread::sleep(Duration::from_millis(20));
                 while let Some(p) = fe.receive(0.0) {
-                    assert_ne!(p.seq, 666, "a second sender's frame reached the arm");
+                    assert_ne!(p.seq, 666, "an intruder's frame reached the arm");
                 }
             }
             let last = fl.stats().last_refusal.unwrap_or_default();
-            assert!(last.contains(why), "{last}");
+            assert!(last.contains(why), "{why}: {last}");
         }
         let stats = fl.stats();
         assert!(stats.received >= 2, "{stats:?}");
@@ -444,6 +500,23 @@ mod teleop_over_zenoh {
             .err()
             .unwrap();
         assert!(e.contains("allow_commands = false"), "{e}");
+        // A pair across daemons without a key: refused, naming the setting and how to make one.
+        let keyless = ZenohNet::start(&omnid::transport::zenoh::ZenohConfig {
+            teleop_keys: Default::default(),
+            ..zenoh_cfg("tcp/127.0.0.1:0", &[])
+        })
+        .unwrap();
+        let e = keyless
+            .teleop()
+            .open("f", "l", Role::Follower, &cfg, 1)
+            .err()
+            .unwrap();
+        assert!(
+            e.contains("[zenoh.teleop_keys]")
+                && e.contains("\"l/f\"")
+                && e.contains("head -c32 /dev/urandom | base64"),
+            "{e}"
+        );
         let open = ZenohNet::start(&zenoh_cfg("tcp/127.0.0.1:0", &[])).unwrap();
         for bad in ["f/*", "**", "a b", ""] {
             let e = open
@@ -519,7 +592,11 @@ fn two_daemons(tag: &str) -> TwoDaemons {
         format!("zf{tag}-{}", std::process::id()),
     );
     let port = free_port();
-    let common = "ros2 = false\nallow_commands = true\n";
+    // The pair's key, the same on both daemons.
+    let common = format!(
+        "ros2 = false\nallow_commands = true\nteleop_keys = {{ \"{leader}/{follower}\" = \
+         \"2dEoOzyuZk8W2mWRzN0kqxUJ1NQ3gHc6kBzYw3h0n3U=\" }}\n"
+    );
     let a = Served::start(
         &[],
         Some(&format!(

@@ -60,6 +60,10 @@ pub struct ZenohConfig {
     /// (`transport.link.tls`), access control (`access_control`), anything zenoh knows. The
     /// keys above are set on top of it. Empty: zenoh's defaults.
     pub config_file: String,
+    /// Pre-shared keys of teleop pairs across daemons, `"<leader>/<follower>" = "<base64>"`
+    /// (at least 16 bytes; make one with `head -c32 /dev/urandom | base64`). Both daemons of a
+    /// pair list the same key; a pair without one is refused (docs/TELEOP.md §9).
+    pub teleop_keys: std::collections::BTreeMap<String, String>,
 }
 
 impl Default for ZenohConfig {
@@ -83,8 +87,21 @@ impl Default for ZenohConfig {
             inbox: 1024,
             max_sample_bytes: 64 * 1024,
             config_file: String::new(),
+            teleop_keys: Default::default(),
         }
     }
+}
+
+/// A pair's key from its base64 text.
+fn pair_key(text: &str) -> Result<crate::teleop::wire::PairKey, String> {
+    use base64::Engine;
+    let bytes = base64::engine::general_purpose::STANDARD
+        .decode(text.trim())
+        .map_err(|_| {
+            "base64 of at least 16 random bytes (make one with `head -c32 /dev/urandom | base64`)"
+                .to_string()
+        })?;
+    crate::teleop::wire::PairKey::new(&bytes).map_err(|e| e.to_string())
 }
 
 /// A ROS name: letters, digits and '_', not starting with a digit.
@@ -163,7 +180,40 @@ impl ZenohConfig {
                 "1024 ..= 16777216",
             ));
         }
+        for (pair, key) in &self.teleop_keys {
+            let names_ok = pair.split_once('/').is_some_and(|(l, f)| {
+                omnid_client::find::check_arm_name(l).is_ok()
+                    && omnid_client::find::check_arm_name(f).is_ok()
+                    && l != f
+            });
+            if !names_ok {
+                return Err(check::invalid(
+                    "zenoh.teleop_keys",
+                    crate::text::cut(pair),
+                    "\"<leader>/<follower>\", two arm names",
+                ));
+            }
+            if let Err(e) = pair_key(key) {
+                return Err(check::invalid(
+                    "zenoh.teleop_keys",
+                    format!("{:?} (the key not shown)", crate::text::cut(pair)),
+                    e,
+                ));
+            }
+        }
         Ok(())
+    }
+
+    /// The pre-shared key of the pair `leader`→`follower`: none configured, or the key (an
+    /// unreadable one is an error naming the setting).
+    pub fn teleop_key(
+        &self,
+        leader: &str,
+        follower: &str,
+    ) -> Option<Result<crate::teleop::wire::PairKey, String>> {
+        self.teleop_keys
+            .get(&format!("{leader}/{follower}"))
+            .map(|k| pair_key(k))
     }
 
     /// The ROS 2 domain: `domain_id`, else `ROS_DOMAIN_ID`, else 0 (an unreadable variable is
@@ -187,6 +237,40 @@ impl ZenohConfig {
                         crate::text::cut(&v)
                     )
                 }),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_key(pair: &str, key: &str) -> ZenohConfig {
+        ZenohConfig {
+            teleop_keys: [(pair.to_string(), key.to_string())].into(),
+            ..ZenohConfig::default()
+        }
+    }
+
+    #[test]
+    fn a_teleop_key_names_two_arms_and_is_base64_of_16_bytes_or_more() {
+        let good = "2dEoOzyuZk8W2mWRzN0kqxUJ1NQ3gHc6kBzYw3h0n3U=";
+        let cfg = with_key("left/right", good);
+        assert!(cfg.validate().is_ok());
+        assert!(matches!(cfg.teleop_key("left", "right"), Some(Ok(_))));
+        assert!(cfg.teleop_key("right", "left").is_none());
+        for pair in ["left", "left/", "/right", "a/b/c", "l*/r", "same/same"] {
+            let e = with_key(pair, good).validate().unwrap_err().to_string();
+            assert!(e.contains("zenoh.teleop_keys"), "{pair}: {e}");
+        }
+        // Not base64; too short (8 bytes): refused naming how to make one, never showing it.
+        for key in ["not base64!", "c2hvcnRrZXk="] {
+            let e = with_key("left/right", key)
+                .validate()
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("head -c32 /dev/urandom | base64"), "{e}");
+            assert!(!e.contains(key), "{e}");
         }
     }
 }

@@ -64,6 +64,8 @@ pub struct ZenohNet {
     node: Node,
     /// rmw_zenoh numbers the node and its endpoints from one counter.
     next_entity: Arc<AtomicU64>,
+    /// One for the session: its teleop frames' counter is never reused while it lives.
+    teleop: Arc<teleop::TeleopNet>,
     _node_token: Option<zenoh::liveliness::LivelinessToken>,
 }
 
@@ -191,6 +193,7 @@ impl ZenohNet {
             None
         };
         Ok(ZenohNet {
+            teleop: Arc::new(teleop::TeleopNet::new(session.clone(), cfg)),
             session,
             listening,
             cfg: cfg.clone(),
@@ -202,7 +205,7 @@ impl ZenohNet {
 
     /// What opens teleoperation channels to other daemons' arms on this session.
     pub fn teleop(&self) -> std::sync::Arc<dyn crate::teleop::RemoteChannels> {
-        Arc::new(teleop::TeleopNet::new(self.session.clone(), &self.cfg))
+        self.teleop.clone()
     }
 
     /// Close the session now (its peers see it go at once, as when the daemon ends).

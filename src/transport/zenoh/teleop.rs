@@ -5,6 +5,10 @@
 //! drains, and zenoh's subscriber callback checks each frame and hands the packet to the
 //! endpoint's bounded queue, where the delay line and the coupling take it as in one daemon.
 //!
+//! Frames are sealed with the pair's pre-shared key (`[zenoh.teleop_keys]`, `wire::seal`): a
+//! pair without a key is refused at the start, and a frame whose code does not match its key
+//! expression, or whose counter was already taken, is refused before it is read.
+//!
 //! What arrives is checked before it can move an arm: a frame that is malformed, from a side
 //! with other settings, or from a second session while the first is still sending, is refused
 //! and counted (and said on stderr at most once a second); a flood beyond the queue is dropped.
@@ -12,9 +16,10 @@
 //! force fades and the follower holds, as for a cut link in one daemon.
 
 use super::ZenohConfig;
-use crate::teleop::wire::{self, Agreement};
+use crate::teleop::wire::{self, Agreement, PairKey, ReplayWindow};
 use crate::teleop::{Endpoint, LineStats, Packet, RemoteChannels, RemoteLine, Role, TeleopConfig};
 use crossbeam_channel::{Sender, TrySendError};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -29,6 +34,46 @@ const PEER_SILENT: Duration = Duration::from_secs(1);
 pub(super) struct TeleopNet {
     pub(super) session: zenoh::Session,
     pub(super) allow_commands: bool,
+    cfg: ZenohConfig,
+    seals: Arc<Seals>,
+}
+
+/// Senders' counters remembered (only senders whose code matched are added).
+const WINDOWS: usize = 64;
+
+/// The session's sealing state, shared by every channel it opens so a counter is never
+/// reused while the session lives: this side's counter, and each sender's replay window
+/// (by the key expression it puts on, which names its pair, direction and session).
+#[derive(Default)]
+struct Seals {
+    counter: AtomicU64,
+    windows: Mutex<HashMap<String, (ReplayWindow, Instant)>>,
+}
+
+impl Seals {
+    /// Take counter `seq` from the sender on `key` (call after its code matched).
+    fn accept(&self, key: &str, seq: u64) -> Result<(), wire::WireError> {
+        let mut w = self.windows.lock().unwrap_or_else(|e| e.into_inner());
+        let now = Instant::now();
+        if let Some((window, heard)) = w.get_mut(key) {
+            *heard = now;
+            return window.accept(seq);
+        }
+        if w.len() >= WINDOWS {
+            // Forget the sender heard longest ago.
+            if let Some(oldest) = w
+                .iter()
+                .min_by_key(|(_, (_, t))| *t)
+                .map(|(k, _)| k.clone())
+            {
+                w.remove(&oldest);
+            }
+        }
+        let mut window = ReplayWindow::default();
+        window.accept(seq)?;
+        w.insert(key.to_string(), (window, now));
+        Ok(())
+    }
 }
 
 /// The checked key chunk of an arm name (it must not be a key expression's wildcard).
@@ -107,6 +152,8 @@ impl TeleopNet {
         TeleopNet {
             session,
             allow_commands: cfg.allow_commands,
+            cfg: cfg.clone(),
+            seals: Arc::new(Seals::default()),
         }
     }
 }
@@ -132,6 +179,22 @@ impl RemoteChannels for TeleopNet {
             Role::Leader => (me, peer, "to_follower", "to_leader", config.to_leader),
             Role::Follower => (peer, me, "to_leader", "to_follower", config.to_follower),
         };
+        let key = match self.cfg.teleop_key(leader, follower) {
+            Some(Ok(key)) => key,
+            Some(Err(e)) => {
+                return Err(format!(
+                    "teleop: `[zenoh.teleop_keys] \"{leader}/{follower}\"`: {e}"
+                ))
+            }
+            None => {
+                return Err(format!(
+                    "teleop: `{peer}` is another daemon's arm and the pair has no key: add \
+                     `\"{leader}/{follower}\" = \"<key>\"` under `[zenoh.teleop_keys]` on both \
+                     daemons, the same key on each (make one with \
+                     `head -c32 /dev/urandom | base64`; docs/TELEOP.md §9)"
+                ))
+            }
+        };
         let base = format!("omnid/teleop/{leader}/{follower}");
         let agreement = Agreement::of(config);
         let zid = self.session.zid().to_string();
@@ -155,22 +218,23 @@ impl RemoteChannels for TeleopNet {
             .callback(receiver(
                 me.to_string(),
                 agreement,
+                key.clone(),
+                self.seals.clone(),
                 to_servo,
                 shared.clone(),
             ))
             .wait()
             .map_err(|e| declare_err(&in_key, e))?;
         let sent = shared.clone();
+        let seals = self.seals.clone();
         std::thread::Builder::new()
             .name(format!("omnid-teleop-{me}"))
             .spawn(move || {
                 // Ends when the endpoint (the coupling) is dropped.
                 while let Ok(p) = from_servo.recv() {
-                    if publisher
-                        .put(wire::encode(&p, agreement).to_vec())
-                        .wait()
-                        .is_ok()
-                    {
+                    let seq = seals.counter.fetch_add(1, Ordering::Relaxed) + 1;
+                    let frame = wire::seal(&wire::encode(&p, agreement), seq, &out_key, &key);
+                    if publisher.put(frame.to_vec()).wait().is_ok() {
                         sent.sent.fetch_add(1, Ordering::Relaxed);
                     }
                 }
@@ -186,17 +250,28 @@ impl RemoteChannels for TeleopNet {
     }
 }
 
-/// The subscriber's callback: check a frame, admit its sender, queue its packet.
+/// The subscriber's callback: check a frame's code and counter, then the frame, admit its
+/// sender, queue its packet.
 fn receiver(
     arm: String,
     agreement: Agreement,
+    key: PairKey,
+    seals: Arc<Seals>,
     to_servo: Sender<Packet>,
     shared: Arc<Shared>,
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
     move |sample| {
-        let sender = sample.key_expr().as_str().rsplit('/').next().unwrap_or("");
+        let on = sample.key_expr().as_str();
+        let sender = on.rsplit('/').next().unwrap_or("");
         let bytes = sample.payload().to_bytes();
-        let packet = match wire::decode(&bytes, agreement) {
+        let frame = match wire::unseal(&bytes, on, &key) {
+            Ok((seq, frame)) => match seals.accept(on, seq) {
+                Ok(()) => frame,
+                Err(e) => return shared.refuse(&arm, e.to_string()),
+            },
+            Err(e) => return shared.refuse(&arm, e.to_string()),
+        };
+        let packet = match wire::decode(&frame, agreement) {
             Ok(p) => p,
             Err(e) => return shared.refuse(&arm, e.to_string()),
         };
