@@ -215,7 +215,6 @@ fn ros_touch<W: Write>(
     let mut rows = 0u64;
     loop {
         let row = reader.next_with(|r| {
-            r.check_time(false)?;
             let q = from_ros(r.f64(waist)?, r.f64(shoulder)?, r.f64(elbow)?);
             for (k, &i) in extras.iter().enumerate() {
                 extra_values[k].clear();
@@ -347,7 +346,6 @@ fn whole_log<W: Write>(
                 .ok()
                 .and_then(Mode::parse)
                 .ok_or(RowFault::UnknownMode { col: mode })?;
-            row.check_time(m == Mode::Stop)?;
             let (tau_model, hand) = match model {
                 Some((tm, fh)) => (nums(tm)?, nums(fh)?),
                 None => ([f64::NAN; 3], [f64::NAN; 3]),
