@@ -303,6 +303,7 @@ fn whole_log<W: Write>(
         external: any(&[
             "tau_ext1", "tau_ext2", "tau_ext3", "fext1", "fext2", "fext3",
         ]),
+        buttons: any(&crate::telemetry::record::STYLUS_COLUMNS),
     };
     let columns = schema.columns();
     let names: Vec<&str> = columns.iter().map(String::as_str).collect();
@@ -324,6 +325,9 @@ fn whole_log<W: Write>(
     let model = schema.model.then(|| (three("tau_model"), three("fhand")));
     let external = schema.external.then(|| (three("tau_ext"), three("fext")));
     let (amps, mode, flags) = (col("amps"), col("mode"), col("flags"));
+    let stylus = schema
+        .buttons
+        .then(|| crate::telemetry::record::STYLUS_COLUMNS.map(col));
     let format = LogFormat::for_path(out, crate::omni::kinematics::Geometry::default());
     let mut rec = crate::telemetry::recorder::recorder(schema, format);
     let werr = |source: io::Error| ConvertError::Write {
@@ -354,6 +358,11 @@ fn whole_log<W: Write>(
                 Some((te, fe)) => (nums(te)?, nums(fe)?),
                 None => ([f64::NAN; 3], [f64::NAN; 3]),
             };
+            let mut live = crate::telemetry::record::Live::default();
+            if let Some(s) = stylus {
+                live.buttons = [row.i64(s[0])? != 0, row.i64(s[1])? != 0];
+                live.inkwell = row.i64(s[2])? != 0;
+            }
             Ok(TickRecord {
                 t: row.t,
                 q: nums(q)?,
@@ -377,7 +386,7 @@ fn whole_log<W: Write>(
                     hand,
                     fext,
                 },
-                live: Default::default(),
+                live,
             })
         })?;
         let Some(r) = next else { break };
@@ -666,6 +675,7 @@ mod tests {
         let old_schema = LogSchema {
             model: true,
             external: false,
+            buttons: false,
         };
         let old = log_text(old_schema, [9.0; 3]);
         let header = String::from_utf8_lossy(&old[..old.iter().position(|b| *b == b'\n').unwrap()])

@@ -404,8 +404,10 @@ impl Device for ReplayDevice {
             // Counts wrap at 16 bits on the wire; the servo unwraps them.
             encoder: counts.map(|c| c as u16),
             gimbal: [0x8000; 3],
-            buttons: [false; 2],
-            inkwell: false,
+            // What the stylus reported, which the servo acts on (a docked stylus stops the
+            // identifier learning): the replay learns where the run learned.
+            buttons: row.buttons,
+            inkwell: row.inkwell,
             counter: self.tick as u32,
         };
         self.torque = Some(row.tau);

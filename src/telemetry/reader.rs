@@ -1199,6 +1199,11 @@ pub struct LogRow {
     pub enc: Option<[i64; 3]>,
     /// The `mode` column, when the file has one.
     pub mode: Option<Mode>,
+    /// The stylus buttons pressed (`button1`, `button2`; not pressed when the file has no
+    /// such columns).
+    pub buttons: [bool; 2],
+    /// The stylus in its inkwell (`inkwell`; not when the file has no such column).
+    pub inkwell: bool,
 }
 
 impl LogRow {
@@ -1221,6 +1226,8 @@ pub struct LogColumns {
     pub enc: Option<[usize; 3]>,
     /// `mode`, when the log has it.
     pub mode: Option<usize>,
+    /// `button1`, `button2` and `inkwell`, when the log has them.
+    pub stylus: Option<[usize; 3]>,
 }
 
 /// Streaming reader of a replayable log.
@@ -1265,6 +1272,16 @@ impl<R: Read> LogReader<R> {
             None
         };
         let mode = core.optional("mode")?;
+        const STYLUS: [&str; 3] = super::record::STYLUS_COLUMNS;
+        let stylus = if STYLUS.iter().any(|c| core.header().iter().any(|h| h == c)) {
+            Some([
+                core.require(STYLUS[0], &STYLUS)?,
+                core.require(STYLUS[1], &STYLUS)?,
+                core.require(STYLUS[2], &STYLUS)?,
+            ])
+        } else {
+            None
+        };
         Ok(LogReader {
             core,
             cols: LogColumns {
@@ -1273,6 +1290,7 @@ impl<R: Read> LogReader<R> {
                 tau,
                 enc,
                 mode,
+                stylus,
             },
             stop_line: None,
         })
@@ -1326,6 +1344,10 @@ impl<R: Read> LogReader<R> {
                 Some(e) => Some([r.i64(e[0])?, r.i64(e[1])?, r.i64(e[2])?]),
                 None => None,
             };
+            let (buttons, inkwell) = match cols.stylus {
+                Some(s) => ([r.i64(s[0])? != 0, r.i64(s[1])? != 0], r.i64(s[2])? != 0),
+                None => ([false; 2], false),
+            };
             Ok(LogRow {
                 line: r.line,
                 t: r.t,
@@ -1333,6 +1355,8 @@ impl<R: Read> LogReader<R> {
                 tau,
                 enc,
                 mode,
+                buttons,
+                inkwell,
             })
         })?;
         if let Some(r) = &row {
