@@ -708,3 +708,53 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
         "{stdout}"
     );
 }
+
+/// `omnid serve` with commands allowed on an endpoint other machines reach and no zenoh
+/// authentication: refused at start naming `insecure = true`; with it, started, saying at
+/// start-up that anyone who reaches it can command the arms.
+#[test]
+#[ignore = "paced"]
+fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_insecure() {
+    let arm = format!("zi-{}", std::process::id());
+    let config = |insecure: bool| {
+        format!(
+            "[zenoh]\nenabled = true\nros2 = false\nallow_commands = true\ninsecure = {insecure}\n\
+             listen = [\"tcp/0.0.0.0:{}\"]\nconnect = []\n\n[[arm]]\nname = \"{arm}\"\n",
+            free_port()
+        )
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("omnid.toml");
+    std::fs::write(&path, config(false)).unwrap();
+    let out = common::omnid()
+        .args(["serve", "--config"])
+        .arg(&path)
+        .env("XDG_RUNTIME_DIR", dir.path())
+        .env_remove("RUNTIME_DIRECTORY")
+        .env_remove("OMNID_SOCKET")
+        .env("OMNID_STATE_DIR", dir.path().join("state"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("allow_commands = true")
+            && err.contains("tcp/0.0.0.0:")
+            && err.contains("insecure = true"),
+        "{err}"
+    );
+    assert!(
+        !dir.path()
+            .join("omnid")
+            .join(format!("{arm}.sock"))
+            .exists(),
+        "an arm was served"
+    );
+    let mut d = Served::start(&[], Some(&config(true)), &[&arm]);
+    let (_, err) = d.stop();
+    assert!(
+        err.contains("commands from ANYONE who reaches tcp/0.0.0.0:")
+            && err.contains("warning: [zenoh] insecure = true"),
+        "{err}"
+    );
+}
