@@ -758,3 +758,70 @@ fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_
         "{err}"
     );
 }
+
+/// A peer squats every remote slot with 200 liveliness tokens; a legitimate client's hello
+/// then gets an explicit refusal, not silence.
+#[test]
+#[ignore = "paced"]
+fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
+    let port = free_port();
+    let d = serve(port, "");
+    let squatter = peer(port);
+    let _tokens: Vec<_> = (0..200)
+        .map(|i| {
+            squatter
+                .liveliness()
+                .declare_token(format!("omnid/sim/client/squat{i}"))
+                .wait()
+                .unwrap()
+        })
+        .collect();
+    let client = peer(port);
+    // The squatter's tokens have spread (the client's session sees them all), and a moment
+    // more for the daemon's hub to take them.
+    let until = Instant::now() + Duration::from_secs(20);
+    loop {
+        let seen = client
+            .liveliness()
+            .get("omnid/sim/client/squat$*")
+            .wait()
+            .unwrap()
+            .iter()
+            .count();
+        if seen >= 200 {
+            break;
+        }
+        assert!(Instant::now() < until, "only {seen} tokens seen");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let _sub = client
+        .declare_subscriber("omnid/sim/out/legit")
+        .callback(move |s| {
+            let _ = tx.send(String::from_utf8_lossy(&s.payload().to_bytes()).into_owned());
+        })
+        .wait()
+        .unwrap();
+    let _token = client
+        .liveliness()
+        .declare_token("omnid/sim/client/legit")
+        .wait()
+        .unwrap();
+    let hello = r#"{"op":"hello","protocol":1,"name":"legit"}"#;
+    let until = Instant::now() + Duration::from_secs(20);
+    let answer = loop {
+        assert!(Instant::now() < until, "the hello got no answer");
+        client.put("omnid/sim/in/legit", hello).wait().unwrap();
+        if let Ok(a) = rx.recv_timeout(Duration::from_millis(500)) {
+            break a;
+        }
+    };
+    let v: serde_json::Value = serde_json::from_str(&answer).unwrap();
+    assert_eq!(v["type"], "error", "{answer}");
+    assert!(
+        v["message"].as_str().unwrap_or("").contains("no room"),
+        "{answer}"
+    );
+    drop(d);
+}
