@@ -863,3 +863,120 @@ fn the_readmes_remote_python_example_works_as_pasted() {
     assert_eq!(tip.len(), 3, "{text}");
     assert!(tip.iter().all(|v| v.abs() < 500.0), "{text}");
 }
+
+/// `omnid serve` with commands allowed on an endpoint other machines reach and no zenoh
+/// authentication: refused at start naming `insecure = true`; with it, started, saying at
+/// start-up that anyone who reaches it can command the arms.
+#[test]
+#[ignore = "paced"]
+fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_insecure() {
+    let arm = format!("zi-{}", std::process::id());
+    let config = |insecure: bool| {
+        format!(
+            "[zenoh]\nenabled = true\nros2 = false\nallow_commands = true\ninsecure = {insecure}\n\
+             listen = [\"tcp/0.0.0.0:{}\"]\nconnect = []\n\n[[arm]]\nname = \"{arm}\"\n",
+            free_port()
+        )
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("omnid.toml");
+    std::fs::write(&path, config(false)).unwrap();
+    let out = common::omnid()
+        .args(["serve", "--config"])
+        .arg(&path)
+        .env("XDG_RUNTIME_DIR", dir.path())
+        .env_remove("RUNTIME_DIRECTORY")
+        .env_remove("OMNID_SOCKET")
+        .env("OMNID_STATE_DIR", dir.path().join("state"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("allow_commands = true")
+            && err.contains("tcp/0.0.0.0:")
+            && err.contains("insecure = true"),
+        "{err}"
+    );
+    assert!(
+        !dir.path()
+            .join("omnid")
+            .join(format!("{arm}.sock"))
+            .exists(),
+        "an arm was served"
+    );
+    let mut d = Served::start(&[], Some(&config(true)), &[&arm]);
+    let (_, err) = d.stop();
+    assert!(
+        err.contains("commands from ANYONE who reaches tcp/0.0.0.0:")
+            && err.contains("warning: [zenoh] insecure = true"),
+        "{err}"
+    );
+}
+
+/// A peer squats every remote slot with 200 liveliness tokens; a legitimate client's hello
+/// then gets an explicit refusal, not silence.
+#[test]
+#[ignore = "paced"]
+fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
+    let port = free_port();
+    let d = serve(port, "");
+    let squatter = peer(port);
+    let _tokens: Vec<_> = (0..200)
+        .map(|i| {
+            squatter
+                .liveliness()
+                .declare_token(format!("omnid/sim/client/squat{i}"))
+                .wait()
+                .unwrap()
+        })
+        .collect();
+    let client = peer(port);
+    // The squatter's tokens have spread (the client's session sees them all), and a moment
+    // more for the daemon's hub to take them.
+    let until = Instant::now() + Duration::from_secs(20);
+    loop {
+        let seen = client
+            .liveliness()
+            .get("omnid/sim/client/squat$*")
+            .wait()
+            .unwrap()
+            .iter()
+            .count();
+        if seen >= 200 {
+            break;
+        }
+        assert!(Instant::now() < until, "only {seen} tokens seen");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let _sub = client
+        .declare_subscriber("omnid/sim/out/legit")
+        .callback(move |s| {
+            let _ = tx.send(String::from_utf8_lossy(&s.payload().to_bytes()).into_owned());
+        })
+        .wait()
+        .unwrap();
+    let _token = client
+        .liveliness()
+        .declare_token("omnid/sim/client/legit")
+        .wait()
+        .unwrap();
+    let hello = r#"{"op":"hello","protocol":1,"name":"legit"}"#;
+    let until = Instant::now() + Duration::from_secs(20);
+    let answer = loop {
+        assert!(Instant::now() < until, "the hello got no answer");
+        client.put("omnid/sim/in/legit", hello).wait().unwrap();
+        if let Ok(a) = rx.recv_timeout(Duration::from_millis(500)) {
+            break a;
+        }
+    };
+    let v: serde_json::Value = serde_json::from_str(&answer).unwrap();
+    assert_eq!(v["type"], "error", "{answer}");
+    assert!(
+        v["message"].as_str().unwrap_or("").contains("no room"),
+        "{answer}"
+    );
+    drop(d);
+}

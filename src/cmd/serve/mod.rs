@@ -373,17 +373,23 @@ pub fn serve(
         let net = crate::transport::zenoh::ZenohNet::start(&cfg.zenoh)
             .map_err(|e| RunError::BadInput(e.to_string()))?;
         crate::errln!(
-            "omnid serve: zenoh session {} listening on {} (ROS 2 domain {}; commands {}; \
+            "omnid serve: zenoh session {} listening on {} (ROS 2 domain {}; {}; \
              docs/ZENOH.md)",
             net.zid(),
             net.listening().join(", "),
             cfg.zenoh.domain().unwrap_or(0),
-            if cfg.zenoh.allow_commands {
-                "allowed"
-            } else {
-                "refused: [zenoh] allow_commands"
-            }
+            net.allows()
         );
+        if cfg.zenoh.allow_commands
+            && !net.exposure().reach.is_empty()
+            && net.exposure().auth.is_none()
+        {
+            crate::errln!(
+                "omnid: warning: [zenoh] insecure = true: anyone who reaches {} can command the \
+                 arms (docs/ZENOH.md)",
+                net.exposure().reach.join(", ")
+            );
+        }
         Some(net)
     } else {
         None

@@ -185,6 +185,17 @@ impl Hub {
             }
             None => {
                 crate::transport::zenoh::ZenohStats::count(&r.door.stats.refused);
+                // A hello is answered (then forgotten, so the network side keeps nothing for
+                // it): the client learns why instead of waiting.
+                if parse_request(bytes).is_ok_and(|q| q.op() == "hello") {
+                    let why = format!(
+                        "no room: this arm serves {MAX_REMOTE} remote clients at once and all \
+                         slots are taken; try again later"
+                    );
+                    r.door
+                        .to_client(&cid, encode(&error("hello", None, why)).into());
+                    r.door.forget(&cid);
+                }
                 return;
             }
         };

@@ -64,6 +64,10 @@ pub struct ZenohConfig {
     /// (at least 16 bytes; make one with `head -c32 /dev/urandom | base64`). Both daemons of a
     /// pair list the same key; a pair without one is refused (docs/TELEOP.md §9).
     pub teleop_keys: std::collections::BTreeMap<String, String>,
+    /// Allow commands over endpoints other machines reach with no zenoh authentication
+    /// (anyone who reaches them could move the arms). Off: `omnid serve` refuses such a
+    /// configuration (docs/ZENOH.md).
+    pub insecure: bool,
 }
 
 impl Default for ZenohConfig {
@@ -88,6 +92,7 @@ impl Default for ZenohConfig {
             max_sample_bytes: 64 * 1024,
             config_file: String::new(),
             teleop_keys: Default::default(),
+            insecure: false,
         }
     }
 }

@@ -53,6 +53,82 @@ pub enum ZenohError {
     /// `ROS_DOMAIN_ID` is not a domain.
     #[error("zenoh: {0}")]
     Domain(String),
+    /// Commands allowed where other machines reach the session, and zenoh asks no one who
+    /// they are.
+    #[error(
+        "zenoh: `[zenoh] allow_commands = true` on {reach}, which other machines can reach, and \
+         zenoh authenticates no one: anyone who reaches it could move the arms. Configure \
+         zenoh's authentication in `[zenoh] config_file` (user/password \
+         `transport.auth.usrpwd`, or mutual TLS `transport.link.tls.enable_mtls` on tls/ \
+         endpoints) with its access control (docs/ZENOH.md), or set `[zenoh] insecure = true` \
+         to run so anyway"
+    )]
+    Insecure {
+        /// The endpoints (and scouting) other machines reach.
+        reach: String,
+    },
+}
+
+/// Who can reach a session and whether zenoh authenticates them (docs/ZENOH.md).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Exposure {
+    /// Endpoints other machines reach (not loopback), and multicast scouting if on.
+    pub reach: Vec<String>,
+    /// How zenoh authenticates peers, if it does.
+    pub auth: Option<&'static str>,
+}
+
+/// Whether `endpoint` (`proto/host:port[?…][#…]`) is on this PC's loopback only.
+fn loopback(endpoint: &str) -> bool {
+    let address = endpoint.split(['?', '#']).next().unwrap_or("");
+    let Some((_, address)) = address.split_once('/') else {
+        return false;
+    };
+    let host = address.rsplit_once(':').map_or(address, |(h, _)| h);
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost"
+        || host
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
+/// Who can reach a session on `listen` and `connect` as `zc` configures it.
+fn exposure(
+    cfg: &ZenohConfig,
+    zc: &zenoh::Config,
+    listen: &[String],
+    connect: &[String],
+) -> Exposure {
+    let mut reach: Vec<String> = listen
+        .iter()
+        .chain(connect)
+        .filter(|e| !loopback(e))
+        .cloned()
+        .collect();
+    if cfg.multicast_scouting {
+        reach.push("multicast scouting".into());
+    }
+    let set = |key: &str| {
+        zc.get_json(key)
+            .is_ok_and(|v| !matches!(v.trim(), "" | "null" | "\"\""))
+    };
+    let usrpwd = (set("transport/auth/usrpwd/user") && set("transport/auth/usrpwd/password"))
+        || set("transport/auth/usrpwd/dictionary_file");
+    let mtls = zc
+        .get_json("transport/link/tls/enable_mtls")
+        .is_ok_and(|v| v.trim() == "true")
+        && reach
+            .iter()
+            .all(|e| e.starts_with("tls/") || e.starts_with("quic/"))
+        && !cfg.multicast_scouting;
+    let auth = if usrpwd {
+        Some("user/password")
+    } else if mtls {
+        Some("mutual TLS")
+    } else {
+        None
+    };
+    Exposure { reach, auth }
 }
 
 /// The daemon's zenoh session and its ROS 2 node.
@@ -62,6 +138,7 @@ pub struct ZenohNet {
     listening: Vec<String>,
     cfg: ZenohConfig,
     node: Node,
+    exposure: Exposure,
     /// rmw_zenoh numbers the node and its endpoints from one counter.
     next_entity: Arc<AtomicU64>,
     /// One for the session: its teleop frames' counter is never reused while it lives.
@@ -152,6 +229,25 @@ impl ZenohNet {
             // A router that is not there yet is not an error: ROS 2 starts in any order.
             settings.push(("connect/exit_on_failure", "false".into()));
         }
+        let exposure = exposure(
+            cfg,
+            &zc,
+            if cfg.mode == ZenohMode::Peer {
+                &listen
+            } else {
+                &[]
+            },
+            &connect,
+        );
+        if cfg.allow_commands
+            && !exposure.reach.is_empty()
+            && exposure.auth.is_none()
+            && !cfg.insecure
+        {
+            return Err(ZenohError::Insecure {
+                reach: exposure.reach.join(", "),
+            });
+        }
         for (key, value) in settings {
             set(&mut zc, key, value)?;
         }
@@ -198,6 +294,7 @@ impl ZenohNet {
             listening,
             cfg: cfg.clone(),
             node,
+            exposure,
             next_entity: Arc::new(AtomicU64::new(1)),
             _node_token: node_token,
         })
@@ -211,6 +308,36 @@ impl ZenohNet {
     /// Close the session now (its peers see it go at once, as when the daemon ends).
     pub fn close(self) {
         let _ = self.session.close().wait();
+    }
+
+    /// Who can reach this session and whether zenoh authenticates them.
+    pub fn exposure(&self) -> &Exposure {
+        &self.exposure
+    }
+
+    /// What this session lets the network do, in a sentence for the start-up line.
+    pub fn allows(&self) -> String {
+        let e = &self.exposure;
+        let keys = self.cfg.teleop_keys.len();
+        let pairs = if keys == 0 {
+            "no teleop pair with another daemon ([zenoh.teleop_keys] empty)".to_string()
+        } else {
+            format!("teleop with another daemon for {keys} keyed pair(s)")
+        };
+        if !self.cfg.allow_commands {
+            return "read-only: commands refused ([zenoh] allow_commands = false)".into();
+        }
+        match (e.reach.is_empty(), e.auth) {
+            (true, _) => format!("commands from this PC only (loopback); {pairs}"),
+            (false, Some(how)) => format!(
+                "commands from peers zenoh authenticates ({how}) on {}; {pairs}",
+                e.reach.join(", ")
+            ),
+            (false, None) => format!(
+                "commands from ANYONE who reaches {} ([zenoh] insecure = true); {pairs}",
+                e.reach.join(", ")
+            ),
+        }
     }
 
     /// This session's id (32 hex digits), as peers and ROS 2's graph name it.
@@ -267,5 +394,95 @@ impl ZenohNet {
         };
         let tap = ros::NetTap::start(&s.arm.name, ros, remote, net_side);
         Ok((tap, hub_side))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with(cfg: ZenohConfig) -> Result<ZenohNet, ZenohError> {
+        ZenohNet::start(&cfg)
+    }
+
+    #[test]
+    fn commands_on_a_reachable_endpoint_without_authentication_are_refused_saying_how() {
+        // Refused before the session opens: nothing listens.
+        for (listen, connect, scouting) in [
+            ("tcp/0.0.0.0:0", vec![], false),
+            ("tcp/192.168.1.10:7447", vec![], false),
+            (
+                "tcp/127.0.0.1:0",
+                vec!["tcp/10.0.0.2:7447".to_string()],
+                false,
+            ),
+            ("tcp/127.0.0.1:0", vec![], true),
+        ] {
+            let cfg = ZenohConfig {
+                allow_commands: true,
+                listen: vec![listen.into()],
+                connect,
+                multicast_scouting: scouting,
+                ..ZenohConfig::default()
+            };
+            let e = with(cfg).err().expect("refused").to_string();
+            assert!(
+                e.contains("allow_commands = true")
+                    && e.contains("insecure = true")
+                    && e.contains("transport.auth.usrpwd"),
+                "{listen}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn what_a_session_lets_in_is_told_from_its_endpoints_and_zenohs_authentication() {
+        let cfg = ZenohConfig::default();
+        let local = |l: &[&str]| l.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let plain = zenoh::Config::default();
+        let e = exposure(
+            &cfg,
+            &plain,
+            &local(&["tcp/127.0.0.1:0", "tcp/[::1]:7447"]),
+            &local(&["tcp/localhost:7447"]),
+        );
+        assert_eq!(
+            e,
+            Exposure {
+                reach: vec![],
+                auth: None
+            }
+        );
+        let e = exposure(&cfg, &plain, &local(&["tcp/0.0.0.0:7447"]), &[]);
+        assert_eq!(e.reach, vec!["tcp/0.0.0.0:7447".to_string()]);
+        assert_eq!(e.auth, None);
+        let mut pw = zenoh::Config::default();
+        pw.insert_json5(
+            "transport/auth/usrpwd/dictionary_file",
+            "\"/etc/omnid/users\"",
+        )
+        .unwrap();
+        assert_eq!(
+            exposure(&cfg, &pw, &local(&["tcp/0.0.0.0:7447"]), &[]).auth,
+            Some("user/password")
+        );
+        let mut mtls = zenoh::Config::default();
+        mtls.insert_json5("transport/link/tls/enable_mtls", "true")
+            .unwrap();
+        assert_eq!(
+            exposure(&cfg, &mtls, &local(&["tls/0.0.0.0:7447"]), &[]).auth,
+            Some("mutual TLS")
+        );
+        // A plain tcp endpoint beside the TLS one is not authenticated by TLS.
+        assert_eq!(
+            exposure(
+                &cfg,
+                &mtls,
+                &local(&["tls/0.0.0.0:7447", "tcp/0.0.0.0:7448"]),
+                &[]
+            )
+            .auth,
+            None
+        );
     }
 }
