@@ -232,8 +232,9 @@ impl ZenohNet {
         let exposure = exposure(
             cfg,
             &zc,
+            // Empty: the default ports, all on loopback.
             if cfg.mode == ZenohMode::Peer {
-                &listen
+                &cfg.listen
             } else {
                 &[]
             },
