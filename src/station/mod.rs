@@ -78,6 +78,11 @@ pub struct StationSetup {
     pub weights_label: String,
     /// The simulator's seed (in the summary).
     pub seed: u64,
+    /// Where the arm's learned weights are kept (`[identifier] persist`), its name and serial
+    /// (docs/IDENTIFIER.md).
+    pub weights_store: Option<(PathBuf, String, Option<String>)>,
+    /// How often they are saved while the daemon runs, s.
+    pub weights_every_s: f64,
     /// Where recordings without a path and fault dumps go.
     pub state_dir: PathBuf,
     /// The realtime steps the servo thread took (set before its first tick).
@@ -225,6 +230,8 @@ enum Waiting {
         path: PathBuf,
         rights: FileRights,
     },
+    /// The periodic save of what the arm learned.
+    Persist,
 }
 
 /// An arm's station (see the module's documentation).
@@ -266,6 +273,8 @@ pub struct Station {
     /// This arm's side of a pair as started, and its token at the rendezvous (kept while
     /// the side is on the line).
     teleop: Option<(TeleopReply, crate::teleop::OnTheLine)>,
+    /// When the learned weights are next saved (with a store).
+    persist_due: Option<std::time::Instant>,
 }
 
 enum PendingOut {
@@ -317,6 +326,10 @@ impl Station {
             dumps_skipped: 0,
             latched: None,
             pending: Vec::new(),
+            persist_due: s.weights_store.as_ref().map(|_| {
+                std::time::Instant::now()
+                    + std::time::Duration::from_secs_f64(s.weights_every_s.max(0.0))
+            }),
             s,
         }
     }
@@ -896,6 +909,14 @@ impl Station {
                 ServoReply::Teleop(_old) => {}
             }
         }
+        if let Some(due) = self.persist_due {
+            let now = std::time::Instant::now();
+            if now >= due && !ended {
+                self.persist_due =
+                    Some(now + std::time::Duration::from_secs_f64(self.s.weights_every_s.max(0.0)));
+                self.ask_snapshot(Waiting::Persist);
+            }
+        }
         self.flush_pending(out);
         ended
     }
@@ -1132,6 +1153,10 @@ impl Station {
         let status = Box::new(self.status(&snap));
         for w in waiting {
             let done = match w {
+                Waiting::Persist => {
+                    self.persist(&snap);
+                    continue;
+                }
                 Waiting::Status { ticket, session } => PendingOut::Done {
                     ticket,
                     session,
@@ -1171,6 +1196,21 @@ impl Station {
             self.pending.push(done);
         }
         self.spare = Some(snap);
+    }
+
+    /// Save what the arm has learned (a healthy identifier only), whole; a failure is said.
+    fn persist(&self, snap: &Snapshot) {
+        let (Some((path, arm, serial)), Some(w), true, None) = (
+            &self.s.weights_store,
+            &snap.weights,
+            snap.weights_copied,
+            snap.ident_fault,
+        ) else {
+            return;
+        };
+        if let Err(e) = crate::identifier::store::save(path, w, arm, serial.as_deref()) {
+            crate::errln!("omnid: warning: arm {arm}: learned weights not kept: {e}");
+        }
     }
 
     /// The servo has ended: finish the recording and the taps, hand back the report.

@@ -111,6 +111,9 @@ def main(mcap_path, csv_path):
             carried["amps"] = 1 if msg.data else 0
         elif topic == "/omnid/safety/flags":
             carried["flags"] = msg.data
+        elif topic == "/omnid/buttons":
+            for name, v in zip(("button1", "button2", "inkwell"), msg.buttons):
+                carried[name] = v
         elif topic == "/joint_states":
             if list(msg.name) != ["joint1", "joint2", "joint3"]:
                 fail(f"joint names {msg.name}")
@@ -138,7 +141,7 @@ def main(mcap_path, csv_path):
             v = got[col]
             if col == "mode":
                 ok = v == text
-            elif col in ("amps", "flags") or col.startswith("enc"):
+            elif col in ("amps", "flags", "button1", "button2", "inkwell") or col.startswith("enc"):
                 ok = int(text) == int(v)
             else:
                 ok = same(float(text), v)

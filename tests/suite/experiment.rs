@@ -182,9 +182,12 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
     let results: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("results.json")).unwrap()).unwrap();
     let runs = results["runs"].as_array().unwrap();
-    // pp and pf, passivity on and off, four scenes, four channels in process; and the press
-    // of each architecture over zenoh at 0 and 100 ms (docs/TELEOP.md §9).
-    assert_eq!(runs.len(), 2 * 2 * 4 * 4 + 2 * 2);
+    // pp and pf, passivity on and off, four scenes, four channels in process; the in-process
+    // press of each architecture under nnidc; and the press of each architecture over zenoh
+    // at 0 and 100 ms (docs/TELEOP.md §9).
+    assert_eq!(runs.len(), 2 * 2 * 4 * 4 + 2 + 2 * 2);
+    let nnidc = runs.iter().filter(|r| r["controller"] == "nnidc").count();
+    assert_eq!(nnidc, 2);
     let over: Vec<&serde_json::Value> = runs.iter().filter(|r| r["link"] == "zenoh").collect();
     assert_eq!(over.len(), 4);
     for r in &over {
@@ -218,6 +221,7 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
         "## Position–position with passivity control",
         "## Position–force without passivity control",
         "## Two daemons over zenoh",
+        "## The press under each controller",
     ] {
         assert!(report.contains(heading), "{heading}");
     }

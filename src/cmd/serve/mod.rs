@@ -263,6 +263,8 @@ pub fn prepare_arm(
         controller: opts.controller,
         weights_label: pipeline.weights_label.clone(),
         seed: cfg.sim.seed,
+        weights_store: pipeline.weights_store.clone(),
+        weights_every_s: WEIGHTS_EVERY_S,
         state_dir: dump_dir(global),
         realtime: pipeline.realtime_taken.clone(),
         teleop: global.teleop.clone(),
@@ -534,6 +536,9 @@ struct ArmEnd {
     seed: u64,
     controller: crate::control::ControllerKind,
 }
+
+/// How often a daemon saves what its arms learned while it runs, s.
+const WEIGHTS_EVERY_S: f64 = 60.0;
 
 /// Where the arm's learned weights are kept (`[identifier] persist`, not with `--weights` or a
 /// replay), and the identifier started from them when they are there and can be believed

@@ -72,6 +72,7 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = crate::config::Config::default();
     cfg.safety.persist_heat = false;
+    cfg.identifier.persist = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let opts = ServeOptions {
         devices: vec![crate::cmd::run::DeviceSpec::Sim],
@@ -261,6 +262,43 @@ fn the_simulators_hand_works_the_stylus_beside_the_lease_holder() {
         why.contains("firewire") && why.contains("simulator"),
         "{why}"
     );
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
+
+#[test]
+fn the_station_saves_what_the_arm_learned_while_it_runs() {
+    // The periodic save (here every pump): the servo hands its weights over in a snapshot,
+    // the station writes them whole, and they load again as this arm's.
+    let (mut servo, mut setup, dir) = served_sim();
+    let path = crate::identifier::store::weights_file(dir.path(), "sim");
+    setup.weights_store = Some((path.clone(), "sim".into(), Some("S1".into())));
+    setup.weights_every_s = 0.0;
+    let cfg = setup.identifier_cfg.clone();
+    let station = Station::new(setup);
+    let mut t = Loopback::new(station, "saver");
+    assert!(matches!(
+        t.call(Op::Mode(ModeRequest::Track(
+            crate::control::Trajectory::Sine
+        ))),
+        Ok(Answer::Now(_))
+    ));
+    ticks(&mut servo, &mut t, 500);
+    assert!(path.exists(), "no weights kept at {}", path.display());
+    let crate::identifier::store::Loaded::Weights(mut kept, _) =
+        crate::identifier::store::load(&path, &cfg, Some("S1"))
+    else {
+        panic!("the kept weights do not load")
+    };
+    // They are the servo's as they were at a recent pump: within a few ticks' learning.
+    let q = crate::omni::Joint3::new(0.1, 0.6, 0.3);
+    let z = crate::omni::Joint3::zeros();
+    let now = servo.identifier().unwrap().clone().predict(&q, &z, &z);
+    let fresh = crate::identifier::Identifier::new(&cfg)
+        .unwrap()
+        .predict(&q, &z, &z);
+    let got = kept.predict(&q, &z, &z);
+    assert!((got - now).norm() < (fresh - now).norm(), "{got} vs {now}");
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
 }
