@@ -28,7 +28,7 @@ pub enum ConfigError {
         message: String,
     },
     /// A value outside what its field allows.
-    #[error("config: `{field}` = {} is out of range: allowed {allowed}", crate::text::cut(.value))]
+    #[error("config: `{field}` = {} is out of range: allowed {allowed}", crate::text::cut(&crate::text::number(.value)))]
     Invalid {
         /// Dotted key of the field, `section.key` (`control.omega_n`).
         field: String,
@@ -39,7 +39,7 @@ pub enum ConfigError {
     },
     /// A value outside what its field allows, in a file: where it is.
     #[error("config {path}: {}`{field}` = {} is out of range: allowed {allowed}",
-        .place.as_ref().map(|p| format!("{p}: ")).unwrap_or_default(), crate::text::cut(.value))]
+        .place.as_ref().map(|p| format!("{p}: ")).unwrap_or_default(), crate::text::cut(&crate::text::number(.value)))]
     InvalidIn {
         /// The file, as given.
         path: String,

@@ -4,11 +4,11 @@
 mod cli;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use cli::{
     convert::convert_cmd, convert::ConvertArgs, ctl::ctl_cmd, ctl::CtlArgs, identify::identify_cmd,
-    identify::IdentifyArgs, plot::plot_cmd, probe::probe_cmd, probe::ProbeArgs, run::run,
-    run::RunArgs, serve::serve_cmd, serve::ServeArgs, watch::watch_cmd, watch::WatchArgs,
+    identify::IdentifyArgs, plot::plot_cmd, plot::PlotArgs, probe::probe_cmd, probe::ProbeArgs,
+    run::run, run::RunArgs, serve::serve_cmd, serve::ServeArgs, watch::watch_cmd, watch::WatchArgs,
 };
 use omnid::config::Config;
 use std::path::PathBuf;
@@ -25,7 +25,7 @@ const EXIT_OPERATOR_STOP: u8 = 130;
 #[derive(Parser)]
 #[command(
     name = "omnid",
-    version,
+    version = env!("OMNID_VERSION"),
     about = "Hardware I/O daemon for the Phantom Omni haptic device"
 )]
 struct Cli {
@@ -62,16 +62,7 @@ enum Command {
     },
     /// Figures (PNG and SVG) from a log: angles, torque vs. the identifier's estimate,
     /// identification and tracking errors, control effort; a haptic run's tip path and forces.
-    Plot {
-        /// The CSV log (at least `t`; figures whose columns are missing are skipped).
-        log: PathBuf,
-        /// Directory for the figures (created if needed).
-        #[arg(long)]
-        out: PathBuf,
-        /// The scene the run rendered: its walls are drawn on the tip path.
-        #[arg(long, value_name = "SCENE.toml")]
-        scene: Option<PathBuf>,
-    },
+    Plot(PlotArgs),
     /// Reproduce the paper's experiments on the simulator, and the haptics experiment: runs,
     /// `DIR/report.md` with the tables, and the figures.
     Experiment {
@@ -85,6 +76,15 @@ enum Command {
         #[arg(long)]
         quick: bool,
     },
+    /// Print a shell completion script to stdout, e.g.
+    /// `omnid completions bash > ~/.local/share/bash-completion/completions/omnid`.
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
+    /// Print the manual page (roff) to stdout, e.g.
+    /// `omnid manpage > ~/.local/share/man/man1/omnid.1`, then `man omnid`.
+    Manpage,
     /// Configuration helpers.
     Config {
         /// Print the full default configuration, commented.
@@ -124,14 +124,22 @@ fn connect(
 ) -> Result<omnid::transport::client::Client, u8> {
     let found = match (socket, arm) {
         (Some(p), _) => Ok(p),
-        (None, Some(arm)) => omnid::transport::find_arm_socket(arm),
-        (None, None) => omnid::transport::find_socket(),
+        (None, Some(arm)) => omnid::transport::find_arm_socket(arm).map_err(|e| (e, false)),
+        (None, None) => omnid::transport::find_socket().map_err(|e| {
+            let several = matches!(e, omnid::transport::FindError::Several { .. });
+            (e.to_string(), several)
+        }),
     };
     let path = match found {
         Ok(p) => p,
-        Err(e) => {
+        Err((e, ambiguous)) => {
             omnid::errln!("omnid: {e}");
-            return Err(EXIT_DEVICE_FAULT);
+            // Which arm is the caller's to say (bad input); no daemon is the device missing.
+            return Err(if ambiguous {
+                EXIT_BAD_INPUT
+            } else {
+                EXIT_DEVICE_FAULT
+            });
         }
     };
     omnid::transport::client::Client::connect(&path, name).map_err(|e| {
@@ -227,7 +235,7 @@ fn run_cli() -> ExitCode {
             }
             Err(code) => Ok(code),
         },
-        Command::Plot { log, out, scene } => plot_cmd(&log, &out, scene.as_deref()),
+        Command::Plot(args) => plot_cmd(args),
         Command::Experiment { kind, out, quick } => {
             match omnid::experiment::run_experiment(kind, &out, quick) {
                 Ok(report) => {
@@ -243,6 +251,22 @@ fn run_cli() -> ExitCode {
                     omnid::errln!("omnid experiment {}: {e}", kind.as_str());
                     Ok(error_exit(false, e.is_bad_input()))
                 }
+            }
+        }
+        Command::Completions { shell } => {
+            let mut script = Vec::new();
+            clap_complete::generate(shell, &mut Cli::command(), "omnid", &mut script);
+            omnid::out!("{}", String::from_utf8_lossy(&script));
+            Ok(0)
+        }
+        Command::Manpage => {
+            let mut page = Vec::new();
+            match clap_mangen::Man::new(Cli::command()).render(&mut page) {
+                Ok(()) => {
+                    omnid::out!("{}", String::from_utf8_lossy(&page));
+                    Ok(0)
+                }
+                Err(e) => Err(anyhow::Error::new(e).context("rendering the manual page")),
             }
         }
         Command::Config { print_default } => {

@@ -4,6 +4,15 @@
 /// Longest quoted value, in characters.
 pub const MAX_QUOTED: usize = 80;
 
+/// A number quoted back as the user would write it: `1e308`, not its 309 digits. Text that
+/// is not a number, or a short one, is left as it is.
+pub fn number(s: &str) -> String {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && s.len() > 16 => format!("{v:e}"),
+        _ => s.to_string(),
+    }
+}
+
 /// `s` as it is when short, else its first [`MAX_QUOTED`] characters, `…` and its length.
 pub fn cut(s: &str) -> String {
     match s.char_indices().nth(MAX_QUOTED) {
@@ -69,6 +78,16 @@ pub fn printable(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn huge_numbers_are_quoted_as_written() {
+        assert_eq!(number(&1e308f64.to_string()), "1e308");
+        assert_eq!(number(&(-2.5e300f64).to_string()), "-2.5e300");
+        assert_eq!(number("0.05"), "0.05");
+        assert_eq!(number("NaN"), "NaN");
+        assert_eq!(number("abc"), "abc");
+        assert_eq!(number(&1e-300f64.to_string()), "1e-300");
+    }
 
     #[test]
     fn a_quoted_value_is_cut_and_the_choices_are_kept() {

@@ -7,7 +7,8 @@
 #
 #   clients/hdapi/install.sh [--lib PATH/libomnid_hd.so] PREFIX
 #
-# Without --lib it builds the library (cargo build --release -p omnid-hd) first.
+# Without --lib it builds the library (cargo build --locked --release -p omnid-hd, in
+# target/hd-install) first.
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 lib=
@@ -21,8 +22,10 @@ if [ $# -ne 1 ]; then
 fi
 prefix=$1
 if [ -z "$lib" ]; then
-  (cd "$here/../.." && cargo build --release -p omnid-hd)
-  target=${CARGO_TARGET_DIR:-$here/../../target}
+  # A target directory of its own: a `cargo install` or `cargo test` running in the clone
+  # holds the shared one's lock for minutes.
+  target=${CARGO_TARGET_DIR:-$here/../../target/hd-install}
+  (cd "$here/../.." && cargo build --locked --release -p omnid-hd --target-dir "$target")
   lib=$target/release/libomnid_hd.so
 fi
 [ -f "$lib" ] || { echo "$0: no library at $lib" >&2; exit 1; }
@@ -33,5 +36,16 @@ for name in libHD.so.3.4 libHD.so.3.0 libHD.so; do
   ln -sfn libHD.so.3.4.0 "$prefix/lib/$name"
 done
 sh "$here/hdu/build.sh" "$prefix/lib/libHDU.a"
+# -lHDU finds libHDU.so before libHDU.a: a GNU ld script (as libc.so is one) that links the
+# archive and, only where a program uses them, the libraries the SDK's examples rely on
+# without naming them all (Vibration calls libm without -lm, CommandMotorDAC ncurses without
+# -lncurses). ncurses is named only where it links, so a machine without it still links.
+needed=-lm
+if printf 'int main(void){return 0;}\n' | ${CC:-cc} -x c - -lncurses -o /dev/null 2>/dev/null; then
+  needed="$needed -lncurses"
+fi
+printf '/* GNU ld script: omnid'"'"'s libHDU (install.sh) */\nINPUT ( %s AS_NEEDED ( %s ) )\n' \
+  "$(cd "$prefix/lib" && pwd)/libHDU.a" "$needed" > "$prefix/lib/libHDU.so.tmp"
+mv -f "$prefix/lib/libHDU.so.tmp" "$prefix/lib/libHDU.so"
 cp -R "$here/include/HD" "$here/include/HDU" "$here/include/HL" "$prefix/include/"
 echo "libHD and libHDU (omnid) installed in $prefix/lib, headers in $prefix/include"

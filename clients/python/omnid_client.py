@@ -81,6 +81,9 @@ __all__ = [
 
 #: The protocol version this module speaks.
 PROTOCOL_VERSION = 1
+# Where `omnid serve --zenoh` listens by default (loopback; docs/ZENOH.md): the next port after
+# the ROS 2 router's 7447.
+DEFAULT_ZENOH_PORT = 7448
 
 #: Largest message either side may send, bytes.
 MAX_MESSAGE = 64 * 1024
@@ -253,9 +256,10 @@ def find_socket() -> str:
         if len(found) == 1:
             return found[0]
         if len(found) > 1:
+            arms = [os.path.basename(f)[: -len(".sock")] for f in found]
             raise SocketNotFoundError(
-                "several omnid sockets in %s: %s; pass the path (Client(path)) or set "
-                "OMNID_SOCKET" % (d, ", ".join(found))
+                "several arms are served in %s: %s; name one with Client(arm=...) (or pass "
+                "the socket's path)" % (d, ", ".join(arms))
             )
     raise SocketNotFoundError(
         "no omnid socket found in %s: is `omnid serve` running? (or pass the path, "
@@ -381,7 +385,7 @@ class Client:
     ``server``, ``protocol``). A refused connection raises :class:`RefusedError` with the
     daemon's reason.
 
-    ``remote="tcp/host:7447"`` (with ``arm``) reaches a daemon on another PC through zenoh
+    ``remote="tcp/host:7448"`` (with ``arm``) reaches a daemon on another PC through zenoh
     (``omnid serve --zenoh``; needs ``pip install eclipse-zenoh``), with the same methods and
     messages; the daemon refuses commands over the network unless its ``[zenoh]
     allow_commands`` is on.
@@ -457,6 +461,14 @@ class Client:
             self._poll.register(sock.fileno(), select.POLLIN)
             try:
                 self._greet(timeout)
+            except OmnidTimeout:
+                self.close()
+                raise OmnidTimeout(
+                    "no hello from arm %r at %s within %.1f s: check that `omnid serve --zenoh` "
+                    "runs there and serves that arm (its start-up line says where zenoh listens, "
+                    "by default tcp/127.0.0.1:%d), and that this PC can reach that address"
+                    % (str(arm), remote, timeout, DEFAULT_ZENOH_PORT)
+                ) from None
             except BaseException:
                 self.close()
                 raise
@@ -493,7 +505,7 @@ class Client:
             self._closed_reason = None
         deadline = time.monotonic() + timeout
         while True:
-            m = self._read(deadline, "the daemon's hello")
+            m = self._read(deadline, "hello from the daemon")
             kind = m.get("type")
             if kind == "hello":
                 self.hello = m

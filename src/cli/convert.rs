@@ -23,12 +23,22 @@ pub(crate) fn convert_cmd(args: ConvertArgs) -> Result<u8, anyhow::Error> {
     let stop = stop_on_signal()?;
     match convert(args.from, &args.input, &args.out, args.lenient, Some(&stop)) {
         Ok(report) => {
+            // A long header is named by its first columns and its count, not all of them.
+            const SHOWN: usize = 6;
+            let columns = if report.columns.len() <= SHOWN {
+                report.columns.join(",")
+            } else {
+                format!(
+                    "{},… ({} in all)",
+                    report.columns[..SHOWN].join(","),
+                    report.columns.len()
+                )
+            };
             omnid::outln!(
-                "omnid convert: {} rows from {} to {} (columns: {})",
+                "omnid convert: {} rows from {} to {} (columns: {columns})",
                 report.rows,
                 args.input.display(),
                 args.out.display(),
-                report.columns.join(",")
             );
             if report.skipped.count > 0 {
                 omnid::errln!("omnid: warning: --lenient: {}", report.skipped);

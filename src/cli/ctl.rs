@@ -101,6 +101,10 @@ pub(crate) enum TeleopAction {
         /// Time-domain passivity off (on by default).
         #[arg(long)]
         no_passivity: bool,
+        /// Before coupling, bring the follower to the leader's pose (a servo_jp ramp of at
+        /// most 0.5 rad/s a joint; both arms served on this PC).
+        #[arg(long)]
+        align: bool,
         /// Uncouple after this many seconds.
         #[arg(long)]
         seconds: Option<f64>,
@@ -206,6 +210,7 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
         force_scale,
         operator,
         no_passivity,
+        align,
         seconds,
     } = action;
     if seconds.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
@@ -256,6 +261,7 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
         force_scale,
         operator,
         passivity: no_passivity.then_some(false),
+        align,
     };
     let mut out = |line: &str| omnid::outln!("{line}");
     let mut say = console::Say {
@@ -284,9 +290,27 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
             Ok(EXIT_OPERATOR_STOP)
         }
         Ok(ConsoleEnd::ArmLeft { arm, mode }) => {
+            // What each side does now: the one that left is in its new mode.
+            let follower_now = if arm == follower {
+                format!("the follower is {mode}")
+            } else {
+                "the follower holds".to_string()
+            };
+            let leader_now = if arm == leader {
+                format!("the leader is {mode}")
+            } else {
+                "the leader's force faded".to_string()
+            };
             omnid::errln!(
-                "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled (the \
-                 follower holds, the leader's force faded); `omnid ctl --arm {arm} status` says why"
+                "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled \
+                 ({follower_now}, {leader_now}); `omnid ctl --arm {arm} status` says why"
+            );
+            Ok(EXIT_DEVICE_FAULT)
+        }
+        Ok(ConsoleEnd::PeerDown { arm, peer }) => {
+            omnid::errln!(
+                "omnid ctl teleop: {peer}'s side is down (it ended or faulted on its daemon): the \
+                 pair is uncoupled, {arm} holds"
             );
             Ok(EXIT_DEVICE_FAULT)
         }

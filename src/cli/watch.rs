@@ -40,6 +40,27 @@ pub(crate) fn watch_cmd(args: WatchArgs) -> Result<u8, anyhow::Error> {
     }
     let stdout = std::io::stdout();
     let mut out = stdout.lock();
+    if !args.json {
+        // What each column is, above the first line (the widths are the lines' own).
+        let header = format!(
+            "{:>8} {:>11}  {:<8} {:<5}  {:<29}  {:<30}  {:<10}  {}",
+            "sample",
+            "time",
+            "mode",
+            "ctrl",
+            "q: joints 1, 2, 3",
+            "tip: x, y, z",
+            "buttons",
+            "tau: joints 1, 2, 3"
+        );
+        if let Err(e) = writeln!(out, "{header}") {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                return Ok(0);
+            }
+            omnid::errln!("omnid watch: cannot write to stdout: {e}; stopped");
+            return Ok(EXIT_INTERNAL);
+        }
+    }
     let mut seen = 0u64;
     while args.count.is_none_or(|n| seen < n) {
         let line = match client.recv(-1) {

@@ -291,6 +291,10 @@ fn summarise(opts: &RunOptions, cfg: &Config, report: &ServoReport, weights: Str
             controller: opts.controller.as_str(),
             trajectory: if opts.haptics.free {
                 "free".into()
+            } else if opts.controller == ControllerKind::Off {
+                // No torque follows anything: the reference is not the arm's (a replay of a
+                // person's recording, an identification pass).
+                "none".into()
             } else {
                 format!("{:?}", opts.trajectory).to_lowercase()
             },
@@ -309,6 +313,10 @@ fn summarise(opts: &RunOptions, cfg: &Config, report: &ServoReport, weights: Str
     );
     summary.faults = report.faults.clone();
     summary.end = report.end.as_str().to_string();
+    if summary.trajectory == "none" {
+        summary.tracking_rms_rad = None;
+        summary.tracking_max_rad = None;
+    }
     summary.estimator_restarts = report.estimator_restarts;
     summary.longest_gap_s = report.longest_gap_s;
     summary

@@ -81,10 +81,20 @@ impl ArmEntry {
         crate::arm::check_name(&self.name).map_err(at)?;
         let device: DeviceSpec = self.device.parse().map_err(at)?;
         for alias in &self.aliases {
-            if alias.is_empty() || alias.len() > 64 || alias.contains('\0') {
+            // An alias is what a program opens the arm by ("PHANToM 1", spaces allowed), never
+            // a path: no separator, no control character, no leading dot, no edge spaces.
+            let printable = alias.chars().all(|c| !c.is_control());
+            if alias.is_empty()
+                || alias.len() > 64
+                || !printable
+                || alias.contains('/')
+                || alias.starts_with('.')
+                || alias.trim() != alias
+            {
                 return Err(at(format!(
-                    "alias `{}`: allowed 1 to 64 characters",
-                    crate::text::cut(alias)
+                    "alias `{}`: allowed 1 to 64 printable characters, without `/`, a leading \
+                     `.` or spaces at either end (an alias names the arm to programs, not a file)",
+                    crate::text::printable(&crate::text::cut(alias))
                 )));
             }
         }
@@ -162,6 +172,24 @@ impl Config {
                     message: "its name or an alias is another arm's".into(),
                 });
             }
+            // Two arms on one socket would each find the other serving it.
+            if let Some(other) = arms
+                .iter()
+                .find(|a| a.socket.is_some() && a.socket == arm.socket)
+            {
+                return Err(ConfigError::Parse {
+                    path: format!("arm[{i}] `{}`", arm.name),
+                    message: format!(
+                        "socket = \"{}\" is also arm `{}`'s; give each arm its own (or leave \
+                         `socket` out: `<runtime dir>/<name>.sock`)",
+                        arm.socket
+                            .as_deref()
+                            .unwrap_or(std::path::Path::new(""))
+                            .display(),
+                        other.name
+                    ),
+                });
+            }
             arms.push(arm);
         }
         Ok(arms)
@@ -186,6 +214,42 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn arms_of(toml: &str) -> Result<Vec<ArmSpec>, String> {
+        let c: Config = toml::from_str(toml).map_err(|e| e.to_string())?;
+        c.arms().map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn two_arms_on_one_socket_are_refused_naming_both() {
+        let e = arms_of(
+            "[[arm]]\nname = \"a\"\nsocket = \"/tmp/x.sock\"\n\
+             [[arm]]\nname = \"b\"\nsocket = \"/tmp/x.sock\"\n",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("arm[1] `b`") && e.contains("also arm `a`'s"),
+            "{e}"
+        );
+        assert!(arms_of(
+            "[[arm]]\nname = \"a\"\nsocket = \"/tmp/x.sock\"\n\
+             [[arm]]\nname = \"b\"\nsocket = \"/tmp/y.sock\"\n",
+        )
+        .is_ok());
+    }
+
+    #[test]
+    fn aliases_are_names_for_programs_not_paths() {
+        for bad in ["../../x", "a/b", ".hidden", " PHANToM", "bell\u{7}", ""] {
+            let toml = format!("[[arm]]\nname = \"a\"\naliases = [{bad:?}]\n");
+            let e = arms_of(&toml).unwrap_err();
+            assert!(e.contains("alias"), "{bad:?}: {e}");
+        }
+        assert!(
+            arms_of("[[arm]]\nname = \"a\"\naliases = [\"PHANToM 1\", \"Default PHANToM\"]\n")
+                .is_ok()
+        );
+    }
 
     const TWO: &str = r#"
 [safety]

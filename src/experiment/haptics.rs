@@ -186,6 +186,8 @@ fn figure(
         })
         .collect();
     let fig = Figure {
+        size: (crate::plot::render::WIDTH, crate::plot::render::HEIGHT),
+        font_scale: 1.0,
         title,
         y_desc,
         x_range: (0.0, x_max.max(1e-3)),

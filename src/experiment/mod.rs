@@ -311,7 +311,7 @@ fn figures_of(
     rel: &str,
     files: &mut Vec<PathBuf>,
 ) -> Result<String, ExperimentError> {
-    let rep = plot_log(log, dir, &[], None)?;
+    let rep = plot_log(log, dir, &[], &crate::plot::PlotOptions::default(), None)?;
     files.extend(rep.files.iter().cloned());
     let mut md = String::new();
     for name in &rep.figures {
@@ -734,6 +734,8 @@ fn alpha_figure(
         role: Role::Target,
     });
     let figure = Figure {
+        size: (crate::plot::render::WIDTH, crate::plot::render::HEIGHT),
+        font_scale: 1.0,
         title: "Identification error ‖e1‖ (running RMS, 1 s) for α = 5, 50, 500",
         y_desc: "‖e1‖ (mN·m)",
         x_range: (0.0, span),

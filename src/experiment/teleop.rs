@@ -309,6 +309,8 @@ pub struct PairSim {
     /// Over zenoh: the sessions, and the real-time pace (start, ticks so far).
     zenoh: Option<ZenohPair>,
     pace: Option<(Instant, u64)>,
+    /// The channel's impairment each way (to the leader, to the follower).
+    impairment: (Impairment, Impairment),
 }
 
 /// One lockstep tick's records.
@@ -403,6 +405,7 @@ impl PairSim {
             lrx,
             frx,
             pace: zenoh.as_ref().map(|_| (Instant::now(), 0)),
+            impairment: (imp, imp),
             zenoh,
         })
     }
@@ -412,6 +415,25 @@ impl PairSim {
     pub fn cut_network(&mut self) {
         if let Some(net) = self.zenoh.as_mut().and_then(|z| z.follower_net.take()) {
             net.close();
+        }
+    }
+
+    /// Lose every packet both ways from now (`true`: a dropout, both sides ticking on), or
+    /// go back to the channel's own impairment (`false`).
+    pub fn drop_packets(&mut self, on: bool) {
+        let (to_leader, to_follower) = self.impairment;
+        let lost = |imp: Impairment| {
+            if on {
+                Impairment { loss: 1.0, ..imp }
+            } else {
+                imp
+            }
+        };
+        if let Some(c) = self.leader.teleop_mut() {
+            c.set_impairment(lost(to_leader));
+        }
+        if let Some(c) = self.follower.teleop_mut() {
+            c.set_impairment(lost(to_follower));
         }
     }
 
@@ -877,6 +899,8 @@ fn press_figure(
         })
         .collect();
     let fig = Figure {
+        size: (crate::plot::render::WIDTH, crate::plot::render::HEIGHT),
+        font_scale: 1.0,
         title: "Press with 1 N into a 1 N/mm floor: the force felt at the leader",
         y_desc: "force up (+y), N",
         x_range: (0.0, x_max.max(1e-3)),

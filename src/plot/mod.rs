@@ -50,6 +50,34 @@ pub enum PlotError {
     /// A figure's file cannot be written there (checked before the log is read).
     #[error("--out: {0}")]
     Output(#[from] OutputError),
+    /// `--from`/`--to` leave no row of the log.
+    #[error("--from {from} --to {to}: no row of the log in that window (its rows span {first} to {last} s)")]
+    EmptyWindow {
+        /// The window asked for, s.
+        from: f64,
+        /// Its end, s.
+        to: f64,
+        /// The log's first time, s.
+        first: f64,
+        /// Its last time, s.
+        last: f64,
+    },
+    /// A window whose end is not after its start, or not a number.
+    #[error("--from {from} --to {to}: the window must have --from before --to")]
+    BadWindow {
+        /// Start asked for, s.
+        from: f64,
+        /// End asked for, s.
+        to: f64,
+    },
+    /// A figure size or font scale outside what can be drawn.
+    #[error("{what}: {why}")]
+    BadStyle {
+        /// The option.
+        what: &'static str,
+        /// What is wrong with it.
+        why: String,
+    },
     /// A figure could not be drawn or written.
     #[error("writing {}: {source}", file.display())]
     Render {
@@ -124,6 +152,69 @@ impl fmt::Display for PlotReport {
     }
 }
 
+/// How the figures are drawn: which part of the log, how large, with what text size.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlotOptions {
+    /// Only rows from this time on, s (the log's own `t`).
+    pub from_s: Option<f64>,
+    /// Only rows up to this time, s.
+    pub to_s: Option<f64>,
+    /// Figure size, px (the SVG's user units too).
+    pub width: u32,
+    /// Figure height, px.
+    pub height: u32,
+    /// Text size relative to the default (1.0).
+    pub font_scale: f64,
+}
+
+impl Default for PlotOptions {
+    fn default() -> Self {
+        PlotOptions {
+            from_s: None,
+            to_s: None,
+            width: render::WIDTH,
+            height: render::HEIGHT,
+            font_scale: 1.0,
+        }
+    }
+}
+
+impl PlotOptions {
+    /// Sizes and windows that can be drawn, or the option that cannot.
+    pub fn check(&self) -> Result<(), PlotError> {
+        let bad = |what, why: String| Err(PlotError::BadStyle { what, why });
+        for (what, v, lo) in [("--width", self.width, 400), ("--height", self.height, 300)] {
+            if !(lo..=render::MAX_SIDE).contains(&v) {
+                return bad(
+                    what,
+                    format!("{v} px is outside {lo}..={} px", render::MAX_SIDE),
+                );
+            }
+        }
+        if !(0.5..=3.0).contains(&self.font_scale) {
+            return bad(
+                "--font-scale",
+                format!(
+                    "{} is outside 0.5..=3 (the text must fit the panels)",
+                    self.font_scale
+                ),
+            );
+        }
+        let (from, to) = self.window();
+        if from.is_nan() || to.is_nan() || from >= to {
+            return Err(PlotError::BadWindow { from, to });
+        }
+        Ok(())
+    }
+
+    fn window(&self) -> (f64, f64) {
+        (
+            self.from_s.unwrap_or(f64::NEG_INFINITY),
+            self.to_s.unwrap_or(f64::INFINITY),
+        )
+    }
+}
+
 /// Draw every figure `log` can feed into `out_dir` (created if needed) as `<name>.png` and
 /// `<name>.svg`. The output paths are checked before the rows are read. `stop` (the
 /// operator's) ends the reading (see [`crate::input::open`]).
@@ -131,9 +222,12 @@ pub fn plot_log(
     log: &Path,
     out_dir: &Path,
     scene: &[crate::haptics::Effect],
+    options: &PlotOptions,
     stop: Option<&Arc<AtomicBool>>,
 ) -> Result<PlotReport, PlotError> {
-    let reader = LogReader::open(log, stop)?;
+    options.check()?;
+    let (from, to) = options.window();
+    let reader = LogReader::open(log, stop)?.window(from, to);
     let plan = figures::plan(reader.header());
     if plan.figures.is_empty() {
         return Err(PlotError::NothingToPlot {
@@ -146,7 +240,7 @@ pub fn plot_log(
     // removed again if the plot then fails (an empty one; nothing else is touched).
     let made_dir = !out_dir.exists();
     crate::output::check_dir(out_dir).map_err(PlotError::OutDir)?;
-    let result = draw(out_dir, reader, plan, scene);
+    let result = draw(out_dir, reader, plan, scene, options);
     if result.is_err() && made_dir {
         let _ = std::fs::remove_dir(out_dir);
     }
@@ -159,6 +253,7 @@ fn draw(
     reader: LogReader,
     mut plan: figures::Plan,
     scene: &[crate::haptics::Effect],
+    options: &PlotOptions,
 ) -> Result<PlotReport, PlotError> {
     for planned in &plan.figures {
         for format in render::FORMATS {
@@ -173,6 +268,15 @@ fn draw(
     };
     let data = reader.decimate(&plan.formulas, BUCKETS, |pos| bar.set_position(pos))?;
     bar.finish_and_clear();
+    if data.decimated.rows == 0 {
+        let (from, to) = options.window();
+        return Err(PlotError::EmptyWindow {
+            from,
+            to,
+            first: data.seen.0,
+            last: data.seen.1,
+        });
+    }
 
     // A figure for another kind of run is left out: tracking errors mean nothing where
     // nothing tracked (free mode), and a tracking run has no tip forces to show.
@@ -219,6 +323,8 @@ fn draw(
     let mut files = Vec::new();
     for planned in &plan.figures {
         let mut figure = assemble(planned, &data.decimated, data.blend_end);
+        figure.size = (options.width, options.height);
+        figure.font_scale = options.font_scale;
         if planned.def.name == "tip_path" {
             add_walls(&mut figure, &walls);
         }
@@ -319,6 +425,8 @@ fn assemble(
         // Shaded so the start-up transient is not mistaken for tracking behaviour.
         shade_until: blend_end.filter(|&b| b > data.t_range.0),
         zero_line: def.zero_line,
+        size: (render::WIDTH, render::HEIGHT),
+        font_scale: 1.0,
         legend: planned
             .lines
             .iter()

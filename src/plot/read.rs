@@ -63,6 +63,8 @@ pub(crate) struct LogData {
     /// Rows that track a reference (`blend`, `track`) and rows in a haptic mode (`free`,
     /// `servo_cf`); None without a `mode` column.
     pub(crate) modes: Option<(u64, u64)>,
+    /// The first and last time of every row read (drawn or outside the window).
+    pub(crate) seen: (f64, f64),
 }
 
 /// An open log whose header has been read.
@@ -70,6 +72,8 @@ pub(crate) struct LogReader {
     reader: ColumnReader<LogInput>,
     header: Header,
     bytes: u64,
+    /// Only rows with `t` in this range are drawn (every row is still read and checked).
+    window: (f64, f64),
 }
 
 impl LogReader {
@@ -88,7 +92,14 @@ impl LogReader {
             reader,
             header,
             bytes,
+            window: (f64::NEG_INFINITY, f64::INFINITY),
         })
+    }
+
+    /// Draw only the rows with `from <= t <= to` (s, the log's own time).
+    pub(crate) fn window(mut self, from: f64, to: f64) -> LogReader {
+        self.window = (from, to);
+        self
     }
 
     /// The log's columns.
@@ -111,18 +122,21 @@ impl LogReader {
         mut progress: impl FnMut(u64),
     ) -> Result<LogData, ReadError> {
         let mut pass = RowPass::new(formulas, &self.header, buckets);
+        pass.window = self.window;
         while let Some(byte) = self.reader.next_with(|row| pass.take(row))? {
             if pass.decimator.rows().is_multiple_of(PROGRESS_EVERY_ROWS) {
                 progress(byte);
             }
         }
-        if pass.decimator.rows() == 0 {
+        // Rows outside the window were read: an empty window is the caller's to explain.
+        if pass.decimator.rows() == 0 && pass.seen == (f64::INFINITY, f64::NEG_INFINITY) {
             return Err(ReadError::NoRows {
                 path: self.reader.path().to_string(),
             });
         }
         progress(self.bytes);
         Ok(LogData {
+            seen: pass.seen,
             decimated: pass.decimator.finish(),
             blend_end: pass.blend_end,
             modes: pass.mode.map(|_| (pass.tracking_rows, pass.haptic_rows)),
@@ -146,6 +160,10 @@ struct RowPass<'f> {
     blend_end: Option<f64>,
     tracking_rows: u64,
     haptic_rows: u64,
+    /// Rows outside it are checked but not drawn.
+    window: (f64, f64),
+    /// The first and last time of every row read, drawn or not.
+    seen: (f64, f64),
 }
 
 impl<'f> RowPass<'f> {
@@ -160,6 +178,8 @@ impl<'f> RowPass<'f> {
             blend_end: None,
             tracking_rows: 0,
             haptic_rows: 0,
+            window: (f64::NEG_INFINITY, f64::INFINITY),
+            seen: (f64::INFINITY, f64::NEG_INFINITY),
         }
     }
 
@@ -179,7 +199,10 @@ impl<'f> RowPass<'f> {
                 Formula::Difference(a, b) => self.parsed[a] - self.parsed[b],
             };
         }
-        self.decimator.push(row.t, &self.values);
+        self.seen = (self.seen.0.min(row.t), self.seen.1.max(row.t));
+        if (self.window.0..=self.window.1).contains(&row.t) {
+            self.decimator.push(row.t, &self.values);
+        }
         Ok(row.byte())
     }
 

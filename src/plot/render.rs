@@ -15,10 +15,12 @@ use std::sync::OnceLock;
 const FONT: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 const FAMILY: &str = "sans-serif";
 
-/// Figure width, px (the SVG's user units too).
+/// Figure width by default, px (the SVG's user units too).
 pub const WIDTH: u32 = 1200;
-/// Figure height, px.
+/// Figure height by default, px.
 pub const HEIGHT: u32 = 900;
+/// The largest side a figure may have, px (a PNG buffer of 3 bytes a pixel).
+pub const MAX_SIDE: u32 = 8000;
 
 const TITLE_H: u32 = 46;
 const LEGEND_H: u32 = 30;
@@ -73,8 +75,13 @@ pub struct Figure {
     pub x_range: (f64, f64),
     /// Shade the start-up blend, from the first sample to this time.
     pub shade_until: Option<f64>,
-    /// Draw y = 0 (error signals).
+    /// Draw y = 0 (error signals); their y range leaves out the start-up blend (shaded),
+    /// whose transient would flatten the steady error to a line.
     pub zero_line: bool,
+    /// Width and height, px.
+    pub size: (u32, u32),
+    /// Text size relative to the default.
+    pub font_scale: f64,
     /// Labels and roles, in drawing order.
     pub legend: Vec<(&'static str, Role)>,
     /// The panels, top to bottom.
@@ -139,9 +146,10 @@ pub fn write(figure: &Figure, format: Format, path: &Path) -> Result<(), RenderE
 
 fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     register_font()?;
-    let mut rgb = vec![0u8; (WIDTH * HEIGHT * 3) as usize];
+    let (w, h) = figure.size;
+    let mut rgb = vec![0u8; (w as usize) * (h as usize) * 3];
     {
-        let root = BitMapBackend::with_buffer(&mut rgb, (WIDTH, HEIGHT)).into_drawing_area();
+        let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
         draw(&root, figure, Surface::Raster)?;
         root.present()
             .map_err(|e| RenderError::Draw(e.to_string()))?;
@@ -149,7 +157,7 @@ fn write_png(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     // Encoded here rather than through plotters' `image` feature: one small crate instead of
     // a whole image library.
     crate::output::write_with(path, |file| {
-        let mut encoder = png::Encoder::new(file, WIDTH, HEIGHT);
+        let mut encoder = png::Encoder::new(file, w, h);
         encoder.set_color(png::ColorType::Rgb);
         encoder.set_depth(png::BitDepth::Eight);
         encoder.set_compression(png::Compression::High);
@@ -164,7 +172,7 @@ fn write_svg(figure: &Figure, path: &Path) -> Result<(), RenderError> {
     register_font()?;
     let mut svg = String::new();
     {
-        let root = SVGBackend::with_string(&mut svg, (WIDTH, HEIGHT)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut svg, figure.size).into_drawing_area();
         draw(&root, figure, Surface::Vector)?;
         root.present()
             .map_err(|e| RenderError::Draw(e.to_string()))?;
@@ -183,6 +191,11 @@ fn font(px: f64) -> TextStyle<'static> {
     (FAMILY, px).into_font().color(&BLACK)
 }
 
+/// Pixel sizes that grow with the text: title and legend rows, label areas.
+fn px(figure: &Figure, base: f64) -> f64 {
+    base * figure.font_scale
+}
+
 fn draw<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     figure: &Figure,
@@ -190,18 +203,19 @@ fn draw<DB: DrawingBackend>(
 ) -> Result<(), RenderError> {
     let err = |e: DrawingAreaErrorKind<DB::ErrorType>| RenderError::Draw(e.to_string());
     root.fill(&WHITE).map_err(err)?;
-    let (title_area, rest) = root.split_vertically(TITLE_H);
-    let (legend_area, panels_area) = rest.split_vertically(LEGEND_H);
+    let title_h = px(figure, TITLE_H as f64) as u32;
+    let (title_area, rest) = root.split_vertically(title_h);
+    let (legend_area, panels_area) = rest.split_vertically(px(figure, LEGEND_H as f64) as u32);
 
-    let title_style = font(TITLE_PX).pos(Pos::new(HPos::Center, VPos::Center));
+    let title_style = font(px(figure, TITLE_PX)).pos(Pos::new(HPos::Center, VPos::Center));
     title_area
         .draw_text(
             figure.title,
             &title_style,
-            (WIDTH as i32 / 2, TITLE_H as i32 / 2 + 4),
+            (figure.size.0 as i32 / 2, title_h as i32 / 2 + 4),
         )
         .map_err(err)?;
-    draw_legend(&legend_area, &figure.legend, figure.shade_until.is_some()).map_err(err)?;
+    draw_legend(&legend_area, figure).map_err(err)?;
 
     let panels = panels_area.split_evenly((figure.panels.len().max(1), 1));
     let last = figure.panels.len().saturating_sub(1);
@@ -214,9 +228,9 @@ fn draw<DB: DrawingBackend>(
 /// One centred row: a short stroke in each line's pen, then its label; last the shading.
 fn draw_legend<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
-    lines: &[(&'static str, Role)],
-    shaded: bool,
+    figure: &Figure,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let (lines, shaded) = (&figure.legend, figure.shade_until.is_some());
     let entries: Vec<(&str, Option<Role>)> = lines
         .iter()
         .map(|&(label, role)| (label, Some(role)))
@@ -225,7 +239,7 @@ fn draw_legend<DB: DrawingBackend>(
     const SWATCH: i32 = 32;
     const GAP: i32 = 8;
     const SPACING: i32 = 36;
-    let style = font(LABEL_PX).pos(Pos::new(HPos::Left, VPos::Center));
+    let style = font(px(figure, LABEL_PX)).pos(Pos::new(HPos::Left, VPos::Center));
     let widths: Vec<i32> = entries
         .iter()
         .map(|(label, _)| {
@@ -235,8 +249,8 @@ fn draw_legend<DB: DrawingBackend>(
         .collect::<Result<_, _>>()?;
     let total: i32 = widths.iter().map(|w| SWATCH + GAP + w).sum::<i32>()
         + SPACING * (entries.len() as i32 - 1).max(0);
-    let y = LEGEND_H as i32 / 2;
-    let mut x = (WIDTH as i32 - total) / 2;
+    let y = px(figure, LEGEND_H as f64) as i32 / 2;
+    let mut x = (figure.size.0 as i32 - total) / 2;
     for ((label, role), w) in entries.iter().zip(widths) {
         match role {
             Some(role) => {
@@ -264,15 +278,16 @@ fn draw_panel<DB: DrawingBackend>(
         (figure.x_range.0.max(-LIMIT), figure.x_range.1.min(LIMIT)),
         0.0,
     );
-    let (y0, y1) = y_range(panel, figure.zero_line);
+    let steady_from = figure.zero_line.then_some(figure.shade_until).flatten();
+    let (y0, y1) = y_range(panel, figure.zero_line, steady_from);
     let mut chart = ChartBuilder::on(area)
-        .caption(panel.title, font(PANEL_TITLE_PX))
+        .caption(panel.title, font(px(figure, PANEL_TITLE_PX)))
         .margin_left(10)
         .margin_right(24)
         .margin_top(2)
         .margin_bottom(if bottom { 6 } else { 2 })
-        .x_label_area_size(if bottom { 48 } else { 26 })
-        .y_label_area_size(76)
+        .x_label_area_size(px(figure, if bottom { 48.0 } else { 26.0 }) as u32)
+        .y_label_area_size(px(figure, 76.0) as u32)
         .build_cartesian_2d(x0..x1, y0..y1)?;
 
     let x_labels = 12;
@@ -291,8 +306,8 @@ fn draw_panel<DB: DrawingBackend>(
         .y_labels(y_labels)
         .x_label_formatter(&x_fmt)
         .y_label_formatter(&y_fmt)
-        .label_style(font(LABEL_PX))
-        .axis_desc_style(font(DESC_PX))
+        .label_style(font(px(figure, LABEL_PX)))
+        .axis_desc_style(font(px(figure, DESC_PX)))
         .y_desc(figure.y_desc)
         .max_light_lines(4)
         .bold_line_style(RGBColor(215, 215, 215))
@@ -370,9 +385,12 @@ fn pixel_offsets(width: u32) -> Vec<(f64, f64)> {
 
 /// The y range of a panel: every line's points, 6 % headroom, and y = 0 kept in view for
 /// error plots when it is near (so the sign of the error is obvious).
-fn y_range(panel: &Panel, zero_line: bool) -> (f64, f64) {
+fn y_range(panel: &Panel, zero_line: bool, from_t: Option<f64>) -> (f64, f64) {
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for (_, y) in panel.lines.iter().flat_map(|l| l.points.iter()) {
+    let points = || panel.lines.iter().flat_map(|l| l.points.iter());
+    // Points from `from_t` on, when there are any (the blend's transient off the scale).
+    let after = from_t.filter(|&t0| points().any(|&(t, y)| t > t0 && y.is_finite()));
+    for (_, y) in points().filter(|&&(t, _)| after.is_none_or(|t0| t > t0)) {
         lo = lo.min(*y);
         hi = hi.max(*y);
     }
@@ -407,7 +425,10 @@ fn widen((lo, hi): (f64, f64), frac: f64) -> (f64, f64) {
 /// prints long float tails on small ranges. Axes that would need very long labels (huge or
 /// tiny values, from a broken log) get scientific notation instead.
 fn tick_formatter((lo, hi): (f64, f64), labels: usize) -> impl Fn(&f64) -> String {
-    let decimals = tick_decimals(hi - lo, labels);
+    // The ticks plotters will draw, asked of plotters itself: the decimals follow the step it
+    // chose (0.05 needs two), not a guess at it.
+    let decimals = exact_decimals(&RangedCoordf64::from(lo..hi).key_points(labels))
+        .unwrap_or_else(|| tick_decimals(hi - lo, labels));
     let scientific = decimals > 6 || lo.abs().max(hi.abs()) >= 1e7;
     move |v: &f64| {
         if scientific {
@@ -421,6 +442,28 @@ fn tick_formatter((lo, hi): (f64, f64), labels: usize) -> impl Fn(&f64) -> Strin
             s
         }
     }
+}
+
+/// The fewest decimals (up to 6) that print every one of `ticks` exactly; None when there are
+/// none or they need more (scientific notation then).
+fn exact_decimals(ticks: &[f64]) -> Option<usize> {
+    // The step between ticks: labels must tell neighbours apart.
+    let step = ticks
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .filter(|d| *d > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    if !step.is_finite() {
+        return None;
+    }
+    (0..=6).find(|&d| {
+        let scale = 10f64.powi(d as i32);
+        step * scale >= 1.0 - 1e-9
+            && ticks.iter().all(|&v| {
+                let scaled = v * scale;
+                (scaled - scaled.round()).abs() <= 1e-6 * scaled.abs().max(1.0)
+            })
+    })
 }
 
 /// Decimals for ticks spaced at least `span / labels` apart, rounded to 1, 2 or 5 × 10^k.
@@ -467,6 +510,31 @@ mod tests {
     }
 
     #[test]
+    fn labels_have_the_decimals_of_the_ticks_plotters_draws() {
+        // The control-effort axis: ticks 0.05 apart need two decimals.
+        for (lo, hi, n) in [
+            (-0.12, 0.22, 5),
+            (-0.11, 0.11, 5),
+            (0.0, 10.0, 12),
+            (-3.3, 7.9, 5),
+        ] {
+            let ticks = RangedCoordf64::from(lo..hi).key_points(n);
+            let fmt = tick_formatter((lo, hi), n);
+            let labels: Vec<String> = ticks.iter().map(&fmt).collect();
+            for (t, l) in ticks.iter().zip(&labels) {
+                let back: f64 = l.parse().unwrap();
+                assert!((back - t).abs() < 1e-9, "{lo}..{hi}: {t} printed {l}");
+            }
+            let mut distinct = labels.clone();
+            distinct.dedup();
+            assert_eq!(distinct.len(), labels.len(), "{labels:?}");
+        }
+        assert_eq!(exact_decimals(&[-0.1, -0.05, 0.0, 0.05]), Some(2));
+        assert_eq!(exact_decimals(&[0.0, 0.25, 0.5]), Some(2));
+        assert_eq!(exact_decimals(&[0.0]), None);
+    }
+
+    #[test]
     fn huge_and_tiny_axes_use_scientific_notation() {
         assert_eq!(tick_formatter((-1e300, 1e300), 5)(&5e299), "5.00e299");
         assert_eq!(tick_formatter((0.0, 1e-9), 5)(&5e-10), "5.00e-10");
@@ -483,7 +551,7 @@ mod tests {
             title: "x",
             lines: vec![],
         };
-        assert_eq!(y_range(&p, false), (-1.0, 1.0));
+        assert_eq!(y_range(&p, false, None), (-1.0, 1.0));
         let p = Panel {
             title: "x",
             lines: vec![Line {
@@ -491,7 +559,7 @@ mod tests {
                 role: Role::Measured,
             }],
         };
-        let (lo, hi) = y_range(&p, false);
+        let (lo, hi) = y_range(&p, false, None);
         assert!((hi - lo).is_finite(), "{lo} {hi}");
     }
 }

@@ -45,6 +45,18 @@ const LINK_WINDOW: u32 = 100;
 const LINK_MAX_BAD: u32 = 10;
 const LINK_WINDOW_MASK: u128 = (1u128 << LINK_WINDOW) - 1;
 
+/// The time a teleoperation side runs on at device time `t`, s: in a paced loop the monotonic
+/// clock — a loop that fell behind and catches up runs its ticks faster than real time, and a
+/// peer's silence, a fade or a delay is real time (docs/TELEOP.md §4) — and device time in an
+/// unpaced run, which has no real time.
+fn teleop_clock(paced: bool, t: f64) -> f64 {
+    if paced {
+        clock::now_ns() as f64 * 1e-9
+    } else {
+        t
+    }
+}
+
 /// A paced loop whose next sample comes more than this after the previous one has stalled
 /// (the log's and the state's `flags` bit [`flags::STALL`]; libHD raises `HD_TIMER_ERROR`,
 /// docs/HDAPI.md, Errors), ns. Fifty periods at 1 kHz: far beyond a loaded machine's
@@ -791,6 +803,11 @@ impl Servo {
         self.teleop.as_deref()
     }
 
+    /// This arm's side of a teleoperation pair, to change (an experiment's channel).
+    pub fn teleop_mut(&mut self) -> Option<&mut crate::teleop::Coupling> {
+        self.teleop.as_deref_mut()
+    }
+
     /// The outside's force on the tip as last estimated, N.
     pub fn external_force(&self) -> [f64; 3] {
         self.external.force.into()
@@ -870,12 +887,13 @@ impl Servo {
             self.haptics.observe(q);
         }
         self.teleop_force = Force3::zeros();
+        let teleop_t = teleop_clock(self.paced, t);
         if let Some(c) = self.teleop.as_mut() {
             // Every tick, coupled or not: a side that is not in teleop tells the other so. The
             // tip where the encoders put it, its velocity from the coupling's own fast filter.
             let fast = self.teleop_kalman.update(t, q);
             let side = crate::teleop::SideInput {
-                t,
+                t: teleop_t,
                 tip_mm: tip_position_mm(&self.parametric.geometry, q),
                 vel_mm_s: jacobian(&self.parametric.geometry, q) * fast.qd * 1e3,
                 fext_n: self.external.force,
@@ -1026,7 +1044,9 @@ impl Servo {
                     }
                 }
                 ServoCommand::TeleopEnd => {
-                    if let Some(old) = self.teleop.take() {
+                    if let Some(mut old) = self.teleop.take() {
+                        // The other side hears that this one ended (docs/TELEOP.md §4).
+                        old.end(teleop_clock(self.paced, t));
                         if self.activity == Activity::Teleop {
                             self.enter(Activity::Hold, q);
                         }

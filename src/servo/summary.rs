@@ -543,6 +543,17 @@ pub(crate) struct IdentifierState {
     pub fault: Option<crate::identifier::Fault>,
 }
 
+/// How a run ended, as a sentence's end (the JSON's `end` keeps the short names).
+fn end_for_people(end: &str) -> &str {
+    match end {
+        "end-of-data" => "at the end of the recording",
+        "operator-stop" => "stopped by the operator",
+        "device-fault" => "by a device fault",
+        "safety-fault" => "by a safety fault",
+        other => other,
+    }
+}
+
 impl RunSummary {
     /// The summary of the loop's results so far. How the run ended, its faults, log and
     /// realtime report are the caller's to fill in (`end` is "running" until then).
@@ -607,22 +618,27 @@ impl RunSummary {
             "serve" => format!("omnid serve: {} ticks", self.ticks),
             _ => format!("omnid run: {} ticks", self.ticks),
         };
+        let controller = match self.controller.as_str() {
+            "off" => "the controller off".to_string(),
+            c => c.to_string(),
+        };
         let mut s = format!(
-            "{what} ({:.3} s device time) on {} with {}{}{}; ended: {}\n",
+            "{what} ({:.3} s device time) on {} with {controller}{}{}; ended: {}\n",
             self.duration_s,
             self.device,
-            self.controller,
             match self.trajectory.as_str() {
-                "serve" => " at start, as clients asked".to_string(),
+                "serve" => " at the start, then as its clients asked".to_string(),
                 "free" => " in free mode (compensation and effects)".to_string(),
+                "none" => String::new(),
                 t => format!(" following {t}"),
             },
             if self.fast { " (--fast)" } else { "" },
-            self.end
+            end_for_people(&self.end)
         );
-        // A run that only rendered forces tracked nothing: its figures are the forces.
+        // A run that only rendered forces tracked nothing: its figures are the forces. A run
+        // that followed nothing (`--controller off`) has no tracking to report.
         let haptic_only = self.tracking_rms_rad.is_none() && self.haptics.is_some();
-        if !haptic_only {
+        if !haptic_only && self.trajectory != "none" {
             s += &format!(
                 "  tracking RMS    {}   (joints 1/2/3, after the start-up blend)\n",
                 triple(self.tracking_rms_rad, 1e3, "mrad")

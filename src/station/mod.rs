@@ -559,8 +559,12 @@ impl Station {
                         side.peer
                     )));
                 }
-                crate::config_check::in_range("motion_scale", scale, 0.05, 20.0, "0.05 ..= 20")
-                    .map_err(|e| OpError::Invalid(e.to_string()))?;
+                if !(0.05..=20.0).contains(&scale) {
+                    return Err(OpError::Invalid(format!(
+                        "teleop_scale: motion_scale = {} is out of range: allowed 0.05 ..= 20",
+                        crate::text::number(&scale.to_string())
+                    )));
+                }
                 side.motion_scale = scale;
                 self.send(ServoCommand::TeleopScale(scale))?;
                 now(Reply::TeleopScale {
@@ -704,7 +708,7 @@ impl Station {
             .s
             .rendezvous
             .join(&self.s.arm.name, &request.peer, role, &cfg, seed)
-            .map_err(|e| OpError::Invalid(format!("teleop: {e}")))?;
+            .map_err(|e| OpError::Invalid(e.to_string()))?;
         let dt = self.s.period_ns as f64 * 1e-9;
         let coupling = Box::new(crate::teleop::Coupling::new(role, &cfg, endpoint, dt));
         self.sessions[k].stopped_by = None;

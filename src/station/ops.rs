@@ -240,11 +240,12 @@ impl TeleopRequest {
         if let Some(p) = self.passivity {
             cfg.passivity = p;
         }
-        // The config's wording, naming the request's field rather than the file's key.
+        // The config's wording, naming the request's field rather than the file's key (a
+        // refusal is the op's own: no prefix, the client names the op it asked for).
         cfg.validate().map_err(|e| {
             OpError::Invalid(
                 e.to_string()
-                    .replacen("config: ", "teleop: ", 1)
+                    .replacen("config: ", "", 1)
                     .replace("teleop.", ""),
             )
         })?;

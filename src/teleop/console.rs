@@ -29,7 +29,18 @@ pub struct PairSettings {
     pub operator: Option<String>,
     /// Time-domain passivity on or off.
     pub passivity: Option<bool>,
+    /// Before coupling, bring the follower to the leader's pose (`--align`): a `servo_jp` ramp
+    /// of at most [`ALIGN_RAD_S`] on each joint (both arms must be served here).
+    pub align: bool,
 }
+
+/// `--align`: the follower's setpoint moves toward the leader's joint angles at most this
+/// fast, rad/s (about 60 mm/s at the tip).
+pub const ALIGN_RAD_S: f64 = 0.5;
+/// `--align` is done when the follower is this close to the leader on every joint, rad.
+const ALIGN_TOLERANCE_RAD: f64 = 0.01;
+/// `--align` gives up after this long, s.
+const ALIGN_MAX_S: f64 = 20.0;
 
 /// How a console ended.
 #[derive(Debug, Clone, PartialEq)]
@@ -47,6 +58,14 @@ pub enum ConsoleEnd {
     },
     /// An arm's daemon closed the connection.
     Gone(String),
+    /// The other side, served by another daemon, is down (it ended or faulted): this side's
+    /// arm showed `down` (docs/TELEOP.md §4).
+    PeerDown {
+        /// The arm served here.
+        arm: String,
+        /// The other daemon's arm.
+        peer: String,
+    },
 }
 
 /// Rate of each arm's state stream while the console watches, Hz.
@@ -155,6 +174,17 @@ pub fn run(
             "neither `{l_name}` nor `{f_name}` is served on this PC"
         )));
     }
+    if settings.align {
+        match here.as_mut_slice() {
+            [(l, _, _), (f, _, _)] => align(l, f, stop, say)?,
+            _ => {
+                return Err(ClientError::Refused(format!(
+                    "--align moves the follower to the leader's pose, which only a console with \
+                     both arms on its PC knows (`{l_name}` and `{f_name}` are on two daemons)"
+                )))
+            }
+        }
+    }
     let mut reply = Value::Null;
     for k in 0..here.len() {
         let (c, role, peer) = &mut here[k];
@@ -199,17 +229,75 @@ pub fn run(
             "teleop: hold {l_name}'s button 1 to follow; button 2 is the clutch"
         ));
     }
+    // With the other side on another daemon, its end shows here only as this side's `down`.
+    let alone = (here.len() == 1).then(|| here[0].2.to_string());
     let mut clients: Vec<&mut Client> = here.into_iter().map(|(c, _, _)| c).collect();
-    let end = watch(&mut clients, seconds, stop, say);
+    let end = watch(&mut clients, alone.as_deref(), seconds, stop, say);
     for c in clients {
         let _ = c.request(json!({"op": "teleop_stop"}));
     }
     end
 }
 
+/// Bring the follower to the leader's joint angles (read again every step: the leader may be
+/// moving) by a `servo_jp` ramp of at most [`ALIGN_RAD_S`] per joint, until it is within
+/// [`ALIGN_TOLERANCE_RAD`] on every joint. The follower holds there (the stream's fallback)
+/// until its side is taken up.
+fn align(
+    leader: &mut Client,
+    follower: &mut Client,
+    stop: &AtomicBool,
+    say: &mut Say<'_>,
+) -> Result<(), ClientError> {
+    const STEP_S: f64 = 0.01;
+    for c in [&mut *leader, &mut *follower] {
+        c.request(json!({"op": "stream", "rate_hz": 100}))?;
+    }
+    let newest = |c: &mut Client| -> Result<State, ClientError> {
+        let mut s = c.next_state(1000)?;
+        while let Ok(n) = c.next_state(0) {
+            s = n;
+        }
+        Ok(s)
+    };
+    let start = Instant::now();
+    let mut setpoint = newest(follower)?.q;
+    say.note(&format!(
+        "teleop: aligning {} to {}'s pose (at most {ALIGN_RAD_S} rad/s a joint)",
+        follower.hello().arm,
+        leader.hello().arm
+    ));
+    for seq in 1u64.. {
+        if stop.load(Ordering::SeqCst) {
+            let _ = follower.request(json!({"op": "mode", "mode": "hold"}));
+            return Err(ClientError::Refused("stopped while aligning".into()));
+        }
+        if start.elapsed().as_secs_f64() > ALIGN_MAX_S {
+            let _ = follower.request(json!({"op": "mode", "mode": "hold"}));
+            return Err(ClientError::Refused(format!(
+                "the follower did not reach the leader's pose within {ALIGN_MAX_S} s"
+            )));
+        }
+        let (l, f) = (newest(leader)?, newest(follower)?);
+        let mut done = true;
+        for j in 0..3 {
+            let step = ALIGN_RAD_S * STEP_S;
+            setpoint[j] += (l.q[j] - setpoint[j]).clamp(-step, step);
+            done &= (f.q[j] - l.q[j]).abs() <= ALIGN_TOLERANCE_RAD;
+        }
+        if done {
+            return Ok(());
+        }
+        follower.send(&json!({"op": "servo_jp", "seq": seq, "q": setpoint, "ttl_ms": 200}))?;
+        std::thread::sleep(Duration::from_secs_f64(STEP_S));
+    }
+    Ok(())
+}
+
 /// The latest states of the arms served here, a line a second, until an end.
 fn watch(
     sides: &mut [&mut Client],
+    elsewhere: Option<&str>,
     seconds: Option<f64>,
     stop: &AtomicBool,
     say: &mut Say<'_>,
@@ -251,6 +339,12 @@ fn watch(
                         return Ok(ConsoleEnd::ArmLeft {
                             arm: c.hello().arm.clone(),
                             mode: s.mode.clone(),
+                        });
+                    }
+                    if let Some(peer) = elsewhere.filter(|_| s.teleop.as_deref() == Some("down")) {
+                        return Ok(ConsoleEnd::PeerDown {
+                            arm: c.hello().arm.clone(),
+                            peer: peer.to_string(),
                         });
                     }
                 }

@@ -36,7 +36,8 @@ pub enum TeleopState {
     /// No packet within the timeout, or the other side is down: the leader's force fades to
     /// zero, the follower holds; the operator engages again once the link is back.
     LinkLost,
-    /// This side's own arm is not coupled (fault, idle): it tells the other side so.
+    /// The pair is disabled: this side's arm is not coupled (fault, idle, its side ended) and
+    /// it tells the other side so, or the other side said so of itself.
     Down,
 }
 
@@ -112,7 +113,24 @@ pub struct Coupling {
     peer_t: f64,
     /// The round trip as measured from the echoes, s: up at once, down over a second.
     rtt_s: f64,
+    /// A packet from the other side was delivered this tick.
+    got_packet: bool,
+    /// Leader: when the last packet of this engagement arrived (local time), and the force
+    /// put out on that tick, N: through a silence the force never exceeds it (§4).
+    matched_at: f64,
+    matched_force_n: f64,
+    /// Leader: the fraction of that force a silence left on the last tick (1: none).
+    silence_left: f64,
+    /// Leader: the next engagement resumes this one's mapping (it ended on a lost link).
+    resume: bool,
+    /// Follower: how far its target stands off the engagement's mapping after a break, mm;
+    /// brought back to zero at `realign_mm_s` (docs/TELEOP.md §4).
+    offset_mm: V3,
 }
+
+/// Leader: through a silence shorter than this the force is held at most at its value on the
+/// last packet; beyond it that bound falls linearly to zero at the link timeout, s.
+pub const SILENCE_HOLD_S: f64 = 0.005;
 
 /// pf: beyond this round trip the passivity damping cap falls inversely with it, s
 /// ([`Coupling::damping_cap`]).
@@ -154,6 +172,12 @@ impl Coupling {
             last_tip: V3::zeros(),
             peer_t: 0.0,
             rtt_s: 0.0,
+            got_packet: false,
+            matched_at: f64::NEG_INFINITY,
+            matched_force_n: 0.0,
+            silence_left: 1.0,
+            resume: false,
+            offset_mm: V3::zeros(),
         }
     }
 
@@ -234,7 +258,9 @@ impl Coupling {
         if !(scale.is_finite() && scale > 0.0) {
             return;
         }
-        if self.role == Role::Leader && self.state == TeleopState::Engaged {
+        let mapped = self.state == TeleopState::Engaged
+            || (self.state == TeleopState::LinkLost && self.resume);
+        if self.role == Role::Leader && mapped {
             let d = (self.last_tip - self.origin_mm) * self.cfg.motion_scale;
             self.origin_mm = self.last_tip - d / scale;
         }
@@ -256,7 +282,9 @@ impl Coupling {
 
     /// One tick: the force to put on this side's tip, N (zero when not active).
     pub fn step(&mut self, x: &SideInput) -> V3 {
+        self.got_packet = false;
         if let Some(p) = self.endpoint.receive(x.t) {
+            self.got_packet = true;
             if self.peer_at < x.t - self.cfg.link_timeout_ms * 1e-3 || self.peer.is_none() {
                 self.up_since = x.t;
             }
@@ -283,23 +311,57 @@ impl Coupling {
             self.down(x)
         } else {
             match self.role {
-                Role::Leader => self.lead(x, link_up),
-                Role::Follower => self.follow(x, link_up),
+                Role::Leader => self.lead(x, link_up, peer_down),
+                Role::Follower => self.follow(x, link_up, peer_down),
             }
         };
         self.force = force;
         force
     }
 
+    /// What this side echoes at local time `t`: the `t` of the newest packet it has received
+    /// plus how long it has held it (0 before any). The other side's round trip is then the
+    /// channel's alone: a side that heard nothing for a while (a dropout, a stalled peer) does
+    /// not make the next echo read as a round trip that long, which would soften the springs
+    /// for seconds after every dropout (docs/TELEOP.md §5).
+    fn echo(&self, t: f64) -> f64 {
+        if self.peer.is_some() {
+            self.peer_t + (t - self.peer_at).max(0.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// This side ends (its coupling is being taken off the arm), at local time `t` (the clock
+    /// [`SideInput::t`] runs on): it tells the other side it is down, so the other daemon
+    /// disables the pair at once rather than after the link timeout (docs/TELEOP.md §4). Sent
+    /// three times, so one lost packet does not hide it.
+    pub fn end(&mut self, t: f64) {
+        self.state = TeleopState::Down;
+        for _ in 0..3 {
+            self.seq += 1;
+            self.endpoint.send(Packet {
+                seq: self.seq,
+                t,
+                engage: 0,
+                flags: packet_flags::DOWN,
+                energy_in_j: self.port.energy_in,
+                echo_t: self.echo(t),
+                ..Packet::default()
+            });
+        }
+    }
+
     /// Not coupled: say so every tick, put out nothing.
     fn down(&mut self, x: &SideInput) -> V3 {
         self.state = TeleopState::Down;
         self.holding = false;
+        self.resume = false;
         self.send(x, 0, packet_flags::DOWN, V3::zeros(), V3::zeros());
         V3::zeros()
     }
 
-    fn lead(&mut self, x: &SideInput, link_up: bool) -> V3 {
+    fn lead(&mut self, x: &SideInput, link_up: bool, peer_down: bool) -> V3 {
         let present = match self.cfg.operator {
             Operator::Button1 => x.buttons[0],
             Operator::Always => true,
@@ -308,24 +370,56 @@ impl Coupling {
         self.button_was = x.buttons[0];
         let clutch = x.buttons[1];
         let following = matches!(self.state, TeleopState::Engaged | TeleopState::Clutched);
-        if following && !link_up {
+        if following && peer_down {
+            // The other side ended or faulted: a later engagement is a new one.
+            self.fade(x.t, TeleopState::Down);
+            self.resume = false;
+        } else if following && !link_up {
+            // A lost link is no re-index: the next engagement resumes this mapping (§4); a
+            // clutch pressed now counts as released here.
+            if self.state == TeleopState::Clutched {
+                self.origin_mm = x.tip_mm - self.held_mm / self.cfg.motion_scale;
+            }
             self.fade(x.t, TeleopState::LinkLost);
             self.fresh_press_needed = true;
+            self.resume = true;
         } else if following && !present {
             self.fade(x.t, TeleopState::Waiting);
+            self.resume = false;
         } else if !following && link_up && present {
             let may = match self.cfg.operator {
                 Operator::Button1 => !self.fresh_press_needed || pressed_now,
-                Operator::Always => x.t - self.up_since >= REARM_S || self.epoch == 0,
+                // A resumed engagement keeps the mapping (the follower comes back to it at a
+                // bounded speed), so it need not wait for the link to prove itself.
+                Operator::Always => {
+                    x.t - self.up_since >= REARM_S || self.epoch == 0 || self.resume
+                }
             };
             if may {
-                self.epoch += 1;
-                self.origin_mm = x.tip_mm;
+                if !(self.resume && self.epoch != 0) {
+                    self.epoch += 1;
+                    self.origin_mm = x.tip_mm;
+                }
+                self.resume = false;
+                // No packet of this engagement yet: no force until one (below), then the ramp
+                // from the engagement on.
+                self.matched_at = f64::NEG_INFINITY;
+                self.matched_force_n = 0.0;
+                self.silence_left = 1.0;
                 self.held_mm = V3::zeros();
                 self.engaged_at = x.t;
                 self.fresh_press_needed = false;
                 self.state = TeleopState::Engaged;
             }
+        }
+        if peer_down && !matches!(self.state, TeleopState::Engaged | TeleopState::Clutched) {
+            self.state = TeleopState::Down;
+        } else if self.state == TeleopState::Down && !peer_down {
+            self.state = if link_up {
+                TeleopState::Waiting
+            } else {
+                TeleopState::LinkLost
+            };
         }
         // The clutch: hold the scaled motion where it is, and on release measure again from
         // where the leader is so the follower does not jump.
@@ -356,8 +450,32 @@ impl Coupling {
         let peer = self
             .peer
             .filter(|p| p.engage == self.epoch && self.epoch != 0);
-        match (self.state, peer) {
-            (TeleopState::Engaged, Some(p)) if link_up => {
+        if self.state != TeleopState::Engaged || !link_up {
+            // A fade never outlasts a silence's bound either.
+            let bound = self.matched_force_n * self.silence_factor(x.t);
+            return crate::haptics::limit_force(&self.faded(x.t), bound);
+        }
+        // A packet of this engagement this tick: the force follows it. Without one (a silence,
+        // or the follower not in this engagement) it never grows: at most what it was on the
+        // last such packet, then less, to nothing at the link timeout (docs/TELEOP.md §4).
+        let fresh = self.got_packet && peer.is_some();
+        // What scales the force as packets come back after a silence took some away: it rises
+        // back at the slope it fell, so nothing steps and the two sides' springs are unequal
+        // for no longer than the silence's fall (a slow ramp here, with the follower pulled at
+        // full stiffness, set the pair oscillating).
+        let mut back = 1.0;
+        if fresh {
+            self.matched_at = x.t;
+            if self.silence_left < 1.0 {
+                let span = self.cfg.link_timeout_ms * 1e-3 - SILENCE_HOLD_S;
+                self.silence_left = (self.silence_left + self.dt / span.max(self.dt)).min(1.0);
+                back = self.silence_left;
+            }
+        } else if self.matched_at.is_finite() {
+            self.silence_left = self.silence_factor(x.t).min(self.silence_left);
+        }
+        let f = match peer {
+            Some(p) => {
                 let k = self.cfg.stiffness_n_per_mm * self.delay_gain();
                 let raw = match self.cfg.architecture {
                     Architecture::Pp => {
@@ -384,23 +502,51 @@ impl Coupling {
                     1.0
                 };
                 let f = crate::haptics::limit_force(&(raw * ramp), self.cfg.max_force_n);
+                let f = if fresh {
+                    f * back
+                } else {
+                    crate::haptics::limit_force(&f, self.matched_force_n * self.silence_left)
+                };
+                // (The port only takes force away along the velocity: the bound holds.)
                 self.passive(f, x, p.energy_in_j)
             }
-            _ => self.faded(x.t),
+            None => {
+                crate::haptics::limit_force(&self.force, self.matched_force_n * self.silence_left)
+            }
+        };
+        if fresh {
+            self.matched_force_n = f.norm();
         }
+        f
     }
 
-    fn follow(&mut self, x: &SideInput, link_up: bool) -> V3 {
+    fn follow(&mut self, x: &SideInput, link_up: bool, peer_down: bool) -> V3 {
         let leader = self
             .peer
             .filter(|p| link_up && p.engage != 0 && p.flags & packet_flags::DOWN == 0);
         match leader {
             Some(p) => {
-                if p.engage != self.epoch || self.state != TeleopState::Engaged {
-                    // Take the engagement up from where this arm is: its target starts here.
+                let here = x.tip_mm - V3::from(p.pos_mm);
+                if p.engage != self.epoch {
+                    // Take a new engagement up from where this arm is: its target starts here.
                     self.epoch = p.engage;
-                    self.origin_mm = x.tip_mm - V3::from(p.pos_mm);
+                    self.origin_mm = here;
+                    self.offset_mm = V3::zeros();
                     self.integral_n = V3::zeros();
+                } else if !matches!(self.state, TeleopState::Engaged | TeleopState::Clutched) {
+                    // The same engagement after a break (a lost link, this arm down): its
+                    // mapping is kept. The target starts where the arm is and comes back to
+                    // the mapping at a bounded speed (docs/TELEOP.md §4).
+                    self.offset_mm = here - self.origin_mm;
+                    self.integral_n = V3::zeros();
+                } else if p.flags & packet_flags::CLUTCH == 0 {
+                    let n = self.offset_mm.norm();
+                    let step = self.cfg.realign_mm_s * self.dt;
+                    self.offset_mm = if n <= step {
+                        V3::zeros()
+                    } else {
+                        self.offset_mm * (1.0 - step / n)
+                    };
                 }
                 self.state = if p.flags & packet_flags::CLUTCH != 0 {
                     TeleopState::Clutched
@@ -415,18 +561,21 @@ impl Coupling {
                     self.holding = true;
                     self.integral_n = V3::zeros();
                 }
-                self.state = if link_up || self.peer.is_none() {
+                self.state = if peer_down {
+                    TeleopState::Down
+                } else if link_up || self.peer.is_none() {
                     TeleopState::Waiting
                 } else {
                     TeleopState::LinkLost
                 };
             }
         }
-        let own = x.tip_mm - self.origin_mm;
+        let origin = self.origin_mm + self.offset_mm;
+        let own = x.tip_mm - origin;
         let engage = if self.holding { 0 } else { self.epoch };
         self.send(x, engage, 0, own, x.vel_mm_s);
         let (target, target_v) = match leader {
-            Some(p) => (self.origin_mm + V3::from(p.pos_mm), V3::from(p.vel_mm_s)),
+            Some(p) => (origin + V3::from(p.pos_mm), V3::from(p.vel_mm_s)),
             None => (self.hold_mm, V3::zeros()),
         };
         // Under delay the spring is softened (docs/TELEOP.md §5); holding is the arm's own.
@@ -449,6 +598,21 @@ impl Coupling {
             Some(p) => self.passive(f, x, p.energy_in_j),
             // Holding is this arm's own spring, not the channel's: no passivity accounting.
             None => f,
+        }
+    }
+
+    /// Leader: the fraction of the force at the last packet of the engagement that a silence
+    /// lets through at `t`: all of it for [`SILENCE_HOLD_S`], then linearly less, none from
+    /// `link_timeout_ms` on.
+    fn silence_factor(&self, t: f64) -> f64 {
+        let silence = t - self.matched_at;
+        let span = self.cfg.link_timeout_ms * 1e-3 - SILENCE_HOLD_S;
+        if silence <= SILENCE_HOLD_S {
+            1.0
+        } else if span > 0.0 {
+            (1.0 - (silence - SILENCE_HOLD_S) / span).clamp(0.0, 1.0)
+        } else {
+            0.0
         }
     }
 
@@ -483,7 +647,7 @@ impl Coupling {
             vel_mm_s: vel.into(),
             force_n: x.fext_n.into(),
             energy_in_j: self.port.energy_in,
-            echo_t: self.peer_t,
+            echo_t: self.echo(x.t),
         });
     }
 }
@@ -589,12 +753,18 @@ mod tests {
             input(0.0, [2.0, 0.0, 0.0]),
             input(0.0, [52.0, 0.0, 0.0]),
         );
-        // Clutch: the leader goes back 5 mm; the follower's target stays at 52.
+        // Clutch pressed at 2, then the leader goes back 5 mm; the follower's target stays
+        // at 52.
+        let press = SideInput {
+            buttons: [false, true],
+            ..input(0.0, [2.0, 0.0, 0.0])
+        };
+        run(&mut p, 20, 1, press, input(0.0, [52.0, 0.0, 0.0]));
         let clutched = SideInput {
             buttons: [false, true],
             ..input(0.0, [-3.0, 0.0, 0.0])
         };
-        let (lf, ff) = run(&mut p, 20, 100, clutched, input(0.0, [52.0, 0.0, 0.0]));
+        let (lf, ff) = run(&mut p, 21, 99, clutched, input(0.0, [52.0, 0.0, 0.0]));
         assert_eq!(p.0.state(), TeleopState::Clutched);
         assert_eq!(p.1.state(), TeleopState::Clutched);
         assert!(lf.norm() < 1e-12, "leader not freed: {lf:?}");
@@ -711,6 +881,117 @@ mod tests {
     }
 
     #[test]
+    fn through_a_silence_the_leaders_force_never_grows_and_is_gone_by_the_link_timeout() {
+        // The hand moves the leader on at 0.1 m/s through each silence: in pp the follower's
+        // last position, taken as still valid, would pull harder every tick (0.25 N a tick).
+        for arch in [Architecture::Pp, Architecture::Pf] {
+            let cfg = TeleopConfig {
+                architecture: arch,
+                ..always()
+            };
+            let mut p = sides(&cfg);
+            let mut k = 20usize;
+            let mut x = 0.0f64;
+            let side = |k: usize, x: f64| SideInput {
+                fext_n: V3::new(0.0, 0.0, 1.0),
+                ..input(k as f64 * DT, [x, 0.0, 0.0])
+            };
+            run(&mut p, 0, k, side(0, 0.0), side(0, 0.0));
+            for cut in 0..20 {
+                // Engaged and moving for 300 ms, the follower 1 mm behind.
+                for _ in 0..300 {
+                    p.0.step(&side(k, x));
+                    p.1.step(&side(k, x - 1.0));
+                    x += 0.1;
+                    k += 1;
+                }
+                assert_eq!(p.0.state(), TeleopState::Engaged, "{arch:?}, cut {cut}");
+                // The follower goes silent for 3 to 60 ms; the leader's first tick alone
+                // takes the follower's last packet.
+                let silence = 3 + 3 * cut;
+                let at_last = p.0.step(&side(k, x)).norm();
+                assert!(at_last > 0.5, "{arch:?}, cut {cut}: no force: {at_last}");
+                for s in 1..silence {
+                    x += 0.1;
+                    let f = p.0.step(&side(k + s, x)).norm();
+                    assert!(
+                        f <= at_last + 0.05,
+                        "{arch:?}, cut {cut}: {f} N after {s} ms of silence, {at_last} N at the \
+                         last packet"
+                    );
+                    if s as f64 >= cfg.link_timeout_ms {
+                        assert!(f < 1e-9, "{arch:?}, cut {cut}: still {f} N after {s} ms");
+                    }
+                }
+                k += silence;
+            }
+        }
+    }
+
+    #[test]
+    fn a_dropout_keeps_the_mapping_and_the_follower_comes_back_to_it_at_a_bounded_speed() {
+        let cfg = always();
+        let mut p = sides(&cfg);
+        // Engaged with the follower 50 mm off the leader: its mapping is x_f = x_l + 50.
+        run(
+            &mut p,
+            0,
+            20,
+            input(0.0, [0.0; 3]),
+            input(0.0, [50.0, 0.0, 0.0]),
+        );
+        // Both silent for 40 ms (the link is lost both ways) while the leader moves 4 mm and
+        // the follower sags 1 mm.
+        let (l, f) = (input(0.0, [4.0, 0.0, 0.0]), input(0.0, [49.0, 0.0, 0.0]));
+        for k in 20..60 {
+            // (Each side's packets are lost: the other end's queue is emptied unread.)
+            p.0.step(&SideInput {
+                t: k as f64 * DT,
+                ..l
+            });
+            p.1.endpoint.clear();
+            p.1.step(&SideInput {
+                t: k as f64 * DT,
+                ..f
+            });
+            p.0.endpoint.clear();
+        }
+        assert_eq!(p.0.state(), TeleopState::LinkLost);
+        assert_eq!(p.1.state(), TeleopState::LinkLost);
+        // Back: the same engagement resumes, the follower's target starting where it is...
+        let epoch = p.0.epoch();
+        let (_, ff) = run(&mut p, 60, 3, l, f);
+        assert_eq!((p.0.epoch(), p.1.epoch()), (epoch, epoch));
+        assert_eq!(p.1.state(), TeleopState::Engaged);
+        assert!(ff.norm() < 0.2, "a jump to the mapping: {ff:?}");
+        // ...and moving back to the mapping (54) at `realign_mm_s`: never faster.
+        let step = cfg.realign_mm_s * DT;
+        let mut target_was = 49.0 + ff[0] / cfg.stiffness_n_per_mm;
+        let mut at = f;
+        for k in 63..1000 {
+            p.0.step(&SideInput {
+                t: k as f64 * DT,
+                ..l
+            });
+            let ff = p.1.step(&SideInput {
+                t: k as f64 * DT,
+                ..at
+            });
+            // The follower sits on its target (the pull is zero there): read the target
+            // from the pull at a known position.
+            let target = at.tip_mm[0] + ff[0] / cfg.stiffness_n_per_mm;
+            assert!(
+                target - target_was <= step + 1e-9,
+                "tick {k}: the target moved {} mm",
+                target - target_was
+            );
+            target_was = target;
+            at.tip_mm[0] = target;
+        }
+        assert!((target_was - 54.0).abs() < 1e-9, "mapping {target_was}");
+    }
+
+    #[test]
     fn a_side_that_goes_down_disables_the_pair_at_once() {
         let cfg = TeleopConfig {
             architecture: Architecture::Pf,
@@ -731,7 +1012,8 @@ mod tests {
         let (lf, ff) = run(&mut p, 30, 23, input(0.0, [0.0; 3]), down);
         assert_eq!(ff, V3::zeros());
         assert_eq!(p.1.state(), TeleopState::Down);
-        assert_eq!(p.0.state(), TeleopState::LinkLost);
+        // The leader says so too: the pair is down, not a link that may come back.
+        assert_eq!(p.0.state(), TeleopState::Down);
         assert_eq!(
             lf,
             V3::zeros(),

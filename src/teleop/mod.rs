@@ -93,6 +93,10 @@ pub struct TeleopConfig {
     pub link_timeout_ms: f64,
     /// On a lost link the leader's force fades to zero over this time, ms.
     pub fade_ms: f64,
+    /// After a break in an engagement (a lost link, an arm down for a moment) the follower
+    /// resumes from where it is and comes back to the pair's mapping at most this fast, mm/s
+    /// (docs/TELEOP.md §4): a dropout never shifts the mapping.
+    pub realign_mm_s: f64,
     /// When the operator counts as present: button1 (held) or always.
     pub operator: Operator,
     /// Time-domain passivity on both ports.
@@ -134,6 +138,7 @@ impl Default for TeleopConfig {
             force_deadband_n: 0.02,
             link_timeout_ms: 25.0,
             fade_ms: 20.0,
+            realign_mm_s: 20.0,
             operator: Operator::Button1,
             passivity: true,
             delay_gain_ms: 3.0,
@@ -149,7 +154,7 @@ impl Default for TeleopConfig {
 impl TeleopConfig {
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let ranges: [(&str, f64, f64, f64, &str); 14] = [
+        let ranges: [(&str, f64, f64, f64, &str); 15] = [
             (
                 "teleop.delay_gain_ms",
                 self.delay_gain_ms,
@@ -216,6 +221,13 @@ impl TeleopConfig {
                 "2 ..= 1000 ms",
             ),
             ("teleop.fade_ms", self.fade_ms, 1.0, 1000.0, "1 ..= 1000 ms"),
+            (
+                "teleop.realign_mm_s",
+                self.realign_mm_s,
+                1.0,
+                500.0,
+                "1 ..= 500 mm/s",
+            ),
             (
                 "teleop.passivity_max_damping_n_s_per_m",
                 self.passivity_max_damping_n_s_per_m,

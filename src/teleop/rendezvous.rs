@@ -303,7 +303,7 @@ mod tests {
             seed: u64,
         ) -> Result<(Endpoint, Box<dyn RemoteLine>), String> {
             if peer == "unreachable" {
-                return Err("teleop: the network says no".into());
+                return Err("the network says no".into());
             }
             self.0.lock().unwrap().push((me.into(), peer.into(), role));
             let (end, _) = pair(config.to_leader, config.to_follower, seed);
@@ -330,7 +330,7 @@ mod tests {
             .join("left", "unreachable", Role::Leader, &cfg, 1)
             .err()
             .unwrap();
-        assert_eq!(e.to_string(), "teleop: the network says no");
+        assert_eq!(e.to_string(), "the network says no");
         // Itself is never a remote peer.
         let e = r.join("left", "left", Role::Leader, &cfg, 1).err().unwrap();
         assert_eq!(e, RendezvousError::SelfPeer("follower"));

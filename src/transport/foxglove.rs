@@ -39,7 +39,11 @@ pub enum LiveViewError {
     #[error("--foxglove {0}: expected HOST:PORT (e.g. {DEFAULT_ADDR}, or 0.0.0.0:8765 to be reached from other machines)")]
     Address(String),
     /// The server did not start (the port taken, the address not this machine's).
-    #[error("the Foxglove live view cannot listen on {addr}: {message}")]
+    #[error(
+        "the Foxglove live view cannot listen on {addr}: {message} (if another program holds \
+         the port, choose another with --foxglove HOST:PORT, e.g. 127.0.0.1:{})",
+        addr.port().wrapping_add(1).max(1024)
+    )]
     Start {
         /// The address asked for.
         addr: SocketAddr,

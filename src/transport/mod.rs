@@ -15,7 +15,7 @@ pub mod socket;
 pub mod zenoh;
 
 pub use config::{ServeConfig, StaleFallback};
-pub use omnid_client::find::{default_socket_dirs, find_arm_socket, find_socket};
+pub use omnid_client::find::{default_socket_dirs, find_arm_socket, find_socket, FindError};
 use std::path::PathBuf;
 
 /// Where the daemon serves arm `name` unless told otherwise.

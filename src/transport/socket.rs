@@ -176,8 +176,13 @@ impl SocketLock {
             "omnid-sock-{:016x}",
             fnv1a(dir.join(name).as_os_str().as_bytes())
         );
-        let held = crate::arm::lock::hold(&id)
-            .map_err(|holder| format!("already served by {holder}; stop it first"))?;
+        let held = crate::arm::lock::hold(&id).map_err(|holder| {
+            if holder.starts_with("another arm of this same") {
+                format!("already served by {holder}: give each arm its own socket")
+            } else {
+                format!("already served by {holder}; stop it first")
+            }
+        })?;
         Ok(SocketLock { _held: held })
     }
 }
@@ -250,7 +255,8 @@ mod tests {
         // The same place by another spelling is the same lock.
         let other = dir.path().join(".").join("Cargo");
         let e = SocketLock::acquire(&other).unwrap_err();
-        assert!(e.contains(&std::process::id().to_string()), "{e}");
+        assert!(e.contains("this same omnid process"), "{e}");
+        assert!(e.contains("give each arm its own socket"), "{e}");
         drop(held);
         SocketLock::acquire(&other).unwrap();
         let files: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();

@@ -220,6 +220,8 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
         e.contains("no arm `nobody`") && e.contains(&follower),
         "{e}"
     );
+    // Said once, without a stack of `teleop: ` prefixes (the client names the op it asked).
+    assert!(!e.contains("teleop: "), "{e}");
     drop(c);
 
     // Watch both arms while a console couples them for 5 s.
@@ -411,4 +413,66 @@ fn a_console_killed_outright_leaves_both_arms_uncoupled_and_holding() {
             assert!(Instant::now() < until, "{name} stayed coupled: {s:?}");
         }
     }
+}
+
+/// `--align`: before coupling, the console brings the follower to the leader's pose (a
+/// bounded `servo_jp` ramp), so the follower then stands where the leader is — not only
+/// moves as it does from wherever gravity left it.
+#[test]
+#[ignore = "paced"]
+fn ctl_teleop_align_brings_the_follower_to_the_leaders_pose_before_coupling() {
+    let (leader, follower) = (unique("alead"), unique("afollow"));
+    // The leader starts out of its inkwell, the hand then moving it along its path; the
+    // follower starts in its inkwell, centimetres away.
+    let config = format!(
+        "[teleop]\noperator = \"always\"\n\n[[arm]]\nname = \"{leader}\"\n\
+         [arm.sim]\nstart_pose = [0.3, 0.65, 0.3]\ndocked = false\n\
+         [arm.haptics.hand]\npattern = \"path\"\nspeed_m_s = 0.02\n\n[[arm]]\nname = \"{follower}\"\n"
+    );
+    let d = Served::start(&[], Some(&config), &[&leader, &follower]);
+    let mut watch = [d.client(&leader, "watch-l"), d.client(&follower, "watch-f")];
+    for w in &mut watch {
+        w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    }
+    let apart =
+        |l: [f64; 3], f: [f64; 3]| (0..3).map(|k| (l[k] - f[k]).powi(2)).sum::<f64>().sqrt();
+    // Let the hand settle, then see how far apart they start.
+    std::thread::sleep(Duration::from_secs(2));
+    let (l, f) = (
+        watch[0].next_state(5000).unwrap(),
+        watch[1].next_state(5000).unwrap(),
+    );
+    let before = apart(l.tip_mm, f.tip_mm);
+    let mut c = d.teleop_console(&leader, &follower, "30");
+    c.arg("--align")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let mut console = c.spawn().unwrap();
+    let until = Instant::now() + Duration::from_secs(40);
+    let mut engaged = 0;
+    let mut e2 = 0.0f64;
+    while engaged < 100 {
+        assert!(Instant::now() < until, "never 1 s engaged");
+        let f = watch[1].next_state(5000).unwrap();
+        let l = loop {
+            let l = watch[0].next_state(5000).unwrap();
+            if l.t >= f.t - 0.005 {
+                break l;
+            }
+        };
+        if l.teleop.as_deref() == Some("engaged") && f.teleop.as_deref() == Some("engaged") {
+            engaged += 1;
+            e2 += apart(l.tip_mm, f.tip_mm).powi(2);
+        }
+    }
+    let _ = console.kill();
+    let out = console.wait_with_output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("aligning"), "{stdout}");
+    assert!(before > 10.0, "they started only {before:.1} mm apart");
+    let rms = (e2 / engaged as f64).sqrt();
+    assert!(
+        rms < 3.0,
+        "coupled {rms:.1} mm RMS from the leader (they started {before:.1} mm apart)"
+    );
 }

@@ -691,6 +691,30 @@ fn assert_close(out: &str, key: &str, expected: &[f64], tol: f64) {
 /// Link flags of the SDK's HD console examples' Makefiles, and nothing else.
 const SDK_LIBS: [&str; 4] = ["-lHDU", "-lHD", "-lrt", "-lncurses"];
 
+/// Two of the SDK's example Makefiles leave out a library their program calls (Vibration's
+/// `-lm`, CommandMotorDAC's `-lncurses`): linked with `-lHDU -lHD` alone such a program still
+/// links, through the linker script install.sh puts at libHDU.so (docs/HDAPI.md, libHDU).
+#[test]
+#[ignore = "paced"]
+fn a_program_linked_with_only_lhdu_lhd_gets_libm_and_ncurses() {
+    let hd = HD::get();
+    hd.compile_with(
+        "unnamed_libs",
+        "unnamed_libs.c",
+        "cc",
+        &["-std=c11"],
+        &["-lHDU", "-lHD"],
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("none.sock");
+    let out = run(
+        hd.exe("unnamed_libs"),
+        &[],
+        &[("OMNID_SOCKET", missing.to_str().unwrap())],
+    );
+    assert!(out.contains(&format!("sin {:.6}", 0.5f64.sin())), "{out}");
+}
+
 #[test]
 #[ignore = "paced"]
 fn hdu_c_functions_and_error_helpers_link_as_the_sdk_examples_do() {

@@ -357,3 +357,160 @@ fn a_haptic_run_is_drawn_as_one() {
     );
     assert!(!out.join("tip_path.png").exists());
 }
+
+/// The numbers printed on the axes of an SVG figure, in document order.
+fn svg_numbers(svg: &str) -> Vec<f64> {
+    svg.split("<text")
+        .skip(1)
+        .filter_map(|t| {
+            let inner = t.split('>').nth(1)?.split('<').next()?;
+            inner.trim().parse::<f64>().ok()
+        })
+        .collect()
+}
+
+#[test]
+fn a_window_a_size_and_a_text_scale_make_a_publishable_figure() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("run.csv");
+    run_ok(&[
+        "run",
+        "--fast",
+        "--duration",
+        "6",
+        "--log",
+        log.to_str().unwrap(),
+    ]);
+    let out = dir.path().join("figures");
+    let o = run_ok(&[
+        "plot",
+        log.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--from",
+        "3",
+        "--to",
+        "5",
+        "--width",
+        "800",
+        "--height",
+        "600",
+        "--font-scale",
+        "1.5",
+    ]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    // 3.000 s to 5.000 s at 1 kHz, both ends in.
+    assert!(stdout.contains("2001 rows"), "{stdout}");
+    let png = png::Decoder::new(std::io::BufReader::new(
+        File::open(out.join("angles.png")).unwrap(),
+    ))
+    .read_info()
+    .unwrap();
+    assert_eq!((png.info().width, png.info().height), (800, 600));
+    let svg = std::fs::read_to_string(out.join("tracking_error.svg")).unwrap();
+    assert!(svg.contains("width=\"800\""), "the SVG's size");
+    // The time axis shows only the window.
+    let numbers = svg_numbers(&svg);
+    for t in [3.0, 4.0, 5.0] {
+        assert!(numbers.contains(&t), "no time label {t}: {numbers:?}");
+    }
+    let last = numbers.iter().cloned().fold(f64::MIN, f64::max);
+    assert!(last <= 5.0, "a label past the window: {numbers:?}");
+
+    // A window with no row, and one backwards: refused, naming the options.
+    for (from, to, says) in [
+        ("50", "60", "no row of the log"),
+        ("5", "3", "--from before --to"),
+    ] {
+        let o = omnid()
+            .args(["plot", log.to_str().unwrap(), "--out"])
+            .arg(dir.path().join("none"))
+            .args(["--from", from, "--to", to])
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(says), "{err}");
+    }
+    let o = omnid()
+        .args(["plot", log.to_str().unwrap(), "--out"])
+        .arg(dir.path().join("none"))
+        .args(["--width", "100000"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--width"));
+}
+
+/// Tick labels are read back from the figures: each printed value is the tick plotters drew,
+/// so consecutive labels on one axis are evenly spaced and none repeats (a label printed with
+/// fewer decimals than its step repeats or skews: `0.1, 0.0, 0.0, -0.1`). The tracking error's
+/// scale is the steady error, not the start-up blend's transient.
+#[test]
+fn tick_labels_read_back_are_the_ticks_and_errors_are_scaled_to_the_steady_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("run.csv");
+    run_ok(&[
+        "run",
+        "--fast",
+        "--duration",
+        "6",
+        "--log",
+        log.to_str().unwrap(),
+    ]);
+    let out = dir.path().join("figures");
+    plot(&log, &out);
+    for name in [
+        "control_effort",
+        "identification_error",
+        "tracking_error",
+        "angles",
+    ] {
+        let svg = std::fs::read_to_string(out.join(format!("{name}.svg"))).unwrap();
+        let numbers = svg_numbers(&svg);
+        assert!(numbers.len() > 20, "{name}: {numbers:?}");
+        // Runs of labels with a constant step: every axis is such a run; a repeat is a bug.
+        for w in numbers.windows(2) {
+            assert!(
+                w[0] != w[1],
+                "{name}: a repeated tick label {} in {numbers:?}",
+                w[0]
+            );
+        }
+        let steps: Vec<f64> = numbers.windows(2).map(|w| w[1] - w[0]).collect();
+        let mut uneven = 0;
+        for w in steps.windows(2) {
+            let same_axis = w[0].signum() == w[1].signum();
+            if same_axis && (w[0] - w[1]).abs() > 1e-9 * w[0].abs().max(1.0) {
+                uneven += 1;
+            }
+        }
+        // Between axes the step changes once per axis (3 panels × 2 axes).
+        assert!(uneven <= 6, "{name}: uneven tick labels {numbers:?}");
+    }
+    let svg = std::fs::read_to_string(out.join("tracking_error.svg")).unwrap();
+    // Time labels are 0 to 6 s; the error labels are mrad.
+    let biggest = svg_numbers(&svg)
+        .into_iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let log = Log::read(&log);
+    let mode = log.col("mode");
+    let steady: Vec<f64> = ["ref1", "ref2", "ref3"]
+        .iter()
+        .zip(["q1", "q2", "q3"])
+        .flat_map(|(r, q)| {
+            let (r, q) = (log.col(r), log.col(q));
+            log.rows
+                .iter()
+                .filter(|row| row[mode] == "track")
+                .map(move |row| {
+                    (row[r].parse::<f64>().unwrap() - row[q].parse::<f64>().unwrap()).abs() * 1e3
+                })
+        })
+        .collect();
+    let steady_max = steady.iter().cloned().fold(0.0, f64::max);
+    assert!(
+        biggest < 3.0 * steady_max.max(6.0),
+        "the error axis reaches {biggest} mrad for a steady error of {steady_max} mrad"
+    );
+}

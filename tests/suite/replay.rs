@@ -345,7 +345,7 @@ fn cli_replays_a_mock_session() {
     );
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
-        text.contains("on replay") && text.contains("end-of-data"),
+        text.contains("on replay") && text.contains("ended: at the end of the recording"),
         "{text}"
     );
     let l = Log::read(&log);

@@ -76,9 +76,16 @@ fn converted_recording_replays_end_to_end() {
     ]);
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(
-        text.contains("2743 ticks") && text.contains("end-of-data"),
+        text.contains("2743 ticks") && text.contains("ended: at the end of the recording"),
         "{text}"
     );
+    // A person's recording replayed with no controller followed nothing: no reference named,
+    // no tracking error reported against a sine it never saw.
+    assert!(
+        text.contains("with the controller off (--fast);") && !text.contains("following"),
+        "{text}"
+    );
+    assert!(!text.contains("tracking"), "{text}");
     let l = Log::read(&log);
     assert_eq!(l.rows.len(), 2743 + 1, "every sample and the stop row");
     for (k, row) in l.rows.iter().enumerate() {

@@ -575,15 +575,21 @@ fn spawn_piped(mut c: Command) -> std::process::Child {
 }
 
 /// Two daemons, as on two PCs (each its own runtime directory, so each console finds only
-/// its own arm), joined by zenoh on loopback: a console on each takes up its side; the
-/// follower copies the leader over the network; the follower's daemon killed, the leader
-/// loses the link and stays coupled, free.
-#[test]
-#[ignore = "paced"]
-fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_link_lost() {
+/// its own arm), joined by zenoh on loopback, the leader's arm moved by the simulated hand;
+/// each streaming to a watcher at 100 Hz.
+struct TwoDaemons {
+    a: Served,
+    b: Served,
+    leader: String,
+    follower: String,
+    wl: omnid::transport::client::Client,
+    wf: omnid::transport::client::Client,
+}
+
+fn two_daemons(tag: &str) -> TwoDaemons {
     let (leader, follower) = (
-        format!("zl-{}", std::process::id()),
-        format!("zf-{}", std::process::id()),
+        format!("zl{tag}-{}", std::process::id()),
+        format!("zf{tag}-{}", std::process::id()),
     );
     let port = free_port();
     // The pair's key, the same on both daemons.
@@ -600,7 +606,7 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
         )),
         &[&leader],
     );
-    let mut b = Served::start(
+    let b = Served::start(
         &[],
         Some(&format!(
             "[teleop]\noperator = \"always\"\n\n[zenoh]\nenabled = true\n{common}\
@@ -614,17 +620,114 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
     for w in [&mut wl, &mut wf] {
         w.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     }
+    TwoDaemons {
+        a,
+        b,
+        leader,
+        follower,
+        wl,
+        wf,
+    }
+}
+
+/// The newest state a stream has (waiting for one if none is queued).
+fn newest(c: &mut omnid::transport::client::Client) -> omnid::transport::protocol::State {
+    let mut s = c.next_state(5000).unwrap();
+    while let Ok(n) = c.next_state(0) {
+        s = n;
+    }
+    s
+}
+
+/// The end of a side reaches the other daemon as `down` (issue #42: the follower showed
+/// `link_lost` and stayed in `teleop` until its own console ended): the leader's console
+/// killed outright, its daemon ends that side (the holder left) and says so on the channel;
+/// the follower shows `down`, its console ends naming the leader (exit 3) and it holds.
+#[test]
+#[ignore = "paced"]
+fn two_daemons_over_zenoh_the_leaders_console_killed_puts_the_follower_down() {
+    let TwoDaemons {
+        a,
+        b,
+        leader,
+        follower,
+        mut wl,
+        mut wf,
+    } = two_daemons("d");
+    let mut ca = spawn_piped(a.teleop_console(&leader, &follower, "60"));
+    let cb = spawn_piped(b.teleop_console(&leader, &follower, "60"));
+    let until = Instant::now() + Duration::from_secs(40);
+    let mut both = 0;
+    while both < 50 {
+        let (l, f) = (newest(&mut wl), newest(&mut wf));
+        assert!(Instant::now() < until, "never engaged: {l:?}\n{f:?}");
+        if l.teleop.as_deref() == Some("engaged") && f.teleop.as_deref() == Some("engaged") {
+            both += 1;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let _ = ca.kill();
+    let killed = Instant::now();
+    let _ = ca.wait();
+    // The follower's states from the kill on, until `down`.
+    let mut seen: Vec<String> = Vec::new();
+    let until = Instant::now() + Duration::from_secs(10);
+    let after = loop {
+        let s = wf.next_state(5000).unwrap();
+        let state = s.teleop.clone().unwrap_or_else(|| s.mode.clone());
+        if seen.last() != Some(&state) {
+            seen.push(state.clone());
+        }
+        if state == "down" {
+            assert_eq!(s.mode, "teleop", "{s:?}");
+            break killed.elapsed();
+        }
+        assert!(
+            Instant::now() < until,
+            "the follower never went down: {seen:?}"
+        );
+    };
+    // (Reported, not asserted: the guide keeps timing out of tests. The state stream's 10 ms
+    // period and the kill's own delivery are in it.)
+    eprintln!(
+        "follower `down` {:.0} ms after the leader's console was killed; states {seen:?}",
+        after.as_secs_f64() * 1e3
+    );
+    let out = cb.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains(&format!("{leader}'s side is down")),
+        "{stderr}"
+    );
+    // Its console ended the follower's side: it holds.
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        let s = wf.next_state(5000).unwrap();
+        if s.mode == "hold" {
+            break;
+        }
+        assert!(Instant::now() < until, "the follower never held: {s:?}");
+    }
+}
+
+/// The follower copies the leader over the network; the follower's daemon killed, the leader
+/// loses the link and stays coupled, free.
+#[test]
+#[ignore = "paced"]
+fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_link_lost() {
+    let TwoDaemons {
+        a,
+        mut b,
+        leader,
+        follower,
+        mut wl,
+        mut wf,
+    } = two_daemons("");
     let ca = spawn_piped(a.teleop_console(&leader, &follower, "60"));
     let cb = spawn_piped(b.teleop_console(&leader, &follower, "60"));
     // Both engaged; the tips sampled together every 10 ms, each the newest its stream has
     // (the daemons' clocks differ: pair by arrival).
-    fn newest(c: &mut omnid::transport::client::Client) -> omnid::transport::protocol::State {
-        let mut s = c.next_state(5000).unwrap();
-        while let Ok(n) = c.next_state(0) {
-            s = n;
-        }
-        s
-    }
     let mut engaged: Vec<([f64; 3], [f64; 3])> = Vec::new();
     let until = Instant::now() + Duration::from_secs(40);
     while engaged.len() < 300 {
@@ -824,4 +927,56 @@ fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
         "{answer}"
     );
     drop(d);
+}
+
+/// The README's remote-client block, pasted as written into a shell (its `pip` and `python3`
+/// those of a fresh virtual environment with eclipse-zenoh) from the clone's top directory,
+/// against a daemon started as the README says: `omnid serve --zenoh`, no configuration.
+#[test]
+#[ignore = "paced"]
+fn the_readmes_remote_python_example_works_as_pasted() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let start = readme
+        .find("pip install ./clients/python eclipse-zenoh")
+        .expect("the README's remote example");
+    let block = &readme[start..];
+    let block = &block[..block.find("```").unwrap()];
+    let Some(py) = common::venv("readme-remote-venv", &["eclipse-zenoh==1.10.2"], "zenoh") else {
+        eprintln!("SKIPPED: PyPI is out of reach");
+        return;
+    };
+    let path = format!(
+        "{}:{}",
+        py.parent().unwrap().display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let mut d = Served::start(&["--device", "sim", "--zenoh"], None, &["sim"]);
+    let out = Command::new("sh")
+        .args(["-ec", block])
+        .current_dir(root)
+        .env("PATH", path)
+        .env_remove("PYTHONPATH")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    let (_, err) = d.stop();
+    assert!(
+        err.contains("listening on tcp/127.0.0.1:7448"),
+        "the daemon says where it listens: {err}"
+    );
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The tip, three numbers in millimetres (pip's own lines before it).
+    let last = text.lines().last().unwrap_or_default();
+    let tip: Vec<f64> = last
+        .trim_matches(|c| c == '(' || c == ')')
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect();
+    assert_eq!(tip.len(), 3, "{text}");
+    assert!(tip.iter().all(|v| v.abs() < 500.0), "{text}");
 }

@@ -164,11 +164,11 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 /// socket; another name → `<dir>/<name>.sock` in the default directories.
 pub fn socket_for(name: Option<&str>) -> Result<PathBuf, String> {
     match name.map(str::trim) {
-        None | Some("") => omnid_client::find_socket(),
+        None | Some("") => omnid_client::find_socket().map_err(|e| e.to_string()),
         Some(n)
             if n.eq_ignore_ascii_case("Default Device") || n.eq_ignore_ascii_case("default") =>
         {
-            omnid_client::find_socket()
+            omnid_client::find_socket().map_err(|e| e.to_string())
         }
         Some(n) if n.contains('/') => Ok(PathBuf::from(n)),
         // An arm by name or alias (`[[arm]] aliases = ["PHANToM 1"]`): `<dir>/<name>.sock`,

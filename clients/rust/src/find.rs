@@ -45,9 +45,36 @@ fn quoted(name: &str) -> String {
     }
 }
 
+/// Why no one socket was found.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum FindError {
+    /// Several arms are served there: the caller must say which.
+    #[error(
+        "several arms are served in {}: {}; name one with --arm NAME (or --socket PATH)",
+        dir.display(),
+        arms.join(", ")
+    )]
+    Several {
+        /// The directory.
+        dir: PathBuf,
+        /// The arms, by their sockets' names.
+        arms: Vec<String>,
+    },
+    /// No daemon there.
+    #[error(
+        "no omnid socket found in {}: is `omnid serve` running? (or pass --socket PATH, or \
+         set OMNID_SOCKET)",
+        dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(", ")
+    )]
+    None {
+        /// Where it looked.
+        dirs: Vec<PathBuf>,
+    },
+}
+
 /// The socket a client connects to when given none: `$OMNID_SOCKET`, else the one live
 /// socket in the default directories (an error lists them when there are several or none).
-pub fn find_socket() -> Result<PathBuf, String> {
+pub fn find_socket() -> Result<PathBuf, FindError> {
     if let Some(p) = std::env::var_os("OMNID_SOCKET").filter(|p| !p.is_empty()) {
         return Ok(PathBuf::from(p));
     }
@@ -69,7 +96,7 @@ fn sockets_in(dir: &std::path::Path) -> Vec<PathBuf> {
 
 /// The one live socket in the first of `dirs` that has any; sockets left by a daemon that
 /// died are passed over.
-pub fn find_socket_in(dirs: &[PathBuf]) -> Result<PathBuf, String> {
+pub fn find_socket_in(dirs: &[PathBuf]) -> Result<PathBuf, FindError> {
     for dir in dirs {
         // A daemon that crashed left its socket: not one to choose between.
         let mut found = sockets_in(dir);
@@ -78,26 +105,20 @@ pub fn find_socket_in(dirs: &[PathBuf]) -> Result<PathBuf, String> {
             0 => continue,
             1 => return Ok(found.remove(0)),
             _ => {
-                return Err(format!(
-                    "several omnid sockets in {}: {}; pass --socket PATH",
-                    dir.display(),
-                    found
+                return Err(FindError::Several {
+                    dir: dir.clone(),
+                    arms: found
                         .iter()
-                        .map(|p| p.display().to_string())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ))
+                        .filter_map(|p| p.file_stem())
+                        .map(|s| s.to_string_lossy().into_owned())
+                        .collect(),
+                })
             }
         }
     }
-    Err(format!(
-        "no omnid socket found in {}: is `omnid serve` running? (or pass --socket PATH, or set \
-         OMNID_SOCKET)",
-        dirs.iter()
-            .map(|d| d.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", ")
-    ))
+    Err(FindError::None {
+        dirs: dirs.to_vec(),
+    })
 }
 
 /// The socket of arm `name` (its name or an alias): `<dir>/<name>.sock` in the default
@@ -154,8 +175,22 @@ mod tests {
         assert!(dir.path().join("a.sock").exists());
         let dirs = [dir.path().to_path_buf()];
         let e = find_socket_in(&dirs).unwrap_err();
-        assert!(e.contains("no omnid socket"), "{e}");
+        assert!(e.to_string().contains("no omnid socket"), "{e}");
         let _live = UnixListener::bind(dir.path().join("b.sock")).unwrap();
         assert_eq!(find_socket_in(&dirs).unwrap(), dir.path().join("b.sock"));
+        // Two arms: named, and how to choose.
+        let _other = UnixListener::bind(dir.path().join("c.sock")).unwrap();
+        let e = find_socket_in(&dirs).unwrap_err();
+        assert_eq!(
+            e,
+            FindError::Several {
+                dir: dir.path().to_path_buf(),
+                arms: vec!["b".into(), "c".into()]
+            }
+        );
+        assert!(
+            e.to_string().contains("b, c; name one with --arm NAME"),
+            "{e}"
+        );
     }
 }

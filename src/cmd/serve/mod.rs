@@ -323,14 +323,24 @@ pub fn serve(
     for arm in &arms {
         prepared.push(prepare_arm(arm, opts, cfg, stop.clone())?);
     }
+    let default_dirs = crate::transport::default_socket_dirs();
     for p in &prepared {
+        // The shortest `omnid ctl` line that reaches this arm.
+        let in_default_dir = p
+            .socket
+            .parent()
+            .is_some_and(|d| default_dirs.iter().any(|dd| dd == d));
+        let ctl = match (in_default_dir, prepared.len()) {
+            (true, 1) => "omnid ctl mode hold".to_string(),
+            (true, _) => format!("omnid ctl --arm {} mode hold", p.name),
+            (false, _) => format!("omnid ctl --socket {} mode hold", p.socket.display()),
+        };
         crate::errln!(
             "omnid serve: arm `{}` ({}) on {} (amplifiers off until a client asks for a mode; \
-             `omnid ctl --socket {} mode hold`)",
+             `{ctl}`)",
             p.name,
             p.hub.station.arm.kind,
             p.socket.display(),
-            p.socket.display()
         );
         for w in &p.pipeline.warnings {
             crate::errln!("omnid: warning: {}: {w}", p.name);

@@ -25,8 +25,9 @@ pub struct ZenohConfig {
     /// `zenohd`). Empty: ROS 2's router on this PC, `tcp/127.0.0.1:7447`, tried in the
     /// background.
     pub connect: Vec<String>,
-    /// Endpoints to listen on. Empty: loopback only, `tcp/127.0.0.1:0` (other PCs reach the
-    /// daemon through a router, or list an address here).
+    /// Endpoints to listen on. Empty: loopback only, `tcp/127.0.0.1:7448` (or the next free
+    /// port up to 7457: a second daemon on this PC); other PCs reach the daemon through a
+    /// router, or list an address here.
     pub listen: Vec<String>,
     /// Find peers by UDP multicast (off: only the endpoints above).
     pub multicast_scouting: bool,

@@ -134,6 +134,8 @@ fn exposure(
 /// The daemon's zenoh session and its ROS 2 node.
 pub struct ZenohNet {
     session: zenoh::Session,
+    /// The endpoints the session listens on (a default port: the one it got).
+    listening: Vec<String>,
     cfg: ZenohConfig,
     node: Node,
     exposure: Exposure,
@@ -142,6 +144,49 @@ pub struct ZenohNet {
     /// One for the session: its teleop frames' counter is never reused while it lives.
     teleop: Arc<teleop::TeleopNet>,
     _node_token: Option<zenoh::liveliness::LivelinessToken>,
+}
+
+/// Where a peer listens when `[zenoh] listen` is empty: loopback, the first of these ports
+/// that is free (docs/ZENOH.md). 7448 is the next after ROS 2's router (7447), so a remote
+/// client on this PC reaches the first daemon at `tcp/127.0.0.1:7448`.
+pub const DEFAULT_PORTS: std::ops::RangeInclusive<u16> = 7448..=7457;
+
+fn set(zc: &mut zenoh::Config, key: &'static str, value: String) -> Result<(), ZenohError> {
+    zc.insert_json5(key, &value)
+        .map_err(|e| ZenohError::Config {
+            key,
+            value,
+            why: e.to_string(),
+        })
+}
+
+/// Open a peer on the first free default port (a second daemon on this PC takes the next).
+fn open_on_a_default_port(zc: zenoh::Config) -> Result<(zenoh::Session, Vec<String>), ZenohError> {
+    let mut last = String::new();
+    for port in DEFAULT_PORTS {
+        // A port another program holds is free again as soon as it lets go: ask the OS
+        // first, which is cheaper than a session that fails to open.
+        if std::net::TcpListener::bind(("127.0.0.1", port)).is_err() {
+            last = format!("tcp/127.0.0.1:{port} is taken");
+            continue;
+        }
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let mut attempt = zc.clone();
+        set(
+            &mut attempt,
+            "listen/endpoints",
+            json_list(std::slice::from_ref(&endpoint)),
+        )?;
+        match zenoh::open(attempt).wait() {
+            Ok(session) => return Ok((session, vec![endpoint])),
+            Err(e) => last = format!("{endpoint}: {e}"),
+        }
+    }
+    Err(ZenohError::Open(format!(
+        "no default port free on loopback ({}..={}; last: {last}); name one in [zenoh] listen",
+        DEFAULT_PORTS.start(),
+        DEFAULT_PORTS.end()
+    )))
 }
 
 fn json_list(v: &[String]) -> String {
@@ -168,11 +213,6 @@ impl ZenohNet {
         } else {
             cfg.connect.clone()
         };
-        let listen = if cfg.listen.is_empty() {
-            vec!["tcp/127.0.0.1:0".to_string()]
-        } else {
-            cfg.listen.clone()
-        };
         let mode = match cfg.mode {
             ZenohMode::Peer => "\"peer\"",
             ZenohMode::Client => "\"client\"",
@@ -186,7 +226,6 @@ impl ZenohNet {
             ),
         ];
         if cfg.mode == ZenohMode::Peer {
-            settings.push(("listen/endpoints", json_list(&listen)));
             // A router that is not there yet is not an error: ROS 2 starts in any order.
             settings.push(("connect/exit_on_failure", "false".into()));
         }
@@ -194,7 +233,7 @@ impl ZenohNet {
             cfg,
             &zc,
             if cfg.mode == ZenohMode::Peer {
-                &listen
+                &cfg.listen
             } else {
                 &[]
             },
@@ -210,16 +249,23 @@ impl ZenohNet {
             });
         }
         for (key, value) in settings {
-            zc.insert_json5(key, &value)
-                .map_err(|e| ZenohError::Config {
-                    key,
-                    value: value.clone(),
-                    why: e.to_string(),
-                })?;
+            set(&mut zc, key, value)?;
         }
-        let session = zenoh::open(zc)
-            .wait()
-            .map_err(|e| ZenohError::Open(e.to_string()))?;
+        let (session, listening) = if cfg.mode != ZenohMode::Peer {
+            let session = zenoh::open(zc)
+                .wait()
+                .map_err(|e| ZenohError::Open(e.to_string()))?;
+            (session, Vec::new())
+        } else if !cfg.listen.is_empty() {
+            let listen = cfg.listen.clone();
+            set(&mut zc, "listen/endpoints", json_list(&listen))?;
+            let session = zenoh::open(zc)
+                .wait()
+                .map_err(|e| ZenohError::Open(e.to_string()))?;
+            (session, listen)
+        } else {
+            open_on_a_default_port(zc)?
+        };
         let node = Node {
             domain,
             zid: session.zid().to_string(),
@@ -245,6 +291,7 @@ impl ZenohNet {
         Ok(ZenohNet {
             teleop: Arc::new(teleop::TeleopNet::new(session.clone(), cfg)),
             session,
+            listening,
             cfg: cfg.clone(),
             node,
             exposure,
@@ -298,13 +345,10 @@ impl ZenohNet {
         self.node.zid.clone()
     }
 
-    /// The endpoints this session listens on, as configured.
+    /// The endpoints this session listens on: as configured, or the default port it got
+    /// (empty in client mode).
     pub fn listening(&self) -> Vec<String> {
-        if self.cfg.listen.is_empty() && self.cfg.mode == ZenohMode::Peer {
-            vec!["tcp/127.0.0.1 (a free port)".into()]
-        } else {
-            self.cfg.listen.clone()
-        }
+        self.listening.clone()
     }
 
     /// Serve the arm a hub serves: the tap that feeds its ROS 2 topics and remote clients, and

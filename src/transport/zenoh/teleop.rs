@@ -167,10 +167,10 @@ impl RemoteChannels for TeleopNet {
         config: &TeleopConfig,
         seed: u64,
     ) -> Result<(Endpoint, Box<dyn RemoteLine>), String> {
-        let peer = arm_chunk(peer).map_err(|e| format!("teleop: the peer's {e}"))?;
+        let peer = arm_chunk(peer).map_err(|e| format!("the peer's {e}"))?;
         if !self.allow_commands {
             return Err(format!(
-                "teleop: `{peer}` is not an arm of this daemon; a pair with another daemon's arm \
+                "`{peer}` is not an arm of this daemon; a pair with another daemon's arm \
                  moves this arm from the network, which `[zenoh] allow_commands = false` refuses \
                  here (set it to true on both daemons; docs/ZENOH.md, docs/TELEOP.md §9)"
             ));
@@ -201,7 +201,7 @@ impl RemoteChannels for TeleopNet {
         let (to_net, from_servo) = crossbeam_channel::bounded::<Packet>(QUEUE);
         let (to_servo, from_net) = crossbeam_channel::bounded::<Packet>(QUEUE);
         let shared = Arc::new(Shared::default());
-        let declare_err = |what: &str, e: zenoh::Error| format!("teleop: zenoh: {what}: {e}");
+        let declare_err = |what: &str, e: zenoh::Error| format!("zenoh: {what}: {e}");
         let out_key = format!("{base}/{mine}/{zid}");
         let publisher = self
             .session
@@ -239,7 +239,7 @@ impl RemoteChannels for TeleopNet {
                     }
                 }
             })
-            .map_err(|e| format!("teleop: cannot start the network thread: {e}"))?;
+            .map_err(|e| format!("cannot start the network thread: {e}"))?;
         Ok((
             Endpoint::new(to_net, from_net, impairment, seed),
             Box::new(Line {
