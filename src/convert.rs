@@ -215,7 +215,6 @@ fn ros_touch<W: Write>(
     let mut rows = 0u64;
     loop {
         let row = reader.next_with(|r| {
-            r.check_time(false)?;
             let q = from_ros(r.f64(waist)?, r.f64(shoulder)?, r.f64(elbow)?);
             for (k, &i) in extras.iter().enumerate() {
                 extra_values[k].clear();
@@ -304,6 +303,7 @@ fn whole_log<W: Write>(
         external: any(&[
             "tau_ext1", "tau_ext2", "tau_ext3", "fext1", "fext2", "fext3",
         ]),
+        buttons: any(&crate::telemetry::record::STYLUS_COLUMNS),
     };
     let columns = schema.columns();
     let names: Vec<&str> = columns.iter().map(String::as_str).collect();
@@ -325,6 +325,9 @@ fn whole_log<W: Write>(
     let model = schema.model.then(|| (three("tau_model"), three("fhand")));
     let external = schema.external.then(|| (three("tau_ext"), three("fext")));
     let (amps, mode, flags) = (col("amps"), col("mode"), col("flags"));
+    let stylus = schema
+        .buttons
+        .then(|| crate::telemetry::record::STYLUS_COLUMNS.map(col));
     let format = LogFormat::for_path(out, crate::omni::kinematics::Geometry::default());
     let mut rec = crate::telemetry::recorder::recorder(schema, format);
     let werr = |source: io::Error| ConvertError::Write {
@@ -347,7 +350,6 @@ fn whole_log<W: Write>(
                 .ok()
                 .and_then(Mode::parse)
                 .ok_or(RowFault::UnknownMode { col: mode })?;
-            row.check_time(m == Mode::Stop)?;
             let (tau_model, hand) = match model {
                 Some((tm, fh)) => (nums(tm)?, nums(fh)?),
                 None => ([f64::NAN; 3], [f64::NAN; 3]),
@@ -356,6 +358,11 @@ fn whole_log<W: Write>(
                 Some((te, fe)) => (nums(te)?, nums(fe)?),
                 None => ([f64::NAN; 3], [f64::NAN; 3]),
             };
+            let mut live = crate::telemetry::record::Live::default();
+            if let Some(s) = stylus {
+                live.buttons = [row.i64(s[0])? != 0, row.i64(s[1])? != 0];
+                live.inkwell = row.i64(s[2])? != 0;
+            }
             Ok(TickRecord {
                 t: row.t,
                 q: nums(q)?,
@@ -379,7 +386,7 @@ fn whole_log<W: Write>(
                     hand,
                     fext,
                 },
-                live: Default::default(),
+                live,
             })
         })?;
         let Some(r) = next else { break };
@@ -668,6 +675,7 @@ mod tests {
         let old_schema = LogSchema {
             model: true,
             external: false,
+            buttons: false,
         };
         let old = log_text(old_schema, [9.0; 3]);
         let header = String::from_utf8_lossy(&old[..old.iter().position(|b| *b == b'\n').unwrap()])

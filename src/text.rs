@@ -8,7 +8,13 @@ pub const MAX_QUOTED: usize = 80;
 /// is not a number, or a short one, is left as it is.
 pub fn number(s: &str) -> String {
     match s.trim().parse::<f64>() {
-        Ok(v) if v.is_finite() && s.len() > 16 => format!("{v:e}"),
+        // Six significant figures, trailing zeros dropped: 999999999999.999 → 1e12.
+        Ok(v) if v.is_finite() && s.len() > 12 => {
+            let e = format!("{v:.5e}");
+            let (mantissa, exponent) = e.split_once('e').unwrap_or((&e, "0"));
+            let mantissa = mantissa.trim_end_matches('0').trim_end_matches('.');
+            format!("{mantissa}e{exponent}")
+        }
         _ => s.to_string(),
     }
 }
@@ -87,6 +93,8 @@ mod tests {
         assert_eq!(number("NaN"), "NaN");
         assert_eq!(number("abc"), "abc");
         assert_eq!(number(&1e-300f64.to_string()), "1e-300");
+        assert_eq!(number("999999999999.999"), "1e12");
+        assert_eq!(number("123456789.123456"), "1.23457e8");
     }
 
     #[test]

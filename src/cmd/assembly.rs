@@ -177,6 +177,8 @@ pub struct Pipeline {
     pub(crate) realtime_taken: Arc<std::sync::OnceLock<crate::servo::realtime::RealtimeReport>>,
     /// The arm's lock, held until the loop has sent its final safe packet.
     pub(crate) lock: Option<ArmLock>,
+    /// `omnid serve`: where the arm's learned weights are kept, its name and serial.
+    pub(crate) weights_store: Option<(PathBuf, String, Option<String>)>,
 }
 
 /// Build the pipeline for `opts` with `faults` (from [`check_options`]); telemetry leaves
@@ -248,6 +250,7 @@ pub(crate) fn assemble(
         realtime: (!opts.fast).then(|| cfg.realtime.clone()),
         realtime_taken: Arc::default(),
         lock,
+        weights_store: None,
     })
 }
 
@@ -329,6 +332,7 @@ impl Pipeline {
             realtime,
             realtime_taken,
             lock,
+            weights_store,
         } = self;
         let handle = std::thread::Builder::new()
             .name("omnid-servo".into())
@@ -358,6 +362,7 @@ impl Pipeline {
                 weights_label,
                 heat_path,
                 warnings,
+                weights_store,
             },
         ))
     }
@@ -368,9 +373,34 @@ pub(crate) struct Ending {
     pub weights_label: String,
     pub heat_path: Option<PathBuf>,
     pub warnings: Vec<String>,
+    /// `omnid serve`: where the arm's learned weights are kept, its name and serial.
+    pub weights_store: Option<(PathBuf, String, Option<String>)>,
 }
 
 impl Ending {
+    /// Keep what the arm learned for the next daemon (a healthy identifier only: one stopped
+    /// on a non-finite value keeps the file as it was).
+    pub(crate) fn save_weights(&self, report: &ServoReport) {
+        let (Some((path, arm, serial)), Some(id)) = (&self.weights_store, &report.identifier)
+        else {
+            return;
+        };
+        if !id.healthy() {
+            crate::errln!(
+                "omnid: the identifier stopped on a non-finite value: its weights are not kept                  ({} keeps the last saved)",
+                path.display()
+            );
+            return;
+        }
+        match crate::identifier::store::save(path, id, arm, serial.as_deref()) {
+            Ok(()) => crate::errln!(
+                "omnid: arm {arm}: learned weights kept in {}",
+                path.display()
+            ),
+            Err(e) => crate::errln!("omnid: warning: arm {arm}: learned weights not kept: {e}"),
+        }
+    }
+
     /// Keep the motors' heat for the next run and warn about motors that ran hot.
     pub(crate) fn save_heat(&self, report: &ServoReport) {
         if let Some(path) = &self.heat_path {

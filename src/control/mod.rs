@@ -105,6 +105,16 @@ pub trait Controller: Send {
     fn compensation(&mut self, _estimate: &Estimate, _learned: Option<&mut Identifier>) -> Joint3 {
         Joint3::zeros()
     }
+
+    /// What a teleoperation coupling's force is added to (docs/TELEOP.md §2): the law's
+    /// compensation, unless the law says otherwise.
+    fn coupling_compensation(
+        &mut self,
+        estimate: &Estimate,
+        learned: Option<&mut Identifier>,
+    ) -> Joint3 {
+        self.compensation(estimate, learned)
+    }
 }
 
 /// A fresh law of `kind` from the config.

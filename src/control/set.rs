@@ -124,6 +124,24 @@ impl ControllerSet {
             }
         }
     }
+
+    /// The active law's compensation under a teleoperation coupling, crossfaded alike.
+    pub(crate) fn coupling_compensation(
+        &mut self,
+        t: f64,
+        estimate: &Estimate,
+        mut learned: Option<&mut Identifier>,
+    ) -> Joint3 {
+        let new =
+            self.laws[slot(self.active)].coupling_compensation(estimate, learned.as_deref_mut());
+        match self.weight(t) {
+            None => new,
+            Some((old, w)) => {
+                let before = self.laws[slot(old)].coupling_compensation(estimate, learned);
+                before * (1.0 - w) + new * w
+            }
+        }
+    }
 }
 
 #[cfg(test)]

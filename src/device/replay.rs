@@ -404,8 +404,10 @@ impl Device for ReplayDevice {
             // Counts wrap at 16 bits on the wire; the servo unwraps them.
             encoder: counts.map(|c| c as u16),
             gimbal: [0x8000; 3],
-            buttons: [false; 2],
-            inkwell: false,
+            // What the stylus reported, which the servo acts on (a docked stylus stops the
+            // identifier learning): the replay learns where the run learned.
+            buttons: row.buttons,
+            inkwell: row.inkwell,
             counter: self.tick as u32,
         };
         self.torque = Some(row.tau);
@@ -606,8 +608,8 @@ mod tests {
     #[test]
     fn a_long_gap_between_rows_ends_on_stop_and_a_fifo_is_refused() {
         let cfg = Config::default();
-        // The second row is an hour after the first.
-        let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n3600,0,0,0,0,0,0\n");
+        // The second row is 50 s after the first (the longest a log may pause is 60 s).
+        let f = write("t,q1,q2,q3,tau1,tau2,tau3\n0,0,0,0,0,0,0\n50,0,0,0,0,0,0\n");
         let stop = Arc::new(AtomicBool::new(false));
         let mut dev = ReplayDevice::open(f.path(), &cfg.device, true, false, &stop).unwrap();
         dev.exchange(&live(1)).unwrap();
@@ -619,7 +621,7 @@ mod tests {
         let t0 = std::time::Instant::now();
         let raw = dev.exchange(&live(2)).unwrap();
         setter.join().unwrap();
-        assert_eq!(raw.device_time_s, 3600.0);
+        assert_eq!(raw.device_time_s, 50.0);
         assert!(t0.elapsed().as_secs_f64() < 2.0, "{:?}", t0.elapsed());
 
         // A set flag stops the validation pass.

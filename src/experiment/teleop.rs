@@ -145,6 +145,9 @@ const HF_FORCE_N: f64 = 0.15;
 pub struct PairResult {
     /// pp or pf.
     pub architecture: &'static str,
+    /// The control law both arms run (its compensation, and the model of the follower's
+    /// external-force estimate: docs/TELEOP.md §2).
+    pub controller: &'static str,
     /// Time-domain passivity on both ports.
     pub passivity: bool,
     /// The scene's name and parameters.
@@ -179,6 +182,11 @@ pub struct PairResult {
     /// The follower's external-force estimate vs the true contact force over the contact
     /// window, N (NaN without a wall).
     pub fext_rms_n: f64,
+    /// The leader's force less its 50 ms moving average over the last second, RMS, N: the
+    /// vibration above about 20 Hz the hand feels.
+    pub hf_force_n: f64,
+    /// The follower's tip less its 50 ms moving average over the last second, RMS, mm.
+    pub hf_tip_mm: f64,
     /// Why the run was unstable, when it was.
     pub why: Option<String>,
 }
@@ -246,15 +254,17 @@ fn side_config(scene: &Scene, leader: bool, quick: bool) -> Config {
     cfg
 }
 
-/// A servo for one side (computed torque's parametric compensation; the simulator at the
-/// workspace centre), its records drained by the caller after every tick.
+/// A servo for one side (`controller`'s compensation: computed torque's parametric model
+/// unless asked otherwise; the simulator at the workspace centre), its records drained by the
+/// caller after every tick.
 fn side_servo(
     name: &str,
     cfg: &Config,
     secs: f64,
+    controller: ControllerKind,
 ) -> Result<(Servo, crossbeam_channel::Receiver<TickRecord>), ExperimentError> {
     let opts = RunOptions {
-        controller: ControllerKind::Ct,
+        controller,
         trajectory: Trajectory::Hold,
         duration_s: secs,
         fast: true,
@@ -357,6 +367,32 @@ impl PairSim {
         quick: bool,
         link: Link,
     ) -> Result<PairSim, ExperimentError> {
+        PairSim::build_under(
+            base,
+            arch,
+            passivity,
+            scene,
+            channel,
+            secs,
+            quick,
+            link,
+            ControllerKind::Ct,
+        )
+    }
+
+    /// As [`PairSim::build`], both arms under `controller` (computed torque elsewhere).
+    #[allow(clippy::too_many_arguments)]
+    pub fn build_under(
+        base: &TeleopConfig,
+        arch: Architecture,
+        passivity: bool,
+        scene: &Scene,
+        channel: &Channel,
+        secs: f64,
+        quick: bool,
+        link: Link,
+        controller: ControllerKind,
+    ) -> Result<PairSim, ExperimentError> {
         let name = format!(
             "{} {} {} {}",
             arch.as_str(),
@@ -395,8 +431,8 @@ impl PairSim {
                 (le, fe, Some(z))
             }
         };
-        let (mut leader, lrx) = side_servo(&name, &lcfg, secs)?;
-        let (mut follower, frx) = side_servo(&name, &fcfg, secs)?;
+        let (mut leader, lrx) = side_servo(&name, &lcfg, secs, controller)?;
+        let (mut follower, frx) = side_servo(&name, &fcfg, secs, controller)?;
         leader.set_teleop(Box::new(Coupling::new(Side::Leader, &tcfg, le, dt)));
         follower.set_teleop(Box::new(Coupling::new(Side::Follower, &tcfg, fe, dt)));
         Ok(PairSim {
@@ -595,8 +631,34 @@ pub fn run_pair_over(
     quick: bool,
     link: Link,
 ) -> Result<(PairResult, Trace), ExperimentError> {
+    run_pair_under(
+        base,
+        arch,
+        passivity,
+        scene,
+        channel,
+        quick,
+        link,
+        ControllerKind::Ct,
+    )
+}
+
+/// As [`run_pair_over`], both arms under `controller` (the others run computed torque).
+#[allow(clippy::too_many_arguments)]
+pub fn run_pair_under(
+    base: &TeleopConfig,
+    arch: Architecture,
+    passivity: bool,
+    scene: &Scene,
+    channel: &Channel,
+    quick: bool,
+    link: Link,
+    controller: ControllerKind,
+) -> Result<(PairResult, Trace), ExperimentError> {
     let secs = scene.secs(quick);
-    let mut sim = PairSim::build(base, arch, passivity, scene, channel, secs, quick, link)?;
+    let mut sim = PairSim::build_under(
+        base, arch, passivity, scene, channel, secs, quick, link, controller,
+    )?;
     let mut tr = Trace::default();
     let mut rtt = Vec::with_capacity((secs * 1000.0) as usize);
     let mut why = None;
@@ -635,6 +697,7 @@ pub fn run_pair_over(
         .sum::<u64>();
     let mut result = measure(arch, passivity, scene, channel, &tr, why, delivered, quick);
     result.link = link.as_str();
+    result.controller = controller.as_str();
     // The leader's measured round trip over the run, once the link was up.
     let mut rtt: Vec<f64> = rtt.into_iter().filter(|v| *v > 0.0).collect();
     rtt.sort_by(f64::total_cmp);
@@ -734,6 +797,7 @@ fn measure(
     let channel_energy_min_j = tr.energy.iter().copied().fold(0.0, f64::min);
     PairResult {
         architecture: arch.as_str(),
+        controller: ControllerKind::Ct.as_str(),
         passivity,
         scene: scene.name(),
         channel: channel.name,
@@ -749,6 +813,8 @@ fn measure(
         channel_energy_min_j,
         packets_per_s: delivered as f64 / (n.max(1) as f64 / rate),
         fext_rms_n,
+        hf_force_n: hf_force,
+        hf_tip_mm: hf_tip,
         why,
     }
 }
@@ -812,6 +878,21 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
                 }
             }
         }
+    }
+    // The 1 N press in process, control on, under nnidc beside the ct rows above: the
+    // compensation and the follower's force estimate then come from the learned model.
+    for arch in [Architecture::Pp, Architecture::Pf] {
+        let (r, _) = run_pair_under(
+            &base,
+            arch,
+            true,
+            &main[1],
+            &CHANNELS[0],
+            quick,
+            Link::InProcess,
+            ControllerKind::Nnidc,
+        )?;
+        results.push(r);
     }
     // The same rows between two daemons over zenoh on loopback, at 0 and 100 ms, with
     // control on (real time: these take as long as they last).
@@ -928,7 +1009,10 @@ fn num(v: f64, digits: usize) -> String {
 }
 
 fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
-    let local: Vec<&PairResult> = all.iter().filter(|r| r.link == "in_process").collect();
+    let local: Vec<&PairResult> = all
+        .iter()
+        .filter(|r| r.link == "in_process" && r.controller == "ct")
+        .collect();
     let results = &local;
     let mut md = String::from(
         "# Teleoperation between two simulated Omnis\n\n\
@@ -1047,6 +1131,7 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         md.push('\n');
     }
     md.push_str("![press](teleop-press.png)\n\n");
+    controller_table(&mut md, all);
     zenoh_table(&mut md, all);
     let unstable: Vec<&PairResult> = all.iter().filter(|r| !r.stable).collect();
     if !unstable.is_empty() {
@@ -1065,6 +1150,41 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         }
     }
     md
+}
+
+/// The 1 N press into 1 N/mm in process under each model-based controller.
+fn controller_table(md: &mut String, all: &[PairResult]) {
+    let rows: Vec<&PairResult> = all
+        .iter()
+        .filter(|r| {
+            r.link == "in_process"
+                && r.passivity
+                && r.channel == CHANNELS[0].name
+                && r.scene == "press 1 N, 1 N/mm"
+        })
+        .collect();
+    if !rows.iter().any(|r| r.controller != "ct") {
+        return;
+    }
+    md.push_str(
+        "## The press under each controller
+
+The 1 N press into 1 N/mm in process with          passivity control, both arms under the controller: its compensation holds them, and          the follower's force estimate (*estimate*, against the floor's true force) is the          momentum observer on its model — the parametric one under ct, the learned one under          nnidc (docs/TELEOP.md §2). *vibration* is the leader's force above its 50 ms average          over the last second (RMS): what the hand feels above about 20 Hz.\n\n         | controller | architecture | force RMS N | estimate RMS N | vibration N | follower tip jitter mm | stable |\n         |---|---|---|---|---|---|---|\n",
+    );
+    for r in rows {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} | {} |",
+            r.controller,
+            r.architecture,
+            num(r.force_rms_n, 3),
+            num(r.fext_rms_n, 3),
+            num(r.hf_force_n, 3),
+            num(r.hf_tip_mm, 3),
+            if r.stable { "yes" } else { "**no**" }
+        );
+    }
+    md.push('\n');
 }
 
 /// The rows run between two daemons over zenoh, each beside the same row in process.

@@ -30,7 +30,7 @@ pub struct HapticsConfig {
     /// Which model the external-force estimate subtracts (active, parametric or learned;
     /// docs/TELEOP.md §2).
     pub external_model: super::ExternalModel,
-    /// Cut-off of the external-force estimate's low-pass filter, Hz.
+    /// Bandwidth of the external-force estimate (its momentum observer's first-order lag), Hz.
     pub external_cutoff_hz: f64,
 }
 

@@ -163,6 +163,11 @@ pub struct Identifier {
     forward_at: Option<(Vector3<f64>, Vector3<f64>)>,
     /// Ṁ̂ (the M-net's tangent along q̇) is valid for `forward_at`.
     tangent_done: bool,
+    /// (q, q̇) at which `mhat`, `chat`, `ghat` and `fhat` were last computed. Unlike
+    /// `forward_at` an adaptation step leaves it: the values are then the model this tick's
+    /// sample was seen with (what the momentum observer integrates). Cleared when weights are
+    /// replaced from outside.
+    model_at: Option<(Vector3<f64>, Vector3<f64>)>,
 }
 
 fn sym_from6(m: &[f64]) -> Matrix3<f64> {
@@ -234,6 +239,7 @@ impl Identifier {
             eigvecs: Matrix3::identity(),
             forward_at: None,
             tangent_done: false,
+            model_at: None,
         };
         id.set_anchor();
         id.anchored = false;
@@ -256,6 +262,7 @@ impl Identifier {
 
     pub(crate) fn net_mut(&mut self, net: Net) -> Option<&mut Mlp> {
         self.forward_at = None;
+        self.model_at = None;
         match net {
             Net::M => Some(&mut self.m),
             Net::C => Some(&mut self.c),
@@ -276,6 +283,7 @@ impl Identifier {
     /// Replace a network wholesale (weights loading); sizes must match the configuration.
     pub(crate) fn replace_net(&mut self, net: Net, mlp: Mlp) {
         self.forward_at = None;
+        self.model_at = None;
         match net {
             Net::M => self.m = mlp,
             Net::C => self.c = mlp,
@@ -441,6 +449,28 @@ impl Identifier {
         self.mhat * v + self.chat * qd + self.ghat + self.fhat
     }
 
+    /// The learned model's M̂(q) and n̂(q, q̇) = Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(q̇), for the momentum
+    /// observer (docs/TELEOP.md §2). At the point this tick's prediction or update already
+    /// evaluated, the values it saw (with the weights before that tick's adaptation step) are
+    /// returned without another network pass.
+    pub(crate) fn momentum_model(
+        &mut self,
+        q: &Vector3<f64>,
+        qd: &Vector3<f64>,
+    ) -> (Matrix3<f64>, Vector3<f64>) {
+        if self.model_at != Some((*q, *qd)) {
+            self.forward(q, qd, false);
+        }
+        (self.mhat, self.chat * qd + self.ghat + self.fhat)
+    }
+
+    /// Ĉ(q, q̇)·q̇ + Ĝ(q): the learned model's torque at rest and in motion, without its
+    /// friction (a teleoperation coupling's compensation: docs/TELEOP.md §2).
+    pub fn gravity_coriolis(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Vector3<f64> {
+        self.forward(q, qd, false);
+        self.chat * qd + self.ghat
+    }
+
     /// τ̂ = M̂q̈ + Ĉq̇ + Ĝ (+ F̂) without adapting.
     pub fn predict(
         &mut self,
@@ -462,6 +492,7 @@ impl Identifier {
                 None => Vector3::zeros(),
             };
             self.forward_at = Some((*q, *qd));
+            self.model_at = Some((*q, *qd));
             self.tangent_done = false;
         }
         if tangent && !self.tangent_done {

@@ -6,6 +6,7 @@ pub(crate) mod adaptive;
 pub(crate) mod mlp;
 pub mod pretune;
 pub(crate) mod settings;
+pub(crate) mod store;
 pub(crate) mod weights;
 
 #[cfg(test)]

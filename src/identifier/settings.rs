@@ -85,6 +85,10 @@ pub struct IdentifierConfig {
     pub init_std_output: f64,
     /// Seed of the initial weights.
     pub seed: u64,
+    /// `omnid serve`: keep what the arm learned (a file per arm in the state directory, beside
+    /// its motor heat), saved when the daemon ends cleanly, and start the next daemon from it
+    /// (docs/IDENTIFIER.md); false: every daemon starts from the shipped (or `--weights`) ones.
+    pub persist: bool,
 }
 
 impl Default for IdentifierConfig {
@@ -120,6 +124,7 @@ impl Default for IdentifierConfig {
             init_std_hidden: 1.0,
             init_std_output: 0.1,
             seed: 1,
+            persist: true,
         }
     }
 }

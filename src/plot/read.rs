@@ -290,7 +290,7 @@ mod tests {
 
     #[test]
     fn unknown_mode_names_line_and_column() {
-        let f = file("t,q1,mode\n0,1,blend\n0.001,1,\n0.002,1,servo_jp\n0.003,1,tracking\n");
+        let f = file("t,q1,mode\n0,1,blend\n0.001,1,servo_jp\n0.002,1,tracking\n");
         let e = LogReader::open(f.path(), None)
             .unwrap()
             .decimate(&[Formula::Column(1)], 10, |_| {})
@@ -300,7 +300,7 @@ mod tests {
             matches!(
                 e,
                 ReadError::UnknownMode {
-                    line: 5,
+                    line: 4,
                     index: 3,
                     ..
                 }
@@ -308,7 +308,7 @@ mod tests {
             "{e:?}"
         );
         assert!(
-            msg.contains("line 5: column 3 (`mode`): `tracking`") && msg.contains("servo_jf"),
+            msg.contains("line 4: column 3 (`mode`): `tracking`") && msg.contains("servo_jf"),
             "{msg}"
         );
     }

@@ -444,7 +444,7 @@ impl Servo {
         let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
         let (tau_hat, ident_flag) = self.identify(s.t, &est);
         let tau_model = self.oracle(&est);
-        self.estimate_external(&est, &tau_hat);
+        self.estimate_external(&est);
         let limited = match self.limit(&tau_cmd, &est, s.t, s.t_dev) {
             Ok(l) => l,
             Err(end) => return Some(end),
@@ -559,9 +559,10 @@ impl Servo {
         (tau_hat, ident_flag)
     }
 
-    /// The outside's force on the tip: what the model says the free arm needed for the
-    /// estimated motion minus what the motors gave over the interval ending at this sample.
-    fn estimate_external(&mut self, est: &Estimate, tau_hat: &[f64; 3]) {
+    /// The outside's force on the tip: the momentum observer on the learned model (under
+    /// nnidc, or when asked for) or the parametric one, fed the motors' torque over the
+    /// interval ending at this sample (docs/TELEOP.md §2).
+    fn estimate_external(&mut self, est: &Estimate) {
         let learned = match self.external_model {
             ExternalModel::Learned => true,
             ExternalModel::Parametric => false,
@@ -569,18 +570,19 @@ impl Servo {
                 self.controllers.active() == crate::control::ControllerKind::Nnidc
             }
         };
-        let healthy = self.identifier.as_ref().is_some_and(|id| id.healthy());
         let acting = Joint3::from(self.acting_tau.unwrap_or([0.0; 3]));
-        if learned && healthy {
-            self.external.update(
+        match self.identifier.as_mut() {
+            // A stopped identifier's model is not believed: the parametric one stands in.
+            Some(id) if learned && id.healthy() => self.external.observe_learned(
+                id,
                 &self.parametric.geometry,
                 &est.q,
-                &Joint3::from(*tau_hat),
+                &est.qd,
                 &acting,
-            );
-        } else {
-            self.external
-                .observe(&self.parametric, &est.q, &est.qd, &acting);
+            ),
+            _ => self
+                .external
+                .observe(&self.parametric, &est.q, &est.qd, &acting),
         }
     }
 
@@ -906,7 +908,7 @@ impl Servo {
             Activity::Idle => (here, Joint3::zeros()),
             Activity::Teleop => (
                 here,
-                self.controllers.compensation(t, est, id)
+                self.controllers.coupling_compensation(t, est, id)
                     + tip_force_torque(&self.parametric.geometry, q, &self.teleop_force),
             ),
             Activity::Track | Activity::Hold | Activity::ServoJp => {

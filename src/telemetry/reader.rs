@@ -245,6 +245,28 @@ pub enum ReadError {
         /// The line that had it first.
         previous_line: u64,
     },
+    /// The time column jumps further than any device pauses.
+    #[error(
+        "{path}: line {line}: column {index} (`{column}`): time jumps {gap_s} s after line \
+         {previous_line} (more than {max_s} s between two rows: no device pauses that long; \
+         split the recording there)"
+    )]
+    TimeGap {
+        /// The file, as given.
+        path: String,
+        /// The row's line.
+        line: u64,
+        /// The time column's header name.
+        column: String,
+        /// The time column's 1-based index.
+        index: usize,
+        /// The jump, s (as written short: `1e12`).
+        gap_s: String,
+        /// The longest allowed, s.
+        max_s: f64,
+        /// The row before it.
+        previous_line: u64,
+    },
     /// A `mode` field that omnid never writes.
     #[error(
         "{path}: line {line}: column {index} (`{column}`): `{value}` is not a mode omnid writes \
@@ -311,6 +333,7 @@ impl ReadError {
             | NotFinite { line, .. }
             | TimeBackwards { line, .. }
             | TimeRepeats { line, .. }
+            | TimeGap { line, .. }
             | UnknownMode { line, .. }
             | RowTooLong { line, .. }
             | AfterStop { line, .. }
@@ -344,6 +367,11 @@ pub(crate) enum RowFault {
     TimeRepeats {
         col: usize,
         t: f64,
+        previous_line: u64,
+    },
+    TimeGap {
+        col: usize,
+        gap: f64,
         previous_line: u64,
     },
     UnknownMode {
@@ -508,6 +536,47 @@ impl Row<'_> {
         }
     }
 
+    /// The checks every reader makes of every row, whatever it reads from it (replay,
+    /// identify, convert, plot alike): a `mode` omnid writes; `t` later than the row before
+    /// (the same only on the final `stop` row) and not further on than [`MAX_GAP_S`]; `flags`
+    /// an integer.
+    pub(crate) fn check_common(
+        &self,
+        mode_col: Option<usize>,
+        flags_col: Option<usize>,
+    ) -> Result<(), RowFault> {
+        let stop = match mode_col {
+            Some(m) => {
+                let mode = std::str::from_utf8(self.field(m))
+                    .ok()
+                    .and_then(Mode::parse);
+                match mode {
+                    Some(mode) => mode == Mode::Stop,
+                    // Empty included: omnid writes a mode on every row.
+                    None => return Err(RowFault::UnknownMode { col: m }),
+                }
+            }
+            None => false,
+        };
+        self.check_time(stop)?;
+        if let Some((previous, previous_line)) = self.previous {
+            let gap = self.t - previous;
+            if gap > MAX_GAP_S {
+                return Err(RowFault::TimeGap {
+                    col: self.time_col,
+                    gap,
+                    previous_line,
+                });
+            }
+        }
+        if let Some(f) = flags_col {
+            if !self.field(f).is_empty() {
+                self.i64(f)?;
+            }
+        }
+        Ok(())
+    }
+
     /// `t` must be later than the last accepted row's (`allow_equal`: or the same).
     pub fn check_time(&self, allow_equal: bool) -> Result<(), RowFault> {
         let Some((previous, previous_line)) = self.previous else {
@@ -642,6 +711,11 @@ fn is_known_log_column(name: &str) -> bool {
     })
 }
 
+/// The longest time between two rows a log may have, s. A device sends every millisecond and
+/// faults after 20 missed packets; a replay paced at the log's own time would sit silent through
+/// a longer pause (a time of 1e12 s: forever).
+pub const MAX_GAP_S: f64 = 60.0;
+
 /// The CSV layer: named columns, one reused record, strict or lenient row checks.
 pub(crate) struct ColumnReader<R: Read> {
     csv: csv::Reader<Tail<R>>,
@@ -649,6 +723,9 @@ pub(crate) struct ColumnReader<R: Read> {
     header: Vec<String>,
     record: csv::ByteRecord,
     time_col: usize,
+    /// `mode` and `flags`, where the log has them: every reader checks them alike.
+    mode_col: Option<usize>,
+    flags_col: Option<usize>,
     lenient: bool,
     last: Option<(f64, u64)>,
     /// Lone `\r` line ends before the current row (see [`Tail`]).
@@ -787,6 +864,8 @@ impl<R: Read> ColumnReader<R> {
             record,
             time_col: 0,
             lenient,
+            mode_col: None,
+            flags_col: None,
             last: None,
             cr_lines: 0,
             next_line: first_row.line(),
@@ -799,6 +878,8 @@ impl<R: Read> ColumnReader<R> {
             reader.require(c, required)?;
         }
         reader.time_col = reader.require(required[0], required)?;
+        reader.mode_col = reader.optional("mode")?;
+        reader.flags_col = reader.optional("flags")?;
         Ok(reader)
     }
 
@@ -890,6 +971,7 @@ impl<R: Read> ColumnReader<R> {
                         time_col: self.time_col,
                         previous: self.last,
                     };
+                    row.check_common(self.mode_col, self.flags_col)?;
                     parse(&row).map(|v| (v, t))
                 })
             };
@@ -1027,6 +1109,19 @@ impl<R: Read> ColumnReader<R> {
                 t,
                 previous_line,
             },
+            RowFault::TimeGap {
+                col,
+                gap,
+                previous_line,
+            } => ReadError::TimeGap {
+                path,
+                line,
+                column: self.column_name(col),
+                index: col + 1,
+                gap_s: crate::text::number(&gap.to_string()),
+                max_s: MAX_GAP_S,
+                previous_line,
+            },
             RowFault::UnknownMode { col } => ReadError::UnknownMode {
                 path,
                 line,
@@ -1104,6 +1199,11 @@ pub struct LogRow {
     pub enc: Option<[i64; 3]>,
     /// The `mode` column, when the file has one.
     pub mode: Option<Mode>,
+    /// The stylus buttons pressed (`button1`, `button2`; not pressed when the file has no
+    /// such columns).
+    pub buttons: [bool; 2],
+    /// The stylus in its inkwell (`inkwell`; not when the file has no such column).
+    pub inkwell: bool,
 }
 
 impl LogRow {
@@ -1126,6 +1226,8 @@ pub struct LogColumns {
     pub enc: Option<[usize; 3]>,
     /// `mode`, when the log has it.
     pub mode: Option<usize>,
+    /// `button1`, `button2` and `inkwell`, when the log has them.
+    pub stylus: Option<[usize; 3]>,
 }
 
 /// Streaming reader of a replayable log.
@@ -1170,6 +1272,16 @@ impl<R: Read> LogReader<R> {
             None
         };
         let mode = core.optional("mode")?;
+        const STYLUS: [&str; 3] = super::record::STYLUS_COLUMNS;
+        let stylus = if STYLUS.iter().any(|c| core.header().iter().any(|h| h == c)) {
+            Some([
+                core.require(STYLUS[0], &STYLUS)?,
+                core.require(STYLUS[1], &STYLUS)?,
+                core.require(STYLUS[2], &STYLUS)?,
+            ])
+        } else {
+            None
+        };
         Ok(LogReader {
             core,
             cols: LogColumns {
@@ -1178,6 +1290,7 @@ impl<R: Read> LogReader<R> {
                 tau,
                 enc,
                 mode,
+                stylus,
             },
             stop_line: None,
         })
@@ -1219,7 +1332,6 @@ impl<R: Read> LogReader<R> {
                 ),
                 None => None,
             };
-            r.check_time(mode == Some(Mode::Stop))?;
             let mut q = [0.0; 3];
             let mut tau = [0.0; 3];
             for j in 0..3 {
@@ -1232,6 +1344,10 @@ impl<R: Read> LogReader<R> {
                 Some(e) => Some([r.i64(e[0])?, r.i64(e[1])?, r.i64(e[2])?]),
                 None => None,
             };
+            let (buttons, inkwell) = match cols.stylus {
+                Some(s) => ([r.i64(s[0])? != 0, r.i64(s[1])? != 0], r.i64(s[2])? != 0),
+                None => ([false; 2], false),
+            };
             Ok(LogRow {
                 line: r.line,
                 t: r.t,
@@ -1239,6 +1355,8 @@ impl<R: Read> LogReader<R> {
                 tau,
                 enc,
                 mode,
+                buttons,
+                inkwell,
             })
         })?;
         if let Some(r) = &row {

@@ -240,6 +240,10 @@ pub struct LogSchema {
     /// `tau_ext1..3` and `fext1..3`, the external-force estimate (every log this omnid
     /// writes; absent from logs written before it was logged).
     pub(crate) external: bool,
+    /// `button1`, `button2` and `inkwell` (0 or 1): what the stylus reported, which the servo
+    /// acts on (a docked stylus stops the identifier learning), so a replay re-runs it (every
+    /// log this omnid writes; absent from older CSV logs, whose replays report neither).
+    pub(crate) buttons: bool,
 }
 
 /// A group of log columns (and its MCAP channels) that a log may carry or not.
@@ -251,7 +255,12 @@ pub(crate) enum Group {
     Model,
     /// The external-force estimate ([`LogSchema::external`]).
     External,
+    /// The stylus's buttons and inkwell ([`LogSchema::buttons`]).
+    Buttons,
 }
+
+/// The stylus's columns ([`LogSchema::buttons`]), after `enc1..3`.
+pub(crate) const STYLUS_COLUMNS: [&str; 3] = ["button1", "button2", "inkwell"];
 
 /// The seven columns every log starts with, and every replayable file must have.
 pub const REQUIRED_COLUMNS: [&str; 7] = ["t", "q1", "q2", "q3", "tau1", "tau2", "tau3"];
@@ -262,6 +271,7 @@ impl LogSchema {
         LogSchema {
             model,
             external: true,
+            buttons: true,
         }
     }
 
@@ -271,6 +281,7 @@ impl LogSchema {
             Group::Always => true,
             Group::Model => self.model,
             Group::External => self.external,
+            Group::Buttons => self.buttons,
         }
     }
 
@@ -291,6 +302,9 @@ impl LogSchema {
         three(&mut c, "fhand", self.model);
         three(&mut c, "fext", self.external);
         c.extend((1..=3).map(|j| format!("enc{j}")));
+        if self.buttons {
+            c.extend(STYLUS_COLUMNS.map(String::from));
+        }
         c.extend(["amps", "mode", "flags"].map(String::from));
         c
     }

@@ -90,6 +90,12 @@ pub(crate) fn format_row(line: &mut Vec<u8>, r: &TickRecord, schema: &LogSchema)
         line.push(b',');
         line.extend_from_slice(i.format(*v).as_bytes());
     }
+    if schema.buttons {
+        for on in [r.live.buttons[0], r.live.buttons[1], r.live.inkwell] {
+            line.push(b',');
+            line.push(if on { b'1' } else { b'0' });
+        }
+    }
     line.push(b',');
     line.push(if r.amps { b'1' } else { b'0' });
     line.push(b',');

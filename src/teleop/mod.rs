@@ -138,7 +138,7 @@ impl Default for TeleopConfig {
             force_deadband_n: 0.02,
             link_timeout_ms: 25.0,
             fade_ms: 20.0,
-            realign_mm_s: 20.0,
+            realign_mm_s: 100.0,
             operator: Operator::Button1,
             passivity: true,
             delay_gain_ms: 3.0,

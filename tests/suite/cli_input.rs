@@ -339,3 +339,71 @@ fn config_and_weights_files_are_read_up_to_a_size() {
     );
     assert!(b.max_rss_kb < SMALL_RSS_KB, "peak RSS {} kB", b.max_rss_kb);
 }
+
+/// One reader, one set of checks: replay, convert, plot and identify refuse the same rows,
+/// naming the file, the line and the column — a non-integer `flags`, a time that goes
+/// backwards, repeats or jumps further than a device ever pauses, an empty `mode`.
+#[test]
+fn every_log_reader_refuses_the_same_bad_rows() {
+    let cases: [(&str, &str, &str); 5] = [
+        ("flags", "0.002,0,0.27,-0.37,0.01,0,0,NaN,track", "`flags`"),
+        (
+            "backwards",
+            "0.0005,0,0.27,-0.37,0.01,0,0,0,track",
+            "time goes backwards",
+        ),
+        (
+            "repeats",
+            "0.001,0,0.27,-0.37,0.01,0,0,0,track",
+            "time repeats",
+        ),
+        (
+            "jump",
+            "1e12,0,0.27,-0.37,0.01,0,0,0,track",
+            "time jumps 1e12 s",
+        ),
+        ("empty_mode", "0.002,0,0.27,-0.37,0.01,0,0,0,", "`mode`"),
+    ];
+    for (name, bad_row, says) in cases {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join(format!("{name}.csv"));
+        std::fs::write(
+            &input,
+            format!(
+                "t,q1,q2,q3,tau1,tau2,tau3,flags,mode\n0,0,0.27,-0.37,0.01,0,0,0,track\n\
+                 0.001,0,0.27,-0.37,0.01,0,0,0,track\n{bad_row}\n"
+            ),
+        )
+        .unwrap();
+        let input_s = input.to_str().unwrap();
+        let d = |f: &str| dir.path().join(f).to_str().unwrap().to_string();
+        let (log, converted, figures, weights) = (d("r.csv"), d("c.csv"), d("fig"), d("w.json"));
+        let replay = format!("replay:{input_s}");
+        let commands: [Vec<&str>; 4] = [
+            vec![
+                "run",
+                "--device",
+                &replay,
+                "--fast",
+                "--controller",
+                "off",
+                "--log",
+                &log,
+            ],
+            vec!["convert", "--from", "omnid", input_s, "--out", &converted],
+            vec!["plot", input_s, "--out", &figures],
+            vec!["identify", input_s, "--out", &weights],
+        ];
+        for args in commands {
+            let out = run(&args, dir.path());
+            let err = stderr(&out);
+            assert_eq!(out.status.code(), Some(2), "{name}: {args:?}: {err}");
+            assert!(
+                err.contains(&format!("{name}.csv"))
+                    && err.contains("line 4")
+                    && err.contains(says),
+                "{name}: {args:?}: {err}"
+            );
+        }
+    }
+}

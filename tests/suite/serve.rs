@@ -1139,3 +1139,89 @@ fn a_daemon_out_of_descriptors_refuses_with_the_reason_and_recovers() {
     let said = err.matches("omnid serve: accept:").count();
     assert!((1..=3).contains(&said), "said {said} times:\n{err}");
 }
+
+#[test]
+#[ignore = "paced"]
+fn a_restarted_daemon_starts_from_the_weights_its_arm_learned() {
+    // Issue #39: track for a few seconds (nnidc, the identifier learning), shut down cleanly,
+    // start again on the same state directory: the second daemon says where its weights come
+    // from, and they are the first one's, not the shipped ones.
+    let dir = tempfile::tempdir().unwrap();
+    let socket = dir.path().join("sim.sock");
+    let start = || {
+        let child = omnid()
+            .args(["serve", "--device", "sim", "--socket"])
+            .arg(&socket)
+            .env("OMNID_STATE_DIR", dir.path().join("state"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("omnid serve starts");
+        let d = Daemon {
+            child: Some(child),
+            dir: tempfile::tempdir().unwrap(),
+            socket: socket.clone(),
+        };
+        d.wait_for_socket();
+        d
+    };
+    let weights = |c: &mut Client, name: &str| -> Vec<f64> {
+        let path = dir.path().join(name);
+        c.request(json!({"op": "weights_save", "path": path}))
+            .unwrap();
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        v["nets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|n| n["params"].as_array().unwrap().iter())
+            .map(|p| p.as_f64().unwrap())
+            .collect()
+    };
+    let mut d = start();
+    let mut c = d.client("test");
+    let shipped = weights(&mut c, "shipped.json");
+    c.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
+    c.request(json!({"op": "mode", "mode": "track"})).unwrap();
+    states_until(&mut c, 2000, |s| s.mode == "track");
+    // Three more seconds of tracking (the stream at 100 Hz).
+    for _ in 0..300 {
+        c.next_state(1000).unwrap();
+    }
+    let learned = weights(&mut c, "learned.json");
+    assert_ne!(
+        learned, shipped,
+        "the identifier should have learned while tracking"
+    );
+    c.request(json!({"op": "shutdown"})).unwrap();
+    let (code, err) = d.wait();
+    assert_eq!(code, Some(0), "{err}");
+    let kept = dir.path().join("state").join("weights-sim.json");
+    assert!(err.contains("learned weights kept in"), "{err}");
+    assert!(kept.exists());
+
+    let mut d = start();
+    let mut c = d.client("test");
+    let now = weights(&mut c, "again.json");
+    c.request(json!({"op": "shutdown"})).unwrap();
+    let (code, err) = d.wait();
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        err.contains("starts from the weights this arm learned") && err.contains("ago"),
+        "{err}"
+    );
+    // What it kept is at least what it had learned when asked (it learned on until the
+    // shutdown): not the shipped weights, and at the end of the first daemon's learning.
+    assert_ne!(now, shipped);
+    let moved = |a: &[f64], b: &[f64]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f64>()
+            .sqrt()
+    };
+    assert!(
+        moved(&now, &learned) < moved(&now, &shipped),
+        "restarted weights nearer the shipped ones than the learned ones"
+    );
+}

@@ -812,6 +812,58 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
     );
 }
 
+/// The README's remote-client block, pasted as written into a shell (its `pip` and `python3`
+/// those of a fresh virtual environment with eclipse-zenoh) from the clone's top directory,
+/// against a daemon started as the README says: `omnid serve --zenoh`, no configuration.
+#[test]
+#[ignore = "paced"]
+fn the_readmes_remote_python_example_works_as_pasted() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let start = readme
+        .find("pip install ./clients/python eclipse-zenoh")
+        .expect("the README's remote example");
+    let block = &readme[start..];
+    let block = &block[..block.find("```").unwrap()];
+    let Some(py) = common::venv("readme-remote-venv", &["eclipse-zenoh==1.10.2"], "zenoh") else {
+        eprintln!("SKIPPED: PyPI is out of reach");
+        return;
+    };
+    let path = format!(
+        "{}:{}",
+        py.parent().unwrap().display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let mut d = Served::start(&["--device", "sim", "--zenoh"], None, &["sim"]);
+    let out = Command::new("sh")
+        .args(["-ec", block])
+        .current_dir(root)
+        .env("PATH", path)
+        .env_remove("PYTHONPATH")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    let (_, err) = d.stop();
+    assert!(
+        err.contains("listening on tcp/127.0.0.1:7448"),
+        "the daemon says where it listens: {err}"
+    );
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The tip, three numbers in millimetres (pip's own lines before it).
+    let last = text.lines().last().unwrap_or_default();
+    let tip: Vec<f64> = last
+        .trim_matches(|c| c == '(' || c == ')')
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect();
+    assert_eq!(tip.len(), 3, "{text}");
+    assert!(tip.iter().all(|v| v.abs() < 500.0), "{text}");
+}
+
 /// `omnid serve` with commands allowed on an endpoint other machines reach and no zenoh
 /// authentication: refused at start naming `insecure = true`; with it, started, saying at
 /// start-up that anyone who reaches it can command the arms.
@@ -927,56 +979,4 @@ fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
         "{answer}"
     );
     drop(d);
-}
-
-/// The README's remote-client block, pasted as written into a shell (its `pip` and `python3`
-/// those of a fresh virtual environment with eclipse-zenoh) from the clone's top directory,
-/// against a daemon started as the README says: `omnid serve --zenoh`, no configuration.
-#[test]
-#[ignore = "paced"]
-fn the_readmes_remote_python_example_works_as_pasted() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
-    let start = readme
-        .find("pip install ./clients/python eclipse-zenoh")
-        .expect("the README's remote example");
-    let block = &readme[start..];
-    let block = &block[..block.find("```").unwrap()];
-    let Some(py) = common::venv("readme-remote-venv", &["eclipse-zenoh==1.10.2"], "zenoh") else {
-        eprintln!("SKIPPED: PyPI is out of reach");
-        return;
-    };
-    let path = format!(
-        "{}:{}",
-        py.parent().unwrap().display(),
-        std::env::var("PATH").unwrap_or_default()
-    );
-    let mut d = Served::start(&["--device", "sim", "--zenoh"], None, &["sim"]);
-    let out = Command::new("sh")
-        .args(["-ec", block])
-        .current_dir(root)
-        .env("PATH", path)
-        .env_remove("PYTHONPATH")
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout).into_owned();
-    let (_, err) = d.stop();
-    assert!(
-        err.contains("listening on tcp/127.0.0.1:7448"),
-        "the daemon says where it listens: {err}"
-    );
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    // The tip, three numbers in millimetres (pip's own lines before it).
-    let last = text.lines().last().unwrap_or_default();
-    let tip: Vec<f64> = last
-        .trim_matches(|c| c == '(' || c == ')')
-        .split(',')
-        .map(|v| v.trim().parse().unwrap())
-        .collect();
-    assert_eq!(tip.len(), 3, "{text}");
-    assert!(tip.iter().all(|v| v.abs() < 500.0), "{text}");
 }

@@ -226,6 +226,7 @@ pub fn prepare_arm(
     let (commands, command_rx) = crossbeam_channel::bounded(256);
     let (reply_tx, replies) = crossbeam_channel::bounded(64);
     let mut pipeline = assemble(&run_opts, cfg, &faults, tx, stop.clone())?;
+    pipeline.weights_store = keep_weights(&run_opts, cfg, &arm.name, &mut pipeline);
     pipeline.servo.attach(ServoLink {
         commands: command_rx,
         replies: reply_tx,
@@ -534,6 +535,37 @@ struct ArmEnd {
     controller: crate::control::ControllerKind,
 }
 
+/// Where the arm's learned weights are kept (`[identifier] persist`, not with `--weights` or a
+/// replay), and the identifier started from them when they are there and can be believed
+/// (docs/IDENTIFIER.md): said in one line, as is a file refused.
+fn keep_weights(
+    opts: &RunOptions,
+    cfg: &crate::config::Config,
+    arm: &str,
+    pipeline: &mut crate::cmd::assembly::Pipeline,
+) -> Option<(PathBuf, String, Option<String>)> {
+    use crate::identifier::store::{self, Loaded};
+    let replay = matches!(opts.device, crate::device::registry::DeviceSpec::Replay(_));
+    if !cfg.identifier.persist || opts.weights.is_some() || replay {
+        return None;
+    }
+    let path = store::weights_file(&crate::servo::thermal_store::state_dir()?, arm);
+    let serial = pipeline.servo.device_serial();
+    match store::load(&path, &cfg.identifier, serial.as_deref()) {
+        Loaded::None => {}
+        Loaded::Weights(mut id, line) => {
+            crate::errln!("omnid: arm {arm}: {line}");
+            id.set_adapt(!opts.no_adapt && cfg.identifier.adapt);
+            pipeline.servo.set_identifier(*id);
+        }
+        Loaded::Refused(why) => crate::errln!(
+            "omnid: warning: arm {arm}: the learned weights are not used: {why}; the identifier              starts from the {} weights",
+            pipeline.weights_label
+        ),
+    }
+    Some((path, arm.to_string(), serial))
+}
+
 /// The arm's servo has ended (the hub saw its records stop): join it, keep its heat, dump on a
 /// device fault, and sum up. Also whether a client asked for the shutdown.
 fn end_arm(
@@ -544,6 +576,7 @@ fn end_arm(
 ) -> Result<(ArmOutcome, bool), RunError> {
     let (report, realtime) = join_servo(servo)?;
     ending.save_heat(&report);
+    ending.save_weights(&report);
     let mut summary = crate::servo::summary::RunSummary::from_results(
         &crate::servo::summary::SummaryLabels {
             device: a.kind,

@@ -69,7 +69,10 @@ pub(crate) const ENCODERS: Topic = topic(14, "/omnid/encoders", msgs::INT64_MULT
 pub(crate) const FLAGS: Topic = topic(15, "/omnid/safety/flags", msgs::UINT32);
 pub(crate) const MODE: Topic = topic(16, "/omnid/mode", msgs::STRING);
 pub(crate) const AMPLIFIERS: Topic = topic(17, "/omnid/amplifiers", msgs::BOOL);
-pub(crate) const BUTTONS: Topic = topic(18, "/omnid/buttons", msgs::JOY);
+pub(crate) const BUTTONS: Topic = Topic {
+    group: Group::Buttons,
+    ..topic(18, "/omnid/buttons", msgs::JOY)
+};
 pub(crate) const CONTROLLER: Topic = topic(19, "/omnid/controller", msgs::STRING);
 pub(crate) const EVENTS: Topic = topic(20, "/omnid/events", msgs::STRING);
 pub(crate) const HEAT: Topic = topic(21, "/omnid/motor/heat", msgs::FLOAT64_MULTI_ARRAY);

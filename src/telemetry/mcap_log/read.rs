@@ -224,6 +224,7 @@ impl State {
             model: self.channels.present[super::TORQUE_MODEL.id],
             // Absent from logs written before the estimate was logged: those read as before.
             external: self.channels.present[super::TORQUE_EXTERNAL.id],
+            buttons: self.channels.present[super::BUTTONS.id],
         }
     }
 

@@ -193,7 +193,7 @@ impl TickEncoder {
             msgs::write_bool(m, now.amps);
             put(super::AMPLIFIERS, time, m)?;
         }
-        if last.is_none_or(|l| l.buttons != now.buttons) {
+        if self.schema.has(super::BUTTONS.group) && last.is_none_or(|l| l.buttons != now.buttons) {
             m.clear();
             msgs::write_joy(m, &header, &[], &now.buttons.map(i32::from));
             put(super::BUTTONS, time, m)?;
