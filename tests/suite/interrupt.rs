@@ -94,8 +94,9 @@ fn a_long_gap_in_a_paced_replay() {
     for k in 0..50 {
         text += &format!("{},0,0.27,-0.37,0,0,0\n", k as f64 * 1e-3);
     }
-    // An hour until the next row: the paced replay would sleep through it.
-    text += "3600,0,0.27,-0.37,0,0,0\n";
+    // 50 s until the next row (a log may pause up to 60 s): the paced replay sleeps through
+    // the signal.
+    text += "50,0,0.27,-0.37,0,0,0\n";
     std::fs::write(&input, text).unwrap();
     let log = dir.path().join("replayed.csv");
     let replay = format!("replay:{}", input.display());
