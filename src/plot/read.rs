@@ -191,7 +191,7 @@ impl<'f> RowPass<'f> {
             self.parsed[c] = row.number_or_gap(c)?;
         }
         if let Some(m) = self.mode {
-            self.note_mode(row, m)?;
+            self.note_mode(row, m);
         }
         for (v, f) in self.values.iter_mut().zip(self.formulas) {
             *v = match *f {
@@ -206,27 +206,17 @@ impl<'f> RowPass<'f> {
         Ok(row.byte())
     }
 
-    /// Check the `mode` field (an empty one is a gap, as in every other column) and move the
-    /// blend's end on to this row when it says `blend`.
-    fn note_mode(&mut self, row: &Row<'_>, m: usize) -> Result<(), RowFault> {
-        let value = row.field(m);
-        match std::str::from_utf8(value).ok().and_then(Mode::parse) {
+    /// Count the row by its `mode` (the column reader has checked it is one omnid writes) and
+    /// move the blend's end on to this row when it says `blend`.
+    fn note_mode(&mut self, row: &Row<'_>, m: usize) {
+        match std::str::from_utf8(row.field(m)).ok().and_then(Mode::parse) {
             Some(Mode::Blend) => {
                 self.tracking_rows += 1;
                 self.blend_end = Some(self.blend_end.map_or(row.t, |b| b.max(row.t)));
-                Ok(())
             }
-            Some(Mode::Track) => {
-                self.tracking_rows += 1;
-                Ok(())
-            }
-            Some(Mode::Free | Mode::ServoCf) => {
-                self.haptic_rows += 1;
-                Ok(())
-            }
-            Some(_) => Ok(()),
-            None if value.is_empty() => Ok(()),
-            None => Err(RowFault::UnknownMode { col: m }),
+            Some(Mode::Track) => self.tracking_rows += 1,
+            Some(Mode::Free | Mode::ServoCf) => self.haptic_rows += 1,
+            _ => {}
         }
     }
 }
