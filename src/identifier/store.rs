@@ -20,6 +20,27 @@ struct Stored {
     weights: String,
 }
 
+/// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
+/// box (mock/README.md says how they were made).
+pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../../mock/nnidc-pretuned.json");
+/// Where the shipped weights come from, as messages name them.
+pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
+
+/// An identifier of `cfg` on the shipped weights; refused (why) when `cfg`'s network sizes
+/// are not the shipped ones.
+pub(crate) fn shipped(cfg: &IdentifierConfig) -> Result<Identifier, String> {
+    let mut id = Identifier::new(cfg).map_err(|e| e.to_string())?;
+    let w =
+        WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME).map_err(|e| e.to_string())?;
+    id.apply_weights(&w, SHIPPED_WEIGHTS_NAME).map_err(|e| {
+        format!(
+            "{e} (the shipped weights fit the default [identifier] sizes; pass --weights with \
+             weights made by `omnid identify` for other sizes)"
+        )
+    })?;
+    Ok(id)
+}
+
 /// The arm's learned weights in `dir` (`weights-<arm>.json`).
 pub(crate) fn weights_file(dir: &Path, arm: &str) -> PathBuf {
     dir.join(format!("weights-{arm}.json"))

@@ -302,3 +302,61 @@ fn the_station_saves_what_the_arm_learned_while_it_runs() {
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
 }
+
+#[test]
+fn weights_reset_puts_the_shipped_weights_back_and_removes_what_the_arm_learned() {
+    // The arm learns (from fresh weights, under pd) and the station keeps it every pump.
+    let (mut servo, mut setup, dir) = served_sim();
+    let path = crate::identifier::store::weights_file(dir.path(), "sim");
+    setup.weights_store = Some((path.clone(), "sim".into(), None));
+    setup.weights_every_s = 0.0;
+    let cfg = setup.identifier_cfg.clone();
+    let mut t = Loopback::new(Station::new(setup), "resetter");
+    assert!(t
+        .call(Op::Mode(ModeRequest::Track(
+            crate::control::Trajectory::Sine
+        )))
+        .is_ok());
+    ticks(&mut servo, &mut t, 300);
+    let q = crate::omni::Joint3::new(0.1, 0.6, 0.3);
+    let qd = crate::omni::Joint3::new(0.2, -0.3, 0.1);
+    let z = crate::omni::Joint3::zeros();
+    let shipped = crate::identifier::store::shipped(&cfg)
+        .unwrap()
+        .predict(&q, &qd, &z);
+    let load = |path: &std::path::Path| match crate::identifier::store::load(path, &cfg, None) {
+        crate::identifier::store::Loaded::Weights(mut id, _) => id.predict(&q, &qd, &z),
+        other => panic!("{other:?}"),
+    };
+    assert_ne!(
+        load(&path),
+        shipped,
+        "the arm has learned nothing to forget"
+    );
+    // Frozen, so that what the servo holds after the reset is exactly the shipped weights.
+    assert!(t.call(Op::Adapt(false)).is_ok());
+    let Ok(Answer::Later(ticket)) = t.call(Op::WeightsReset) else {
+        panic!("reset not taken")
+    };
+    ticks(&mut servo, &mut t, 20);
+    let reply = t.done.iter().find(|(k, _)| *k == ticket).map(|(_, r)| r);
+    match reply {
+        Some(Ok(Reply::WeightsReset { weights, removed })) => {
+            assert_eq!(*weights, "mock/nnidc-pretuned.json");
+            assert_eq!(removed.as_deref(), Some(path.as_path()));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(t
+        .events
+        .iter()
+        .any(|e| e.message.as_deref().is_some_and(|m| m.contains("reset"))));
+    assert_eq!(
+        servo.identifier().unwrap().clone().predict(&q, &qd, &z),
+        shipped
+    );
+    // The saves after the reset keep the shipped weights, not the forgotten ones.
+    assert_eq!(load(&path), shipped);
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
