@@ -376,7 +376,8 @@ impl Ending {
         };
         if !id.healthy() {
             crate::errln!(
-                "omnid: the identifier stopped on a non-finite value: its weights are not kept                  ({} keeps the last saved)",
+                "omnid: the identifier stopped on a non-finite value: its weights are not kept \
+                 ({} keeps the last saved)",
                 path.display()
             );
             return;
