@@ -294,9 +294,13 @@ impl ZenohPort {
             Err(error) => return self.send(&cid, &error),
         };
         let control = self.door.allow_commands;
-        let session = desk
-            .station
-            .open_session(info(&format!("{name} (zenoh)"), control));
+        // A nameless client is still told apart from a local one.
+        let name = if name.is_empty() {
+            "a client over zenoh".to_string()
+        } else {
+            format!("{name} (zenoh)")
+        };
+        let session = desk.station.open_session(info(&name, control));
         let access = if control {
             Access::Control
         } else {
