@@ -399,6 +399,9 @@ pub fn serve(
         }
         Some(net)
     } else {
+        if let Some(w) = zenoh_ignored(&cfg.zenoh) {
+            crate::errln!("omnid: warning: {w}");
+        }
         None
     };
     // The pairs a `teleop` op can form: between this daemon's arms, and with zenoh up with
@@ -633,6 +636,16 @@ fn end_arm(
     Ok((outcome, shutdown))
 }
 
+/// A `[zenoh]` section that says something while zenoh is off (no `enabled = true`, no
+/// `--zenoh`) is ignored: say so, rather than leave a lab wondering why no one can reach the arm.
+fn zenoh_ignored(z: &crate::transport::zenoh::ZenohConfig) -> Option<String> {
+    (!z.enabled && *z != crate::transport::zenoh::ZenohConfig::default()).then(|| {
+        "the config's [zenoh] section is ignored: zenoh is off (add `enabled = true` to \
+         [zenoh], or pass --zenoh)"
+            .to_string()
+    })
+}
+
 /// Run the arm's host on this thread until the servo ends, at the configured realtime priority
 /// (the host is on every stream client's round trip) and back on the normal scheduler
 /// afterwards. Its ports: the socket, and zenoh when the daemon is on it.
@@ -670,6 +683,23 @@ mod station_tests;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_zenoh_section_left_off_is_said_to_be_ignored() {
+        use crate::transport::zenoh::ZenohConfig;
+        assert_eq!(zenoh_ignored(&ZenohConfig::default()), None);
+        let said = ZenohConfig {
+            allow_commands: true,
+            ..ZenohConfig::default()
+        };
+        let w = zenoh_ignored(&said).expect("a section that says something, while off");
+        assert!(w.contains("enabled = true") && w.contains("--zenoh"), "{w}");
+        let on = ZenohConfig {
+            enabled: true,
+            ..said
+        };
+        assert_eq!(zenoh_ignored(&on), None);
+    }
 
     #[test]
     fn with_both_groups_both_can_reach_the_socket() {

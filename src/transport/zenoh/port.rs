@@ -58,9 +58,7 @@ fn info(name: &str, control: bool) -> SessionInfo {
         privileged: false,
         read_only_reason: "commands over zenoh are off ([zenoh] allow_commands = false)".into(),
         files: FileRights::Refused(
-            "a client over the network names no files on the daemon's PC; record without a \
-             path (into the daemon's recordings directory)"
-                .into(),
+            "a client over the network names no files on the daemon's PC".into(),
         ),
     }
 }
