@@ -347,6 +347,14 @@ pub fn reply_line(r: &Value) -> String {
         ),
         "weights_save" => format!("weights saved to {path}"),
         "weights_load" => format!("weights loaded from {path}"),
+        "weights_reset" => format!(
+            "the identifier is back on the shipped weights ({}); {}",
+            text(&r["weights"]).unwrap_or_default(),
+            match text(&r["removed"]) {
+                Some(p) => format!("what the arm had learned ({p}) is removed"),
+                None => "the arm had no saved weights".to_string(),
+            }
+        ),
         "shutdown" => "the daemon is stopping".to_string(),
         "teleop_stop" => "uncoupled: the arm holds".to_string(),
         "teleop_scale" => format!("motion scale {}", r["motion_scale"]),

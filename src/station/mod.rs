@@ -253,8 +253,9 @@ pub struct Station {
     /// One snapshot box circulates: here when `Some`, at the servo otherwise.
     spare: Option<Box<Snapshot>>,
     waiting: Vec<Waiting>,
-    /// Weight loads sent to the servo, answered when the old identifier comes back.
-    loads: std::collections::VecDeque<(u64, SessionId, PathBuf)>,
+    /// Weight loads sent to the servo, answered when the old identifier comes back (`None`:
+    /// a reset to the shipped weights).
+    loads: std::collections::VecDeque<(u64, SessionId, Option<PathBuf>)>,
     adapt: bool,
     /// The time to live of the last stream command sent, ms (named when the stream goes
     /// stale).
@@ -549,6 +550,7 @@ impl Station {
                 let rights = self.sessions[k].info.files.clone();
                 self.weights_load(id, path, &rights)
             }
+            Op::WeightsReset => self.weights_reset(id),
             Op::RecordStart(path) => {
                 if let Some(p) = &path {
                     absolute(p)?;
@@ -828,8 +830,47 @@ impl Station {
         loaded.set_adapt(self.adapt);
         self.send(ServoCommand::LoadIdentifier(Box::new(loaded)))?;
         let ticket = self.ticket();
-        self.loads.push_back((ticket, session, path));
+        self.loads.push_back((ticket, session, Some(path)));
         Ok(Answer::Later(ticket))
+    }
+
+    /// Hand the servo an identifier on the shipped weights; once it has swapped them in, the
+    /// arm's saved weights are removed (a periodic save asked before the swap is written
+    /// before it: the file does not come back with the old weights).
+    fn weights_reset(&mut self, session: SessionId) -> Result<Answer, OpError> {
+        let mut shipped =
+            crate::identifier::store::shipped(&self.s.identifier_cfg).map_err(OpError::Failed)?;
+        shipped.set_adapt(self.adapt);
+        self.send(ServoCommand::LoadIdentifier(Box::new(shipped)))?;
+        let ticket = self.ticket();
+        self.loads.push_back((ticket, session, None));
+        Ok(Answer::Later(ticket))
+    }
+
+    /// The shipped weights are in: remove the arm's saved ones; the answer.
+    fn weights_reset_done(&self) -> Result<Reply, OpError> {
+        let weights = crate::identifier::store::SHIPPED_WEIGHTS_NAME;
+        let Some((path, _, _)) = &self.s.weights_store else {
+            return Ok(Reply::WeightsReset {
+                weights,
+                removed: None,
+            });
+        };
+        match std::fs::remove_file(path) {
+            Ok(()) => Ok(Reply::WeightsReset {
+                weights,
+                removed: Some(path.clone()),
+            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Reply::WeightsReset {
+                weights,
+                removed: None,
+            }),
+            Err(e) => Err(OpError::Failed(format!(
+                "the identifier is back on the shipped weights, but {} could not be removed: \
+                 {e} (the next start would load it)",
+                path.display()
+            ))),
+        }
     }
 
     fn ask_snapshot(&mut self, w: Waiting) {
@@ -898,8 +939,8 @@ impl Station {
         while let Ok(reply) = self.s.replies.try_recv() {
             match reply {
                 ServoReply::Snapshot(snap) => self.answer_snapshot(snap),
-                ServoReply::Identifier(_old) => {
-                    if let Some((ticket, session, path)) = self.loads.pop_front() {
+                ServoReply::Identifier(_old) => match self.loads.pop_front() {
+                    Some((ticket, session, Some(path))) => {
                         self.pending.push(PendingOut::Done {
                             ticket,
                             session,
@@ -911,7 +952,24 @@ impl Station {
                             ..Event::named("weights")
                         });
                     }
-                }
+                    Some((ticket, session, None)) => {
+                        let result = self.weights_reset_done();
+                        self.pending.push(PendingOut::Done {
+                            ticket,
+                            session,
+                            op: "weights_reset",
+                            result,
+                        });
+                        self.announce(Event {
+                            message: Some(format!(
+                                "weights reset to the shipped ones ({})",
+                                crate::identifier::store::SHIPPED_WEIGHTS_NAME
+                            )),
+                            ..Event::named("weights")
+                        });
+                    }
+                    None => {}
+                },
                 // A coupling that ended: freed here, off the servo thread.
                 ServoReply::Teleop(_old) => {}
             }

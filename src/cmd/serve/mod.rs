@@ -558,26 +558,41 @@ fn keep_weights(
     arm: &str,
     pipeline: &mut crate::cmd::assembly::Pipeline,
 ) -> Option<(PathBuf, String, Option<String>)> {
-    use crate::identifier::store::{self, Loaded};
+    use crate::identifier::store;
     let replay = matches!(opts.device, crate::device::registry::DeviceSpec::Replay(_));
     if !cfg.identifier.persist || opts.weights.is_some() || replay {
         return None;
     }
     let path = store::weights_file(&crate::servo::thermal_store::state_dir()?, arm);
+    let serial = start_from_kept(&path, opts.no_adapt, cfg, arm, pipeline);
+    Some((path, arm.to_string(), serial))
+}
+
+/// Start the arm's identifier from the weights kept at `path` when they can be believed (said
+/// in a line, as is a file refused); the device's serial.
+fn start_from_kept(
+    path: &Path,
+    no_adapt: bool,
+    cfg: &crate::config::Config,
+    arm: &str,
+    pipeline: &mut crate::cmd::assembly::Pipeline,
+) -> Option<String> {
+    use crate::identifier::store::{self, Loaded};
     let serial = pipeline.servo.device_serial();
-    match store::load(&path, &cfg.identifier, serial.as_deref()) {
+    match store::load(path, &cfg.identifier, serial.as_deref()) {
         Loaded::None => {}
         Loaded::Weights(mut id, line) => {
             crate::errln!("omnid: arm {arm}: {line}");
-            id.set_adapt(!opts.no_adapt && cfg.identifier.adapt);
+            id.set_adapt(!no_adapt && cfg.identifier.adapt);
             pipeline.servo.set_identifier(*id);
         }
         Loaded::Refused(why) => crate::errln!(
-            "omnid: warning: arm {arm}: the learned weights are not used: {why}; the identifier              starts from the {} weights",
+            "omnid: warning: arm {arm}: the learned weights are not used: {why}; the identifier \
+             starts from the {} weights",
             pipeline.weights_label
         ),
     }
-    Some((path, arm.to_string(), serial))
+    serial
 }
 
 /// The arm's servo has ended (the host saw its records stop): join it, keep its heat, dump on a
