@@ -411,6 +411,7 @@ mod teleop_over_zenoh {
         let pf = Agreement {
             architecture: Architecture::Pf,
             passivity: true,
+            delay_control: omnid::teleop::DelayControl::Gains,
         };
         let marked = Packet {
             seq: 666,
@@ -445,7 +446,7 @@ mod teleop_over_zenoh {
             (
                 intruder,
                 seal(&encode(&marked, pf), 1, intruder, &lab).to_vec(),
-                "the peer runs pf, passivity on; this side runs pp",
+                "the peer runs pf, passivity on, delay control gains; this side runs pp",
             ),
             (
                 intruder,
