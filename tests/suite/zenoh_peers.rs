@@ -337,7 +337,7 @@ mod teleop_over_zenoh {
     /// Two sessions on loopback as two daemons', and a third: an intruder on the same keys.
     fn zenoh_cfg(listen: &str, connect: &[String]) -> omnid::transport::zenoh::ZenohConfig {
         omnid::transport::zenoh::ZenohConfig {
-            teleop_keys: [("l/f".to_string(), KEY.to_string())].into(),
+            teleop_keys: [("l/f".to_string(), KEY.into())].into(),
             enabled: true,
             listen: vec![listen.to_string()],
             connect: connect.to_vec(),
