@@ -980,3 +980,58 @@ fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
     );
     drop(d);
 }
+
+/// docs/ZENOH.md, "A lab network": `[zenoh] users_file` and `commanders` on loopback, with
+/// PyPI's eclipse-zenoh (through omnid's Python client) as the other side. The commander's
+/// client commands; a client without credentials, or with a wrong password, cannot connect;
+/// an authenticated principal that is not a commander reads the arm's topics but cannot put a
+/// request, so it gets no hello.
+#[test]
+#[ignore = "paced"]
+fn only_the_labs_commander_commands_and_an_unauthenticated_peer_cannot_connect() {
+    let Some(py) = python() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let users = dir.path().join("zenoh-users");
+    std::fs::write(&users, "lab:lab-secret\nviewer:viewer-secret\n").unwrap();
+    let port = free_port();
+    let mut d = serve(
+        port,
+        &format!(
+            "allow_commands = true\nusers_file = \"{}\"\ncommanders = [\"lab\"]\n",
+            users.display()
+        ),
+    );
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(&py)
+        .arg(root.join("tests/zenoh/check_auth.py"))
+        .arg(format!("tcp/127.0.0.1:{port}"))
+        .arg("sim")
+        .arg(root.join("clients/python"))
+        .output()
+        .expect("python runs");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "check_auth.py: {text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_str(text.trim()).expect("one JSON line");
+    eprintln!("{r:#}");
+    assert_eq!(r["commander"]["hello"], true, "{r}");
+    assert_eq!(r["commander"]["access"], "control", "{r}");
+    assert_eq!(r["commander"]["mode"], "hold", "{r}");
+    for who in ["anonymous", "wrong_password", "viewer"] {
+        assert_eq!(r[who]["hello"], false, "{who}: {r}");
+    }
+    assert!(r["viewer_reads"].as_u64().unwrap() > 100, "{r}");
+    assert_eq!(r["anonymous_reads"], 0, "{r}");
+    let status = d.omnid(&["ctl", "status", "--json"]);
+    let status: serde_json::Value = serde_json::from_slice(&status.stdout).unwrap();
+    assert_eq!(status["mode"], "hold", "{status}");
+    let (_, err) = d.stop();
+    assert!(
+        err.contains("only lab") && err.contains("user/password"),
+        "the start-up line says who may command: {err}"
+    );
+    assert!(!err.contains("lab-secret"), "{err}");
+}

@@ -459,7 +459,11 @@ impl ZenohNet {
         };
         let pairs = format!("{who}; {pairs}");
         match (e.reach.is_empty(), e.auth) {
-            (true, _) => format!("commands from this PC only (loopback){pairs}"),
+            (true, None) => format!("commands from this PC only (loopback){pairs}"),
+            (true, Some(how)) => format!(
+                "commands from this PC only (loopback), from peers zenoh authenticates \
+                 ({how}){pairs}"
+            ),
             (false, Some(how)) => format!(
                 "commands from peers zenoh authenticates ({how}) on {}{pairs}",
                 e.reach.join(", ")
