@@ -329,7 +329,7 @@ fn whole_log<W: Write>(
         .buttons
         .then(|| crate::telemetry::record::STYLUS_COLUMNS.map(col));
     let format = LogFormat::for_path(out, crate::omni::kinematics::Geometry::default());
-    let mut rec = crate::telemetry::recorder::recorder(schema, format);
+    let mut rec = crate::telemetry::writer::recorder(schema, format);
     let werr = |source: io::Error| ConvertError::Write {
         path: out.display().to_string(),
         source,

@@ -334,7 +334,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     let mut servo = prepared.pipeline.servo;
     // The live view's tap on the hub too: its encoder thread works on every tick.
     let view = omnid::transport::foxglove::LiveView::start("127.0.0.1:0".parse().unwrap()).unwrap();
-    let tap = view.tap_for(&prepared.hub, false);
+    let tap = view.tap_for(&prepared.station, false);
     // And zenoh: the ROS 2 topics, read by a peer of this test (so every topic is encoded).
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -346,7 +346,7 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         ..Default::default()
     };
     let net = omnid::transport::zenoh::ZenohNet::start(&zcfg).unwrap();
-    let (ztap, door) = net.arm(&prepared.hub).unwrap();
+    let (ztap, zdoor) = net.arm(&prepared.station, &cfg.serve).unwrap();
     let ros_reader = {
         use zenoh::Wait;
         let mut c = zenoh::Config::default();
@@ -367,11 +367,17 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         (s, sub, got)
     };
     let hub = std::thread::spawn(move || {
-        let mut hub = omnid::transport::hub::Hub::new(prepared.hub);
-        hub.add_tap(tap);
-        hub.add_tap(ztap);
-        hub.add_zenoh(door);
-        hub.run()
+        let mut host = omnid::transport::host::Host::new(prepared.station);
+        host.add_port(Box::new(omnid::transport::unix::SocketPort::new(
+            prepared.socket,
+        )));
+        host.add_tap(tap);
+        host.add_tap(ztap);
+        host.add_port(Box::new(omnid::transport::zenoh::port::ZenohPort::new(
+            zdoor,
+            cfg.serve.hello_timeout_ms,
+        )));
+        host.run()
     });
 
     let readers: Vec<_> = (0..3)
@@ -515,7 +521,9 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
         let p = omnid::cmd::serve::prepare_arm(&arm, &opts, &cfg, stop.clone()).unwrap();
         servos.push(p.pipeline.servo);
         hubs.push(std::thread::spawn(move || {
-            omnid::transport::hub::Hub::new(p.hub).run()
+            let mut host = omnid::transport::host::Host::new(p.station);
+            host.add_port(Box::new(omnid::transport::unix::SocketPort::new(p.socket)));
+            host.run()
         }));
         let path = arm.socket.clone().unwrap();
         // A commander per arm: every state answered with a setpoint.

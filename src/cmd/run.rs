@@ -15,7 +15,7 @@ use crate::servo::summary::{IdentifierState, RunSummary, SummaryLabels};
 use crate::servo::{EndReason, ServoReport};
 use crate::telemetry::mcap_log::LogFormat;
 use crate::telemetry::{
-    dump_path, recorder::recorder, spawn_writer_with, write_dump, DumpTo, LogError, LogFile, Watch,
+    dump_path, spawn_writer_with, write_dump, writer::recorder, DumpTo, LogError, LogFile, Watch,
     WriterReport,
 };
 use std::path::{Path, PathBuf};

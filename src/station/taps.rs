@@ -129,7 +129,7 @@ impl Recording {
         let (tx, rx) = crossbeam_channel::bounded(8192);
         let path = log.path.clone();
         let fault = WriterFault::default();
-        let recorder = crate::telemetry::recorder::recorder(schema, format);
+        let recorder = crate::telemetry::writer::recorder(schema, format);
         let writer = spawn_writer_with(
             log,
             schema,

@@ -3,9 +3,8 @@
 //! (docs/MCAP.md) in `mcap_log::write`. The writer thread (`writer::spawn_writer`, for `omnid
 //! run`'s log and `omnid serve`'s recordings) and every fault dump (`writer::write_dump`, for
 //! both) write through it, so a new format is a new implementation and a new arm of
-//! `recorder`.
+//! `writer::recorder` (which chooses among them: this file knows none of the others).
 
-use super::mcap_log::LogFormat;
 use super::record::{LogSchema, TickRecord};
 use std::io;
 
@@ -28,18 +27,10 @@ pub trait Recorder: Send {
     }
 }
 
-/// The recorder for logs of `schema` in `format`.
-pub(crate) fn recorder(schema: LogSchema, format: LogFormat) -> Box<dyn Recorder> {
-    match super::mcap_log::write::for_format(schema, format) {
-        Some(mcap) => Box::new(mcap),
-        None => Box::new(Csv { schema }),
-    }
-}
-
 /// CSV: the header of `schema`'s columns, one line a tick, floats in their shortest
 /// round-trip form.
 pub(crate) struct Csv {
-    schema: LogSchema,
+    pub(crate) schema: LogSchema,
 }
 
 impl Recorder for Csv {
@@ -154,7 +145,9 @@ mod tests {
         let text = std::fs::read_to_string(dir.path().join("run.seq")).unwrap();
         assert_eq!(text, "# seq mode\n0 hold\n1 hold\n2 stop\n# end\n");
         // CSV, the format every log has: its header is the schema's columns.
-        let mut csv = recorder(LogSchema::new(false), LogFormat::Csv);
+        let mut csv = Csv {
+            schema: LogSchema::new(false),
+        };
         let mut out = Vec::new();
         csv.header(&mut out).unwrap();
         assert!(String::from_utf8(out)

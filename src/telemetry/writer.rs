@@ -8,6 +8,7 @@
 
 use super::mcap_log::LogFormat;
 use super::record::{LogSchema, TickRecord};
+use super::recorder::{Csv, Recorder};
 use crate::output::{describe, OutputError};
 use crossbeam_channel::{Receiver, TryRecvError};
 use std::collections::VecDeque;
@@ -21,6 +22,15 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use thiserror::Error;
+
+/// The recorder for logs of `schema` in `format`: the one place that chooses among the
+/// formats (`recorder` defines the trait and CSV, `mcap_log::write` MCAP).
+pub(crate) fn recorder(schema: LogSchema, format: LogFormat) -> Box<dyn Recorder> {
+    match super::mcap_log::write::for_format(schema, format) {
+        Some(mcap) => Box::new(mcap),
+        None => Box::new(Csv { schema }),
+    }
+}
 
 /// Ticks kept for the fault dump.
 pub(crate) const DUMP_TICKS: usize = 500;
@@ -79,7 +89,7 @@ pub(crate) fn dump_rows(
     format: LogFormat,
     rows: &VecDeque<TickRecord>,
 ) -> io::Result<()> {
-    let mut rec = super::recorder::recorder(*schema, format);
+    let mut rec = recorder(*schema, format);
     let mut bytes = Vec::with_capacity(512);
     rec.header(&mut bytes)?;
     for r in rows {
@@ -517,7 +527,7 @@ pub(crate) fn spawn_writer(
     spawn_writer_with(
         log,
         schema,
-        super::recorder::recorder(schema, super::mcap_log::LogFormat::Csv),
+        recorder(schema, super::mcap_log::LogFormat::Csv),
         rx,
         Watch::default(),
     )

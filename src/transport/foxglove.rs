@@ -202,10 +202,9 @@ impl LiveView {
             .expect("a new topic with a schema")
     }
 
-    /// The tap that shows the arm a hub serves (its topics under `/<arm>` and frames under
-    /// `<arm>/` when `prefixed`, as with several arms; else the plain names of an MCAP log).
-    pub fn tap_for(&self, hub: &super::hub::HubSetup, prefixed: bool) -> Box<dyn Tap> {
-        let s = &hub.station;
+    /// The tap that shows an arm (its topics under `/<arm>` and frames under `<arm>/` when
+    /// `prefixed`, as with several arms; else the plain names of an MCAP log).
+    pub fn tap_for(&self, s: &crate::station::StationSetup, prefixed: bool) -> Box<dyn Tap> {
         self.tap(&s.arm.name, prefixed, s.schema, s.geometry)
     }
 

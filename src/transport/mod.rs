@@ -1,7 +1,8 @@
-//! The client interface of `omnid serve` (docs/PROTOCOL.md): the hub that serves clients on a
-//! Unix SOCK_SEQPACKET socket, the protocol, access rules, the socket and its default place,
-//! and a Rust client. The daemon itself (assembling the servo and starting the hub) is
-//! `crate::cmd::serve`.
+//! The transports of `omnid serve` (docs/PROTOCOL.md, docs/ZENOH.md): the station's `host`
+//! (the loop that owns an arm's station) and its ports — the Unix SOCK_SEQPACKET socket
+//! (`unix`) and zenoh (`zenoh`) — with the JSON handling they share (`json`), the protocol,
+//! access rules, the socket and its default place, the live view, and a Rust client. The
+//! daemon itself (assembling the servo and starting the host) is `crate::cmd::serve`.
 
 pub(crate) mod access;
 /// The Rust client (`omnid_client::client`), used by `omnid watch`, `omnid ctl`, the tests
@@ -9,9 +10,11 @@ pub(crate) mod access;
 pub use omnid_client::client;
 pub(crate) mod config;
 pub mod foxglove;
-pub mod hub;
+pub mod host;
+pub mod json;
 pub mod protocol;
 pub mod socket;
+pub mod unix;
 pub mod zenoh;
 
 pub use config::{ServeConfig, StaleFallback};

@@ -263,7 +263,7 @@ mod tests {
                 id: Some(serde_json::json!("a"))
             }
         );
-        assert!(super::super::hub::to_op(r.clone()).unwrap().commands());
+        assert!(super::super::json::to_op(r.clone()).unwrap().commands());
         let r: Request =
             serde_json::from_str(r#"{"op":"servo_cf","seq":8,"force":[1.5,0,-0.5],"ttl_ms":20}"#)
                 .unwrap();
@@ -276,25 +276,25 @@ mod tests {
                 id: None
             }
         );
-        assert!(super::super::hub::to_op(r.clone()).unwrap().commands());
+        assert!(super::super::json::to_op(r.clone()).unwrap().commands());
         assert_eq!(r.op(), "servo_cf");
         let r: Request =
             serde_json::from_str(r#"{"op":"stylus","action":"click","button":2}"#).unwrap();
         assert_eq!(r.op(), "stylus");
-        let op = super::super::hub::to_op(r).unwrap();
+        let op = super::super::json::to_op(r).unwrap();
         assert_eq!(
             op,
             crate::station::Op::Stylus(crate::device::StylusAction::Click(1))
         );
         assert!(op.commands() && op.is_hand() && !op.is_stop());
         let r: Request = serde_json::from_str(r#"{"op":"stylus","action":"dock"}"#).unwrap();
-        assert!(super::super::hub::to_op(r).unwrap().is_hand());
+        assert!(super::super::json::to_op(r).unwrap().is_hand());
         let r: Request =
             serde_json::from_str(r#"{"op":"stylus","action":"undock","button":1}"#).unwrap();
-        let e = super::super::hub::to_op(r).unwrap_err().to_string();
+        let e = super::super::json::to_op(r).unwrap_err().to_string();
         assert!(e.contains("no button"), "{e}");
         let r: Request = serde_json::from_str(r#"{"op":"status"}"#).unwrap();
-        assert!(!super::super::hub::to_op(r.clone()).unwrap().commands());
+        assert!(!super::super::json::to_op(r.clone()).unwrap().commands());
         assert_eq!(r.op(), "status");
     }
 

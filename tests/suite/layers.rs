@@ -131,3 +131,243 @@ fn the_servo_imports_neither_the_station_nor_a_transport() {
         );
     }
 }
+
+/// The module path of a source file under `src/` (`transport/zenoh/port.rs` → `transport`,
+/// `zenoh`, `port`; a `mod.rs` is its folder).
+fn module_path(src: &Path, file: &Path) -> Vec<String> {
+    let rel = file.strip_prefix(src).unwrap().with_extension("");
+    let mut segs: Vec<String> = rel
+        .components()
+        .map(|c| c.as_os_str().to_string_lossy().into_owned())
+        .collect();
+    if segs.last().is_some_and(|s| s == "mod") {
+        segs.pop();
+    }
+    segs
+}
+
+/// The file that defines the longest prefix of module path `segs` that is a file.
+fn file_of(src: &Path, segs: &[String]) -> Option<PathBuf> {
+    for n in (1..=segs.len()).rev() {
+        let base = segs[..n].iter().fold(src.to_path_buf(), |p, s| p.join(s));
+        for candidate in [base.with_extension("rs"), base.join("mod.rs")] {
+            if candidate.is_file() && !is_test_file(&candidate) {
+                return Some(candidate);
+            }
+        }
+    }
+    None
+}
+
+/// File → the other files of the library its non-test code names through `crate::` and
+/// `super::` paths (a child's items named without either are not seen), with where.
+fn file_imports() -> BTreeMap<PathBuf, BTreeMap<PathBuf, String>> {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    files.retain(|f| {
+        let name = f.file_name().unwrap();
+        name != "main.rs" && !f.starts_with(src.join("cli"))
+    });
+    let mut graph = BTreeMap::new();
+    for f in &files {
+        let own = module_path(&src, f);
+        let text = std::fs::read_to_string(f).unwrap();
+        let code = text.split("#[cfg(test)]").next().unwrap();
+        let mut uses = BTreeMap::new();
+        for (n, line) in code.lines().enumerate() {
+            let t = line.trim_start();
+            if t.starts_with("//") || t.starts_with("pub mod") || t.starts_with("mod ") {
+                continue;
+            }
+            let mut targets = Vec::new();
+            for part in line.split("crate::").skip(1) {
+                targets.push(path_segments(part));
+            }
+            // `super::super::x` from `a/b/c.rs` (module a::b::c) is a::x.
+            let mut rest = line;
+            while let Some(k) = rest.find("super::") {
+                let before = &rest[..k];
+                if before.ends_with("super::") || before.ends_with(char::is_alphanumeric) {
+                    rest = &rest[k + 7..];
+                    continue;
+                }
+                let mut tail = &rest[k..];
+                let mut up = 0;
+                while let Some(t) = tail.strip_prefix("super::") {
+                    up += 1;
+                    tail = t;
+                }
+                let mut segs: Vec<String> = own[..own.len().saturating_sub(up)].to_vec();
+                segs.extend(path_segments(tail));
+                targets.push(segs);
+                rest = tail;
+            }
+            for segs in targets {
+                if let Some(to) = file_of(&src, &segs) {
+                    if &to != f {
+                        uses.entry(to)
+                            .or_insert_with(|| format!("{}:{}", f.display(), n + 1));
+                    }
+                }
+            }
+        }
+        graph.insert(f.clone(), uses);
+    }
+    graph
+}
+
+/// The module names at the start of a path (`zenoh::door::Door` → zenoh, door, Door).
+fn path_segments(part: &str) -> Vec<String> {
+    let mut segs = Vec::new();
+    for seg in part.split("::") {
+        let name: String = seg
+            .chars()
+            .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+            .collect();
+        if name.is_empty() {
+            break;
+        }
+        let whole = name.len() == seg.len();
+        segs.push(name);
+        if !whole {
+            break;
+        }
+    }
+    segs
+}
+
+/// Inside `transport` each file uses only the layers below its own (docs/ARCHITECTURE.md's
+/// table), and no port uses another: the Unix socket and zenoh are ports of the station's
+/// host, and a third transport touches neither.
+#[test]
+fn transport_files_keep_the_order_the_architecture_states() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let doc = std::fs::read_to_string(root.join("docs/ARCHITECTURE.md")).unwrap();
+    let table = doc
+        .split("Inside `transport` the files keep this order")
+        .nth(1)
+        .expect("docs/ARCHITECTURE.md states the transport's file order");
+    // Rows top to bottom: each names its files or folders in backticks.
+    let rows: Vec<Vec<String>> = table
+        .lines()
+        .skip_while(|l| !l.starts_with('|'))
+        .take_while(|l| l.starts_with('|'))
+        .skip(2)
+        .map(|l| {
+            let cells: Vec<&str> = l.split('|').collect();
+            cells[2]
+                .split('`')
+                .skip(1)
+                .step_by(2)
+                .map(String::from)
+                .collect()
+        })
+        .collect();
+    assert!(rows.len() >= 4, "rows: {rows:?}");
+    let dir = root.join("src/transport");
+    // A file's layer: the row naming it, or the most specific folder naming it.
+    let layer = |f: &Path| -> usize {
+        let rel = f.strip_prefix(&dir).unwrap().to_string_lossy().into_owned();
+        let mut best: Option<(usize, usize)> = None;
+        for (k, row) in rows.iter().enumerate() {
+            for name in row {
+                let hit = if name.ends_with('/') {
+                    rel.starts_with(name.as_str())
+                } else {
+                    &rel == name
+                };
+                let len = if name.ends_with('/') {
+                    name.len()
+                } else {
+                    usize::MAX
+                };
+                if hit && best.is_none_or(|(_, l)| len > l) {
+                    best = Some((k, len));
+                }
+            }
+        }
+        best.unwrap_or_else(|| panic!("{rel} is in no row of the transport's table"))
+            .0
+    };
+    let graph = file_imports();
+    let mut checked = 0;
+    for (f, uses) in graph.iter().filter(|(f, _)| f.starts_with(&dir)) {
+        let from = layer(f);
+        for (to, at) in uses.iter().filter(|(t, _)| t.starts_with(&dir)) {
+            let below = layer(to);
+            assert!(
+                below > from || (below == from && from != 0),
+                "{} (layer {from}) uses {} (layer {below}) at {at}",
+                f.display(),
+                to.display()
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 20, "only {checked} uses seen");
+}
+
+/// No two files of the library use each other through a longer or shorter circle, except
+/// through a folder's `mod.rs` (the folder's shared vocabulary, which names its children).
+#[test]
+fn no_import_cycle_between_files() {
+    let graph = file_imports();
+    let is_mod = |p: &Path| {
+        p.file_name()
+            .is_some_and(|n| n == "mod.rs" || n == "lib.rs")
+    };
+    let edges: BTreeMap<&PathBuf, Vec<&PathBuf>> = graph
+        .iter()
+        .map(|(f, uses)| {
+            (
+                f,
+                uses.keys().filter(|t| !is_mod(t) && !is_mod(f)).collect(),
+            )
+        })
+        .collect();
+    fn visit<'a>(
+        f: &'a PathBuf,
+        edges: &BTreeMap<&'a PathBuf, Vec<&'a PathBuf>>,
+        state: &mut BTreeMap<&'a PathBuf, bool>,
+        path: &mut Vec<&'a PathBuf>,
+    ) -> Option<Vec<&'a PathBuf>> {
+        match state.get(f) {
+            Some(true) => return None,
+            Some(false) => {
+                let from = path.iter().position(|p| *p == f).unwrap();
+                let mut cycle = path[from..].to_vec();
+                cycle.push(f);
+                return Some(cycle);
+            }
+            None => {}
+        }
+        state.insert(f, false);
+        path.push(f);
+        for next in edges.get(f).into_iter().flatten() {
+            if let Some(c) = visit(next, edges, state, path) {
+                return Some(c);
+            }
+        }
+        path.pop();
+        state.insert(f, true);
+        None
+    }
+    let mut state = BTreeMap::new();
+    for f in graph.keys() {
+        if let Some(cycle) = visit(f, &edges, &mut state, &mut Vec::new()) {
+            let steps: Vec<String> = cycle
+                .windows(2)
+                .map(|w| {
+                    format!(
+                        "{} -> {} ({})",
+                        w[0].display(),
+                        w[1].display(),
+                        graph[w[0]][w[1]]
+                    )
+                })
+                .collect();
+            panic!("import cycle between files:\n{}", steps.join("\n"));
+        }
+    }
+}

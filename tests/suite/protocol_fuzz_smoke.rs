@@ -3,7 +3,7 @@
 //! files never panic, and every refusal is one line of bounded length (a scene's names it).
 
 use omnid::haptics::scene::parse_scene;
-use omnid::transport::hub::decode_request;
+use omnid::transport::json::decode_request;
 use proptest::prelude::*;
 
 fn refusal_ok(e: &str) {

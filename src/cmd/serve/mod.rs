@@ -13,8 +13,11 @@ use crate::config::Config;
 use crate::servo::{ArmSignals, EndReason, ServoLink, Wake};
 use crate::station::{StationLimits, StationSetup};
 use crate::transport::access::Policy;
+use crate::transport::default_socket;
+use crate::transport::host::{Host, HostReport};
 use crate::transport::socket::{self, Listener, SocketLock};
-use crate::transport::{default_socket, hub};
+use crate::transport::unix::{SocketPort, SocketSetup};
+use crate::transport::zenoh::port::ZenohPort;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -132,15 +135,17 @@ pub(crate) fn socket_permissions(policy: &Policy) -> (libc::mode_t, Option<u32>)
     }
 }
 
-/// An arm ready to start: its servo pipeline (started in idle, taking commands) and the hub
-/// that will serve its socket, bound and locked.
+/// An arm ready to start: its servo pipeline (started in idle, taking commands), its
+/// station's setup and its socket, bound and locked.
 pub struct Prepared {
     /// The servo loop, attached to the station's mailbox.
     pub pipeline: crate::cmd::assembly::Pipeline,
-    /// What [`hub::Hub::new`] takes.
-    pub hub: hub::HubSetup,
+    /// What [`Host::new`] takes.
+    pub station: StationSetup,
+    /// The socket's port ([`SocketPort::new`]).
+    pub socket: SocketSetup,
     name: String,
-    socket: PathBuf,
+    socket_path: PathBuf,
     _socket_lock: SocketLock,
 }
 
@@ -275,14 +280,14 @@ pub fn prepare_arm(
     };
     Ok(Prepared {
         pipeline,
-        hub: hub::HubSetup {
+        station,
+        socket: SocketSetup {
             listener,
             policy,
             serve: global.serve.clone(),
-            station,
         },
         name: arm.name.clone(),
-        socket: socket_path,
+        socket_path,
         _socket_lock: socket_lock,
     })
 }
@@ -349,20 +354,20 @@ pub fn serve(
     for p in &prepared {
         // The shortest `omnid ctl` line that reaches this arm.
         let in_default_dir = p
-            .socket
+            .socket_path
             .parent()
             .is_some_and(|d| default_dirs.iter().any(|dd| dd == d));
         let ctl = match (in_default_dir, prepared.len()) {
             (true, 1) => "omnid ctl mode hold".to_string(),
             (true, _) => format!("omnid ctl --arm {} mode hold", p.name),
-            (false, _) => format!("omnid ctl --socket {} mode hold", p.socket.display()),
+            (false, _) => format!("omnid ctl --socket {} mode hold", p.socket_path.display()),
         };
         crate::errln!(
             "omnid serve: arm `{}` ({}) on {} (amplifiers off until a client asks for a mode; \
              `{ctl}`)",
             p.name,
-            p.hub.station.arm.kind,
-            p.socket.display(),
+            p.station.arm.kind,
+            p.socket_path.display(),
         );
         for w in &p.pipeline.warnings {
             crate::errln!("omnid: warning: {}: {w}", p.name);
@@ -423,29 +428,30 @@ pub fn serve(
         rendezvous = rendezvous.with_remote(n.teleop());
     }
     for p in &mut prepared {
-        p.hub.station.rendezvous = rendezvous.clone();
+        p.station.rendezvous = rendezvous.clone();
     }
     let several = prepared.len() > 1;
     let mut threads = Vec::new();
     for p in prepared {
         let Prepared {
             pipeline,
-            hub: setup,
+            station,
+            socket,
             name,
-            socket: socket_path,
+            socket_path,
             _socket_lock,
         } = p;
         let (servo, ending) = pipeline.spawn()?;
-        let dump_dir = setup.station.state_dir.clone();
-        let kind = setup.station.arm.kind;
+        let dump_dir = station.state_dir.clone();
+        let kind = station.arm.kind;
         let (priority, fail_together) = (cfg.serve.hub_fifo_priority, cfg.serve.fail_together);
         let stop = stop.clone();
         let seed = cfg.sim.seed;
         let controller = opts.controller;
-        let tap = view.as_ref().map(|v| v.tap_for(&setup, several));
+        let tap = view.as_ref().map(|v| v.tap_for(&station, several));
         let zenoh = match &net {
             Some(n) => Some(
-                n.arm(&setup)
+                n.arm(&station, &cfg.serve)
                     .map_err(|e| RunError::BadInput(e.to_string()))?,
             ),
             None => None,
@@ -453,7 +459,7 @@ pub fn serve(
         let thread = std::thread::Builder::new()
             .name(format!("omnid-hub-{name}"))
             .spawn(move || {
-                let report = serve_clients(setup, priority, tap, zenoh);
+                let report = serve_clients(station, socket, priority, tap, zenoh);
                 let outcome = end_arm(
                     ArmEnd {
                         name,
@@ -479,7 +485,7 @@ pub fn serve(
                 }
                 outcome
             })
-            .map_err(|e| RunError::Internal(format!("cannot start a hub thread: {e}")))?;
+            .map_err(|e| RunError::Internal(format!("cannot start a host thread: {e}")))?;
         threads.push(thread);
     }
     let mut outcome = ServeOutcome {
@@ -497,7 +503,7 @@ pub fn serve(
                 first_error.get_or_insert(e);
             }
             Err(_) => {
-                first_error.get_or_insert(RunError::Internal("a hub thread panicked".into()));
+                first_error.get_or_insert(RunError::Internal("a host thread panicked".into()));
             }
         }
     }
@@ -590,11 +596,11 @@ fn keep_weights(
     Some((path, arm.to_string(), serial))
 }
 
-/// The arm's servo has ended (the hub saw its records stop): join it, keep its heat, dump on a
+/// The arm's servo has ended (the host saw its records stop): join it, keep its heat, dump on a
 /// device fault, and sum up. Also whether a client asked for the shutdown.
 fn end_arm(
     a: ArmEnd,
-    mut hub_report: hub::HubReport,
+    mut host_report: HostReport,
     servo: std::thread::JoinHandle<ServoThreadResult>,
     ending: Ending,
 ) -> Result<(ArmOutcome, bool), RunError> {
@@ -624,7 +630,7 @@ fn end_arm(
         report.missed_packets,
     );
     summary.end = report.end.as_str().to_string();
-    let station = &mut hub_report.station;
+    let station = &mut host_report.station;
     summary.faults = station.faults.clone();
     summary.faults.extend(report.faults.iter().cloned());
     summary.realtime = realtime;
@@ -642,35 +648,39 @@ fn end_arm(
         socket: a.socket,
     };
     // The clients' connections close only now, after the final safe packet went out.
-    drop(hub_report);
+    drop(host_report);
     Ok((outcome, shutdown))
 }
 
-/// Run the hub on this thread until the servo ends, at the configured realtime priority (the
-/// hub is on every stream client's round trip) and back on the normal scheduler afterwards.
+/// Run the arm's host on this thread until the servo ends, at the configured realtime priority
+/// (the host is on every stream client's round trip) and back on the normal scheduler
+/// afterwards. Its ports: the socket, and zenoh when the daemon is on it.
 fn serve_clients(
-    setup: hub::HubSetup,
+    station: StationSetup,
+    socket: SocketSetup,
     fifo_priority: i32,
     tap: Option<Box<dyn crate::station::Tap>>,
     zenoh: Option<(
         Box<dyn crate::station::Tap>,
         crate::transport::zenoh::door::Door,
     )>,
-) -> hub::HubReport {
+) -> HostReport {
     if fifo_priority > 0 {
         if let Err(w) = crate::servo::realtime::set_fifo_priority(fifo_priority) {
-            crate::errln!("omnid: warning: the client hub: {w}");
+            crate::errln!("omnid: warning: the arm's host thread: {w}");
         }
     }
-    let mut hub = hub::Hub::new(setup);
+    let hello_timeout_ms = socket.serve.hello_timeout_ms;
+    let mut host = Host::new(station);
+    host.add_port(Box::new(SocketPort::new(socket)));
     if let Some(tap) = tap {
-        hub.add_tap(tap);
+        host.add_tap(tap);
     }
     if let Some((tap, door)) = zenoh {
-        hub.add_tap(tap);
-        hub.add_zenoh(door);
+        host.add_tap(tap);
+        host.add_port(Box::new(ZenohPort::new(door, hello_timeout_ms)));
     }
-    hub.run()
+    host.run()
 }
 
 #[cfg(test)]

@@ -87,7 +87,7 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
         zenoh: false,
     };
     let p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
-    (p.pipeline.servo, p.hub.station, dir)
+    (p.pipeline.servo, p.station, dir)
 }
 
 fn ticks(servo: &mut Servo, t: &mut Loopback, n: usize) {

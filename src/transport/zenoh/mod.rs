@@ -11,6 +11,7 @@
 
 pub mod config;
 pub(crate) mod door;
+pub mod port;
 mod remote;
 mod ros;
 mod teleop;
@@ -486,20 +487,20 @@ impl ZenohNet {
         self.listening.clone()
     }
 
-    /// Serve the arm a hub serves: the tap that feeds its ROS 2 topics and remote clients, and
-    /// the door its hub takes requests through.
+    /// Serve an arm over zenoh: the tap that feeds its ROS 2 topics and remote clients, and
+    /// the door its host's port (`port::ZenohPort`) takes requests through.
     pub fn arm(
         &self,
-        hub: &crate::transport::hub::HubSetup,
+        s: &crate::station::StationSetup,
+        serve: &crate::transport::ServeConfig,
     ) -> Result<(Box<dyn Tap>, door::Door), ZenohError> {
-        let s = &hub.station;
-        let (hub_side, mut net_side) = door::Door::pair(
+        let (host_side, mut net_side) = door::Door::pair(
             self.cfg.inbox,
             self.cfg.allow_commands,
-            hub.serve.lease_lapse_ms,
+            serve.lease_lapse_ms,
         )
         .map_err(|e| ZenohError::Declare {
-            what: "the hub's wake-up".into(),
+            what: "the host's wake-up".into(),
             why: e.to_string(),
         })?;
         net_side.max_sample_bytes = self.cfg.max_sample_bytes;
@@ -528,7 +529,7 @@ impl ZenohNet {
             None
         };
         let tap = ros::NetTap::start(&s.arm.name, ros, remote, net_side);
-        Ok((tap, hub_side))
+        Ok((tap, host_side))
     }
 }
 

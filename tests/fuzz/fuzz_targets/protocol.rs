@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use omnid::transport::hub::decode_request;
+use omnid::transport::json::decode_request;
 
 fuzz_target!(|data: &[u8]| {
     if let Err(e) = decode_request(data) {
