@@ -1035,3 +1035,84 @@ fn only_the_labs_commander_commands_and_an_unauthenticated_peer_cannot_connect()
     );
     assert!(!err.contains("lab-secret"), "{err}");
 }
+
+/// docs/ZENOH.md, "Budgets": a read-only zenoh peer flooding `status` beside a local haptic
+/// client (the socket, 1 kHz state stream, a `servo_cf` answer to every state). The port
+/// spends bounded time per wake-up on the network's requests and lets each remote client
+/// only a few requests wait for the arm, so the local stream never goes stale; status says
+/// who was throttled.
+#[test]
+#[ignore = "paced"]
+fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
+    use omnid::transport::client::Message;
+    let port = free_port();
+    let d = serve(port, "ros2 = false\n");
+    let mut c = d.client("sim", "haptic");
+    c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
+    // The flooding peer: a remote client that says hello, then asks for status as fast as
+    // zenoh takes it.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flood = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let s = peer(port);
+            let _token = s
+                .liveliness()
+                .declare_token("omnid/sim/client/flood")
+                .wait()
+                .unwrap();
+            let replies = s.declare_subscriber("omnid/sim/out/flood").wait().unwrap();
+            let p = s.declare_publisher("omnid/sim/in/flood").wait().unwrap();
+            p.put(r#"{"op":"hello","protocol":1,"name":"flood"}"#)
+                .wait()
+                .unwrap();
+            let until = Instant::now() + Duration::from_secs(10);
+            let mut greeted = false;
+            while !greeted && Instant::now() < until {
+                if let Ok(Some(r)) = replies.recv_timeout(Duration::from_millis(200)) {
+                    greeted = String::from_utf8_lossy(&r.payload().to_bytes()).contains("hello");
+                }
+            }
+            assert!(greeted, "the flooding client was greeted");
+            let mut sent = 0u64;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                p.put(r#"{"op":"status"}"#).wait().unwrap();
+                sent += 1;
+            }
+            // Its queued puts may outlast zenoh's close wait: the session goes either way.
+            drop(replies);
+            let _ = s.close().wait();
+            sent
+        })
+    };
+    // The haptic client: a zero force answering every state (50 ms to live: a loaded test
+    // machine's own scheduling stays well inside it; the stalls a flood made were longer).
+    let until = Instant::now() + Duration::from_secs(6);
+    let (mut stale, mut states) = (0, 0);
+    while Instant::now() < until {
+        match c.recv(5000).unwrap() {
+            Message::State(s) => {
+                states += 1;
+                c.send(
+                    &json!({"op": "servo_cf", "seq": s.seq, "force": [0.0, 0.0, 0.0],
+                               "ttl_ms": 50}),
+                )
+                .unwrap();
+            }
+            Message::Other(v) if v["event"] == "stream-stale" => stale += 1,
+            Message::Other(_) => {}
+        }
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let sent = flood.join().unwrap();
+    assert!(sent > 1000, "a flood: {sent} status requests");
+    assert!(states > 3000, "{states} states in 6 s");
+    assert_eq!(
+        stale, 0,
+        "the force stream went stale {stale} times beside the flood"
+    );
+    let status = c.request(json!({"op": "status"})).unwrap();
+    let z = &status["status"]["zenoh"];
+    assert!(z["throttled"].as_u64().unwrap() > 0, "{z}");
+    assert!(z["throttled_clients"]["flood"].as_u64().unwrap() > 0, "{z}");
+}
