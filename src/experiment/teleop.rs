@@ -533,7 +533,11 @@ impl PairSim {
 /// else served, commands allowed (the channel moves the arm), the pair's key `key`.
 fn zenoh_side(listen: &str, connect: Option<&str>, key: &str) -> ZenohConfig {
     ZenohConfig {
-        teleop_keys: [("leader/follower".to_string(), key.to_string())].into(),
+        teleop_keys: [(
+            "leader/follower".to_string(),
+            crate::transport::zenoh::config::Secret::from(key.to_string()),
+        )]
+        .into(),
         enabled: true,
         listen: vec![listen.to_string()],
         connect: connect.map(|c| vec![c.to_string()]).unwrap_or_default(),

@@ -95,7 +95,7 @@ impl Served {
         let sock = dir.path().join("sim.sock");
         let mut args = vec!["--device", "sim", "--socket", sock.to_str().unwrap()];
         args.extend_from_slice(extra);
-        let mut served = Served::spawn_in(dir, &args, config);
+        let mut served = Served::spawn_in(dir, &args, config, None);
         served.sock = sock;
         served.wait_for(&served.sock);
         served
@@ -104,10 +104,16 @@ impl Served {
     /// `omnid serve ARGS --foxglove 127.0.0.1:0`, once it says where the live view is
     /// ([`Served::url`]); its stderr is read to the end by a thread of its own.
     pub fn with_live_view(args: &[&str]) -> Served {
+        Served::with_live_view_limited(args, None)
+    }
+
+    /// As [`Served::with_live_view`], the daemon started with a soft descriptor limit of
+    /// `nofile` if given.
+    pub fn with_live_view_limited(args: &[&str], nofile: Option<u64>) -> Served {
         use std::io::BufRead;
         let mut all = args.to_vec();
         all.extend_from_slice(&["--foxglove", "127.0.0.1:0"]);
-        let mut served = Served::spawn(&all, None);
+        let mut served = Served::spawn_in(tempfile::tempdir().unwrap(), &all, None, nofile);
         let stderr = served.child.as_mut().unwrap().stderr.take().unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         // Read every line (so the pipe never fills); hand over the live view's address.
@@ -129,11 +135,31 @@ impl Served {
     }
 
     fn spawn(args: &[&str], config: Option<&str>) -> Served {
-        Served::spawn_in(tempfile::tempdir().unwrap(), args, config)
+        Served::spawn_in(tempfile::tempdir().unwrap(), args, config, None)
     }
 
-    fn spawn_in(dir: tempfile::TempDir, args: &[&str], config: Option<&str>) -> Served {
+    fn spawn_in(
+        dir: tempfile::TempDir,
+        args: &[&str],
+        config: Option<&str>,
+        nofile: Option<u64>,
+    ) -> Served {
         let mut cmd = omnid();
+        if let Some(n) = nofile {
+            // SAFETY: only async-signal-safe calls between fork and exec.
+            unsafe {
+                std::os::unix::process::CommandExt::pre_exec(&mut cmd, move || {
+                    let mut l = libc::rlimit {
+                        rlim_cur: 0,
+                        rlim_max: 0,
+                    };
+                    libc::getrlimit(libc::RLIMIT_NOFILE, &mut l);
+                    l.rlim_cur = n.min(l.rlim_max);
+                    libc::setrlimit(libc::RLIMIT_NOFILE, &l);
+                    Ok(())
+                });
+            }
+        }
         cmd.arg("serve")
             .args(args)
             .env("XDG_RUNTIME_DIR", dir.path())

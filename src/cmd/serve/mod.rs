@@ -22,6 +22,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
+mod descriptors;
+
 /// `omnid serve`'s options (the rest comes from the config).
 #[derive(Debug, Clone)]
 pub struct ServeOptions {
@@ -326,6 +328,23 @@ pub fn serve(
     stop: Arc<AtomicBool>,
 ) -> Result<ServeOutcome, RunError> {
     let arms = arms(opts, cfg)?;
+    // Descriptors first: the ports are capped below the limit, and the rest is the Unix
+    // socket's reserve (docs/ZENOH.md, "Ports and descriptors").
+    let (_, limit) = descriptors::raise_limit();
+    let zenoh_on = opts.zenoh || cfg.zenoh.enabled;
+    let budget = descriptors::Budget {
+        socket_clients: arms.len() as u64 * (cfg.serve.max_clients as u64 + 8 + 32),
+        zenoh: if zenoh_on { cfg.zenoh.descriptors() } else { 0 },
+        live_view: if opts.foxglove.is_some() {
+            3 * crate::transport::foxglove::MAX_CONNECTIONS as u64
+        } else {
+            0
+        },
+        arms: arms.len() as u64,
+    };
+    if let Some(w) = budget.warning(limit) {
+        crate::errln!("omnid: warning: {w}");
+    }
     // Every arm ready before any starts: a daemon that cannot serve one serves none.
     let mut prepared = Vec::with_capacity(arms.len());
     for arm in &arms {
