@@ -310,7 +310,14 @@ class _ZenohLink:
     and the daemon's messages for it, from ``omnid/<arm>/out/<id>``, written into a socket
     pair the client reads."""
 
-    def __init__(self, remote: str, arm: str, name: str):
+    def __init__(
+        self,
+        remote: str,
+        arm: str,
+        name: str,
+        user: Optional[str] = None,
+        password: Optional[str] = None,
+    ):
         try:
             import zenoh  # type: ignore
         except ImportError as e:
@@ -328,6 +335,11 @@ class _ZenohLink:
         conf.insert_json5("connect/endpoints", json.dumps([remote]))
         conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
         conf.insert_json5("scouting/multicast/enabled", "false")
+        if user is not None:
+            # zenoh's user/password authentication, for a daemon that checks who connects
+            # (its [zenoh] users_file).
+            conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+            conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password or ""))
         try:
             self._session = zenoh.open(conf)
         except Exception as e:  # zenoh raises its own ZError
@@ -388,7 +400,8 @@ class Client:
     ``remote="tcp/host:7448"`` (with ``arm``) reaches a daemon on another PC through zenoh
     (``omnid serve --zenoh``; needs ``pip install eclipse-zenoh``), with the same methods and
     messages; the daemon refuses commands over the network unless its ``[zenoh]
-    allow_commands`` is on.
+    allow_commands`` is on. ``user`` and ``password`` are this client's zenoh credentials, for
+    a daemon that checks who connects (``[zenoh] users_file``; docs/ZENOH.md).
 
     ``timeout`` (s) is the default wait for a reply. ``on_event(message)``, when given, is
     called with every message that is neither a state sample nor a reply (``event``,
@@ -419,6 +432,8 @@ class Client:
         event_buffer: int = 10000,
         arm: Optional[str] = None,
         remote: Optional[str] = None,
+        user: Optional[str] = None,
+        password: Optional[str] = None,
     ):
         self._zenoh: Optional["_ZenohLink"] = None
         if remote is not None:
@@ -454,7 +469,7 @@ class Client:
             # The daemon's messages arrive on zenoh's threads and are written into one end of
             # a socket pair; this client reads the other end exactly as it reads a daemon's
             # socket.
-            self._zenoh = _ZenohLink(remote, str(arm), name)
+            self._zenoh = _ZenohLink(remote, str(arm), name, user, password)
             sock = self._zenoh.reader
             sock.setblocking(False)
             self._sock = sock

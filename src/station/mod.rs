@@ -110,6 +110,9 @@ pub struct StationLimits {
     pub log_format: crate::telemetry::mcap_log::LogKind,
 }
 
+/// An event kind's line on stderr is said at most this often (safety trips always).
+const SAY_EVERY: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// What [`Station::pump`] hands a transport.
 #[derive(Debug)]
 pub enum Output<'a> {
@@ -267,6 +270,9 @@ pub struct Station {
     /// When the last fault dump was written, and trips since that wrote none.
     last_dump: Option<std::time::Instant>,
     dumps_skipped: u64,
+    /// Event lines said on stderr: when each kind was last said, and how many since were not
+    /// (a peer's stream with a 2 ms time to live goes stale hundreds of times a second).
+    said: std::collections::BTreeMap<&'static str, (std::time::Instant, u64)>,
     /// A safety trip latched the arm: streams are refused until a mode is asked for.
     latched: Option<String>,
     /// Events and answers produced by requests, handed out at the next pump.
@@ -324,6 +330,7 @@ impl Station {
             dumps: Vec::new(),
             shutdown_requested: false,
             last_dump: None,
+            said: std::collections::BTreeMap::new(),
             dumps_skipped: 0,
             latched: None,
             pending: Vec::new(),
@@ -815,7 +822,7 @@ impl Station {
         rights: &FileRights,
     ) -> Result<Answer, OpError> {
         // No stop flag: the station never waits on a client's pipe (it is refused).
-        let mut loaded = files::with_rights(rights, || {
+        let mut loaded = files::with_rights_for("weights_load", rights, || {
             Identifier::from_weights_file(&self.s.identifier_cfg, &path, None)
         })
         .map_err(OpError::Failed)?
@@ -896,7 +903,7 @@ impl Station {
         let failed = |e: LogError| OpError::Failed(e.to_string());
         let log = match path {
             // A client's path: opened with its rights, and only ever a new file.
-            Some(p) => files::with_rights(rights, || LogFile::create_new(&p))
+            Some(p) => files::with_rights_for("record_start", rights, || LogFile::create_new(&p))
                 .map_err(OpError::Failed)?
                 .map_err(failed)?,
             None => {
@@ -1122,7 +1129,7 @@ impl Station {
                 ("safety-trip", message)
             }
         };
-        crate::errln!("omnid serve: {}: {message}", self.s.arm.name);
+        self.say(name, &message);
         self.announce(Event {
             mode: Some(r.mode.as_str()),
             seq: Some(r.live.seq),
@@ -1130,6 +1137,34 @@ impl Station {
             message: Some(message),
             ..Event::named(name)
         });
+    }
+
+    /// An event's line on stderr: a safety trip always, any other kind at most once a second,
+    /// saying how many of its kind were left unsaid since (every client still gets each
+    /// event).
+    fn say(&mut self, name: &'static str, message: &str) {
+        let now = std::time::Instant::now();
+        let arm = &self.s.arm.name;
+        match self.said.get_mut(name) {
+            Some((last, held)) if name != "safety-trip" && now - *last < SAY_EVERY => {
+                *held += 1;
+            }
+            Some((last, held)) => {
+                let more = match *held {
+                    0 => String::new(),
+                    n => format!(
+                        " ({n} more since the last said, {:.1} s ago)",
+                        (now - *last).as_secs_f64()
+                    ),
+                };
+                crate::errln!("omnid serve: {arm}: {message}{more}");
+                (*last, *held) = (now, 0);
+            }
+            None => {
+                crate::errln!("omnid serve: {arm}: {message}");
+                self.said.insert(name, (now, 0));
+            }
+        }
     }
 
     /// A trip's dump: at most one every `serve.dump_interval_s` (the others are counted), and
@@ -1230,7 +1265,7 @@ impl Station {
                     rights,
                 } => {
                     let result = match (&snap.weights, snap.weights_copied) {
-                        (Some(w), true) => files::with_rights(&rights, || {
+                        (Some(w), true) => files::with_rights_for("weights_save", &rights, || {
                             crate::identifier::weights::save(w, &path)
                         })
                         .map_err(OpError::Failed)

@@ -22,6 +22,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
+mod descriptors;
+
 /// `omnid serve`'s options (the rest comes from the config).
 #[derive(Debug, Clone)]
 pub struct ServeOptions {
@@ -326,6 +328,23 @@ pub fn serve(
     stop: Arc<AtomicBool>,
 ) -> Result<ServeOutcome, RunError> {
     let arms = arms(opts, cfg)?;
+    // Descriptors first: the ports are capped below the limit, and the rest is the Unix
+    // socket's reserve (docs/ZENOH.md, "Ports and descriptors").
+    let (_, limit) = descriptors::raise_limit();
+    let zenoh_on = opts.zenoh || cfg.zenoh.enabled;
+    let budget = descriptors::Budget {
+        socket_clients: arms.len() as u64 * (cfg.serve.max_clients as u64 + 8 + 32),
+        zenoh: if zenoh_on { cfg.zenoh.descriptors() } else { 0 },
+        live_view: if opts.foxglove.is_some() {
+            3 * crate::transport::foxglove::MAX_CONNECTIONS as u64
+        } else {
+            0
+        },
+        arms: arms.len() as u64,
+    };
+    if let Some(w) = budget.warning(limit) {
+        crate::errln!("omnid: warning: {w}");
+    }
     // Every arm ready before any starts: a daemon that cannot serve one serves none.
     let mut prepared = Vec::with_capacity(arms.len());
     for arm in &arms {
@@ -399,6 +418,9 @@ pub fn serve(
         }
         Some(net)
     } else {
+        if let Some(w) = zenoh_ignored(&cfg.zenoh) {
+            crate::errln!("omnid: warning: {w}");
+        }
         None
     };
     // The pairs a `teleop` op can form: between this daemon's arms, and with zenoh up with
@@ -648,6 +670,16 @@ fn end_arm(
     Ok((outcome, shutdown))
 }
 
+/// A `[zenoh]` section that says something while zenoh is off (no `enabled = true`, no
+/// `--zenoh`) is ignored: say so, rather than leave a lab wondering why no one can reach the arm.
+fn zenoh_ignored(z: &crate::transport::zenoh::ZenohConfig) -> Option<String> {
+    (!z.enabled && *z != crate::transport::zenoh::ZenohConfig::default()).then(|| {
+        "the config's [zenoh] section is ignored: zenoh is off (add `enabled = true` to \
+         [zenoh], or pass --zenoh)"
+            .to_string()
+    })
+}
+
 /// Run the arm's host on this thread until the servo ends, at the configured realtime priority
 /// (the host is on every stream client's round trip) and back on the normal scheduler
 /// afterwards. Its ports: the socket, and zenoh when the daemon is on it.
@@ -685,6 +717,23 @@ mod station_tests;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_zenoh_section_left_off_is_said_to_be_ignored() {
+        use crate::transport::zenoh::ZenohConfig;
+        assert_eq!(zenoh_ignored(&ZenohConfig::default()), None);
+        let said = ZenohConfig {
+            allow_commands: true,
+            ..ZenohConfig::default()
+        };
+        let w = zenoh_ignored(&said).expect("a section that says something, while off");
+        assert!(w.contains("enabled = true") && w.contains("--zenoh"), "{w}");
+        let on = ZenohConfig {
+            enabled: true,
+            ..said
+        };
+        assert_eq!(zenoh_ignored(&on), None);
+    }
 
     #[test]
     fn with_both_groups_both_can_reach_the_socket() {

@@ -13,6 +13,57 @@ pub enum ZenohMode {
     Client,
 }
 
+/// A password or key from the config: read like a string, never shown. Its `Debug` and its
+/// serialised form (a config written back, the commented default) say `(hidden)`, or nothing
+/// when empty, so no status line, dump or log ever prints it.
+#[derive(Clone, PartialEq, Eq, Default, Deserialize, schemars::JsonSchema)]
+#[serde(transparent)]
+pub struct Secret(String);
+
+impl Secret {
+    /// The secret itself, for the one place that uses it.
+    pub fn expose(&self) -> &str {
+        &self.0
+    }
+
+    /// Nothing set.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    fn shown(&self) -> &'static str {
+        if self.0.is_empty() {
+            ""
+        } else {
+            "(hidden)"
+        }
+    }
+}
+
+impl From<&str> for Secret {
+    fn from(s: &str) -> Secret {
+        Secret(s.to_string())
+    }
+}
+
+impl From<String> for Secret {
+    fn from(s: String) -> Secret {
+        Secret(s)
+    }
+}
+
+impl std::fmt::Debug for Secret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.shown())
+    }
+}
+
+impl Serialize for Secret {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.shown())
+    }
+}
+
 /// The `[zenoh]` section (docs/ZENOH.md). Off unless `enabled` or `omnid serve --zenoh`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
@@ -63,11 +114,46 @@ pub struct ZenohConfig {
     /// Pre-shared keys of teleop pairs across daemons, `"<leader>/<follower>" = "<base64>"`
     /// (at least 16 bytes; make one with `head -c32 /dev/urandom | base64`). Both daemons of a
     /// pair list the same key; a pair without one is refused (docs/TELEOP.md §9).
-    pub teleop_keys: std::collections::BTreeMap<String, String>,
+    pub teleop_keys: std::collections::BTreeMap<String, Secret>,
     /// Allow commands over endpoints other machines reach with no zenoh authentication
     /// (anyone who reaches them could move the arms). Off: `omnid serve` refuses such a
     /// configuration (docs/ZENOH.md).
     pub insecure: bool,
+    /// Sessions with other zenoh peers and clients held at once (zenoh's
+    /// `transport.unicast.max_sessions`): each holds a descriptor, and the daemon keeps
+    /// descriptors in reserve for its Unix socket.
+    pub max_sessions: usize,
+    /// Incoming connections in their handshake at once (zenoh's `accept_pending`); more wait
+    /// in the kernel's queue.
+    pub max_handshakes: usize,
+    /// An incoming connection that has not finished its handshake within this is closed, ms
+    /// (zenoh's `accept_timeout`).
+    pub handshake_timeout_ms: u64,
+    /// zenoh user/password authentication: who may connect. A file of `user:password` lines,
+    /// one per principal (zenoh's `transport.auth.usrpwd.dictionary_file`); a peer or client
+    /// that is not in it cannot open a session with this daemon. Empty: no check.
+    pub users_file: String,
+    /// This daemon's own user name, for peers and routers that check (zenoh's
+    /// `transport.auth.usrpwd.user`; set with `password`).
+    pub user: String,
+    /// This daemon's own password (never shown: status and dumps say `(hidden)`).
+    pub password: Secret,
+    /// The principals (zenoh user names, or TLS certificate common names) that may command:
+    /// put on the arms' command keys (remote clients' requests `omnid/<arm>/in/*`, their
+    /// liveliness tokens, ROS 2 command topics) and teleop keys `omnid/teleop/**`. Non-empty:
+    /// zenoh's access control is set up so that everyone else can only read (docs/ZENOH.md).
+    /// Empty: no access control from omnid (a `config_file` may bring its own).
+    pub commanders: Vec<String>,
+    /// TLS for `tls/` endpoints: this daemon's certificate (PEM), zenoh's
+    /// `transport.link.tls.listen_certificate` and `connect_certificate`.
+    pub tls_certificate: String,
+    /// Its private key (PEM file).
+    pub tls_private_key: String,
+    /// The lab's certificate authority (PEM file) that peers' certificates are checked against.
+    pub tls_root_ca: String,
+    /// Mutual TLS: a peer must show a certificate signed by `tls_root_ca` (its common name is
+    /// its principal, for `commanders`).
+    pub tls_mutual: bool,
 }
 
 impl Default for ZenohConfig {
@@ -93,15 +179,26 @@ impl Default for ZenohConfig {
             config_file: String::new(),
             teleop_keys: Default::default(),
             insecure: false,
+            max_sessions: 256,
+            max_handshakes: 32,
+            handshake_timeout_ms: 5000,
+            users_file: String::new(),
+            user: String::new(),
+            password: Secret::default(),
+            commanders: Vec::new(),
+            tls_certificate: String::new(),
+            tls_private_key: String::new(),
+            tls_root_ca: String::new(),
+            tls_mutual: false,
         }
     }
 }
 
 /// A pair's key from its base64 text.
-fn pair_key(text: &str) -> Result<crate::teleop::wire::PairKey, String> {
+fn pair_key(text: &Secret) -> Result<crate::teleop::wire::PairKey, String> {
     use base64::Engine;
     let bytes = base64::engine::general_purpose::STANDARD
-        .decode(text.trim())
+        .decode(text.expose().trim())
         .map_err(|_| {
             "base64 of at least 16 random bytes (make one with `head -c32 /dev/urandom | base64`)"
                 .to_string()
@@ -185,6 +282,66 @@ impl ZenohConfig {
                 "1024 ..= 16777216",
             ));
         }
+        for (field, value, range) in [
+            ("zenoh.max_sessions", self.max_sessions as u64, 1..=65536),
+            ("zenoh.max_handshakes", self.max_handshakes as u64, 1..=4096),
+            (
+                "zenoh.handshake_timeout_ms",
+                self.handshake_timeout_ms,
+                100..=600_000,
+            ),
+        ] {
+            if !range.contains(&value) {
+                return Err(check::invalid(
+                    field,
+                    value.to_string(),
+                    format!("{} ..= {}", range.start(), range.end()),
+                ));
+            }
+        }
+        if self.user.is_empty() != self.password.is_empty() {
+            return Err(check::invalid(
+                "zenoh.user",
+                crate::text::cut(&self.user),
+                "set together with zenoh.password (or neither)",
+            ));
+        }
+        if self.user.contains(':') {
+            return Err(check::invalid(
+                "zenoh.user",
+                crate::text::cut(&self.user),
+                "a user name without ':'",
+            ));
+        }
+        for c in &self.commanders {
+            if c.is_empty() || c.contains(':') || c.chars().any(char::is_whitespace) {
+                return Err(check::invalid(
+                    "zenoh.commanders",
+                    crate::text::cut(c),
+                    "zenoh user names or certificate common names (no ':', no spaces)",
+                ));
+            }
+        }
+        if !self.commanders.is_empty() && self.users_file.is_empty() && !self.tls_mutual {
+            return Err(check::invalid(
+                "zenoh.commanders",
+                format!("{:?}", self.commanders),
+                "who connects must be authenticated to be told apart: set zenoh.users_file \
+                 (user/password) or zenoh.tls_mutual (certificates)",
+            ));
+        }
+        let tls = [
+            &self.tls_certificate,
+            &self.tls_private_key,
+            &self.tls_root_ca,
+        ];
+        if self.tls_mutual && tls.iter().any(|s| s.is_empty()) {
+            return Err(check::invalid(
+                "zenoh.tls_mutual",
+                "true",
+                "needs zenoh.tls_certificate, zenoh.tls_private_key and zenoh.tls_root_ca",
+            ));
+        }
         for (pair, key) in &self.teleop_keys {
             let names_ok = pair.split_once('/').is_some_and(|(l, f)| {
                 omnid_client::find::check_arm_name(l).is_ok()
@@ -218,7 +375,13 @@ impl ZenohConfig {
     ) -> Option<Result<crate::teleop::wire::PairKey, String>> {
         self.teleop_keys
             .get(&format!("{leader}/{follower}"))
-            .map(|k| pair_key(k))
+            .map(pair_key)
+    }
+
+    /// The most descriptors zenoh's sessions and handshakes can hold (one link a session,
+    /// zenoh's default), and a few of its own.
+    pub fn descriptors(&self) -> u64 {
+        self.max_sessions as u64 + self.max_handshakes as u64 + 32
     }
 
     /// The ROS 2 domain: `domain_id`, else `ROS_DOMAIN_ID`, else 0 (an unreadable variable is
@@ -252,9 +415,40 @@ mod tests {
 
     fn with_key(pair: &str, key: &str) -> ZenohConfig {
         ZenohConfig {
-            teleop_keys: [(pair.to_string(), key.to_string())].into(),
+            teleop_keys: [(pair.to_string(), Secret::from(key))].into(),
             ..ZenohConfig::default()
         }
+    }
+
+    #[test]
+    fn passwords_and_keys_are_never_shown() {
+        let cfg = ZenohConfig {
+            user: "omnid".into(),
+            password: "hunter2-password".into(),
+            teleop_keys: [(
+                "left/right".to_string(),
+                Secret::from("2dEoOzyuZk8W2mWRzN0kqxUJ1NQ3gHc6kBzYw3h0n3U="),
+            )]
+            .into(),
+            ..ZenohConfig::default()
+        };
+        let shown = [
+            format!("{cfg:?}"),
+            format!("{cfg:#?}"),
+            toml::to_string(&cfg).unwrap(),
+            serde_json::to_string(&cfg).unwrap(),
+        ];
+        for text in shown {
+            assert!(
+                !text.contains("hunter2") && !text.contains("2dEoOzyuZk8W"),
+                "{text}"
+            );
+            assert!(text.contains("(hidden)"), "{text}");
+        }
+        // Read as written, used as written.
+        let read: ZenohConfig = toml::from_str("password = \"pw-1234\"\nuser = \"u\"").unwrap();
+        assert_eq!(read.password.expose(), "pw-1234");
+        assert_eq!(format!("{:?}", ZenohConfig::default().password), "");
     }
 
     #[test]

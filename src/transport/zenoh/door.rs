@@ -51,6 +51,9 @@ pub struct ZenohStats {
     pub published: AtomicU64,
     /// Ticks or messages dropped because the network side was behind.
     pub dropped_out: AtomicU64,
+    /// Remote clients' requests refused because the client already had its share of the
+    /// arm's time waiting (`throttled_clients` in status says whose).
+    pub throttled: AtomicU64,
 }
 
 /// [`ZenohStats`] read once, for `status`.
@@ -61,6 +64,7 @@ pub struct StatsSnapshot {
     pub dropped_in: u64,
     pub published: u64,
     pub dropped_out: u64,
+    pub throttled: u64,
 }
 
 impl ZenohStats {
@@ -77,6 +81,7 @@ impl ZenohStats {
             dropped_in: r(&self.dropped_in),
             published: r(&self.published),
             dropped_out: r(&self.dropped_out),
+            throttled: r(&self.throttled),
         }
     }
 }

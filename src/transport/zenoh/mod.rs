@@ -190,6 +190,122 @@ fn open_on_a_default_port(zc: zenoh::Config) -> Result<(zenoh::Session, Vec<Stri
     )))
 }
 
+/// The keys an arm's commands arrive on (docs/ZENOH.md): remote clients' requests, the ROS 2
+/// command topics (rmw_zenoh's and the bridge's forms), teleop frames.
+pub const COMMAND_KEYS: [&str; 5] = [
+    "omnid/*/in/**",
+    "omnid/teleop/**",
+    "**/servo_cf/**",
+    "**/servo_jp/**",
+    "**/state_command/**",
+];
+
+/// The liveliness tokens a remote client takes a slot with.
+pub const CLIENT_TOKENS: &str = "omnid/*/client/**";
+
+/// zenoh's settings for `[zenoh]`'s caps, authentication, TLS and access control, as
+/// (key, JSON value) pairs laid over `config_file`.
+fn security_settings(cfg: &ZenohConfig) -> Vec<(&'static str, String)> {
+    let text = |s: &str| serde_json::to_string(s).unwrap_or_else(|_| "\"\"".into());
+    let mut out = vec![
+        (
+            "transport/unicast/max_sessions",
+            cfg.max_sessions.to_string(),
+        ),
+        (
+            "transport/unicast/accept_pending",
+            cfg.max_handshakes.to_string(),
+        ),
+        (
+            "transport/unicast/accept_timeout",
+            cfg.handshake_timeout_ms.to_string(),
+        ),
+    ];
+    if !cfg.users_file.is_empty() {
+        out.push((
+            "transport/auth/usrpwd/dictionary_file",
+            text(&cfg.users_file),
+        ));
+    }
+    if !cfg.user.is_empty() {
+        out.push(("transport/auth/usrpwd/user", text(&cfg.user)));
+        out.push((
+            "transport/auth/usrpwd/password",
+            text(cfg.password.expose()),
+        ));
+    }
+    let tls = [
+        ("transport/link/tls/root_ca_certificate", &cfg.tls_root_ca),
+        (
+            "transport/link/tls/listen_certificate",
+            &cfg.tls_certificate,
+        ),
+        (
+            "transport/link/tls/listen_private_key",
+            &cfg.tls_private_key,
+        ),
+    ];
+    for (key, path) in tls {
+        if !path.is_empty() {
+            out.push((key, text(path)));
+        }
+    }
+    if cfg.tls_mutual {
+        out.push(("transport/link/tls/enable_mtls", "true".into()));
+        out.push((
+            "transport/link/tls/connect_certificate",
+            text(&cfg.tls_certificate),
+        ));
+        out.push((
+            "transport/link/tls/connect_private_key",
+            text(&cfg.tls_private_key),
+        ));
+    }
+    if !cfg.commanders.is_empty() {
+        out.push(("access_control", access_control(cfg).to_string()));
+    }
+    out
+}
+
+/// zenoh's access control under which only `commanders` may put on the command keys and take
+/// a remote client's slot; everything else stays allowed (docs/ZENOH.md). zenoh lets a
+/// message through when any subject the sender matches allows it, so the deny is tied to a
+/// subject everyone matches and the commanders match one with nothing denied.
+fn access_control(cfg: &ZenohConfig) -> serde_json::Value {
+    use serde_json::json;
+    let mut subjects = vec![json!({ "id": "omnid_anyone" })];
+    let mut named = Vec::new();
+    if !cfg.users_file.is_empty() {
+        subjects.push(json!({ "id": "omnid_commander_users", "usernames": cfg.commanders }));
+        named.push("omnid_commander_users");
+    }
+    if cfg.tls_mutual {
+        subjects.push(json!({
+            "id": "omnid_commander_certificates",
+            "cert_common_names": cfg.commanders,
+        }));
+        named.push("omnid_commander_certificates");
+    }
+    json!({
+        "enabled": true,
+        "default_permission": "allow",
+        "rules": [
+            { "id": "omnid_no_commands", "permission": "deny", "flows": ["ingress"],
+              "messages": ["put", "delete"], "key_exprs": COMMAND_KEYS },
+            { "id": "omnid_no_client_slots", "permission": "deny", "flows": ["ingress"],
+              "messages": ["liveliness_token"], "key_exprs": [CLIENT_TOKENS] },
+            { "id": "omnid_commands", "permission": "allow", "flows": ["ingress"],
+              "messages": ["put", "delete", "liveliness_token"],
+              "key_exprs": COMMAND_KEYS.iter().copied().chain([CLIENT_TOKENS]).collect::<Vec<_>>() },
+        ],
+        "subjects": subjects,
+        "policies": [
+            { "rules": ["omnid_no_commands", "omnid_no_client_slots"], "subjects": ["omnid_anyone"] },
+            { "rules": ["omnid_commands"], "subjects": named },
+        ],
+    })
+}
+
 fn json_list(v: &[String]) -> String {
     serde_json::to_string(v).unwrap_or_else(|_| "[]".into())
 }
@@ -229,6 +345,11 @@ impl ZenohNet {
         if cfg.mode == ZenohMode::Peer {
             // A router that is not there yet is not an error: ROS 2 starts in any order.
             settings.push(("connect/exit_on_failure", "false".into()));
+        }
+        // Authentication, TLS and access control from `[zenoh]`'s own keys, before the
+        // exposure is judged (docs/ZENOH.md, "A lab network").
+        for (key, value) in security_settings(cfg) {
+            set(&mut zc, key, value)?;
         }
         let exposure = exposure(
             cfg,
@@ -329,14 +450,27 @@ impl ZenohNet {
         if !self.cfg.allow_commands {
             return "read-only: commands refused ([zenoh] allow_commands = false)".into();
         }
+        let who = if self.cfg.commanders.is_empty() {
+            String::new()
+        } else {
+            format!(
+                ", and of them only {} (zenoh access control, [zenoh] commanders)",
+                self.cfg.commanders.join(", ")
+            )
+        };
+        let pairs = format!("{who}; {pairs}");
         match (e.reach.is_empty(), e.auth) {
-            (true, _) => format!("commands from this PC only (loopback); {pairs}"),
+            (true, None) => format!("commands from this PC only (loopback){pairs}"),
+            (true, Some(how)) => format!(
+                "commands from this PC only (loopback), from peers zenoh authenticates \
+                 ({how}){pairs}"
+            ),
             (false, Some(how)) => format!(
-                "commands from peers zenoh authenticates ({how}) on {}; {pairs}",
+                "commands from peers zenoh authenticates ({how}) on {}{pairs}",
                 e.reach.join(", ")
             ),
             (false, None) => format!(
-                "commands from ANYONE who reaches {} ([zenoh] insecure = true); {pairs}",
+                "commands from ANYONE who reaches {} ([zenoh] insecure = true){pairs}",
                 e.reach.join(", ")
             ),
         }
@@ -435,6 +569,75 @@ mod tests {
                 "{listen}: {e}"
             );
         }
+    }
+
+    #[test]
+    fn users_tls_and_commanders_become_zenohs_authentication_and_access_control() {
+        let dir = tempfile::tempdir().unwrap();
+        let users = dir.path().join("users");
+        std::fs::write(&users, "lab:lab-secret\nviewer:viewer-secret\n").unwrap();
+        let cfg = ZenohConfig {
+            allow_commands: true,
+            listen: vec!["tcp/0.0.0.0:0".into()],
+            connect: vec!["tcp/127.0.0.1:1".into()],
+            users_file: users.display().to_string(),
+            user: "omnid".into(),
+            password: "daemon-secret".into(),
+            commanders: vec!["lab".into()],
+            ..ZenohConfig::default()
+        };
+        cfg.validate().unwrap();
+        let settings = security_settings(&cfg);
+        let value = |k: &str| {
+            settings
+                .iter()
+                .find(|(key, _)| *key == k)
+                .map(|(_, v)| v.clone())
+        };
+        assert_eq!(
+            value("transport/unicast/max_sessions").as_deref(),
+            Some("256")
+        );
+        assert_eq!(
+            value("transport/unicast/accept_timeout").as_deref(),
+            Some("5000")
+        );
+        let acl: serde_json::Value =
+            serde_json::from_str(&value("access_control").unwrap()).unwrap();
+        assert_eq!(acl["default_permission"], "allow");
+        assert_eq!(acl["subjects"][1]["usernames"][0], "lab");
+        // zenoh takes all of it: the session opens with the ACL and authentication, and the
+        // daemon says who may command.
+        let net = with(cfg).expect("opens");
+        assert_eq!(net.exposure().auth, Some("user/password"));
+        let said = net.allows();
+        assert!(
+            said.contains("only lab") && said.contains("user/password"),
+            "{said}"
+        );
+        net.close();
+    }
+
+    #[test]
+    fn commanders_need_a_way_to_tell_peers_apart() {
+        let cfg = ZenohConfig {
+            commanders: vec!["lab".into()],
+            ..ZenohConfig::default()
+        };
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("zenoh.users_file") && e.contains("zenoh.tls_mutual"),
+            "{e}"
+        );
+        let cfg = ZenohConfig {
+            user: "omnid".into(),
+            ..ZenohConfig::default()
+        };
+        assert!(cfg
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("zenoh.password"));
     }
 
     #[test]

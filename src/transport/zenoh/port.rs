@@ -21,6 +21,21 @@ const INBOX_PER_WAKE: usize = 256;
 /// Most remote clients of one arm at once.
 const MAX_REMOTE: usize = 64;
 
+/// Time the port spends on the inbox per wake-up before it lets the host serve its other
+/// ports (the local clients' streams) and comes back: the network's requests cost the arm's
+/// host bounded time, however many arrive.
+const WAKE_BUDGET: Duration = Duration::from_micros(500);
+
+/// Requests that the station answers later (a `status`, a weights save: each goes through the
+/// servo's mailbox) one remote client may have waiting at once, and all of them together. A
+/// request past these is refused as throttled and counted, so no peer's flood fills the
+/// mailbox the local clients' commands go through.
+const MAX_LATER_PER_CLIENT: u32 = 2;
+const MAX_LATER: u32 = 8;
+
+/// A throttled client is told so at most this often (the rest are counted, silently).
+const TELL_THROTTLED_EVERY: Duration = Duration::from_millis(100);
+
 /// One client over zenoh.
 struct RemoteClient {
     cid: Arc<str>,
@@ -30,6 +45,27 @@ struct RemoteClient {
     /// Its liveliness token has been seen.
     alive: bool,
     since: Instant,
+    /// Its requests the station answers later, waiting now.
+    later: u32,
+    /// Its requests refused as throttled.
+    throttled: u64,
+    /// When it was last told it is throttled.
+    told: Option<Instant>,
+}
+
+impl RemoteClient {
+    fn new(cid: Arc<str>, alive: bool) -> RemoteClient {
+        RemoteClient {
+            cid,
+            session: None,
+            every: 0,
+            alive,
+            since: Instant::now(),
+            later: 0,
+            throttled: 0,
+            told: None,
+        }
+    }
 }
 
 /// The ROS 2 commander's session and when it last commanded.
@@ -47,6 +83,8 @@ pub struct ZenohPort {
     said: Option<Instant>,
     /// A client must show its liveliness token within this (`[serve] hello_timeout_ms`).
     hello_timeout: Duration,
+    /// Requests of this port's clients the station answers later, waiting now.
+    later: u32,
 }
 
 fn info(name: &str, control: bool) -> SessionInfo {
@@ -58,9 +96,7 @@ fn info(name: &str, control: bool) -> SessionInfo {
         privileged: false,
         read_only_reason: "commands over zenoh are off ([zenoh] allow_commands = false)".into(),
         files: FileRights::Refused(
-            "a client over the network names no files on the daemon's PC; record without a \
-             path (into the daemon's recordings directory)"
-                .into(),
+            "a client over the network names no files on the daemon's PC".into(),
         ),
     }
 }
@@ -80,18 +116,24 @@ impl Port for ZenohPort {
         if ready[0].revents != 0 {
             self.door.wake.clear();
         }
-        let batch: Vec<Inbound> = self.door.inbox.try_iter().take(INBOX_PER_WAKE).collect();
-        if !self.door.inbox.is_empty() {
-            // More waits: come back at once.
-            self.door.wake.notify();
-        }
-        for m in batch {
+        let start = Instant::now();
+        for _ in 0..INBOX_PER_WAKE {
+            if start.elapsed() > WAKE_BUDGET {
+                break;
+            }
+            let Ok(m) = self.door.inbox.try_recv() else {
+                break;
+            };
             match m {
                 Inbound::Message { cid, bytes } => self.message(cid, &bytes, desk),
                 Inbound::Joined(cid) => self.joined(cid),
                 Inbound::Gone(cid) => self.gone(&cid, desk),
                 Inbound::Ros(op) => self.ros_command(op, desk),
             }
+        }
+        if !self.door.inbox.is_empty() {
+            // More waits: come back after the host's other ports had their turn.
+            self.door.wake.notify();
         }
     }
 
@@ -110,13 +152,24 @@ impl Port for ZenohPort {
     }
 
     fn answer(&mut self, session: SessionId, message: Vec<u8>) {
-        if let Some(c) = self.clients.iter().find(|c| c.session == Some(session)) {
+        // Every answer here is one of this port's later ones (the host routes them back).
+        self.later = self.later.saturating_sub(1);
+        if let Some(c) = self.clients.iter_mut().find(|c| c.session == Some(session)) {
+            c.later = c.later.saturating_sub(1);
             self.door.to_client(&c.cid, message.into());
         }
     }
 
     fn status(&self, status: &mut Value, _local: bool) {
         status["zenoh"] = serde_json::to_value(self.door.stats.snapshot()).unwrap_or_default();
+        // Who was throttled: each remote client still here with its count.
+        let by_client: serde_json::Map<String, Value> = self
+            .clients
+            .iter()
+            .filter(|c| c.throttled > 0)
+            .map(|c| (c.cid.to_string(), Value::from(c.throttled)))
+            .collect();
+        status["zenoh"]["throttled_clients"] = Value::Object(by_client);
     }
 
     fn local(&self) -> bool {
@@ -194,6 +247,7 @@ impl ZenohPort {
             ros: None,
             said: None,
             hello_timeout: Duration::from_secs_f64(hello_timeout_ms * 1e-3),
+            later: 0,
         }
     }
 
@@ -205,13 +259,7 @@ impl ZenohPort {
         let n = self.clients.len();
         match self.clients.iter_mut().find(|c| c.cid == cid) {
             Some(c) => c.alive = true,
-            None if n < MAX_REMOTE => self.clients.push(RemoteClient {
-                cid,
-                session: None,
-                every: 0,
-                alive: true,
-                since: Instant::now(),
-            }),
+            None if n < MAX_REMOTE => self.clients.push(RemoteClient::new(cid, true)),
             None => {}
         }
     }
@@ -231,13 +279,7 @@ impl ZenohPort {
             Some(k) => k,
             None if self.clients.len() < MAX_REMOTE => {
                 // Its token may still be on its way: it has the hello deadline to show it.
-                self.clients.push(RemoteClient {
-                    cid,
-                    session: None,
-                    every: 0,
-                    alive: false,
-                    since: Instant::now(),
-                });
+                self.clients.push(RemoteClient::new(cid, false));
                 self.clients.len() - 1
             }
             None => return self.no_room(&cid, bytes),
@@ -258,13 +300,41 @@ impl ZenohPort {
         let Some(session) = self.clients[k].session else {
             return self.greet(k, request, desk);
         };
+        if self.clients[k].later >= MAX_LATER_PER_CLIENT || self.later >= MAX_LATER {
+            return self.throttle(k, request.op());
+        }
         let served = desk.serve(session, request);
+        if served.later.is_some() {
+            self.clients[k].later += 1;
+            self.later += 1;
+        }
         if let Some(every) = served.every {
             self.clients[k].every = every;
         }
         if let Some(v) = served.reply {
             self.send(&cid, &v);
         }
+    }
+
+    /// Client `k` asks for more than its share of the station's time: refused and counted
+    /// (told at most every [`TELL_THROTTLED_EVERY`]).
+    fn throttle(&mut self, k: usize, op: &str) {
+        ZenohStats::count(&self.door.stats.throttled);
+        let now = Instant::now();
+        let c = &mut self.clients[k];
+        c.throttled += 1;
+        if c.told.is_some_and(|t| now - t < TELL_THROTTLED_EVERY) {
+            return;
+        }
+        c.told = Some(now);
+        let cid = c.cid.clone();
+        let why = format!(
+            "throttled: {MAX_LATER_PER_CLIENT} requests of this client (or {MAX_LATER} of all \
+             remote clients) already wait for the arm; wait for their answers ({} refused so \
+             far)",
+            c.throttled
+        );
+        self.send(&cid, &json::error(op, None, why));
     }
 
     /// Every slot is taken: a hello is answered (then forgotten, so the network side keeps
@@ -294,9 +364,13 @@ impl ZenohPort {
             Err(error) => return self.send(&cid, &error),
         };
         let control = self.door.allow_commands;
-        let session = desk
-            .station
-            .open_session(info(&format!("{name} (zenoh)"), control));
+        // A nameless client is still told apart from a local one.
+        let name = if name.is_empty() {
+            "a client over zenoh".to_string()
+        } else {
+            format!("{name} (zenoh)")
+        };
+        let session = desk.station.open_session(info(&name, control));
         let access = if control {
             Access::Control
         } else {
