@@ -184,12 +184,18 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
     let runs = results["runs"].as_array().unwrap();
     // pp and pf, passivity on and off, four scenes, four channels in process; the in-process
     // press of each architecture under nnidc; and the press of each architecture over zenoh
-    // at 0 and 100 ms (docs/TELEOP.md §9).
-    assert_eq!(runs.len(), 2 * 2 * 4 * 4 + 2 + 2 * 2);
+    // at 0 and 100 ms (docs/TELEOP.md §9); with wave variables (§5) pp and pf, four scenes,
+    // four channels in process, and pf's press over zenoh at 100 ms without and with a CPU
+    // hog beside it.
+    assert_eq!(runs.len(), 2 * 2 * 4 * 4 + 2 + 2 * 2 + 2 * 4 * 4 + 2);
     let nnidc = runs.iter().filter(|r| r["controller"] == "nnidc").count();
     assert_eq!(nnidc, 2);
+    let wave = runs.iter().filter(|r| r["delay_control"] == "wave").count();
+    assert_eq!(wave, 2 * 4 * 4 + 2);
+    let hog = runs.iter().filter(|r| r["cpu_hog"] == true).count();
+    assert_eq!(hog, 1);
     let over: Vec<&serde_json::Value> = runs.iter().filter(|r| r["link"] == "zenoh").collect();
-    assert_eq!(over.len(), 4);
+    assert_eq!(over.len(), 6);
     for r in &over {
         assert_eq!(r["stable"], true, "{r}");
         // The round trip the leader measured covers the injected one.
