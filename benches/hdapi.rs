@@ -9,10 +9,13 @@
 //! writes `target/hdapi-bench.json`. Timing on a shared machine is noisy: this prints, it
 //! never fails on numbers.
 
+#[path = "../tests/suite/common.rs"]
+mod common;
 #[path = "../tests/suite/hd.rs"]
 mod hd;
 
-use hd::{Daemon, HD};
+use common::Served;
+use hd::HD;
 use omnid::transport::client::{Client, Message};
 use serde_json::json;
 use std::io::{BufRead, BufReader};
@@ -71,14 +74,14 @@ fn observe(watch: &mut Client, secs: f64) -> OnTime {
     }
 }
 
-fn libhd(hd: &HD, daemon: &Daemon, secs: f64) -> (OnTime, String) {
-    let mut watch = daemon.client("bench-watch");
+fn libhd(hd: &HD, daemon: &Served, secs: f64) -> (OnTime, String) {
+    let mut watch = daemon.connect("bench-watch");
     watch
         .request(json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
     let mut child = Command::new(hd.exe("bench"))
         .arg(format!("{}", secs + 2.0))
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .stdout(Stdio::piped())
         .spawn()
         .expect("bench program starts");
@@ -96,14 +99,14 @@ fn libhd(hd: &HD, daemon: &Daemon, secs: f64) -> (OnTime, String) {
 
 /// A plain client answering every state k with `servo_jf` seq = k (zero torque), judged by
 /// a watching client as libHD's frames are (so the daemon streams to two clients in both).
-fn plain(daemon: &Daemon, secs: f64) -> OnTime {
-    let mut watch = daemon.client("bench-watch");
+fn plain(daemon: &Served, secs: f64) -> OnTime {
+    let mut watch = daemon.connect("bench-watch");
     watch
         .request(json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let answering = {
-        let mut c = daemon.client("bench-plain");
+        let mut c = daemon.connect("bench-plain");
         let stop = stop.clone();
         std::thread::spawn(move || {
             c.request(json!({"op": "lease"})).unwrap();
@@ -135,13 +138,13 @@ fn main() {
         .find_map(|a| a.parse().ok())
         .unwrap_or(10.0);
     let hd = HD::get();
-    let daemon = Daemon::start(&[]);
+    let daemon = Served::sim(&[], None);
     let (lib, frames) = libhd(hd, &daemon, secs);
     let bare = plain(&daemon, secs);
     // The servo's own timing over both phases: a tick that starts late leaves the next one
     // (at its absolute deadline) no time for any client's round trip.
     let timing = daemon
-        .client("bench-status")
+        .connect("bench-status")
         .request(json!({"op": "status"}))
         .map(|v| v["status"]["timing_us"].clone())
         .unwrap_or_default();

@@ -35,22 +35,39 @@ fn percentiles(p: &Value) -> Option<String> {
     ))
 }
 
+/// The labelled lines one part of the status gives (none, one or several).
+type Block = fn(&Value) -> Vec<(&'static str, String)>;
+
 /// `omnid ctl status` for people: the arm, mode, controller, lease, clients, faults, tracking,
 /// timing and recording of a `status` reply's `status` object.
 pub fn status_block(s: &Value) -> String {
-    let mut out = String::new();
-    let mut line = |label: &str, value: String| {
-        out += &format!("  {label:<11} {value}\n");
-    };
     let arm = text(&s["arm"]).unwrap_or_else(|| "?".into());
     let device = text(&s["device"]).unwrap_or_else(|| "?".into());
-    let mut head = format!("arm {arm} ({device})");
+    let mut out = format!("arm {arm} ({device})");
     if let Some(socket) = text(&s["socket"]) {
-        head += &format!(" on {socket}");
+        out += &format!(" on {socket}");
     }
-    let mut out_head = head + "\n";
+    out.push('\n');
+    let blocks: [Block; 9] = [
+        mode_line,
+        controller_line,
+        lease_line,
+        run_lines,
+        tracking_line,
+        timing_lines,
+        teleop_lines,
+        recording_line,
+        zenoh_line,
+    ];
+    for (label, value) in blocks.iter().flat_map(|block| block(s)) {
+        out += &format!("  {label:<11} {value}\n");
+    }
+    out
+}
+
+fn mode_line(s: &Value) -> Vec<(&'static str, String)> {
     let mode = text(&s["mode"]).unwrap_or_else(|| "not started".into());
-    let mode_words = match mode.as_str() {
+    let words = match mode.as_str() {
         "idle" => "idle (no torque, amplifiers off)".to_string(),
         "hold" => "hold (holding the pose)".to_string(),
         "blend" | "track" => format!("{mode} (following a trajectory)"),
@@ -58,7 +75,10 @@ pub fn status_block(s: &Value) -> String {
         m if m.starts_with("servo_") => format!("{m} (a client streams commands)"),
         m => m.to_string(),
     };
-    line("mode", mode_words);
+    vec![("mode", words)]
+}
+
+fn controller_line(s: &Value) -> Vec<(&'static str, String)> {
     let mut controller = text(&s["controller"]).unwrap_or_else(|| "?".into());
     let ident = &s["identifier"];
     if let Some(fault) = text(&ident["fault"]) {
@@ -71,153 +91,173 @@ pub fn status_block(s: &Value) -> String {
     if let Some(w) = text(&ident["weights"]) {
         controller += &format!(", weights {w}");
     }
-    line("controller", controller);
+    vec![("controller", controller)]
+}
+
+fn lease_line(s: &Value) -> Vec<(&'static str, String)> {
     let lease = &s["lease"];
-    line(
-        "lease",
-        if lease.is_null() {
-            "free (the next command takes it)".to_string()
+    let holder = if lease.is_null() {
+        "free (the next command takes it)".to_string()
+    } else {
+        let name = text(&lease["name"]).unwrap_or_default();
+        // A session over the network has no process or user on this PC.
+        let whose = if lease["pid"] == 0 && lease["uid"] == u32::MAX {
+            "over the network".to_string()
         } else {
-            format!(
-                "client {} `{}` (pid {}, uid {})",
-                lease["client"],
-                text(&lease["name"]).unwrap_or_default(),
-                lease["pid"],
-                lease["uid"]
-            )
-        },
-    );
+            format!("pid {}, uid {}", lease["pid"], lease["uid"])
+        };
+        format!("client {} `{name}` ({whose})", lease["client"])
+    };
+    vec![("lease", holder)]
+}
+
+/// Clients, time up, faults and limits.
+fn run_lines(s: &Value) -> Vec<(&'static str, String)> {
+    let mut lines = Vec::new();
     if let Some(n) = s["clients"].as_u64() {
-        line("clients", format!("{n} connected, this one included"));
+        lines.push(("clients", format!("{n} connected, this one included")));
     }
     if let (Some(t), Some(ticks)) = (f(&s["duration_s"]), s["ticks"].as_u64()) {
-        line("up", format!("{t:.1} s device time ({ticks} ticks)"));
+        lines.push(("up", format!("{t:.1} s device time ({ticks} ticks)")));
     }
     let faults = s["faults"].as_array().cloned().unwrap_or_default();
-    line(
-        "faults",
-        match faults.last() {
-            None => "none".to_string(),
-            Some(last) => format!(
-                "{} (last at {:.3} s: {})",
-                faults.len(),
-                f(&last["t"]).unwrap_or(0.0),
-                text(&last["message"]).unwrap_or_default()
-            ),
-        },
-    );
+    let faults = match faults.last() {
+        None => "none".to_string(),
+        Some(last) => format!(
+            "{} (last at {:.3} s: {})",
+            faults.len(),
+            f(&last["t"]).unwrap_or(0.0),
+            text(&last["message"]).unwrap_or_default()
+        ),
+    };
+    lines.push(("faults", faults));
     let (clamped, limited, hot) = (
         s["clamped_ticks"].as_u64().unwrap_or(0),
         s["force_limited_ticks"].as_u64().unwrap_or(0),
         s["thermal_ticks"].as_u64().unwrap_or(0),
     );
     if clamped + limited + hot > 0 {
-        line(
+        lines.push((
             "limits",
             format!(
                 "torque clamped {clamped} ticks, tip force held {limited}, hot motor held {hot}"
             ),
-        );
+        ));
     }
-    line(
-        "tracking",
-        match triple(&s["tracking_rms_rad"], 1e3, "mrad") {
-            Some(rms) => format!(
-                "RMS {rms}, max {} (joints 1/2/3)",
-                triple(&s["tracking_max_rad"], 1e3, "mrad").unwrap_or_else(|| "n/a".into())
-            ),
-            None => "nothing tracked yet (mode track follows a trajectory)".to_string(),
-        },
-    );
+    lines
+}
+
+fn tracking_line(s: &Value) -> Vec<(&'static str, String)> {
+    let tracking = match triple(&s["tracking_rms_rad"], 1e3, "mrad") {
+        Some(rms) => format!(
+            "RMS {rms}, max {} (joints 1/2/3)",
+            triple(&s["tracking_max_rad"], 1e3, "mrad").unwrap_or_else(|| "n/a".into())
+        ),
+        None => "nothing tracked yet (mode track follows a trajectory)".to_string(),
+    };
+    vec![("tracking", tracking)]
+}
+
+/// The loop's period and compute time, and the motors' heat.
+fn timing_lines(s: &Value) -> Vec<(&'static str, String)> {
+    let mut lines = Vec::new();
     let timing = &s["timing_us"];
     if let Some(p) = percentiles(&timing["period"]) {
-        line("period", p);
+        lines.push(("period", p));
     }
     if let Some(p) = percentiles(&timing["compute"]) {
-        line(
-            "compute",
-            format!("{p}, {} overruns", timing["overruns"].as_u64().unwrap_or(0)),
-        );
+        let overruns = timing["overruns"].as_u64().unwrap_or(0);
+        lines.push(("compute", format!("{p}, {overruns} overruns")));
     }
     if let Some(h) = triple(&s["heat"], 1.0, "") {
-        line(
+        let h = h.trim_end();
+        lines.push((
             "heat",
-            format!("{} (1 = a motor at its continuous torque)", h.trim_end()),
-        );
+            format!("{h} (1 = a motor at its continuous torque)"),
+        ));
     }
+    lines
+}
+
+fn teleop_lines(s: &Value) -> Vec<(&'static str, String)> {
     let t = &s["teleop"];
-    if !t.is_null() {
-        line(
-            "teleop",
+    if t.is_null() {
+        return Vec::new();
+    }
+    let mut lines = vec![(
+        "teleop",
+        format!(
+            "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {}){}",
+            text(&t["state"])
+                .map(|s| format!("{s}: "))
+                .unwrap_or_default(),
+            text(&t["role"]).unwrap_or_default(),
+            text(&t["peer"]).unwrap_or_default(),
+            text(&t["architecture"]).unwrap_or_default(),
+            t["motion_scale"],
+            t["force_scale"],
+            text(&t["operator"]).unwrap_or_default(),
+            if t["passivity"] == true { "on" } else { "off" },
+            t["round_trip_ms"]
+                .as_f64()
+                .map(|ms| format!("; round trip {ms:.1} ms"))
+                .unwrap_or_default()
+        ),
+    )];
+    let net = &t["network"];
+    if !net.is_null() {
+        lines.push((
+            "teleop net",
             format!(
-                "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {}){}",
-                text(&t["state"])
-                    .map(|s| format!("{s}: "))
-                    .unwrap_or_default(),
-                text(&t["role"]).unwrap_or_default(),
-                text(&t["peer"]).unwrap_or_default(),
-                text(&t["architecture"]).unwrap_or_default(),
-                t["motion_scale"],
-                t["force_scale"],
-                text(&t["operator"]).unwrap_or_default(),
-                if t["passivity"] == true { "on" } else { "off" },
-                t["round_trip_ms"]
-                    .as_f64()
-                    .map(|ms| format!("; round trip {ms:.1} ms"))
+                "zenoh, peer session {}; frames sent {}, received {}, refused {}{}",
+                text(&net["peer_session"]).unwrap_or_else(|| "not heard yet".into()),
+                net["sent"],
+                net["received"],
+                net["refused"],
+                text(&net["last_refusal"])
+                    .map(|w| format!(" (last: {w})"))
                     .unwrap_or_default()
             ),
-        );
-        let net = &t["network"];
-        if !net.is_null() {
-            line(
-                "teleop net",
-                format!(
-                    "zenoh, peer session {}; frames sent {}, received {}, refused {}{}",
-                    text(&net["peer_session"]).unwrap_or_else(|| "not heard yet".into()),
-                    net["sent"],
-                    net["received"],
-                    net["refused"],
-                    text(&net["last_refusal"])
-                        .map(|w| format!(" (last: {w})"))
-                        .unwrap_or_default()
-                ),
-            );
-        }
+        ));
     }
+    lines
+}
+
+fn recording_line(s: &Value) -> Vec<(&'static str, String)> {
     let rec = &s["recording"];
-    line(
-        "recording",
-        if rec.is_null() {
-            "no (`omnid ctl record start` starts one)".to_string()
-        } else {
-            let dropped = rec["dropped"].as_u64().unwrap_or(0);
-            format!(
-                "to {}{}",
-                text(&rec["path"]).unwrap_or_default(),
-                if dropped > 0 {
-                    format!(" ({dropped} rows dropped: the disk fell behind)")
-                } else {
-                    String::new()
-                }
-            )
-        },
-    );
+    let recording = if rec.is_null() {
+        "no (`omnid ctl record start` starts one)".to_string()
+    } else {
+        let dropped = rec["dropped"].as_u64().unwrap_or(0);
+        format!(
+            "to {}{}",
+            text(&rec["path"]).unwrap_or_default(),
+            if dropped > 0 {
+                format!(" ({dropped} rows dropped: the disk fell behind)")
+            } else {
+                String::new()
+            }
+        )
+    };
+    vec![("recording", recording)]
+}
+
+fn zenoh_line(s: &Value) -> Vec<(&'static str, String)> {
     let z = &s["zenoh"];
-    if z.is_object() {
-        let n = |k: &str| z[k].as_u64().unwrap_or(0);
-        line(
-            "zenoh",
-            format!(
-                "{} samples published, {} received ({} refused, {} dropped on a full inbox)",
-                n("published"),
-                n("received"),
-                n("refused"),
-                n("dropped_in")
-            ),
-        );
+    if !z.is_object() {
+        return Vec::new();
     }
-    out_head.push_str(&out);
-    out_head
+    let n = |k: &str| z[k].as_u64().unwrap_or(0);
+    vec![(
+        "zenoh",
+        format!(
+            "{} samples published, {} received ({} refused, {} dropped on a full inbox)",
+            n("published"),
+            n("received"),
+            n("refused"),
+            n("dropped_in")
+        ),
+    )]
 }
 
 /// One line for a message of the daemon other than a state (an event, `lost`, `bye`, …)
@@ -307,6 +347,14 @@ pub fn reply_line(r: &Value) -> String {
         ),
         "weights_save" => format!("weights saved to {path}"),
         "weights_load" => format!("weights loaded from {path}"),
+        "weights_reset" => format!(
+            "the identifier is back on the shipped weights ({}); {}",
+            text(&r["weights"]).unwrap_or_default(),
+            match text(&r["removed"]) {
+                Some(p) => format!("what the arm had learned ({p}) is removed"),
+                None => "the arm had no saved weights".to_string(),
+            }
+        ),
         "shutdown" => "the daemon is stopping".to_string(),
         "teleop_stop" => "uncoupled: the arm holds".to_string(),
         "teleop_scale" => format!("motion scale {}", r["motion_scale"]),
@@ -342,6 +390,17 @@ mod tests {
         let s = json!({"zenoh": {"published": 5, "received": 3, "refused": 2, "dropped_in": 0}});
         assert!(status_block(&s)
             .contains("5 samples published, 3 received (2 refused, 0 dropped on a full inbox)"));
+    }
+
+    #[test]
+    fn a_lease_held_over_the_network_names_no_local_process() {
+        let s = json!({"lease": {"client": 7, "name": "lab-pc (zenoh)", "pid": 0, "uid": 4294967295u64}});
+        let b = status_block(&s);
+        assert!(
+            b.contains("lease       client 7 `lab-pc (zenoh)` (over the network)"),
+            "{b}"
+        );
+        assert!(!b.contains("4294967295"), "{b}");
     }
 
     #[test]

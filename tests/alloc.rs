@@ -613,23 +613,24 @@ fn a_coupled_teleoperation_pair_allocates_nothing_per_tick() {
     // delay line, the passivity port, the fast velocity filter), over a delayed, lossy
     // channel with the hand pushing the follower into its floor.
     use omnid::experiment::teleop::{PairSim, Scene, CHANNELS};
-    use omnid::teleop::{Architecture, TeleopConfig};
+    use omnid::teleop::{Architecture, DelayControl, TeleopConfig};
     let scene = Scene::Press {
         force_n: 1.0,
         wall_n_per_mm: 1.0,
     };
-    for arch in [Architecture::Pp, Architecture::Pf] {
+    // Both delay controls: the delay-aware gains and the wave variables.
+    let wave = TeleopConfig {
+        delay_control: DelayControl::Wave,
+        ..TeleopConfig::default()
+    };
+    for (arch, cfg) in [
+        (Architecture::Pp, TeleopConfig::default()),
+        (Architecture::Pf, TeleopConfig::default()),
+        (Architecture::Pp, wave.clone()),
+        (Architecture::Pf, wave),
+    ] {
         let lossy = CHANNELS.iter().find(|c| c.loss > 0.0).unwrap();
-        let mut sim = PairSim::new(
-            &TeleopConfig::default(),
-            arch,
-            true,
-            &scene,
-            lossy,
-            10.0,
-            false,
-        )
-        .unwrap();
+        let mut sim = PairSim::new(&cfg, arch, true, &scene, lossy, 10.0, false).unwrap();
         for _ in 0..500 {
             sim.tick().unwrap();
         }
@@ -638,7 +639,11 @@ fn a_coupled_teleoperation_pair_allocates_nothing_per_tick() {
                 std::hint::black_box(sim.tick().unwrap());
             }
         });
-        assert_eq!(n, 0, "{arch:?}: {n} allocations over 3000 coupled ticks");
+        assert_eq!(
+            n, 0,
+            "{arch:?} {:?}: {n} allocations over 3000 coupled ticks",
+            cfg.delay_control
+        );
     }
 }
 

@@ -43,11 +43,13 @@ pub(crate) enum CtlCommand {
         action: String,
         path: Option<PathBuf>,
     },
-    /// Save the identifier's weights to a file, or load them from one.
+    /// Save the identifier's weights to a file, load them from one, or reset them to the
+    /// shipped ones (what the arm learned is forgotten: its saved weights are removed).
     Weights {
-        /// save or load
+        /// save, load or reset
         action: String,
-        path: PathBuf,
+        /// The file (save and load).
+        path: Option<PathBuf>,
     },
     /// Freeze the identifier's online adaptation.
     Freeze,
@@ -132,14 +134,30 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
                 return Ok(EXIT_BAD_INPUT);
             }
         },
-        CtlCommand::Weights { action, path } => match action.as_str() {
-            "save" => json!({ "op": "weights_save", "path": absolute(path) }),
-            "load" => json!({ "op": "weights_load", "path": absolute(path) }),
-            other => {
-                omnid::errln!("omnid ctl: weights {other}: expected save or load");
-                return Ok(EXIT_BAD_INPUT);
+        CtlCommand::Weights { action, path } => {
+            match (action.as_str(), path) {
+                ("save", Some(path)) => json!({ "op": "weights_save", "path": absolute(path) }),
+                ("load", Some(path)) => json!({ "op": "weights_load", "path": absolute(path) }),
+                ("reset", None) => json!({ "op": "weights_reset" }),
+                ("save" | "load", None) => {
+                    omnid::errln!("omnid ctl: weights {action}: which file? (omnid ctl weights {action} PATH)");
+                    return Ok(EXIT_BAD_INPUT);
+                }
+                ("reset", Some(_)) => {
+                    omnid::errln!(
+                        "omnid ctl: weights reset takes no file (it puts the shipped weights back)"
+                    );
+                    return Ok(EXIT_BAD_INPUT);
+                }
+                (other, _) => {
+                    omnid::errln!(
+                        "omnid ctl: weights {}: expected save, load or reset",
+                        omnid::text::cut(other)
+                    );
+                    return Ok(EXIT_BAD_INPUT);
+                }
             }
-        },
+        }
         CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
         CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
         CtlCommand::Shutdown => json!({ "op": "shutdown" }),

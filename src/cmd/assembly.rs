@@ -12,7 +12,7 @@ use crate::device::registry::DeviceSpec;
 use crate::device::registry::{self, OpenError, OpenOptions};
 use crate::device::replay::ReplayError;
 use crate::device::DeviceError;
-use crate::identifier::{Identifier, WeightsFile};
+use crate::identifier::Identifier;
 use crate::servo::{Servo, ServoReport};
 use crate::telemetry::reader::ReadError;
 use crate::telemetry::{LogError, LogSchema};
@@ -67,10 +67,7 @@ impl RunOptions {
     }
 }
 
-/// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
-/// box (see mock/README.md for how they were made).
-pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../../mock/nnidc-pretuned.json");
-pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
+pub(crate) use crate::identifier::store::{SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 
 /// The identifier a run starts with, and a label for the summary.
 /// `stop`: the operator's, which ends a wait on a weights file that is a pipe (without it such
@@ -93,18 +90,10 @@ pub fn make_identifier(
             Err(e) if e.is_stopped() => Err(RunError::Stopped(e.to_string())),
             Err(e) => Err(bad(&e)),
         },
-        None if controller == ControllerKind::Nnidc => {
-            let mut id = Identifier::new(&id_cfg).map_err(|e| bad(&e))?;
-            let w = WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME)
-                .map_err(|e| bad(&e))?;
-            id.apply_weights(&w, SHIPPED_WEIGHTS_NAME).map_err(|e| {
-                RunError::BadInput(format!(
-                    "{e} (the shipped weights fit the default [identifier] sizes; pass --weights \
-                     with weights made by `omnid identify` for other sizes)"
-                ))
-            })?;
-            Ok((id, "shipped".to_string()))
-        }
+        None if controller == ControllerKind::Nnidc => Ok((
+            crate::identifier::store::shipped(&id_cfg).map_err(RunError::BadInput)?,
+            "shipped".to_string(),
+        )),
         None => Ok((
             Identifier::new(&id_cfg).map_err(|e| bad(&e))?,
             "fresh".to_string(),
@@ -387,7 +376,8 @@ impl Ending {
         };
         if !id.healthy() {
             crate::errln!(
-                "omnid: the identifier stopped on a non-finite value: its weights are not kept                  ({} keeps the last saved)",
+                "omnid: the identifier stopped on a non-finite value: its weights are not kept \
+                 ({} keeps the last saved)",
                 path.display()
             );
             return;

@@ -16,8 +16,8 @@ use crate::servo::Servo;
 use crate::telemetry::record::TickRecord;
 use crate::teleop::channel::packet_flags;
 use crate::teleop::{
-    pair, Architecture, Coupling, Endpoint, Impairment, Operator, Packet, RemoteLine, Role as Side,
-    TeleopConfig,
+    pair, Architecture, Coupling, DelayControl, Endpoint, Impairment, Operator, Packet, RemoteLine,
+    Role as Side, TeleopConfig,
 };
 use crate::transport::zenoh::{ZenohConfig, ZenohNet};
 use nalgebra::Vector3;
@@ -158,6 +158,10 @@ pub struct PairResult {
     pub rt_ms: f64,
     /// Where the channel ran: `in_process` or `zenoh` (two sessions on loopback).
     pub link: &'static str,
+    /// `[teleop] delay_control`: `gains` (delay-aware gains) or `wave` (wave variables).
+    pub delay_control: &'static str,
+    /// A thread spinning on a core beside the run (a CPU hog), zenoh rows only.
+    pub cpu_hog: bool,
     /// The round trip the leader measured (the injected one plus the channel's own: a tick
     /// each way in process), median over the run, ms.
     pub measured_rt_ms: f64,
@@ -702,6 +706,7 @@ pub fn run_pair_under(
     let mut result = measure(arch, passivity, scene, channel, &tr, why, delivered, quick);
     result.link = link.as_str();
     result.controller = controller.as_str();
+    result.delay_control = base.delay_control.as_str();
     // The leader's measured round trip over the run, once the link was up.
     let mut rtt: Vec<f64> = rtt.into_iter().filter(|v| *v > 0.0).collect();
     rtt.sort_by(f64::total_cmp);
@@ -807,6 +812,8 @@ fn measure(
         channel: channel.name,
         rt_ms: channel.rt_ms,
         link: Link::InProcess.as_str(),
+        delay_control: "gains",
+        cpu_hog: false,
         measured_rt_ms: f64::NAN,
         measured_rt_max_ms: f64::NAN,
         position_rms_mm,
@@ -908,6 +915,42 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
             }
         }
     }
+    // Wave variables (docs/TELEOP.md §5) beside the delay-aware gains: every main scene and
+    // channel, and the press sweep at 0 and 100 ms, with control on.
+    let wave = TeleopConfig {
+        delay_control: DelayControl::Wave,
+        ..base.clone()
+    };
+    for arch in [Architecture::Pp, Architecture::Pf] {
+        for scene in &main {
+            for c in &channels {
+                results.push(run_pair(&wave, arch, true, scene, c, quick)?.0);
+            }
+        }
+        for scene in &presses {
+            for c in [CHANNELS[0], CHANNELS[4]] {
+                results.push(run_pair(&wave, arch, true, scene, &c, quick)?.0);
+            }
+        }
+    }
+    // pf with wave variables over zenoh at 100 ms, alone and with a thread spinning beside
+    // it (a CPU hog: on a 2-core machine it takes a core from the two servo threads).
+    for hog in [false, true] {
+        let _spin = hog.then(Spinner::start);
+        for scene in &zenoh_scenes {
+            let (mut r, _) = run_pair_over(
+                &wave,
+                Architecture::Pf,
+                true,
+                scene,
+                &CHANNELS[4],
+                quick,
+                Link::Zenoh,
+            )?;
+            r.cpu_hog = hog;
+            results.push(r);
+        }
+    }
     let mut figures = Vec::new();
     press_figure(out, &traces, &mut figures)?;
     let md = report(&results, &channels, quick);
@@ -927,6 +970,93 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
         figures,
         markdown: md,
     })
+}
+
+/// A thread spinning until dropped: a CPU hog beside a run.
+struct Spinner {
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Spinner {
+    fn start() -> Spinner {
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut x = 0u64;
+            while !s.load(std::sync::atomic::Ordering::Relaxed) {
+                x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+            }
+        });
+        Spinner {
+            stop,
+            thread: Some(thread),
+        }
+    }
+}
+
+impl Drop for Spinner {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Wave variables beside the delay-aware gains, in process with control on.
+fn wave_table(md: &mut String, all: &[PairResult]) {
+    let local = |dc: &str| {
+        all.iter()
+            .filter(move |r| {
+                r.link == "in_process"
+                    && r.controller == "ct"
+                    && r.passivity
+                    && r.delay_control == dc
+            })
+            .collect::<Vec<_>>()
+    };
+    let (gains, wave) = (local("gains"), local("wave"));
+    if wave.is_empty() {
+        return;
+    }
+    md.push_str(
+        "## Wave variables beside the delay-aware gains
+
+`[teleop] delay_control = \"wave\"` \
+         (wave variables with drift compensation, docs/TELEOP.md §5) against the default \
+         delay-aware gains (*before*), passivity control on, in process. Each cell is *gains / \
+         wave*.\n\n\
+         | architecture | scene | channel | position mm | force N | k ratio | stable | min energy mJ |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for w in &wave {
+        let g = gains.iter().find(|r| {
+            r.architecture == w.architecture && r.scene == w.scene && r.channel == w.channel
+        });
+        let pair = |f: fn(&PairResult) -> f64, d: usize| {
+            format!(
+                "{} / {}",
+                num(g.map_or(f64::NAN, |r| f(r)), d),
+                num(f(w), d)
+            )
+        };
+        let yes = |r: &PairResult| if r.stable { "yes" } else { "**no**" };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} | {} / {} | {} |",
+            w.architecture,
+            w.scene,
+            w.channel,
+            pair(|r| r.position_rms_mm, 2),
+            pair(|r| r.force_rms_n, 3),
+            pair(|r| r.stiffness_ratio, 2),
+            g.map_or("–", |r| yes(r)),
+            yes(w),
+            pair(|r| r.channel_energy_min_j * 1e3, 1),
+        );
+    }
+    md.push('\n');
 }
 
 /// The press figure's panel a run is drawn in, if any: 1 N into 1 N/mm with passivity control,
@@ -1015,7 +1145,7 @@ fn num(v: f64, digits: usize) -> String {
 fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
     let local: Vec<&PairResult> = all
         .iter()
-        .filter(|r| r.link == "in_process" && r.controller == "ct")
+        .filter(|r| r.link == "in_process" && r.controller == "ct" && r.delay_control == "gains")
         .collect();
     let results = &local;
     let mut md = String::from(
@@ -1136,6 +1266,7 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
     }
     md.push_str("![press](teleop-press.png)\n\n");
     controller_table(&mut md, all);
+    wave_table(&mut md, all);
     zenoh_table(&mut md, all);
     let unstable: Vec<&PairResult> = all.iter().filter(|r| !r.stable).collect();
     if !unstable.is_empty() {
@@ -1143,12 +1274,22 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         for r in unstable {
             let _ = writeln!(
                 md,
-                "- {} {} passivity, {}, {}{}: {}",
+                "- {} {} passivity, {}, {}{}{}{}: {}",
                 r.architecture,
                 if r.passivity { "with" } else { "without" },
                 r.scene,
                 r.channel,
                 if r.link == "zenoh" { " over zenoh" } else { "" },
+                if r.delay_control == "wave" {
+                    " (wave variables)"
+                } else {
+                    ""
+                },
+                if r.cpu_hog {
+                    " (CPU hog beside it)"
+                } else {
+                    ""
+                },
                 r.why.as_deref().unwrap_or("")
             );
         }
@@ -1205,14 +1346,16 @@ fn zenoh_table(md: &mut String, all: &[PairResult]) {
          process (unpaced lockstep). *measured RTT* is the round trip the leader measured from \
          the echoed packet times (median over the run, and its largest): the injected delay \
          plus what the channel itself adds.\n\n\
-         | architecture | scene | channel | position mm (zenoh / local) | force N (zenoh / local) \
+         | architecture | delay control | CPU hog | scene | channel | position mm (zenoh / local) | force N (zenoh / local) \
          | k ratio (zenoh / local) | stable (zenoh / local) | measured RTT ms (zenoh / local) \
-         | largest measured RTT ms (zenoh) | packets/s (zenoh) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+         | largest measured RTT ms (zenoh) | packets/s (zenoh) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for z in over {
         let local = all.iter().find(|r| {
             r.link == "in_process"
                 && r.passivity
+                && r.controller == "ct"
+                && r.delay_control == z.delay_control
                 && r.architecture == z.architecture
                 && r.scene == z.scene
                 && r.channel == z.channel
@@ -1223,8 +1366,10 @@ fn zenoh_table(md: &mut String, all: &[PairResult]) {
         let yes = |r: &PairResult| if r.stable { "yes" } else { "**no**" };
         let _ = writeln!(
             md,
-            "| {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} / {} | {} | {} | {} |",
             z.architecture,
+            z.delay_control,
+            if z.cpu_hog { "yes" } else { "no" },
             z.scene,
             z.channel,
             pair(|r| r.position_rms_mm, 2),

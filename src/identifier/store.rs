@@ -20,6 +20,27 @@ struct Stored {
     weights: String,
 }
 
+/// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
+/// box (mock/README.md says how they were made).
+pub(crate) const SHIPPED_WEIGHTS: &str = include_str!("../../mock/nnidc-pretuned.json");
+/// Where the shipped weights come from, as messages name them.
+pub(crate) const SHIPPED_WEIGHTS_NAME: &str = "mock/nnidc-pretuned.json";
+
+/// An identifier of `cfg` on the shipped weights; refused (why) when `cfg`'s network sizes
+/// are not the shipped ones.
+pub(crate) fn shipped(cfg: &IdentifierConfig) -> Result<Identifier, String> {
+    let mut id = Identifier::new(cfg).map_err(|e| e.to_string())?;
+    let w =
+        WeightsFile::from_json(SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME).map_err(|e| e.to_string())?;
+    id.apply_weights(&w, SHIPPED_WEIGHTS_NAME).map_err(|e| {
+        format!(
+            "{e} (the shipped weights fit the default [identifier] sizes; pass --weights with \
+             weights made by `omnid identify` for other sizes)"
+        )
+    })?;
+    Ok(id)
+}
+
 /// The arm's learned weights in `dir` (`weights-<arm>.json`).
 pub(crate) fn weights_file(dir: &Path, arm: &str) -> PathBuf {
     dir.join(format!("weights-{arm}.json"))
@@ -201,5 +222,74 @@ mod tests {
         }
         std::fs::write(&path, "{\"arm\": 1}").unwrap();
         assert!(matches!(load(&path, &cfg, None), Loaded::Refused(_)));
+    }
+
+    /// The child of [`a_kill_mid_save_leaves_the_previous_file`]: saves two models in turn at
+    /// the path in `OMNID_TEST_SAVE_LOOP` until it is killed (nothing without it).
+    #[test]
+    #[ignore = "paced"]
+    fn save_loop_child() {
+        let Some(path) = std::env::var_os("OMNID_TEST_SAVE_LOOP") else {
+            return;
+        };
+        let path = PathBuf::from(path);
+        let (a, b) = (
+            learned(),
+            Identifier::new(&IdentifierConfig::default()).unwrap(),
+        );
+        loop {
+            save(&path, &a, "arm", None).unwrap();
+            save(&path, &b, "arm", None).unwrap();
+        }
+    }
+
+    #[test]
+    #[ignore = "paced"]
+    fn a_kill_mid_save_leaves_the_previous_file() {
+        // A process saving in a loop, killed (SIGKILL) at moments spread over a save: the
+        // file is always one of the two models whole.
+        use std::process::{Command, Stdio};
+        use std::time::{Duration, Instant};
+        let dir = tempfile::tempdir().unwrap();
+        let path = weights_file(dir.path(), "arm");
+        let cfg = IdentifierConfig::default();
+        let q = Vector3::new(-0.2, 0.7, 0.1);
+        let qd = Vector3::new(0.3, -0.1, 0.2);
+        let z = Vector3::zeros();
+        let models = [
+            learned().predict(&q, &qd, &z),
+            Identifier::new(&cfg).unwrap().predict(&q, &qd, &z),
+        ];
+        let exe = std::env::current_exe().unwrap();
+        for round in 0..40u64 {
+            let mut child = Command::new(&exe)
+                .args([
+                    "--exact",
+                    "identifier::store::tests::save_loop_child",
+                    "--ignored",
+                    "--test-threads=1",
+                ])
+                .env("OMNID_TEST_SAVE_LOOP", &path)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .unwrap();
+            let began = Instant::now();
+            while !path.exists() && began.elapsed() < Duration::from_secs(60) {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            std::thread::sleep(Duration::from_micros(100 + (round * 997) % 20_000));
+            child.kill().unwrap();
+            child.wait().unwrap();
+            match load(&path, &cfg, None) {
+                Loaded::Weights(mut id, _) => {
+                    let p = id.predict(&q, &qd, &z);
+                    assert!(models.contains(&p), "round {round}: {p}");
+                }
+                other => panic!("round {round}: {other:?}"),
+            }
+        }
+        let left = std::fs::read_dir(dir.path()).unwrap().count() - 1;
+        eprintln!("40 kills; {left} temporary files of interrupted saves left beside the file");
     }
 }

@@ -37,11 +37,33 @@ impl FileRights {
         } else {
             FileRights::Refused(format!(
                 "this daemon runs as uid {daemon_uid}, not root, so it cannot open files with \
-                 your rights (uid {uid}); record without a path (into the daemon's recordings \
-                 directory), or ask uid {daemon_uid} to"
+                 your rights (uid {uid})"
             ))
         }
     }
+}
+
+/// What a session whose files are refused can do instead, per op.
+pub(crate) fn instead(op: &str) -> &'static str {
+    match op {
+        "record_start" => "record without a path (into the daemon's recordings directory)",
+        _ => {
+            "the daemon keeps each arm's learned weights itself ([identifier] persist); a \
+             weights file is saved or loaded by a client on the daemon's PC, as its user"
+        }
+    }
+}
+
+/// `with_rights`, its refusal followed by what to do instead of `op`.
+pub(crate) fn with_rights_for<T>(
+    op: &str,
+    rights: &FileRights,
+    f: impl FnOnce() -> T,
+) -> Result<T, String> {
+    with_rights(rights, f).map_err(|why| match rights {
+        FileRights::Refused(_) => format!("{why}: {}", instead(op)),
+        _ => why,
+    })
 }
 
 /// Run `f` (an open, a save) with `rights`; the daemon's identity is back before this returns.
@@ -144,6 +166,22 @@ mod tests {
     use std::os::unix::fs::{MetadataExt, PermissionsExt};
 
     #[test]
+    fn a_refusal_says_what_to_do_instead_for_its_op() {
+        let remote = FileRights::Refused("a client over the network names no files".into());
+        let record = with_rights_for("record_start", &remote, || ()).unwrap_err();
+        assert!(record.contains("record without a path"), "{record}");
+        for op in ["weights_save", "weights_load"] {
+            let e = with_rights_for(op, &remote, || ()).unwrap_err();
+            assert!(!e.contains("record"), "{op}: {e}");
+            assert!(e.contains("[identifier] persist"), "{op}: {e}");
+        }
+        assert_eq!(
+            with_rights_for("weights_save", &FileRights::Daemon, || 5),
+            Ok(5)
+        );
+    }
+
+    #[test]
     fn who_gets_which_rights() {
         assert_eq!(FileRights::for_peer(500, 500, 500, &[]), FileRights::Daemon);
         assert_eq!(FileRights::for_peer(0, 0, 0, &[]), FileRights::Daemon);
@@ -158,10 +196,10 @@ mod tests {
         let FileRights::Refused(why) = FileRights::for_peer(500, 7, 7, &[]) else {
             panic!("a non-root daemon opened files for another user");
         };
-        assert!(
-            why.contains("uid 500") && why.contains("without a path"),
-            "{why}"
-        );
+        assert!(why.contains("uid 500"), "{why}");
+        let refused = FileRights::Refused(why);
+        let e = with_rights_for("record_start", &refused, || ()).unwrap_err();
+        assert!(e.contains("without a path"), "{e}");
     }
 
     /// Needs root (CI runs as root): a client reaches what it could reach itself, and the

@@ -110,6 +110,9 @@ pub struct StationLimits {
     pub log_format: crate::telemetry::mcap_log::LogKind,
 }
 
+/// An event kind's line on stderr is said at most this often (safety trips always).
+const SAY_EVERY: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// What [`Station::pump`] hands a transport.
 #[derive(Debug)]
 pub enum Output<'a> {
@@ -250,8 +253,9 @@ pub struct Station {
     /// One snapshot box circulates: here when `Some`, at the servo otherwise.
     spare: Option<Box<Snapshot>>,
     waiting: Vec<Waiting>,
-    /// Weight loads sent to the servo, answered when the old identifier comes back.
-    loads: std::collections::VecDeque<(u64, SessionId, PathBuf)>,
+    /// Weight loads sent to the servo, answered when the old identifier comes back (`None`:
+    /// a reset to the shipped weights).
+    loads: std::collections::VecDeque<(u64, SessionId, Option<PathBuf>)>,
     adapt: bool,
     /// The time to live of the last stream command sent, ms (named when the stream goes
     /// stale).
@@ -266,6 +270,9 @@ pub struct Station {
     /// When the last fault dump was written, and trips since that wrote none.
     last_dump: Option<std::time::Instant>,
     dumps_skipped: u64,
+    /// Event lines said on stderr: when each kind was last said, and how many since were not
+    /// (a peer's stream with a 2 ms time to live goes stale hundreds of times a second).
+    said: std::collections::BTreeMap<&'static str, (std::time::Instant, u64)>,
     /// A safety trip latched the arm: streams are refused until a mode is asked for.
     latched: Option<String>,
     /// Events and answers produced by requests, handed out at the next pump.
@@ -323,6 +330,7 @@ impl Station {
             dumps: Vec::new(),
             shutdown_requested: false,
             last_dump: None,
+            said: std::collections::BTreeMap::new(),
             dumps_skipped: 0,
             latched: None,
             pending: Vec::new(),
@@ -542,6 +550,7 @@ impl Station {
                 let rights = self.sessions[k].info.files.clone();
                 self.weights_load(id, path, &rights)
             }
+            Op::WeightsReset => self.weights_reset(id),
             Op::RecordStart(path) => {
                 if let Some(p) = &path {
                     absolute(p)?;
@@ -813,7 +822,7 @@ impl Station {
         rights: &FileRights,
     ) -> Result<Answer, OpError> {
         // No stop flag: the station never waits on a client's pipe (it is refused).
-        let mut loaded = files::with_rights(rights, || {
+        let mut loaded = files::with_rights_for("weights_load", rights, || {
             Identifier::from_weights_file(&self.s.identifier_cfg, &path, None)
         })
         .map_err(OpError::Failed)?
@@ -821,8 +830,47 @@ impl Station {
         loaded.set_adapt(self.adapt);
         self.send(ServoCommand::LoadIdentifier(Box::new(loaded)))?;
         let ticket = self.ticket();
-        self.loads.push_back((ticket, session, path));
+        self.loads.push_back((ticket, session, Some(path)));
         Ok(Answer::Later(ticket))
+    }
+
+    /// Hand the servo an identifier on the shipped weights; once it has swapped them in, the
+    /// arm's saved weights are removed (a periodic save asked before the swap is written
+    /// before it: the file does not come back with the old weights).
+    fn weights_reset(&mut self, session: SessionId) -> Result<Answer, OpError> {
+        let mut shipped =
+            crate::identifier::store::shipped(&self.s.identifier_cfg).map_err(OpError::Failed)?;
+        shipped.set_adapt(self.adapt);
+        self.send(ServoCommand::LoadIdentifier(Box::new(shipped)))?;
+        let ticket = self.ticket();
+        self.loads.push_back((ticket, session, None));
+        Ok(Answer::Later(ticket))
+    }
+
+    /// The shipped weights are in: remove the arm's saved ones; the answer.
+    fn weights_reset_done(&self) -> Result<Reply, OpError> {
+        let weights = crate::identifier::store::SHIPPED_WEIGHTS_NAME;
+        let Some((path, _, _)) = &self.s.weights_store else {
+            return Ok(Reply::WeightsReset {
+                weights,
+                removed: None,
+            });
+        };
+        match std::fs::remove_file(path) {
+            Ok(()) => Ok(Reply::WeightsReset {
+                weights,
+                removed: Some(path.clone()),
+            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Reply::WeightsReset {
+                weights,
+                removed: None,
+            }),
+            Err(e) => Err(OpError::Failed(format!(
+                "the identifier is back on the shipped weights, but {} could not be removed: \
+                 {e} (the next start would load it)",
+                path.display()
+            ))),
+        }
     }
 
     fn ask_snapshot(&mut self, w: Waiting) {
@@ -855,7 +903,7 @@ impl Station {
         let failed = |e: LogError| OpError::Failed(e.to_string());
         let log = match path {
             // A client's path: opened with its rights, and only ever a new file.
-            Some(p) => files::with_rights(rights, || LogFile::create_new(&p))
+            Some(p) => files::with_rights_for("record_start", rights, || LogFile::create_new(&p))
                 .map_err(OpError::Failed)?
                 .map_err(failed)?,
             None => {
@@ -891,8 +939,8 @@ impl Station {
         while let Ok(reply) = self.s.replies.try_recv() {
             match reply {
                 ServoReply::Snapshot(snap) => self.answer_snapshot(snap),
-                ServoReply::Identifier(_old) => {
-                    if let Some((ticket, session, path)) = self.loads.pop_front() {
+                ServoReply::Identifier(_old) => match self.loads.pop_front() {
+                    Some((ticket, session, Some(path))) => {
                         self.pending.push(PendingOut::Done {
                             ticket,
                             session,
@@ -904,7 +952,24 @@ impl Station {
                             ..Event::named("weights")
                         });
                     }
-                }
+                    Some((ticket, session, None)) => {
+                        let result = self.weights_reset_done();
+                        self.pending.push(PendingOut::Done {
+                            ticket,
+                            session,
+                            op: "weights_reset",
+                            result,
+                        });
+                        self.announce(Event {
+                            message: Some(format!(
+                                "weights reset to the shipped ones ({})",
+                                crate::identifier::store::SHIPPED_WEIGHTS_NAME
+                            )),
+                            ..Event::named("weights")
+                        });
+                    }
+                    None => {}
+                },
                 // A coupling that ended: freed here, off the servo thread.
                 ServoReply::Teleop(_old) => {}
             }
@@ -1064,7 +1129,7 @@ impl Station {
                 ("safety-trip", message)
             }
         };
-        crate::errln!("omnid serve: {}: {message}", self.s.arm.name);
+        self.say(name, &message);
         self.announce(Event {
             mode: Some(r.mode.as_str()),
             seq: Some(r.live.seq),
@@ -1072,6 +1137,34 @@ impl Station {
             message: Some(message),
             ..Event::named(name)
         });
+    }
+
+    /// An event's line on stderr: a safety trip always, any other kind at most once a second,
+    /// saying how many of its kind were left unsaid since (every client still gets each
+    /// event).
+    fn say(&mut self, name: &'static str, message: &str) {
+        let now = std::time::Instant::now();
+        let arm = &self.s.arm.name;
+        match self.said.get_mut(name) {
+            Some((last, held)) if name != "safety-trip" && now - *last < SAY_EVERY => {
+                *held += 1;
+            }
+            Some((last, held)) => {
+                let more = match *held {
+                    0 => String::new(),
+                    n => format!(
+                        " ({n} more since the last said, {:.1} s ago)",
+                        (now - *last).as_secs_f64()
+                    ),
+                };
+                crate::errln!("omnid serve: {arm}: {message}{more}");
+                (*last, *held) = (now, 0);
+            }
+            None => {
+                crate::errln!("omnid serve: {arm}: {message}");
+                self.said.insert(name, (now, 0));
+            }
+        }
     }
 
     /// A trip's dump: at most one every `serve.dump_interval_s` (the others are counted), and
@@ -1172,7 +1265,7 @@ impl Station {
                     rights,
                 } => {
                     let result = match (&snap.weights, snap.weights_copied) {
-                        (Some(w), true) => files::with_rights(&rights, || {
+                        (Some(w), true) => files::with_rights_for("weights_save", &rights, || {
                             crate::identifier::weights::save(w, &path)
                         })
                         .map_err(OpError::Failed)

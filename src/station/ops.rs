@@ -150,6 +150,8 @@ pub enum Op {
     WeightsSave(PathBuf),
     /// Load weights into the running identifier.
     WeightsLoad(PathBuf),
+    /// The shipped weights back into the running identifier; the arm's saved weights removed.
+    WeightsReset,
     /// Start recording every tick (a default name in the state directory when `None`).
     RecordStart(Option<PathBuf>),
     /// End the recording.
@@ -401,6 +403,13 @@ pub enum Reply {
     Path {
         /// The file.
         path: PathBuf,
+    },
+    /// The identifier is back on the shipped weights.
+    WeightsReset {
+        /// The shipped weights' name.
+        weights: &'static str,
+        /// The arm's saved weights file, removed (`None`: there was none).
+        removed: Option<PathBuf>,
     },
     /// The recording ended.
     RecordStop {

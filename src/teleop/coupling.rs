@@ -7,7 +7,7 @@
 
 use super::channel::{packet_flags, ChannelStats, Endpoint, Packet};
 use super::passivity::Port;
-use super::{Architecture, Operator, TeleopConfig};
+use super::{Architecture, DelayControl, Operator, TeleopConfig};
 use nalgebra::Vector3;
 use serde::Serialize;
 
@@ -126,7 +126,19 @@ pub struct Coupling {
     /// Follower: how far its target stands off the engagement's mapping after a break, mm;
     /// brought back to zero at `realign_mm_s` (docs/TELEOP.md §4).
     offset_mm: V3,
+    /// Follower, wave variables: the commanded position the waves integrate to, in the
+    /// mapping's frame (the leader's scaled motion), mm (docs/TELEOP.md §5).
+    wave_x_mm: V3,
+    /// Wave variables: the wave from the other side, low-passed (docs/TELEOP.md §5).
+    wave_in: V3,
+    /// Leader, wave variables: its own velocity through the same low-pass, mm/s.
+    wave_v: V3,
 }
+
+/// Wave variables: the received wave is low-passed at this frequency, Hz. A filter of gain at
+/// most 1 on a wave keeps the channel passive; without it every tick's reflection between the
+/// two ends rang at the sample rate on the arms' noisy velocities.
+pub const WAVE_FILTER_HZ: f64 = 20.0;
 
 /// Leader: through a silence shorter than this the force is held at most at its value on the
 /// last packet; beyond it that bound falls linearly to zero at the link timeout, s.
@@ -178,6 +190,9 @@ impl Coupling {
             silence_left: 1.0,
             resume: false,
             offset_mm: V3::zeros(),
+            wave_x_mm: V3::zeros(),
+            wave_in: V3::zeros(),
+            wave_v: V3::zeros(),
         }
     }
 
@@ -215,7 +230,11 @@ impl Coupling {
     /// `delay_gain_ms`, then inversely with the round trip (docs/TELEOP.md §5).
     pub fn delay_gain(&self) -> f64 {
         let tau = self.cfg.delay_gain_ms * 1e-3;
-        if tau > 0.0 && self.rtt_s > tau {
+        if self.wave() {
+            // The wave channel is passive for any delay: the springs are local and keep
+            // their stiffness.
+            1.0
+        } else if tau > 0.0 && self.rtt_s > tau {
             tau / self.rtt_s
         } else {
             1.0
@@ -234,12 +253,17 @@ impl Coupling {
     /// itself felt in a stiff press, and the configured one is quiet everywhere.
     pub fn damping_cap(&self) -> f64 {
         let cap = self.cfg.passivity_max_damping_n_s_per_m;
-        if cap > 0.0 && self.cfg.architecture == Architecture::Pf {
+        if cap > 0.0 && self.cfg.architecture == Architecture::Pf && !self.wave() {
             let rtt = self.rtt_s.max(self.dt);
             cap * (1.0 + self.dt / rtt) * (PF_LONG_RTT_S / rtt).min(1.0)
         } else {
             cap
         }
+    }
+
+    /// The pair runs wave variables (docs/TELEOP.md §5).
+    fn wave(&self) -> bool {
+        self.cfg.delay_control == DelayControl::Wave
     }
 
     /// This side's channel counters.
@@ -446,7 +470,34 @@ impl Coupling {
             TeleopState::Clutched => (self.held_mm, V3::zeros(), self.epoch, packet_flags::CLUTCH),
             _ => (V3::zeros(), V3::zeros(), 0, 0),
         };
-        self.send(x, engage, flags, d, dv);
+        if !self.wave() {
+            self.send(x, engage, flags, d, dv);
+            return self.lead_force(x, link_up, d, dv);
+        }
+        // The wave impedance is a damper on this side's velocity: on the coupling's fast,
+        // noisy velocity it was felt as a buzz, so it acts on the velocity low-passed like
+        // the waves (what the port relation below is kept on).
+        let a = self.dt * std::f64::consts::TAU * WAVE_FILTER_HZ;
+        self.wave_v += (dv - self.wave_v) * (a / (1.0 + a));
+        let dv = self.wave_v;
+        // Wave variables: the wave out is made of this tick's velocity and the force
+        // actually put on the arm (clamps, ramp and fades included), so what leaves the port
+        // is what entered it (docs/TELEOP.md §5).
+        let f = self.lead_force(x, link_up, d, dv);
+        let b = self.cfg.wave_impedance_n_s_per_m;
+        let u = if engage != 0 && flags == 0 {
+            let fs = self.cfg.force_scale;
+            let f_in = if fs > 1e-9 { -f / fs } else { V3::zeros() };
+            (dv * 1e-3 * b + f_in) / (2.0 * b).sqrt()
+        } else {
+            V3::zeros()
+        };
+        self.send(x, engage, flags, d, u);
+        f
+    }
+
+    /// Leader: the force on its tip this tick, given its scaled motion `d` and velocity `dv`.
+    fn lead_force(&mut self, x: &SideInput, link_up: bool, d: V3, dv: V3) -> V3 {
         let peer = self
             .peer
             .filter(|p| p.engage == self.epoch && self.epoch != 0);
@@ -478,6 +529,13 @@ impl Coupling {
             Some(p) => {
                 let k = self.cfg.stiffness_n_per_mm * self.delay_gain();
                 let raw = match self.cfg.architecture {
+                    _ if self.wave() => {
+                        // The follower's wave back, less the wave impedance's damping on
+                        // this side's own velocity (docs/TELEOP.md §5).
+                        let b = self.cfg.wave_impedance_n_s_per_m;
+                        let w = self.wave_filter(V3::from(p.vel_mm_s));
+                        (w * (2.0 * b).sqrt() - dv * (b * 1e-3)) * self.cfg.force_scale
+                    }
                     Architecture::Pp => {
                         let e = V3::from(p.pos_mm) - d;
                         let ev = V3::from(p.vel_mm_s) - dv;
@@ -533,12 +591,16 @@ impl Coupling {
                     self.origin_mm = here;
                     self.offset_mm = V3::zeros();
                     self.integral_n = V3::zeros();
+                    self.wave_x_mm = V3::from(p.pos_mm);
+                    self.wave_in = V3::zeros();
                 } else if !matches!(self.state, TeleopState::Engaged | TeleopState::Clutched) {
                     // The same engagement after a break (a lost link, this arm down): its
                     // mapping is kept. The target starts where the arm is and comes back to
                     // the mapping at a bounded speed (docs/TELEOP.md §4).
                     self.offset_mm = here - self.origin_mm;
                     self.integral_n = V3::zeros();
+                    self.wave_x_mm = V3::from(p.pos_mm);
+                    self.wave_in = V3::zeros();
                 } else if p.flags & packet_flags::CLUTCH == 0 {
                     let n = self.offset_mm.norm();
                     let step = self.cfg.realign_mm_s * self.dt;
@@ -573,6 +635,11 @@ impl Coupling {
         let origin = self.origin_mm + self.offset_mm;
         let own = x.tip_mm - origin;
         let engage = if self.holding { 0 } else { self.epoch };
+        if self.wave() {
+            if let Some(p) = leader {
+                return self.follow_wave(x, &p, origin, own);
+            }
+        }
         self.send(x, engage, 0, own, x.vel_mm_s);
         let (target, target_v) = match leader {
             Some(p) => (origin + V3::from(p.pos_mm), V3::from(p.vel_mm_s)),
@@ -599,6 +666,52 @@ impl Coupling {
             // Holding is this arm's own spring, not the channel's: no passivity accounting.
             None => f,
         }
+    }
+
+    /// Follower, wave variables (docs/TELEOP.md §5): the leader's wave `p.vel_mm_s` and this
+    /// arm's spring-damper (and pf's integral action) to a commanded position give the
+    /// commanded velocity; the drift compensation pulls the commanded position onto the
+    /// leader's delayed position `p.pos_mm`; the wave back is made of the commanded velocity
+    /// and the force actually put on the arm.
+    fn follow_wave(&mut self, x: &SideInput, p: &Packet, origin: V3, own: V3) -> V3 {
+        let b = self.cfg.wave_impedance_n_s_per_m;
+        let k = self.cfg.stiffness_n_per_mm * 1e3;
+        let c = self.cfg.damping_n_s_per_m;
+        let dt = self.dt;
+        let v = x.vel_mm_s * 1e-3;
+        let clutch = p.flags & packet_flags::CLUTCH != 0;
+        let integral = if self.cfg.architecture == Architecture::Pf && !clutch {
+            self.integral_n
+        } else {
+            V3::zeros()
+        };
+        // The force is k (e0 + ẋd dt) + c (ẋd − v) + i and the wave gives ẋd = (√(2b) u − F) / b:
+        // solved for ẋd in closed form (no iteration).
+        let e0 = (origin + self.wave_x_mm - x.tip_mm) * 1e-3;
+        let u = self.wave_filter(V3::from(p.vel_mm_s));
+        let mut xd_dot = (u * (2.0 * b).sqrt() - e0 * k + v * c - integral) / (b + k * dt + c);
+        let lambda = std::f64::consts::TAU * self.cfg.wave_drift_hz;
+        xd_dot += (V3::from(p.pos_mm) - self.wave_x_mm) * (1e-3 * lambda);
+        self.wave_x_mm += xd_dot * (1e3 * dt);
+        let target = origin + self.wave_x_mm;
+        let pull = (target - x.tip_mm) * (k * 1e-3) + (xd_dot - v) * c + integral;
+        if self.cfg.architecture == Architecture::Pf && !clutch {
+            let ki = k * 1e-3 * std::f64::consts::TAU * self.cfg.integral_hz;
+            let i = self.integral_n + (target - x.tip_mm) * (ki * dt);
+            self.integral_n = crate::haptics::limit_force(&i, 0.5 * self.cfg.max_force_n);
+        }
+        let f = crate::haptics::limit_force(&pull, self.cfg.max_force_n);
+        let f = self.passive(f, x, p.energy_in_j);
+        let wave_back = (xd_dot * b - f) / (2.0 * b).sqrt();
+        self.send(x, self.epoch, 0, own, wave_back);
+        f
+    }
+
+    /// The received wave `w` through the low-pass of [`WAVE_FILTER_HZ`].
+    fn wave_filter(&mut self, w: V3) -> V3 {
+        let a = self.dt * std::f64::consts::TAU * WAVE_FILTER_HZ;
+        self.wave_in += (w - self.wave_in) * (a / (1.0 + a));
+        self.wave_in
     }
 
     /// Leader: the fraction of the force at the last packet of the engagement that a silence
@@ -1129,5 +1242,121 @@ mod tests {
         assert_eq!(p.0.state(), TeleopState::Engaged);
         run(&mut p, 28, 5, away, away);
         assert_eq!(p.0.state(), TeleopState::Waiting);
+    }
+
+    /// Two point masses (0.1 kg, 1 N·s/m of friction each) coupled over a channel of
+    /// `delay_ms` each way and `loss` (seeded): the hand (500 N/m, 5 N·s/m) pulls the leader
+    /// toward `hand(t)` (mm, y only); the follower meets a floor `wall` N/mm at −10 mm. Returns
+    /// the largest |y| of each arm over the run's last half, and the lowest the channel's
+    /// energy went: what the two ports took in from the arms less what they put out, J, by
+    /// an independent account here of each tick's force times velocity.
+    fn wave_pair(
+        cfg: &TeleopConfig,
+        delay_ms: f64,
+        loss: f64,
+        wall: f64,
+        secs: f64,
+        hand: impl Fn(f64) -> f64,
+    ) -> (f64, f64, f64) {
+        let imp = Impairment {
+            delay_ms,
+            jitter_ms: 0.0,
+            loss,
+        };
+        let (l, f) = pair(imp, imp, 7);
+        let mut lead = Coupling::new(Role::Leader, cfg, l, DT);
+        let mut follow = Coupling::new(Role::Follower, cfg, f, DT);
+        let (m, fric) = (0.1, 1.0);
+        let (mut yl, mut vl, mut yf, mut vf) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        let (mut energy, mut lowest) = (0.0f64, 0.0f64);
+        let (mut max_l, mut max_f) = (0.0f64, 0.0f64);
+        let n = (secs / DT) as usize;
+        for k in 0..n {
+            let t = k as f64 * DT;
+            let side = |y: f64, v: f64| SideInput {
+                vel_mm_s: V3::new(0.0, v * 1e3, 0.0),
+                ..input(t, [0.0, y * 1e3, 0.0])
+            };
+            let fl = lead.step(&side(yl, vl))[1];
+            let ff = follow.step(&side(yf, vf))[1];
+            // The channel's energy: what the arms pushed into it less what it put into them.
+            energy -= (fl * vl + ff * vf) * DT;
+            lowest = lowest.min(energy);
+            let hand_f = 500.0 * (hand(t) * 1e-3 - yl) - 5.0 * vl;
+            let wall_f = if yf < -0.010 {
+                -wall * 1e3 * (yf + 0.010) - 5.0 * vf.min(0.0)
+            } else {
+                0.0
+            };
+            vl += (fl + hand_f - fric * vl) / m * DT;
+            vf += (ff + wall_f - fric * vf) / m * DT;
+            yl += vl * DT;
+            yf += vf * DT;
+            assert!(yl.is_finite() && yf.is_finite());
+            if k >= n / 2 {
+                max_l = max_l.max(yl.abs() * 1e3);
+                max_f = max_f.max(yf.abs() * 1e3);
+            }
+        }
+        (max_l, max_f, lowest)
+    }
+
+    fn wave() -> TeleopConfig {
+        TeleopConfig {
+            delay_control: DelayControl::Wave,
+            passivity: true,
+            ..always()
+        }
+    }
+
+    #[test]
+    fn wave_variables_hold_a_stiff_wall_bounded_at_a_one_second_round_trip_and_half_loss() {
+        // The hand pushes 30 mm past a 2 N/mm floor that stands 10 mm down: without control
+        // the delayed pair would ring; with waves it presses and stays bounded.
+        for loss in [0.0, 0.5] {
+            let (l, f, _) = wave_pair(&wave(), 500.0, loss, 2.0, 20.0, |_| -30.0);
+            assert!(l <= 31.0, "loss {loss}: leader reached {l} mm");
+            assert!(f <= 12.0, "loss {loss}: follower reached {f} mm");
+            // Against it, the same pair with full-stiffness springs and no wave or ports
+            // (the control is what holds it): a real oscillation, not a slow press.
+            let bare = TeleopConfig {
+                delay_gain_ms: 0.0,
+                passivity: false,
+                ..always()
+            };
+            let (lb, _, _) = wave_pair(&bare, 500.0, loss, 2.0, 20.0, |_| -30.0);
+            assert!(
+                lb > l + 5.0,
+                "loss {loss}: without control the leader reached {lb} mm, with waves {l}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_wave_channel_puts_out_no_more_than_it_took_in_under_delay_and_loss() {
+        // The hand moves the leader back and forth into the floor. Without the drift
+        // compensation the wave channel is passive at every delay and loss: its energy,
+        // tallied here from each tick's forces and velocities, never falls below −1 mJ. The
+        // drift compensation pulls the follower onto the leader's position and that pull is
+        // not passive: what it makes stays bounded (measured −0.10 J at 250 ms over 12 s of
+        // this motion) and the pair stays bounded (docs/TELEOP.md §5).
+        let hand = |t: f64| -15.0 + 12.0 * (std::f64::consts::TAU * 0.7 * t).sin();
+        for (delay_ms, loss) in [(0.0, 0.0), (50.0, 0.0), (250.0, 0.1), (500.0, 0.5)] {
+            let passive = TeleopConfig {
+                wave_drift_hz: 0.0,
+                ..wave()
+            };
+            let (_, _, lowest) = wave_pair(&passive, delay_ms, loss, 1.0, 12.0, hand);
+            assert!(
+                lowest >= -1e-3,
+                "{delay_ms} ms, loss {loss}: energy went to {lowest} J"
+            );
+            let (l, f, lowest) = wave_pair(&wave(), delay_ms, loss, 1.0, 12.0, hand);
+            assert!(
+                lowest >= -0.25,
+                "{delay_ms} ms, loss {loss}, drift compensation: energy went to {lowest} J"
+            );
+            assert!(l < 40.0 && f < 40.0, "{delay_ms} ms: {l} / {f} mm");
+        }
     }
 }

@@ -51,6 +51,30 @@ impl Architecture {
     }
 }
 
+/// How the pair stays stable under delay (docs/TELEOP.md §5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum DelayControl {
+    /// Delay-aware gains: beyond `delay_gain_ms` the coupling is softened in proportion to
+    /// the measured round trip (stable, loose at long delays).
+    Gains,
+    /// Wave variables with drift compensation: the leader and follower exchange waves
+    /// (velocity and force combined through the wave impedance), a channel passive for any
+    /// constant delay, so the follower keeps its full stiffness; its position is pulled back
+    /// onto the leader's at `wave_drift_hz` (docs/TELEOP.md §5).
+    Wave,
+}
+
+impl DelayControl {
+    /// Its name in the config and the results.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DelayControl::Gains => "gains",
+            DelayControl::Wave => "wave",
+        }
+    }
+}
+
 /// When the leader's operator counts as present (the pair follows only then).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
@@ -105,6 +129,15 @@ pub struct TeleopConfig {
     /// spring is softened in proportion, so the energy its delayed springs make stays within
     /// what the arms' damping takes, ms (0: fixed gains).
     pub delay_gain_ms: f64,
+    /// How the pair stays stable under delay: `gains` (delay-aware gains) or `wave` (wave
+    /// variables with drift compensation). Both sides must agree.
+    pub delay_control: DelayControl,
+    /// Wave variables: the wave impedance b, N·s/m. A stiff contact a one-way delay T away
+    /// feels at most b / T in series with it; free motion drags like a mass b·T.
+    pub wave_impedance_n_s_per_m: f64,
+    /// Wave variables: the follower's commanded position is pulled onto the leader's
+    /// (delayed) position at this rate, Hz (0: no drift compensation).
+    pub wave_drift_hz: f64,
     /// Largest damping the passivity controller adds, N·s/m; 0: no cap but its own (it never
     /// takes back more than the coupling force's work, so it never pushes back). A cap lets a
     /// demand beyond it pass (the port is then not strictly passive); without one the damper
@@ -142,6 +175,9 @@ impl Default for TeleopConfig {
             operator: Operator::Button1,
             passivity: true,
             delay_gain_ms: 3.0,
+            delay_control: DelayControl::Gains,
+            wave_impedance_n_s_per_m: 10.0,
+            wave_drift_hz: 3.0,
             passivity_max_damping_n_s_per_m: 10.0,
             passivity_reserve_j: 0.02,
             velocity_jerk_psd: 1e6,
@@ -154,7 +190,21 @@ impl Default for TeleopConfig {
 impl TeleopConfig {
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let ranges: [(&str, f64, f64, f64, &str); 15] = [
+        let ranges: [(&str, f64, f64, f64, &str); 17] = [
+            (
+                "teleop.wave_impedance_n_s_per_m",
+                self.wave_impedance_n_s_per_m,
+                1.0,
+                1000.0,
+                "1 ..= 1000 N·s/m",
+            ),
+            (
+                "teleop.wave_drift_hz",
+                self.wave_drift_hz,
+                0.0,
+                20.0,
+                "0 ..= 20 Hz",
+            ),
             (
                 "teleop.delay_gain_ms",
                 self.delay_gain_ms,

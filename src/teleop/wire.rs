@@ -11,7 +11,7 @@
 //! from a holder of the key, and only on the key it was sealed for.
 
 use super::channel::{packet_flags, Packet};
-use super::{Architecture, TeleopConfig};
+use super::{Architecture, DelayControl, TeleopConfig};
 use hmac::{Hmac, Mac};
 use sha2::Sha256;
 use thiserror::Error;
@@ -40,6 +40,8 @@ pub struct Agreement {
     pub architecture: Architecture,
     /// Time-domain passivity on both ports.
     pub passivity: bool,
+    /// Delay-aware gains or wave variables (byte 7).
+    pub delay_control: DelayControl,
 }
 
 impl Agreement {
@@ -48,14 +50,16 @@ impl Agreement {
         Agreement {
             architecture: cfg.architecture,
             passivity: cfg.passivity,
+            delay_control: cfg.delay_control,
         }
     }
 
     fn describe(self) -> String {
         format!(
-            "{}, passivity {}",
+            "{}, passivity {}, delay control {}",
             self.architecture.as_str(),
-            if self.passivity { "on" } else { "off" }
+            if self.passivity { "on" } else { "off" },
+            self.delay_control.as_str()
         )
     }
 }
@@ -75,6 +79,9 @@ pub enum WireError {
     /// Byte 5 is not an architecture.
     #[error("byte 5: {0} is not an architecture (0 pp, 1 pf)")]
     Architecture(u8),
+    /// Byte 7 is not a delay control.
+    #[error("byte 7: {0} is not a delay control (0 gains, 1 wave)")]
+    DelayControl(u8),
     /// The sender's pair settings differ from this side's.
     #[error(
         "the peer runs {theirs}; this side runs {ours}: start both sides with the same settings"
@@ -139,6 +146,10 @@ pub fn encode(p: &Packet, agreement: Agreement) -> [u8; FRAME_BYTES] {
         Architecture::Pf => 1,
     };
     b[6] = u8::from(agreement.passivity);
+    b[7] = match agreement.delay_control {
+        DelayControl::Gains => 0,
+        DelayControl::Wave => 1,
+    };
     let mut at = 8;
     let mut put = |bytes: &[u8]| {
         b[at..at + bytes.len()].copy_from_slice(bytes);
@@ -172,9 +183,15 @@ pub fn decode(b: &[u8], ours: Agreement) -> Result<Packet, WireError> {
         1 => Architecture::Pf,
         x => return Err(WireError::Architecture(x)),
     };
+    let delay_control = match b[7] {
+        0 => DelayControl::Gains,
+        1 => DelayControl::Wave,
+        x => return Err(WireError::DelayControl(x)),
+    };
     let theirs = Agreement {
         architecture,
         passivity: b[6] != 0,
+        delay_control,
     };
     if theirs != ours {
         return Err(WireError::Disagrees {
@@ -365,6 +382,7 @@ mod tests {
     const PP: Agreement = Agreement {
         architecture: Architecture::Pp,
         passivity: true,
+        delay_control: DelayControl::Gains,
     };
 
     fn sample() -> Packet {
@@ -423,12 +441,13 @@ mod tests {
         let pf = Agreement {
             architecture: Architecture::Pf,
             passivity: true,
+            delay_control: DelayControl::Gains,
         };
         let e = decode(&good, pf).unwrap_err();
         assert_eq!(
             e.to_string(),
-            "the peer runs pp, passivity on; this side runs pf, passivity on: start both sides \
-             with the same settings"
+            "the peer runs pp, passivity on, delay control gains; this side runs pf, passivity \
+             on, delay control gains: start both sides with the same settings"
         );
         let mut b = good;
         b[28] = 0x80;

@@ -241,6 +241,7 @@ pub(crate) fn to_op(request: Request) -> Result<Op, OpError> {
         Request::Adapt { on, .. } => Op::Adapt(on),
         Request::WeightsSave { path, .. } => Op::WeightsSave(PathBuf::from(path)),
         Request::WeightsLoad { path, .. } => Op::WeightsLoad(PathBuf::from(path)),
+        Request::WeightsReset { .. } => Op::WeightsReset,
         Request::RecordStart { path, .. } => Op::RecordStart(path.map(PathBuf::from)),
         Request::RecordStop { .. } => Op::RecordStop,
         Request::Shutdown { .. } => Op::Shutdown,

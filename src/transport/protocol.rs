@@ -127,6 +127,12 @@ pub(crate) enum Request {
         #[serde(default)]
         id: Option<serde_json::Value>,
     },
+    /// Put the shipped weights back into the running identifier and forget what the arm
+    /// learned (its saved weights file is removed).
+    WeightsReset {
+        #[serde(default)]
+        id: Option<serde_json::Value>,
+    },
     /// Start writing every tick to a log file (today's CSV format).
     RecordStart {
         #[serde(default)]
@@ -204,6 +210,7 @@ impl Request {
             Request::Adapt { .. } => "adapt",
             Request::WeightsSave { .. } => "weights_save",
             Request::WeightsLoad { .. } => "weights_load",
+            Request::WeightsReset { .. } => "weights_reset",
             Request::RecordStart { .. } => "record_start",
             Request::RecordStop { .. } => "record_stop",
             Request::Stylus { .. } => "stylus",
@@ -233,6 +240,7 @@ impl Request {
             | Request::Adapt { id, .. }
             | Request::WeightsSave { id, .. }
             | Request::WeightsLoad { id, .. }
+            | Request::WeightsReset { id }
             | Request::RecordStart { id, .. }
             | Request::RecordStop { id }
             | Request::Stylus { id, .. }

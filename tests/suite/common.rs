@@ -66,19 +66,100 @@ impl Log {
     }
 }
 
-/// A daemon (`omnid serve ARGS`) in its own directory: its runtime directory (the default
-/// sockets) and state directory are in there; killed if a test fails.
+/// The one daemon fixture: `omnid serve ARGS` in its own directory (its runtime directory,
+/// with the default sockets, and its state directory are in there); killed if a test fails.
 pub struct Served {
     pub child: Option<std::process::Child>,
     pub dir: tempfile::TempDir,
+    /// The simulated arm's socket, given as `--socket` ([`Served::sim`]).
+    pub sock: std::path::PathBuf,
+    /// The live view's address (`ws://…`), when started with one ([`Served::with_live_view`]).
+    pub url: String,
 }
 
 impl Served {
     /// Start `omnid serve` with `args` (and `config` as its --config), and wait until every
     /// socket in `sockets` (names in the runtime directory, `<arm>.sock`) answers.
     pub fn start(args: &[&str], config: Option<&str>, sockets: &[&str]) -> Served {
+        let served = Served::spawn(args, config);
+        for s in sockets {
+            served.wait_for(&served.socket(s));
+        }
+        served
+    }
+
+    /// `omnid serve --device sim --socket <dir>/sim.sock EXTRA` (with `config`), once its
+    /// socket answers.
+    pub fn sim(extra: &[&str], config: Option<&str>) -> Served {
         let dir = tempfile::tempdir().unwrap();
+        let sock = dir.path().join("sim.sock");
+        let mut args = vec!["--device", "sim", "--socket", sock.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let mut served = Served::spawn_in(dir, &args, config, None);
+        served.sock = sock;
+        served.wait_for(&served.sock);
+        served
+    }
+
+    /// `omnid serve ARGS --foxglove 127.0.0.1:0`, once it says where the live view is
+    /// ([`Served::url`]); its stderr is read to the end by a thread of its own.
+    pub fn with_live_view(args: &[&str]) -> Served {
+        Served::with_live_view_limited(args, None)
+    }
+
+    /// As [`Served::with_live_view`], the daemon started with a soft descriptor limit of
+    /// `nofile` if given.
+    pub fn with_live_view_limited(args: &[&str], nofile: Option<u64>) -> Served {
+        use std::io::BufRead;
+        let mut all = args.to_vec();
+        all.extend_from_slice(&["--foxglove", "127.0.0.1:0"]);
+        let mut served = Served::spawn_in(tempfile::tempdir().unwrap(), &all, None, nofile);
+        let stderr = served.child.as_mut().unwrap().stderr.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        // Read every line (so the pipe never fills); hand over the live view's address.
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stderr)
+                .lines()
+                .map_while(Result::ok)
+            {
+                if let Some(rest) = line.split("live view on ").nth(1) {
+                    let url = rest.split_whitespace().next().unwrap_or("").to_string();
+                    let _ = tx.send(url);
+                }
+            }
+        });
+        served.url = rx
+            .recv_timeout(std::time::Duration::from_secs(60))
+            .expect("omnid serve says where the live view is");
+        served
+    }
+
+    fn spawn(args: &[&str], config: Option<&str>) -> Served {
+        Served::spawn_in(tempfile::tempdir().unwrap(), args, config, None)
+    }
+
+    fn spawn_in(
+        dir: tempfile::TempDir,
+        args: &[&str],
+        config: Option<&str>,
+        nofile: Option<u64>,
+    ) -> Served {
         let mut cmd = omnid();
+        if let Some(n) = nofile {
+            // SAFETY: only async-signal-safe calls between fork and exec.
+            unsafe {
+                std::os::unix::process::CommandExt::pre_exec(&mut cmd, move || {
+                    let mut l = libc::rlimit {
+                        rlim_cur: 0,
+                        rlim_max: 0,
+                    };
+                    libc::getrlimit(libc::RLIMIT_NOFILE, &mut l);
+                    l.rlim_cur = n.min(l.rlim_max);
+                    libc::setrlimit(libc::RLIMIT_NOFILE, &l);
+                    Ok(())
+                });
+            }
+        }
         cmd.arg("serve")
             .args(args)
             .env("XDG_RUNTIME_DIR", dir.path())
@@ -92,14 +173,49 @@ impl Served {
             std::fs::write(&path, text).unwrap();
             cmd.arg("--config").arg(path);
         }
-        let served = Served {
+        Served {
             child: Some(cmd.spawn().expect("omnid serve starts")),
             dir,
-        };
-        for s in sockets {
-            served.wait_for(&served.socket(s));
+            sock: std::path::PathBuf::new(),
+            url: String::new(),
         }
+    }
+
+    /// A daemon started by hand (`child`, with resource limits or a shared state directory of
+    /// the test's own), once its socket `sock` answers.
+    pub fn adopt(
+        child: std::process::Child,
+        dir: tempfile::TempDir,
+        sock: std::path::PathBuf,
+    ) -> Served {
+        let served = Served {
+            child: Some(child),
+            dir,
+            sock,
+            url: String::new(),
+        };
+        served.wait_for(&served.sock);
         served
+    }
+
+    /// A client of the simulated arm's socket ([`Served::sim`]).
+    pub fn connect(&self, who: &str) -> omnid::transport::client::Client {
+        omnid::transport::client::Client::connect(&self.sock, who).expect("connects")
+    }
+
+    /// A file in the daemon's directory.
+    pub fn path(&self, name: &str) -> std::path::PathBuf {
+        self.dir.path().join(name)
+    }
+
+    /// Wait for the daemon to exit by itself: exit code and stderr.
+    pub fn wait(&mut self) -> (Option<i32>, String) {
+        let child = self.child.take().unwrap();
+        let out = child.wait_with_output().unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
     }
 
     /// The default socket of arm `name`.

@@ -2,7 +2,6 @@
 //! installed headers once for every test process (`HD::get`), run `omnid serve --device sim`.
 #![allow(dead_code)]
 
-use omnid::transport::client::Client;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
@@ -351,76 +350,6 @@ pub fn wait_output(child: Child, limit: Duration) -> std::process::Output {
     let out = child.wait_with_output().unwrap();
     drop(watchdog);
     out
-}
-
-/// `omnid serve --device sim` in its own directory, killed when dropped.
-pub struct Daemon {
-    child: Option<Child>,
-    _dir: tempfile::TempDir,
-    pub socket: PathBuf,
-}
-
-impl Daemon {
-    pub fn start(extra: &[&str]) -> Daemon {
-        Daemon::start_with_config(extra, "")
-    }
-
-    /// With `config` (TOML) as its config file.
-    pub fn start_with_config(extra: &[&str], config: &str) -> Daemon {
-        let dir = tempfile::tempdir().unwrap();
-        let socket = dir.path().join("sim.sock");
-        let config_path = dir.path().join("omnid.toml");
-        std::fs::write(&config_path, config).unwrap();
-        let child = Command::new(env!("CARGO_BIN_EXE_omnid"))
-            .args(["serve", "--device", "sim", "--socket"])
-            .arg(&socket)
-            .arg("--config")
-            .arg(&config_path)
-            .args(extra)
-            .env("OMNID_STATE_DIR", dir.path().join("state"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("omnid serve starts");
-        let d = Daemon {
-            child: Some(child),
-            _dir: dir,
-            socket,
-        };
-        let until = Instant::now() + Duration::from_secs(20);
-        while Client::connect(&d.socket, "probe").is_err() {
-            assert!(Instant::now() < until, "omnid serve did not start");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        d
-    }
-
-    /// The daemon's process id.
-    pub fn pid(&self) -> u32 {
-        self.child.as_ref().map_or(0, |c| c.id())
-    }
-
-    /// Stop the daemon (SIGTERM: zero torque, goodbye to every client) and wait for it.
-    pub fn stop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            // SAFETY: kill on our own child's pid, not yet reaped.
-            unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
-            let _ = c.wait();
-        }
-    }
-
-    pub fn client(&self, name: &str) -> Client {
-        Client::connect(&self.socket, name).expect("connects")
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
 }
 
 /// The scheduling policy and realtime priority of process `pid`'s thread named `name`

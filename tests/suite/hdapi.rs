@@ -6,7 +6,8 @@
 use crate::common;
 use crate::hd;
 
-use hd::{run, Daemon, HD};
+use crate::common::Served;
+use hd::{run, HD};
 use omnid::omni::kinematics::{jacobian, tip_position_mm, Geometry};
 use omnid::transport::client::Message;
 use std::io::{BufRead, BufReader};
@@ -292,8 +293,8 @@ fn field<'a>(out: &'a str, key: &str) -> &'a str {
 #[ignore = "paced"]
 fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
     let hd = HD::get();
-    let daemon = Daemon::start(&[]);
-    let env = [("OMNID_SOCKET", daemon.socket.to_str().unwrap())];
+    let daemon = Served::sim(&[], None);
+    let env = [("OMNID_SOCKET", daemon.sock.to_str().unwrap())];
 
     // ROS: calibration loop on the main thread, schedule after start.
     let ros = run(hd.exe("ros"), &[], &env);
@@ -345,7 +346,7 @@ fn ros_jhu_and_vrpn_call_orders_read_the_simulated_omni() {
     assert!(field(&vrpn, "string").contains("omnid"), "{vrpn}");
 
     // The stylus the programs read is the daemon's: its own stream agrees on the pose.
-    let mut c = daemon.client("check");
+    let mut c = daemon.connect("check");
     c.request(serde_json::json!({"op": "stream", "rate_hz": 100}))
         .unwrap();
     let s = c.next_state(5000).unwrap();
@@ -362,14 +363,14 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     let hd = HD::get();
     // No compensation: the motors' torque is exactly the program's (Jᵀ F). The daemon's
     // config is the default (a stale stream holds): the library's lease asks for idle.
-    let daemon = Daemon::start(&["--controller", "off"]);
-    let mut watch = daemon.client("watch");
+    let daemon = Served::sim(&["--controller", "off"], None);
+    let mut watch = daemon.connect("watch");
     watch
         .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
     let mut chai = std::process::Command::new(hd.exe("chai"))
         .arg("0.5")
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -394,7 +395,7 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
     if hd::may_use_fifo(70) {
         assert_eq!(hd::thread_sched(chai.id(), "omnid-hd-servo"), Some((1, 60)));
         assert_eq!(
-            hd::thread_sched(daemon.pid(), "omnid-hub-sim"),
+            hd::thread_sched(daemon.pid() as u32, "omnid-hub-sim"),
             Some((1, 70))
         );
     }
@@ -447,9 +448,9 @@ fn a_force_set_in_a_frame_reaches_the_device_and_killing_the_client_drops_it() {
 #[ignore = "paced"]
 fn a_daemon_that_stops_is_a_communication_error_in_the_servo_callback() {
     let hd = HD::get();
-    let mut daemon = Daemon::start(&[]);
+    let mut daemon = Served::sim(&[], None);
     let mut child = std::process::Command::new(hd.exe("gone"))
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .stdout(Stdio::piped())
         .spawn()
         .expect("starts");
@@ -530,14 +531,14 @@ fn a_slow_servo_callback_keeps_its_force_or_is_told() {
     let hd = HD::get();
     // 30 ms frames: slower than the default time to live (20 ms), 70 ms inside the longest.
     for (frame_ms, told) in [(30, false), (150, true)] {
-        let daemon = Daemon::start(&[]);
-        let mut watch = daemon.client("watch");
+        let daemon = Served::sim(&[], None);
+        let mut watch = daemon.connect("watch");
         watch
             .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))
             .unwrap();
         let slow = std::process::Command::new(hd.exe("slow"))
             .arg(frame_ms.to_string())
-            .env("OMNID_SOCKET", &daemon.socket)
+            .env("OMNID_SOCKET", &daemon.sock)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -947,9 +948,9 @@ fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
 #[ignore = "paced"]
 fn motor_temperature_comes_from_the_thermal_model_and_an_unsupported_parameter_is_refused_once() {
     let hd = HD::get();
-    let daemon = Daemon::start(&[]);
+    let daemon = Served::sim(&[], None);
     let out = std::process::Command::new(hd.exe("temp"))
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .output()
         .unwrap();
     let printed = String::from_utf8_lossy(&out.stdout);
@@ -985,14 +986,14 @@ fn motor_temperature_comes_from_the_thermal_model_and_an_unsupported_parameter_i
 #[ignore = "paced"]
 fn occasional_frames_that_push_nothing_leave_the_arm_alone() {
     let hd = HD::get();
-    let daemon = Daemon::start(&[]);
-    let mut watch = daemon.client("watch");
+    let daemon = Served::sim(&[], None);
+    let mut watch = daemon.connect("watch");
     watch
         .request(serde_json::json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
     let program = std::process::Command::new(hd.exe("occasional"))
         .arg("300")
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -1033,11 +1034,11 @@ fn a_program_waiting_for_button_1_sees_the_scheduled_click() {
         .map(|s| format!("{{ at_s = {s}.0, action = \"click\", button = 1 }}"))
         .collect();
     let config = format!("[sim]\nstylus = [{}]\n", clicks.join(", "));
-    let daemon = Daemon::start_with_config(&[], &config);
+    let daemon = Served::sim(&[], Some(&config));
     let out = run(
         hd.exe("query"),
         &["40"],
-        &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
+        &[("OMNID_SOCKET", daemon.sock.to_str().unwrap())],
     );
     let line = field(&out, "pressed");
     // Button 1 down (bit 0), button 2 up, the stylus still in its inkwell.
@@ -1051,18 +1052,18 @@ fn a_program_waiting_for_button_1_sees_the_scheduled_click() {
 #[ignore = "paced"]
 fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
     let hd = HD::get();
-    let daemon = Daemon::start(&[]);
+    let daemon = Served::sim(&[], None);
     let ctl = |args: &[&str]| {
         std::process::Command::new(env!("CARGO_BIN_EXE_omnid"))
             .args(["ctl", "--socket"])
-            .arg(&daemon.socket)
+            .arg(&daemon.sock)
             .args(args)
             .output()
             .unwrap()
     };
     let mut program = std::process::Command::new(hd.exe("inkwell"))
         .args(["2", "40"])
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -1097,7 +1098,7 @@ fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
     assert!(program.wait().unwrap().success());
 
     // Refusals name what is wrong (the client library's request, as any program sends it).
-    let mut c = daemon.client("check");
+    let mut c = daemon.connect("check");
     let e = c
         .request(serde_json::json!({"op": "stylus", "action": "press", "button": 3}))
         .unwrap_err()
@@ -1119,14 +1120,14 @@ fn the_inkwell_switch_and_buttons_follow_omnid_ctl() {
 #[ignore = "paced"]
 fn driving_the_arm_too_fast_is_an_exceeded_max_velocity_error() {
     let hd = HD::get();
-    let daemon = Daemon::start_with_config(
+    let daemon = Served::sim(
         &["--controller", "off"],
-        "[safety]\nmax_velocity_rad_s = [0.5, 0.5, 0.5]\n",
+        Some("[safety]\nmax_velocity_rad_s = [0.5, 0.5, 0.5]\n"),
     );
     let out = run(
         hd.exe("speed"),
         &["2.5"],
-        &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
+        &[("OMNID_SOCKET", daemon.sock.to_str().unwrap())],
     );
     assert_eq!(field(&out, "velocity-errors"), "1", "{out}");
     assert_eq!(
@@ -1136,7 +1137,7 @@ fn driving_the_arm_too_fast_is_an_exceeded_max_velocity_error() {
     );
     assert!(field(&out, "string").contains("maximum velocity"), "{out}");
     // The daemon tripped for it (the arm is idle, the trip latched), and said why.
-    let mut c = daemon.client("check");
+    let mut c = daemon.connect("check");
     c.request(serde_json::json!({"op": "stream", "rate_hz": 100}))
         .unwrap();
     let s = c.next_state(5000).unwrap();
@@ -1156,11 +1157,11 @@ fn a_servo_stall_is_a_scheduler_error() {
     for s in &stalls {
         args.extend(["--inject", s.as_str()]);
     }
-    let daemon = Daemon::start(&args);
+    let daemon = Served::sim(&args, None);
     let out = run(
         hd.exe("stall"),
         &["40"],
-        &[("OMNID_SOCKET", daemon.socket.to_str().unwrap())],
+        &[("OMNID_SOCKET", daemon.sock.to_str().unwrap())],
     );
     assert_eq!(field(&out, "scheduler-errors"), "1", "{out}");
     assert_eq!(

@@ -6,7 +6,8 @@
 use crate::common;
 use crate::hd;
 
-use hd::{wait_output, Daemon, HD};
+use crate::common::Served;
+use hd::{wait_output, HD};
 use omnid::omni::kinematics::{tip_position_mm, Geometry};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -31,13 +32,13 @@ fn pyopenhaptics_from_pypi_reads_the_stylus_and_renders_a_spring() {
         return;
     };
     let hd = HD::get();
-    let daemon = Daemon::start(&[]);
+    let daemon = Served::sim(&[], None);
     let script =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/hdapi/tests/pyopenhaptics_spring.py");
     let child = Command::new(python)
         .arg(script)
         .env("LD_LIBRARY_PATH", hd.prefix.join("lib"))
-        .env("OMNID_SOCKET", &daemon.socket)
+        .env("OMNID_SOCKET", &daemon.sock)
         .env("PYTHONDONTWRITEBYTECODE", "1")
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

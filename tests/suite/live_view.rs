@@ -5,9 +5,10 @@
 
 use crate::common;
 use common::omnid;
+use common::Served;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 fn python() -> Option<PathBuf> {
@@ -24,78 +25,6 @@ fn python() -> Option<PathBuf> {
         eprintln!("SKIPPED: PyPI is out of reach, so no independent viewer is here");
     }
     py
-}
-
-/// `omnid serve ARGS --foxglove 127.0.0.1:0` in a directory of its own; the URL it serves.
-struct Daemon {
-    child: Child,
-    url: String,
-    _dir: tempfile::TempDir,
-}
-
-impl Daemon {
-    fn start(args: &[&str]) -> Daemon {
-        Daemon::start_with(args, None)
-    }
-
-    /// As `start`, the daemon started with a soft descriptor limit of `nofile` if given.
-    fn start_with(args: &[&str], nofile: Option<u64>) -> Daemon {
-        let dir = tempfile::tempdir().unwrap();
-        let mut cmd = omnid();
-        if let Some(n) = nofile {
-            // SAFETY: only async-signal-safe calls between fork and exec.
-            unsafe {
-                std::os::unix::process::CommandExt::pre_exec(&mut cmd, move || {
-                    let mut l = libc::rlimit {
-                        rlim_cur: 0,
-                        rlim_max: 0,
-                    };
-                    libc::getrlimit(libc::RLIMIT_NOFILE, &mut l);
-                    l.rlim_cur = n.min(l.rlim_max);
-                    libc::setrlimit(libc::RLIMIT_NOFILE, &l);
-                    Ok(())
-                });
-            }
-        }
-        let mut child = cmd
-            .arg("serve")
-            .args(args)
-            .args(["--foxglove", "127.0.0.1:0"])
-            .env("XDG_RUNTIME_DIR", dir.path())
-            .env_remove("RUNTIME_DIRECTORY")
-            .env_remove("OMNID_SOCKET")
-            .env("OMNID_STATE_DIR", dir.path().join("state"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        let stderr = BufReader::new(child.stderr.take().unwrap());
-        // Read every line (so the pipe never fills); hand over the live view's address.
-        std::thread::spawn(move || {
-            for line in stderr.lines().map_while(Result::ok) {
-                if let Some(rest) = line.split("live view on ").nth(1) {
-                    let url = rest.split_whitespace().next().unwrap_or("").to_string();
-                    let _ = tx.send(url);
-                }
-            }
-        });
-        let url = rx
-            .recv_timeout(Duration::from_secs(60))
-            .expect("omnid serve says where the live view is");
-        Daemon {
-            child,
-            url,
-            _dir: dir,
-        }
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn viewer(py: &Path, args: &[&str]) -> serde_json::Value {
@@ -125,7 +54,7 @@ fn assert_all_decode(report: &serde_json::Value) {
 #[ignore = "paced"]
 fn a_viewer_gets_every_arm_channel_at_the_device_rate_and_every_payload_decodes() {
     let Some(py) = python() else { return };
-    let d = Daemon::start(&["--device", "sim"]);
+    let d = Served::with_live_view(&["--device", "sim"]);
     let report = viewer(&py, &[&d.url, "5"]);
     assert_all_decode(&report);
     let hz = rate(&report, "/joint_states");
@@ -163,7 +92,7 @@ fn a_viewer_gets_every_arm_channel_at_the_device_rate_and_every_payload_decodes(
 #[ignore = "paced"]
 fn a_viewer_that_never_reads_costs_the_other_viewers_nothing() {
     let Some(py) = python() else { return };
-    let d = Daemon::start(&["--device", "sim"]);
+    let d = Served::with_live_view(&["--device", "sim"]);
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/mcap/check_live.py");
     let mut stuck = Command::new(&py)
         .arg(&script)
@@ -189,10 +118,10 @@ fn a_viewer_that_never_reads_costs_the_other_viewers_nothing() {
     // closes; the live view waits a second for it, no longer).
     let mut d = d;
     // SAFETY: kill with a live child's pid.
-    unsafe { libc::kill(d.child.id() as i32, libc::SIGTERM) };
+    unsafe { libc::kill(d.child.as_ref().unwrap().id() as i32, libc::SIGTERM) };
     let deadline = std::time::Instant::now() + Duration::from_secs(20);
     let status = loop {
-        if let Some(s) = d.child.try_wait().unwrap() {
+        if let Some(s) = d.child.as_mut().unwrap().try_wait().unwrap() {
             break Some(s);
         }
         if std::time::Instant::now() > deadline {
@@ -236,7 +165,7 @@ fn the_old_subprotocol_is_refused_and_bad_addresses_are_input_errors() {
     let Some(py) = python() else { return };
     // Clients that offer only the old `foxglove.websocket.v1` (the open-source Foxglove
     // Studio) are refused by the SDK's server: asserted, so a change is noticed.
-    let d = Daemon::start(&["--device", "sim"]);
+    let d = Served::with_live_view(&["--device", "sim"]);
     let old = viewer(&py, &["--old", &d.url]);
     assert_eq!(old["status"], 400);
 }
@@ -287,13 +216,13 @@ fn five_thousand_half_open_viewers_leave_the_unix_socket_working_and_are_shed() 
         n >= 2000,
         "this test needs ~5200 descriptors (limit {limit})"
     );
-    let d = Daemon::start_with(&["--device", "sim"], Some(1024));
-    let pid = d.child.id();
+    let d = Served::with_live_view_limited(&["--device", "sim"], Some(1024));
+    let pid = d.child.as_ref().unwrap().id();
     let addr: std::net::SocketAddr = d.url.trim_start_matches("ws://").parse().unwrap();
     let ctl = |args: &[&str]| {
         omnid()
             .args(args)
-            .env("XDG_RUNTIME_DIR", d._dir.path())
+            .env("XDG_RUNTIME_DIR", d.dir.path())
             .env_remove("RUNTIME_DIRECTORY")
             .env_remove("OMNID_SOCKET")
             .output()

@@ -41,6 +41,7 @@ const OPS: &[&str] = &[
     "adapt",
     "weights_save",
     "weights_load",
+    "weights_reset",
     "record_start",
     "record_stop",
     "shutdown",

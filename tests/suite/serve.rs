@@ -3,95 +3,15 @@
 //! bad messages, a refused peer, a second daemon, and SIGTERM.
 
 use crate::common;
+use common::Served;
 
 use common::omnid;
 use omnid::transport::client::{Client, ClientError, Message};
 use omnid::transport::protocol::State;
 use serde_json::{json, Value};
 use std::os::unix::process::CommandExt;
-use std::path::PathBuf;
-use std::process::{Child, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
-
-/// A daemon on the simulator in its own directory, killed if a test fails.
-struct Daemon {
-    child: Option<Child>,
-    dir: tempfile::TempDir,
-    socket: PathBuf,
-}
-
-impl Daemon {
-    fn start(extra: &[&str]) -> Daemon {
-        Daemon::start_with_config(extra, None)
-    }
-
-    fn start_with_config(extra: &[&str], config: Option<&str>) -> Daemon {
-        let dir = tempfile::tempdir().unwrap();
-        let socket = dir.path().join("sim.sock");
-        let mut cmd = omnid();
-        cmd.args(["serve", "--device", "sim", "--socket"])
-            .arg(&socket)
-            .args(extra)
-            .env("OMNID_STATE_DIR", dir.path().join("state"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped());
-        if let Some(text) = config {
-            let path = dir.path().join("omnid.toml");
-            std::fs::write(&path, text).unwrap();
-            cmd.arg("--config").arg(path);
-        }
-        let child = cmd.spawn().expect("omnid serve starts");
-        let d = Daemon {
-            child: Some(child),
-            dir,
-            socket,
-        };
-        d.wait_for_socket();
-        d
-    }
-
-    fn wait_for_socket(&self) {
-        let until = Instant::now() + Duration::from_secs(20);
-        while Instant::now() < until {
-            if Client::connect(&self.socket, "probe").is_ok() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        panic!("omnid serve did not open {}", self.socket.display());
-    }
-
-    fn client(&self, name: &str) -> Client {
-        Client::connect(&self.socket, name).expect("connects")
-    }
-
-    fn pid(&self) -> i32 {
-        self.child.as_ref().unwrap().id() as i32
-    }
-
-    /// Wait for the daemon to exit: its exit code and stderr.
-    fn wait(&mut self) -> (Option<i32>, String) {
-        let child = self.child.take().unwrap();
-        let out = child.wait_with_output().unwrap();
-        (
-            out.status.code(),
-            String::from_utf8_lossy(&out.stderr).into_owned(),
-        )
-    }
-
-    fn path(&self, name: &str) -> PathBuf {
-        self.dir.path().join(name)
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
 
 /// Read to the daemon's goodbye: the last tick streamed before it is the safe one.
 fn ends_safely_with_goodbye(c: &mut Client) {
@@ -138,8 +58,8 @@ fn states_until(c: &mut Client, max: usize, mut pred: impl FnMut(&State) -> bool
 #[test]
 #[ignore = "paced"]
 fn every_command_works_and_shutdown_ends_cleanly() {
-    let mut d = Daemon::start(&[]);
-    let mut c = d.client("test");
+    let mut d = Served::sim(&[], None);
+    let mut c = d.connect("test");
     assert_eq!(c.hello().protocol, 1);
     assert_eq!(c.hello().access, "control");
     assert_eq!(c.hello().device, "sim");
@@ -221,16 +141,16 @@ fn every_command_works_and_shutdown_ends_cleanly() {
     ends_safely_with_goodbye(&mut c);
     let (code, err) = d.wait();
     assert_eq!(code, Some(0), "{err}");
-    assert!(!d.socket.exists(), "socket removed");
+    assert!(!d.sock.exists(), "socket removed");
 }
 
 #[test]
 #[ignore = "paced"]
 fn one_commander_many_readers_and_lease_handover() {
-    let d = Daemon::start(&[]);
-    let mut a = d.client("a");
-    let mut b = d.client("b");
-    let mut reader = d.client("reader");
+    let d = Served::sim(&[], None);
+    let mut a = d.connect("a");
+    let mut b = d.connect("b");
+    let mut reader = d.connect("reader");
     a.request(json!({"op": "mode", "mode": "hold"})).unwrap();
     // b may read, not command, while a holds the lease.
     b.request(json!({"op": "status"})).unwrap();
@@ -290,8 +210,8 @@ fn fallback_gap(seen: &[State], mode: &str) -> (f64, State) {
 #[test]
 #[ignore = "paced"]
 fn a_stale_stream_holds_within_its_time_to_live() {
-    let d = Daemon::start(&[]);
-    let mut c = d.client("jp");
+    let d = Served::sim(&[], None);
+    let mut c = d.connect("jp");
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     let s = c.next_state(5000).unwrap();
     let target = [s.q[0] + 0.05, 0.6, 0.3];
@@ -322,9 +242,9 @@ fn a_stale_stream_holds_within_its_time_to_live() {
 #[test]
 #[ignore = "paced"]
 fn what_clients_are_told_is_exact_printable_and_meaningful() {
-    let d = Daemon::start(&[]);
-    let mut w = d.client("watcher");
-    let mut c = d.client("jp \u{1b}[2J\u{202e}");
+    let d = Served::sim(&[], None);
+    let mut w = d.connect("watcher");
+    let mut c = d.connect("jp \u{1b}[2J\u{202e}");
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     let s = c.next_state(5000).unwrap();
     let q = [s.q[0], 0.6, 0.3];
@@ -375,8 +295,8 @@ fn what_clients_are_told_is_exact_printable_and_meaningful() {
 #[test]
 #[ignore = "paced"]
 fn a_killed_commander_leaves_the_arm_holding() {
-    let d = Daemon::start(&[]);
-    let mut watcher = d.client("watcher");
+    let d = Served::sim(&[], None);
+    let mut watcher = d.connect("watcher");
     watcher
         .request(json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
@@ -396,7 +316,7 @@ while True:
     let mut victim = std::process::Command::new("python3")
         .arg("-c")
         .arg(script)
-        .arg(&d.socket)
+        .arg(&d.sock)
         .spawn()
         .expect("python3 runs");
     states_until(&mut watcher, 10_000, |s| {
@@ -427,8 +347,8 @@ while True:
 #[test]
 #[ignore = "paced"]
 fn a_holder_that_asked_for_idle_leaves_zero_torque_when_killed() {
-    let d = Daemon::start(&[]);
-    let mut watcher = d.client("watcher");
+    let d = Served::sim(&[], None);
+    let mut watcher = d.connect("watcher");
     watcher
         .request(json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
@@ -454,7 +374,7 @@ while True:
     let mut victim = std::process::Command::new("python3")
         .arg("-c")
         .arg(script)
-        .arg(&d.socket)
+        .arg(&d.sock)
         .spawn()
         .expect("python3 runs");
     states_until(&mut watcher, 10_000, |s| {
@@ -468,7 +388,7 @@ while True:
     assert_eq!(first.mode, "idle");
     assert!(!first.amps && first.tau == [0.0; 3], "{first:?}");
     // The next holder that asks nothing gets the config's fallback again.
-    let mut next = d.client("next");
+    let mut next = d.connect("next");
     let r = next.request(json!({"op": "lease"})).unwrap();
     assert_eq!(r["fallback"], "hold", "{r}");
     let e = refused(next.request(json!({"op": "lease", "fallback": "drop"})));
@@ -478,8 +398,8 @@ while True:
 #[test]
 #[ignore = "paced"]
 fn controller_switches_mid_motion_are_bumpless() {
-    let d = Daemon::start(&["--controller", "pd"]);
-    let mut c = d.client("switcher");
+    let d = Served::sim(&["--controller", "pd"], None);
+    let mut c = d.connect("switcher");
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     c.request(json!({"op": "mode", "mode": "track"})).unwrap();
     // Past the blend and the ramp, moving.
@@ -523,15 +443,15 @@ fn controller_switches_mid_motion_are_bumpless() {
 #[test]
 #[ignore = "paced"]
 fn bad_messages_hurt_only_their_sender() {
-    let d = Daemon::start(&[]);
-    let mut reader = d.client("reader");
+    let d = Served::sim(&[], None);
+    let mut reader = d.connect("reader");
     reader
         .request(json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
     let before = reader.next_state(5000).unwrap();
 
     // Garbage: an error, the connection stays.
-    let mut g = d.client("garbage");
+    let mut g = d.connect("garbage");
     g.send_raw(b"\xff\xfe not json").unwrap();
     match g.recv(5000).unwrap() {
         Message::Other(v) => assert_eq!(v["type"], "error", "{v}"),
@@ -542,7 +462,7 @@ fn bad_messages_hurt_only_their_sender() {
     g.request(json!({"op": "status"})).unwrap();
 
     // Oversized: an error, then dropped.
-    let mut big = d.client("big");
+    let mut big = d.connect("big");
     big.send_raw(&vec![b' '; 70_000]).unwrap();
     match big.recv(5000).unwrap() {
         Message::Other(v) => assert!(v["message"].as_str().unwrap().contains("70000"), "{v}"),
@@ -551,7 +471,7 @@ fn bad_messages_hurt_only_their_sender() {
     assert!(matches!(big.recv(5000), Err(ClientError::Closed)));
 
     // An unknown protocol version: refused and dropped.
-    let conn = omnid::transport::socket::Conn::connect(&d.socket).unwrap();
+    let conn = omnid::transport::socket::Conn::connect(&d.sock).unwrap();
     conn.send(br#"{"op":"hello","protocol":99}"#).unwrap();
     let mut buf = vec![0u8; 70_000];
     let n = conn.recv(&mut buf).unwrap();
@@ -563,7 +483,7 @@ fn bad_messages_hurt_only_their_sender() {
     assert_eq!(conn.recv(&mut buf).unwrap(), 0, "closed");
 
     // Not saying hello first: refused and dropped.
-    let conn = omnid::transport::socket::Conn::connect(&d.socket).unwrap();
+    let conn = omnid::transport::socket::Conn::connect(&d.sock).unwrap();
     conn.send(br#"{"op":"status"}"#).unwrap();
     let n = conn.recv(&mut buf).unwrap();
     assert!(String::from_utf8_lossy(&buf[..n]).contains("hello"));
@@ -584,8 +504,8 @@ fn bad_messages_hurt_only_their_sender() {
 #[test]
 #[ignore = "paced"]
 fn a_slow_reader_loses_its_oldest_samples_and_is_told() {
-    let d = Daemon::start_with_config(&[], Some("[serve]\nclient_queue = 16\n"));
-    let mut slow = d.client("slow");
+    let d = Served::sim(&[], Some("[serve]\nclient_queue = 16\n"));
+    let mut slow = d.connect("slow");
     slow.request(json!({"op": "stream", "rate_hz": 1000}))
         .unwrap();
     // Not reading for a while: the socket buffer and the queue fill.
@@ -628,8 +548,8 @@ fn a_slow_reader_loses_its_oldest_samples_and_is_told() {
 #[test]
 #[ignore = "paced"]
 fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
-    let mut d = Daemon::start(&[]);
-    let mut c = d.client("c");
+    let mut d = Served::sim(&[], None);
+    let mut c = d.connect("c");
     c.request(json!({"op": "mode", "mode": "hold"})).unwrap();
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     states_until(&mut c, 3000, |s| s.amps);
@@ -639,7 +559,7 @@ fn sigterm_stops_with_zero_torque_and_removes_the_socket() {
     let (code, err) = d.wait();
     assert_eq!(code, Some(130), "{err}");
     assert!(err.contains("stopped by the operator"), "{err}");
-    assert!(!d.socket.exists());
+    assert!(!d.sock.exists());
 }
 
 #[test]
@@ -680,8 +600,8 @@ fn a_clean_shutdown_leaves_the_runtime_directory_empty() {
 #[test]
 #[ignore = "paced"]
 fn client_named_files_replace_nothing_follow_nothing_and_quote_nothing() {
-    let d = Daemon::start(&[]);
-    let mut c = d.client("files");
+    let d = Served::sim(&[], None);
+    let mut c = d.connect("files");
     // An existing file, a symlink to one, a FIFO: refused, untouched, nothing blocks.
     let existing = d.path("notes.txt");
     std::fs::write(&existing, "keep me").unwrap();
@@ -717,9 +637,9 @@ fn client_named_files_replace_nothing_follow_nothing_and_quote_nothing() {
 #[test]
 #[ignore = "paced"]
 fn a_client_that_does_not_read_is_held_to_a_byte_budget() {
-    let d = Daemon::start(&[]);
+    let d = Served::sim(&[], None);
     // An id is a tag, not a payload: a long one is refused, not echoed.
-    let mut c = d.client("long id");
+    let mut c = d.connect("long id");
     let long = "x".repeat(60_000);
     c.send(&json!({"op": "status", "id": long})).unwrap();
     let reply = match c.recv(5000).unwrap() {
@@ -739,7 +659,7 @@ fn a_client_that_does_not_read_is_held_to_a_byte_budget() {
     assert!(one > 500, "status reply of {one} bytes");
     // A client that asks and never reads is cut off once its unread replies pass the budget
     // (1 MiB, plus what the socket itself holds), not after thousands of replies.
-    let flood = d.client("flood");
+    let flood = d.connect("flood");
     let mut sent = 0usize;
     while sent < 20_000 {
         match flood.send(&json!({"op": "status", "id": sent})) {
@@ -761,15 +681,15 @@ fn a_client_that_does_not_read_is_held_to_a_byte_budget() {
 #[test]
 #[ignore = "paced"]
 fn a_full_daemon_refuses_with_its_reason() {
-    let d = Daemon::start_with_config(&[], Some("[serve]\nmax_clients = 1\n"));
-    let _only = d.client("only");
+    let d = Served::sim(&[], Some("[serve]\nmax_clients = 1\n"));
+    let _only = d.connect("only");
     // Root and the daemon's own user have 8 slots more (the one who can stop the arm always
     // gets in); these tests run as the daemon's user.
-    let _kept: Vec<Client> = (0..8).map(|k| d.client(&format!("kept {k}"))).collect();
+    let _kept: Vec<Client> = (0..8).map(|k| d.connect(&format!("kept {k}"))).collect();
     for _ in 0..10 {
         let out = omnid()
             .args(["ctl", "--socket"])
-            .arg(&d.socket)
+            .arg(&d.sock)
             .arg("status")
             .output()
             .unwrap();
@@ -782,10 +702,10 @@ fn a_full_daemon_refuses_with_its_reason() {
 #[test]
 #[ignore = "paced"]
 fn a_second_daemon_on_the_same_socket_is_refused() {
-    let d = Daemon::start(&[]);
+    let d = Served::sim(&[], None);
     let out = omnid()
         .args(["serve", "--device", "sim", "--socket"])
-        .arg(&d.socket)
+        .arg(&d.sock)
         .env("OMNID_STATE_DIR", d.path("state2"))
         .output()
         .unwrap();
@@ -793,18 +713,18 @@ fn a_second_daemon_on_the_same_socket_is_refused() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains(&d.pid().to_string()), "{err}");
     // The first one still serves.
-    d.client("after").request(json!({"op": "status"})).unwrap();
+    d.connect("after").request(json!({"op": "status"})).unwrap();
 }
 
 #[test]
 #[ignore = "paced"]
 fn ctl_and_watch_drive_the_daemon() {
-    let d = Daemon::start(&[]);
+    let d = Served::sim(&[], None);
     let ctl = |args: &[&str]| {
         omnid()
             .arg("ctl")
             .arg("--socket")
-            .arg(&d.socket)
+            .arg(&d.sock)
             .args(args)
             .output()
             .unwrap()
@@ -825,7 +745,7 @@ fn ctl_and_watch_drive_the_daemon() {
         .args([
             "watch", "--json", "--count", "5", "--rate", "1000", "--socket",
         ])
-        .arg(&d.socket)
+        .arg(&d.sock)
         .output()
         .unwrap();
     assert!(out.status.success());
@@ -872,21 +792,17 @@ fn a_peer_outside_the_groups_is_refused() {
         eprintln!("skipped: needs root to connect as another user");
         return;
     }
-    let d = Daemon::start(&[]);
+    let d = Served::sim(&[], None);
     // Let the kernel pass the connection so the daemon's own check decides.
     std::fs::set_permissions(
         d.dir.path(),
         std::os::unix::fs::PermissionsExt::from_mode(0o755),
     )
     .unwrap();
-    std::fs::set_permissions(
-        &d.socket,
-        std::os::unix::fs::PermissionsExt::from_mode(0o666),
-    )
-    .unwrap();
+    std::fs::set_permissions(&d.sock, std::os::unix::fs::PermissionsExt::from_mode(0o666)).unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_omnid"))
         .args(["ctl", "--socket"])
-        .arg(&d.socket)
+        .arg(&d.sock)
         .arg("status")
         .env("HOME", "/")
         .current_dir("/")
@@ -901,7 +817,7 @@ fn a_peer_outside_the_groups_is_refused() {
         "{err}"
     );
     // The daemon's own user still gets in.
-    d.client("root").request(json!({"op": "status"})).unwrap();
+    d.connect("root").request(json!({"op": "status"})).unwrap();
 }
 
 /// Joint drift over `ticks` samples.
@@ -917,8 +833,8 @@ fn drift(c: &mut Client, ticks: usize) -> [f64; 3] {
 #[test]
 #[ignore = "paced"]
 fn free_mode_compensates_and_servo_jf_adds_torque() {
-    let d = Daemon::start(&[]);
-    let mut c = d.client("haptics");
+    let d = Served::sim(&[], None);
+    let mut c = d.connect("haptics");
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     let pose = [0.0, 0.6, 0.3];
     for (controller, needs_model) in [("nnidc", true), ("ct", true), ("pd", false)] {
@@ -980,8 +896,8 @@ fn free_mode_compensates_and_servo_jf_adds_torque() {
 #[test]
 #[ignore = "paced"]
 fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
-    let d = Daemon::start(&["--controller", "ct"]);
-    let mut c = d.client("forces");
+    let d = Served::sim(&["--controller", "ct"], None);
+    let mut c = d.connect("forces");
     assert!(c.hello().modes.iter().any(|m| m == "servo_cf"));
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     let pose = [0.0, 0.6, 0.3];
@@ -1037,8 +953,8 @@ fn servo_cf_pushes_the_tip_along_the_force_and_refuses_bad_values() {
 #[test]
 #[ignore = "paced"]
 fn effects_render_in_free_mode_and_bad_ones_are_refused() {
-    let d = Daemon::start(&["--controller", "ct"]);
-    let mut c = d.client("effects");
+    let d = Served::sim(&["--controller", "ct"], None);
+    let mut c = d.connect("effects");
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
     feed_servo_jp(&mut c, 1500, [0.0, 0.6, 0.3]);
     c.request(json!({"op": "free"})).unwrap();
@@ -1099,24 +1015,19 @@ fn a_daemon_out_of_descriptors_refuses_with_the_reason_and_recovers() {
             }
         });
     }
-    let mut d = Daemon {
-        child: Some(cmd.spawn().expect("omnid serve starts")),
-        dir,
-        socket,
-    };
-    d.wait_for_socket();
+    let mut d = Served::adopt(cmd.spawn().expect("omnid serve starts"), dir, socket);
 
     let mut held = Vec::new();
     let refusal = loop {
         assert!(held.len() < 100, "40 descriptors never ran out");
-        match Client::connect(&d.socket, "many") {
+        match Client::connect(&d.sock, "many") {
             Ok(c) => held.push(c),
             Err(e) => break e.to_string(),
         }
     };
     assert!(refusal.contains("Too many open files"), "{refusal}");
     for _ in 0..20 {
-        let e = Client::connect(&d.socket, "more").err().expect("refused");
+        let e = Client::connect(&d.sock, "more").err().expect("refused");
         assert!(e.to_string().contains("Too many open files"), "{e}");
     }
 
@@ -1124,7 +1035,7 @@ fn a_daemon_out_of_descriptors_refuses_with_the_reason_and_recovers() {
     held.clear();
     let until = Instant::now() + Duration::from_secs(20);
     loop {
-        if let Ok(mut c) = Client::connect(&d.socket, "after") {
+        if let Ok(mut c) = Client::connect(&d.sock, "after") {
             c.request(json!({"op": "status"})).unwrap();
             break;
         }
@@ -1157,13 +1068,7 @@ fn a_restarted_daemon_starts_from_the_weights_its_arm_learned() {
             .stderr(Stdio::piped())
             .spawn()
             .expect("omnid serve starts");
-        let d = Daemon {
-            child: Some(child),
-            dir: tempfile::tempdir().unwrap(),
-            socket: socket.clone(),
-        };
-        d.wait_for_socket();
-        d
+        Served::adopt(child, tempfile::tempdir().unwrap(), socket.clone())
     };
     let weights = |c: &mut Client, name: &str| -> Vec<f64> {
         let path = dir.path().join(name);
@@ -1179,7 +1084,7 @@ fn a_restarted_daemon_starts_from_the_weights_its_arm_learned() {
             .collect()
     };
     let mut d = start();
-    let mut c = d.client("test");
+    let mut c = d.connect("test");
     let shipped = weights(&mut c, "shipped.json");
     c.request(json!({"op": "stream", "rate_hz": 100})).unwrap();
     c.request(json!({"op": "mode", "mode": "track"})).unwrap();
@@ -1201,7 +1106,7 @@ fn a_restarted_daemon_starts_from_the_weights_its_arm_learned() {
     assert!(kept.exists());
 
     let mut d = start();
-    let mut c = d.client("test");
+    let mut c = d.connect("test");
     let now = weights(&mut c, "again.json");
     c.request(json!({"op": "shutdown"})).unwrap();
     let (code, err) = d.wait();

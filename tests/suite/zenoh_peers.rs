@@ -411,6 +411,7 @@ mod teleop_over_zenoh {
         let pf = Agreement {
             architecture: Architecture::Pf,
             passivity: true,
+            delay_control: omnid::teleop::DelayControl::Gains,
         };
         let marked = Packet {
             seq: 666,
@@ -445,7 +446,7 @@ mod teleop_over_zenoh {
             (
                 intruder,
                 seal(&encode(&marked, pf), 1, intruder, &lab).to_vec(),
-                "the peer runs pf, passivity on; this side runs pp",
+                "the peer runs pf, passivity on, delay control gains; this side runs pp",
             ),
             (
                 intruder,
@@ -1005,6 +1006,41 @@ fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_ref
         "{v}"
     );
     drop(d);
+}
+
+#[test]
+#[ignore = "paced"]
+fn a_ros2_command_under_another_type_hash_is_counted_and_said() {
+    // Issue #43: a node built against other message definitions publishes servo_cf under a
+    // type hash that is not ours: the sample never reached a subscriber, and nothing said so.
+    let port = free_port();
+    let mut d = serve(port, "allow_commands = true\n");
+    let s = peer(port);
+    let ours = rmw::data_key(0, "/sim/servo_cf", &rmw::WRENCH_STAMPED, Default::default());
+    let (topic, _) = ours.rsplit_once('/').unwrap();
+    let wrong = format!("{topic}/RIHS01_{}", "0".repeat(64));
+    let refused = |d: &Served| -> u64 {
+        let mut c = d.client("sim", "counter");
+        let r = c.request(serde_json::json!({"op": "status"})).unwrap();
+        r["status"]["zenoh"]["refused"].as_u64().unwrap_or(0)
+    };
+    let before = refused(&d);
+    let until = Instant::now() + Duration::from_secs(20);
+    while refused(&d) < before + 3 && Instant::now() < until {
+        s.put(&wrong, vec![0u8; 80]).wait().unwrap();
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(
+        refused(&d) >= before + 3,
+        "samples under another hash not counted"
+    );
+    s.close().wait().unwrap();
+    let (_, err) = d.stop();
+    let said = err
+        .matches("its type or type hash is not this daemon's")
+        .count();
+    assert_eq!(said, 1, "said once a minute at most:\n{err}");
+    assert!(err.contains("RIHS01_000"), "{err}");
 }
 
 /// docs/ZENOH.md, "A lab network": `[zenoh] users_file` and `commanders` on loopback, with

@@ -418,6 +418,9 @@ pub fn serve(
         }
         Some(net)
     } else {
+        if let Some(w) = zenoh_ignored(&cfg.zenoh) {
+            crate::errln!("omnid: warning: {w}");
+        }
         None
     };
     // The pairs a `teleop` op can form: between this daemon's arms, and with zenoh up with
@@ -574,26 +577,41 @@ fn keep_weights(
     arm: &str,
     pipeline: &mut crate::cmd::assembly::Pipeline,
 ) -> Option<(PathBuf, String, Option<String>)> {
-    use crate::identifier::store::{self, Loaded};
+    use crate::identifier::store;
     let replay = matches!(opts.device, crate::device::registry::DeviceSpec::Replay(_));
     if !cfg.identifier.persist || opts.weights.is_some() || replay {
         return None;
     }
     let path = store::weights_file(&crate::servo::thermal_store::state_dir()?, arm);
+    let serial = start_from_kept(&path, opts.no_adapt, cfg, arm, pipeline);
+    Some((path, arm.to_string(), serial))
+}
+
+/// Start the arm's identifier from the weights kept at `path` when they can be believed (said
+/// in a line, as is a file refused); the device's serial.
+fn start_from_kept(
+    path: &Path,
+    no_adapt: bool,
+    cfg: &crate::config::Config,
+    arm: &str,
+    pipeline: &mut crate::cmd::assembly::Pipeline,
+) -> Option<String> {
+    use crate::identifier::store::{self, Loaded};
     let serial = pipeline.servo.device_serial();
-    match store::load(&path, &cfg.identifier, serial.as_deref()) {
+    match store::load(path, &cfg.identifier, serial.as_deref()) {
         Loaded::None => {}
         Loaded::Weights(mut id, line) => {
             crate::errln!("omnid: arm {arm}: {line}");
-            id.set_adapt(!opts.no_adapt && cfg.identifier.adapt);
+            id.set_adapt(!no_adapt && cfg.identifier.adapt);
             pipeline.servo.set_identifier(*id);
         }
         Loaded::Refused(why) => crate::errln!(
-            "omnid: warning: arm {arm}: the learned weights are not used: {why}; the identifier              starts from the {} weights",
+            "omnid: warning: arm {arm}: the learned weights are not used: {why}; the identifier \
+             starts from the {} weights",
             pipeline.weights_label
         ),
     }
-    Some((path, arm.to_string(), serial))
+    serial
 }
 
 /// The arm's servo has ended (the host saw its records stop): join it, keep its heat, dump on a
@@ -652,6 +670,16 @@ fn end_arm(
     Ok((outcome, shutdown))
 }
 
+/// A `[zenoh]` section that says something while zenoh is off (no `enabled = true`, no
+/// `--zenoh`) is ignored: say so, rather than leave a lab wondering why no one can reach the arm.
+fn zenoh_ignored(z: &crate::transport::zenoh::ZenohConfig) -> Option<String> {
+    (!z.enabled && *z != crate::transport::zenoh::ZenohConfig::default()).then(|| {
+        "the config's [zenoh] section is ignored: zenoh is off (add `enabled = true` to \
+         [zenoh], or pass --zenoh)"
+            .to_string()
+    })
+}
+
 /// Run the arm's host on this thread until the servo ends, at the configured realtime priority
 /// (the host is on every stream client's round trip) and back on the normal scheduler
 /// afterwards. Its ports: the socket, and zenoh when the daemon is on it.
@@ -689,6 +717,23 @@ mod station_tests;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_zenoh_section_left_off_is_said_to_be_ignored() {
+        use crate::transport::zenoh::ZenohConfig;
+        assert_eq!(zenoh_ignored(&ZenohConfig::default()), None);
+        let said = ZenohConfig {
+            allow_commands: true,
+            ..ZenohConfig::default()
+        };
+        let w = zenoh_ignored(&said).expect("a section that says something, while off");
+        assert!(w.contains("enabled = true") && w.contains("--zenoh"), "{w}");
+        let on = ZenohConfig {
+            enabled: true,
+            ..said
+        };
+        assert_eq!(zenoh_ignored(&on), None);
+    }
 
     #[test]
     fn with_both_groups_both_can_reach_the_socket() {

@@ -69,6 +69,16 @@ impl Tap for Counting {
 
 /// The daemon's pipeline for a simulated arm, and its station's setup (no socket served).
 fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
+    let (servo, setup, dir, _) = served_sim_with(crate::control::ControllerKind::Pd, None);
+    (servo, setup, dir)
+}
+
+/// A simulated arm under `controller`, its identifier started from the weights kept at
+/// `kept` when they are there (as the daemon's start does); the pipeline's weights label.
+fn served_sim_with(
+    controller: crate::control::ControllerKind,
+    kept: Option<&std::path::Path>,
+) -> (Servo, StationSetup, tempfile::TempDir, String) {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = crate::config::Config::default();
     cfg.safety.persist_heat = false;
@@ -77,7 +87,7 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
     let opts = ServeOptions {
         devices: vec![crate::cmd::run::DeviceSpec::Sim],
         arms: Vec::new(),
-        controller: crate::control::ControllerKind::Pd,
+        controller,
         socket: Some(dir.path().join("unused.sock")),
         weights: None,
         no_adapt: false,
@@ -86,8 +96,11 @@ fn served_sim() -> (Servo, StationSetup, tempfile::TempDir) {
         foxglove: None,
         zenoh: false,
     };
-    let p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
-    (p.pipeline.servo, p.station, dir)
+    let mut p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
+    if let Some(path) = kept {
+        super::start_from_kept(path, false, &cfg, "sim", &mut p.pipeline);
+    }
+    (p.pipeline.servo, p.station, dir, p.pipeline.weights_label)
 }
 
 fn ticks(servo: &mut Servo, t: &mut Loopback, n: usize) {
@@ -301,4 +314,97 @@ fn the_station_saves_what_the_arm_learned_while_it_runs() {
     assert!((got - now).norm() < (fresh - now).norm(), "{got} vs {now}");
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
+}
+
+#[test]
+fn weights_reset_puts_the_shipped_weights_back_and_removes_what_the_arm_learned() {
+    // The arm learns (from fresh weights, under pd) and the station keeps it every pump.
+    let (mut servo, mut setup, dir) = served_sim();
+    let path = crate::identifier::store::weights_file(dir.path(), "sim");
+    setup.weights_store = Some((path.clone(), "sim".into(), None));
+    setup.weights_every_s = 0.0;
+    let cfg = setup.identifier_cfg.clone();
+    let mut t = Loopback::new(Station::new(setup), "resetter");
+    assert!(t
+        .call(Op::Mode(ModeRequest::Track(
+            crate::control::Trajectory::Sine
+        )))
+        .is_ok());
+    ticks(&mut servo, &mut t, 300);
+    let q = crate::omni::Joint3::new(0.1, 0.6, 0.3);
+    let qd = crate::omni::Joint3::new(0.2, -0.3, 0.1);
+    let z = crate::omni::Joint3::zeros();
+    let shipped = crate::identifier::store::shipped(&cfg)
+        .unwrap()
+        .predict(&q, &qd, &z);
+    let load = |path: &std::path::Path| match crate::identifier::store::load(path, &cfg, None) {
+        crate::identifier::store::Loaded::Weights(mut id, _) => id.predict(&q, &qd, &z),
+        other => panic!("{other:?}"),
+    };
+    assert_ne!(
+        load(&path),
+        shipped,
+        "the arm has learned nothing to forget"
+    );
+    // Frozen, so that what the servo holds after the reset is exactly the shipped weights.
+    assert!(t.call(Op::Adapt(false)).is_ok());
+    let Ok(Answer::Later(ticket)) = t.call(Op::WeightsReset) else {
+        panic!("reset not taken")
+    };
+    ticks(&mut servo, &mut t, 20);
+    let reply = t.done.iter().find(|(k, _)| *k == ticket).map(|(_, r)| r);
+    match reply {
+        Some(Ok(Reply::WeightsReset { weights, removed })) => {
+            assert_eq!(*weights, "mock/nnidc-pretuned.json");
+            assert_eq!(removed.as_deref(), Some(path.as_path()));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert!(t
+        .events
+        .iter()
+        .any(|e| e.message.as_deref().is_some_and(|m| m.contains("reset"))));
+    assert_eq!(
+        servo.identifier().unwrap().clone().predict(&q, &qd, &z),
+        shipped
+    );
+    // The saves after the reset keep the shipped weights, not the forgotten ones.
+    assert_eq!(load(&path), shipped);
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
+
+#[test]
+fn an_arm_restarted_after_a_minute_of_tracking_starts_from_what_it_learned_and_tracks_better() {
+    // docs/IDENTIFIER.md "Kept per arm": a minute of the sine under nnidc, kept at the end as
+    // the daemon keeps it; the next start on the arm loads it, and its first second tracks
+    // better than a start from the shipped weights.
+    use crate::control::{ControllerKind, Trajectory};
+    let state = tempfile::tempdir().unwrap();
+    let path = crate::identifier::store::weights_file(state.path(), "sim");
+    let first_second = |kept: Option<&std::path::Path>, seconds: usize| {
+        let (mut servo, mut setup, _dir, label) = served_sim_with(ControllerKind::Nnidc, kept);
+        assert_eq!(label, "shipped");
+        setup.weights_store = Some((path.clone(), "sim".into(), None));
+        setup.weights_every_s = 1e9;
+        let mut t = Loopback::new(Station::new(setup), "tracker");
+        assert!(t
+            .call(Op::Mode(ModeRequest::Track(Trajectory::Sine)))
+            .is_ok());
+        ticks(&mut servo, &mut t, 1000 * seconds);
+        let report = servo.finish(EndReason::OperatorStop);
+        (report.stats.tracking_rms().unwrap(), report)
+    };
+    let (_, report) = first_second(None, 60);
+    let id = report.identifier.as_ref().unwrap();
+    crate::identifier::store::save(&path, id, "sim", None).unwrap();
+    // The summary's tracking leaves out the blend and settling (2 s): its first second is the
+    // third.
+    let (fresh, _) = first_second(None, 3);
+    let (learned, _) = first_second(Some(&path), 3);
+    assert!(
+        (0..3).all(|j| learned[j] < fresh[j]),
+        "first second from the kept weights {learned:?} rad vs from the shipped {fresh:?}"
+    );
+    eprintln!("first tracked second: kept weights {learned:?} rad, shipped {fresh:?} rad");
 }

@@ -102,9 +102,7 @@ fn info(name: &str, control: bool) -> SessionInfo {
         privileged: false,
         read_only_reason: "commands over zenoh are off ([zenoh] allow_commands = false)".into(),
         files: FileRights::Refused(
-            "a client over the network names no files on the daemon's PC; record without a \
-             path (into the daemon's recordings directory)"
-                .into(),
+            "a client over the network names no files on the daemon's PC".into(),
         ),
     }
 }
@@ -382,9 +380,13 @@ impl ZenohPort {
             Err(error) => return self.send(&cid, &error),
         };
         let control = self.door.allow_commands;
-        let session = desk
-            .station
-            .open_session(info(&format!("{name} (zenoh)"), control));
+        // A nameless client is still told apart from a local one.
+        let name = if name.is_empty() {
+            "a client over zenoh".to_string()
+        } else {
+            format!("{name} (zenoh)")
+        };
+        let session = desk.station.open_session(info(&name, control));
         let access = if control {
             Access::Control
         } else {

@@ -194,6 +194,130 @@ pub(super) struct RosArm {
     stats: Arc<ZenohStats>,
 }
 
+/// The subscriptions of the command topics (servo_cf, servo_jp, state_command) in every form,
+/// with their liveliness tokens. A sample on a command topic under another type or type hash
+/// (a node built against other message definitions) is counted as refused and said, at most
+/// once a minute: it would otherwise never reach a subscriber, and no one would know why.
+fn declare_commands(
+    session: &zenoh::Session,
+    forms: &[Form],
+    node: &Node,
+    next_entity: &AtomicU64,
+    topic_name: &dyn Fn(&str) -> String,
+    net: &NetSide,
+) -> Result<
+    (
+        Vec<zenoh::pubsub::Subscriber<()>>,
+        Vec<zenoh::liveliness::LivelinessToken>,
+    ),
+    ZenohError,
+> {
+    let mut commands = Vec::new();
+    let mut command_tokens = Vec::new();
+    let seq = Arc::new(AtomicU64::new(0));
+    for (leaf, t, c) in [
+        ("servo_cf", rmw::WRENCH_STAMPED, Command::ServoCf),
+        ("servo_jp", rmw::JOINT_STATE, Command::ServoJp),
+        ("state_command", rmw::STRING_STAMPED, Command::State),
+    ] {
+        let topic = topic_name(leaf);
+        for form in forms {
+            let (key, token) = match *form {
+                Form::Rmw(h) => {
+                    let eid = next_entity.fetch_add(1, Ordering::Relaxed);
+                    (
+                        rmw::data_key(node.domain, &topic, &t, h),
+                        node.endpoint_token(eid, Kind::Subscription, &topic, &t, h, Qos::CRTK),
+                    )
+                }
+                Form::Bridge => (
+                    topic.trim_matches('/').to_string(),
+                    bridge_token(&node.zid, Kind::Subscription, &topic, &t),
+                ),
+            };
+            let (net, seq) = (net.clone(), seq.clone());
+            let sub = session
+                .declare_subscriber(key.clone())
+                .callback(move |sample: zenoh::sample::Sample| {
+                    let payload = sample.payload();
+                    if payload.len() > net.max_sample_bytes {
+                        return net.refuse();
+                    }
+                    let n = seq.fetch_add(1, Ordering::Relaxed) + 1;
+                    match decode_command(c, &payload.to_bytes(), n) {
+                        Ok(op) => net.send(Inbound::Ros(op)),
+                        Err(_) => net.refuse(),
+                    }
+                })
+                .wait()
+                .map_err(|e| declare_err(&key, e))?;
+            commands.push(sub);
+            command_tokens.push(
+                session
+                    .liveliness()
+                    .declare_token(token.clone())
+                    .wait()
+                    .map_err(|e| declare_err(&token, e))?,
+            );
+        }
+        // The rmw keys this topic is served under; anything else under its name is a
+        // mismatch.
+        let ours: Vec<String> = forms
+            .iter()
+            .filter_map(|f| match *f {
+                Form::Rmw(h) => Some(rmw::data_key(node.domain, &topic, &t, h)),
+                Form::Bridge => None,
+            })
+            .collect();
+        if let Some(first) = ours.first() {
+            commands.push(declare_mismatch(session, first, ours.clone(), net.clone())?);
+        }
+    }
+    Ok((commands, command_tokens))
+}
+
+/// A subscriber on every type and hash of `key`'s topic that counts and says the samples not
+/// under one of `ours`.
+fn declare_mismatch(
+    session: &zenoh::Session,
+    key: &str,
+    ours: Vec<String>,
+    net: NetSide,
+) -> Result<zenoh::pubsub::Subscriber<()>, ZenohError> {
+    // `<domain>/<topic>/<type>/<hash>`: the topic's every type and hash.
+    let topic = key.rsplitn(3, '/').nth(2).unwrap_or(key);
+    let any = format!("{topic}/*/*");
+    let said = Arc::new(AtomicU64::new(0));
+    session
+        .declare_subscriber(any.clone())
+        .callback(move |sample: zenoh::sample::Sample| {
+            let k = sample.key_expr().as_str();
+            if ours.iter().any(|o| o == k) {
+                return;
+            }
+            net.refuse();
+            let now_s = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs());
+            let last = said.load(Ordering::Relaxed);
+            if (last == 0 || now_s >= last + 60)
+                && said
+                    .compare_exchange(last, now_s, Ordering::Relaxed, Ordering::Relaxed)
+                    .is_ok()
+            {
+                crate::errln!(
+                    "omnid serve: a ROS 2 command on {} was refused: its type or type hash is \
+                     not this daemon's ({}); the sending node's message definitions differ \
+                     (docs/ZENOH.md)",
+                    crate::text::cut(k),
+                    ours.join(" or ")
+                );
+            }
+        })
+        .wait()
+        .map_err(|e| declare_err(&any, e))
+}
+
 /// Every `every`-th tick gives `rate_hz` out of `device_hz` (0: every tick).
 fn every(device_hz: f64, rate_hz: f64) -> u64 {
     if rate_hz <= 0.0 || rate_hz >= device_hz {
@@ -271,64 +395,11 @@ impl RosArm {
             publisher("button1", rmw::JOY)?,
             publisher("button2", rmw::JOY)?,
         ];
-        let mut commands = Vec::new();
-        let mut command_tokens = Vec::new();
-        if cfg.allow_commands {
-            let seq = Arc::new(AtomicU64::new(0));
-            for (leaf, t, c) in [
-                ("servo_cf", rmw::WRENCH_STAMPED, Command::ServoCf),
-                ("servo_jp", rmw::JOINT_STATE, Command::ServoJp),
-                ("state_command", rmw::STRING_STAMPED, Command::State),
-            ] {
-                let topic = topic_name(leaf);
-                for form in &forms {
-                    let (key, token) = match *form {
-                        Form::Rmw(h) => {
-                            let eid = next_entity.fetch_add(1, Ordering::Relaxed);
-                            (
-                                rmw::data_key(node.domain, &topic, &t, h),
-                                node.endpoint_token(
-                                    eid,
-                                    Kind::Subscription,
-                                    &topic,
-                                    &t,
-                                    h,
-                                    Qos::CRTK,
-                                ),
-                            )
-                        }
-                        Form::Bridge => (
-                            topic.trim_matches('/').to_string(),
-                            bridge_token(&node.zid, Kind::Subscription, &topic, &t),
-                        ),
-                    };
-                    let (net, seq) = (net.clone(), seq.clone());
-                    let sub = session
-                        .declare_subscriber(key.clone())
-                        .callback(move |sample: zenoh::sample::Sample| {
-                            let payload = sample.payload();
-                            if payload.len() > net.max_sample_bytes {
-                                return net.refuse();
-                            }
-                            let n = seq.fetch_add(1, Ordering::Relaxed) + 1;
-                            match decode_command(c, &payload.to_bytes(), n) {
-                                Ok(op) => net.send(Inbound::Ros(op)),
-                                Err(_) => net.refuse(),
-                            }
-                        })
-                        .wait()
-                        .map_err(|e| declare_err(&key, e))?;
-                    commands.push(sub);
-                    command_tokens.push(
-                        session
-                            .liveliness()
-                            .declare_token(token.clone())
-                            .wait()
-                            .map_err(|e| declare_err(&token, e))?,
-                    );
-                }
-            }
-        }
+        let (commands, command_tokens) = if cfg.allow_commands {
+            declare_commands(session, &forms, node, next_entity, &topic_name, &net)?
+        } else {
+            (Vec::new(), Vec::new())
+        };
         Ok(RosArm {
             measured_js,
             measured_cp,
