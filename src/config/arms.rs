@@ -101,6 +101,9 @@ impl ArmEntry {
         let mut table = toml::Table::try_from(global)
             .map_err(|e| at(format!("cannot lay its sections over the file's: {e}")))?;
         table.remove("arm");
+        // `[zenoh]` is the daemon's, not an arm's, and its secrets do not survive being
+        // written out (they serialise as `(hidden)`): it is copied over as it is, below.
+        table.remove("zenoh");
         for (name, section) in [
             ("sim", &self.sim),
             ("model", &self.model),
@@ -134,6 +137,7 @@ impl ArmEntry {
             config.realtime.cpu = self.cpu;
         }
         config.arm.clear();
+        config.zenoh = global.zenoh.clone();
         config.validate().map_err(|e| {
             let e = e.to_string();
             at(e.strip_prefix("config: ").unwrap_or(&e).to_string())
@@ -267,6 +271,18 @@ cpu = 1
 [arm.safety]
 max_torque_nm = [0.3, 0.3, 0.3]
 "#;
+
+    #[test]
+    fn an_arm_keeps_the_daemons_zenoh_secrets() {
+        let toml = "[zenoh]\nuser = \"omnid\"\npassword = \"pw-1234\"\n\
+                    teleop_keys = { \"a/b\" = \"2dEoOzyuZk8W2mWRzN0kqxUJ1NQ3gHc6kBzYw3h0n3U=\" }\n\
+                    [[arm]]\nname = \"a\"\n";
+        let cfg = Config::from_toml(toml, "z.toml").unwrap();
+        let arms = cfg.arms().unwrap();
+        let z = &arms[0].config.zenoh;
+        assert_eq!(z.password.expose(), "pw-1234");
+        assert!(matches!(z.teleop_key("a", "b"), Some(Ok(_))));
+    }
 
     #[test]
     fn an_arm_lays_its_sections_over_the_file_key_by_key() {

@@ -915,11 +915,12 @@ fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_
     );
 }
 
-/// A peer squats every remote slot with 200 liveliness tokens; a legitimate client's hello
-/// then gets an explicit refusal, not silence.
+/// A peer declares 200 client liveliness tokens and says no hello: they take no slot, so a
+/// legitimate client is greeted. A peer that greets from every slot: a further hello gets an
+/// explicit refusal, not silence.
 #[test]
 #[ignore = "paced"]
-fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
+fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_refused() {
     let port = free_port();
     let d = serve(port, "");
     let squatter = peer(port);
@@ -951,33 +952,58 @@ fn a_hello_that_finds_every_slot_squatted_is_refused_not_ignored() {
         std::thread::sleep(Duration::from_millis(100));
     }
     std::thread::sleep(Duration::from_millis(500));
-    let (tx, rx) = std::sync::mpsc::channel::<String>();
-    let _sub = client
-        .declare_subscriber("omnid/sim/out/legit")
-        .callback(move |s| {
-            let _ = tx.send(String::from_utf8_lossy(&s.payload().to_bytes()).into_owned());
-        })
-        .wait()
-        .unwrap();
+    // A client's hello, answered: the first answer on its out key.
+    let greet = |who: &zenoh::Session, cid: &str| -> serde_json::Value {
+        let (tx, rx) = std::sync::mpsc::channel::<String>();
+        let sub = who
+            .declare_subscriber(format!("omnid/sim/out/{cid}"))
+            .callback(move |s| {
+                let _ = tx.send(String::from_utf8_lossy(&s.payload().to_bytes()).into_owned());
+            })
+            .wait()
+            .unwrap();
+        let hello = format!(r#"{{"op":"hello","protocol":1,"name":"{cid}"}}"#);
+        let until = Instant::now() + Duration::from_secs(20);
+        let answer = loop {
+            assert!(Instant::now() < until, "the hello of {cid} got no answer");
+            who.put(format!("omnid/sim/in/{cid}"), hello.clone())
+                .wait()
+                .unwrap();
+            if let Ok(a) = rx.recv_timeout(Duration::from_millis(500)) {
+                break a;
+            }
+        };
+        drop(sub);
+        serde_json::from_str(&answer).unwrap()
+    };
     let _token = client
         .liveliness()
         .declare_token("omnid/sim/client/legit")
         .wait()
         .unwrap();
-    let hello = r#"{"op":"hello","protocol":1,"name":"legit"}"#;
-    let until = Instant::now() + Duration::from_secs(20);
-    let answer = loop {
-        assert!(Instant::now() < until, "the hello got no answer");
-        client.put("omnid/sim/in/legit", hello).wait().unwrap();
-        if let Ok(a) = rx.recv_timeout(Duration::from_millis(500)) {
-            break a;
-        }
-    };
-    let v: serde_json::Value = serde_json::from_str(&answer).unwrap();
-    assert_eq!(v["type"], "error", "{answer}");
+    let v = greet(&client, "legit");
+    assert_eq!(
+        v["type"], "hello",
+        "200 squatted tokens kept a client out: {v}"
+    );
+    // Every other slot taken by greeted clients: the next hello is refused, saying so.
+    let mut held = Vec::new();
+    for i in 0..63 {
+        held.push(
+            squatter
+                .liveliness()
+                .declare_token(format!("omnid/sim/client/held{i}"))
+                .wait()
+                .unwrap(),
+        );
+        let v = greet(&squatter, &format!("held{i}"));
+        assert_eq!(v["type"], "hello", "held{i}: {v}");
+    }
+    let v = greet(&client, "late");
+    assert_eq!(v["type"], "error", "{v}");
     assert!(
         v["message"].as_str().unwrap_or("").contains("no room"),
-        "{answer}"
+        "{v}"
     );
     drop(d);
 }

@@ -21,6 +21,10 @@ const INBOX_PER_WAKE: usize = 256;
 /// Most remote clients of one arm at once.
 const MAX_REMOTE: usize = 64;
 
+/// Liveliness tokens of clients that have not said hello remembered at most (a token alone
+/// takes no slot: only a hello does).
+const MAX_TOKENS: usize = 65536;
+
 /// Time the port spends on the inbox per wake-up before it lets the host serve its other
 /// ports (the local clients' streams) and comes back: the network's requests cost the arm's
 /// host bounded time, however many arrive.
@@ -85,6 +89,8 @@ pub struct ZenohPort {
     hello_timeout: Duration,
     /// Requests of this port's clients the station answers later, waiting now.
     later: u32,
+    /// Client tokens seen for ids that have no slot (yet): a hello on one of them is alive.
+    tokens: std::collections::HashSet<Arc<str>>,
 }
 
 fn info(name: &str, control: bool) -> SessionInfo {
@@ -186,7 +192,8 @@ impl Port for ZenohPort {
         let hello_timeout = self.hello_timeout;
         let mut closed = Vec::new();
         self.clients.retain(|c| {
-            let stale = !c.alive && now - c.since > hello_timeout;
+            // No token, or no hello, within the deadline: the slot is given back.
+            let stale = (!c.alive || c.session.is_none()) && now - c.since > hello_timeout;
             if stale {
                 closed.push((c.cid.clone(), c.session));
             }
@@ -197,8 +204,11 @@ impl Port for ZenohPort {
                 desk.station.close_session(s);
             }
             let ms = hello_timeout.as_millis();
-            let why =
-                format!("no liveliness token omnid/<arm>/client/{cid} within {ms} ms; closing");
+            let why = if session.is_some() {
+                format!("no liveliness token omnid/<arm>/client/{cid} within {ms} ms; closing")
+            } else {
+                format!("no hello within {ms} ms; closing")
+            };
             self.send(&cid, &json::error("connect", None, why));
             self.door.forget(&cid);
         }
@@ -248,6 +258,7 @@ impl ZenohPort {
             said: None,
             hello_timeout: Duration::from_secs_f64(hello_timeout_ms * 1e-3),
             later: 0,
+            tokens: Default::default(),
         }
     }
 
@@ -255,16 +266,20 @@ impl ZenohPort {
         self.door.to_client(cid, json::encode(v).into());
     }
 
+    /// A client's token appeared. It takes no slot: a peer that declares tokens and never
+    /// says hello leaves every slot to clients that do.
     fn joined(&mut self, cid: Arc<str>) {
-        let n = self.clients.len();
         match self.clients.iter_mut().find(|c| c.cid == cid) {
             Some(c) => c.alive = true,
-            None if n < MAX_REMOTE => self.clients.push(RemoteClient::new(cid, true)),
+            None if self.tokens.len() < MAX_TOKENS => {
+                self.tokens.insert(cid);
+            }
             None => {}
         }
     }
 
     fn gone(&mut self, cid: &str, desk: &mut Desk<'_>) {
+        self.tokens.remove(cid);
         if let Some(k) = self.clients.iter().position(|c| &*c.cid == cid) {
             let c = self.clients.remove(k);
             self.door.forget(&c.cid);
@@ -279,7 +294,8 @@ impl ZenohPort {
             Some(k) => k,
             None if self.clients.len() < MAX_REMOTE => {
                 // Its token may still be on its way: it has the hello deadline to show it.
-                self.clients.push(RemoteClient::new(cid, false));
+                let alive = self.tokens.remove(&cid);
+                self.clients.push(RemoteClient::new(cid, alive));
                 self.clients.len() - 1
             }
             None => return self.no_room(&cid, bytes),
