@@ -310,8 +310,21 @@ fn end_background(background: Vec<(&Step, Running)>, stop: bool) -> Result<Strin
     Ok(all)
 }
 
-/// Run the walk-through of `readme`: the number of commands run, or what went wrong where.
-fn walk(readme: &str) -> Result<usize, String> {
+/// Every file under `dir` (symbolic links not followed), as paths relative to `root`.
+fn files_under(root: &Path, dir: &Path, out: &mut Vec<String>) {
+    for entry in std::fs::read_dir(dir).unwrap().map(Result::unwrap) {
+        let path = entry.path();
+        if entry.file_type().unwrap().is_dir() {
+            files_under(root, &path, out);
+        } else {
+            out.push(path.strip_prefix(root).unwrap().display().to_string());
+        }
+    }
+}
+
+/// Run the walk-through of `readme`: the number of commands run and the files it left in the
+/// clone (paths in it; the repository's own `clients/` aside), or what went wrong where.
+fn walk(readme: &str) -> Result<(usize, Vec<String>), String> {
     let steps = steps(readme)?;
     if steps.is_empty() {
         return Err(format!("README.md has no block marked ```{MARKER}"));
@@ -374,7 +387,11 @@ fn walk(readme: &str) -> Result<usize, String> {
         check_shown(step, &output)?;
     }
     end_background(background, true)?;
-    Ok(steps.len())
+    let root = clone.dir.path().join("clone");
+    let mut written = Vec::new();
+    files_under(&root, &root, &mut written);
+    written.retain(|f| f != "clients");
+    Ok((steps.len(), written))
 }
 
 #[test]
@@ -382,9 +399,23 @@ fn walk(readme: &str) -> Result<usize, String> {
 fn the_readme_walk_through_runs_as_written_and_prints_what_it_shows() {
     let readme =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
-    match walk(&readme) {
-        Ok(n) => assert!(n >= 10, "only {n} commands in the walk-through"),
-        Err(e) => panic!("{e}"),
+    let (n, written) = walk(&readme).unwrap_or_else(|e| panic!("{e}"));
+    assert!(n >= 10, "only {n} commands in the walk-through");
+    // What it writes does not land untracked in the clone: git ignores every file of it.
+    assert!(
+        written.iter().any(|f| f.ends_with("track.csv")),
+        "the recording is among the files: {written:?}"
+    );
+    for file in &written {
+        let ignored = Command::new("git")
+            .args(["check-ignore", "--no-index", "-q", file])
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .status()
+            .expect("git runs");
+        assert!(
+            ignored.success(),
+            "the walk-through leaves `{file}` untracked in the clone (not in .gitignore)"
+        );
     }
 }
 
@@ -409,17 +440,20 @@ fn a_wrong_command_or_a_drifted_output_fails_the_walk_through() {
     let shown = walk(&block(
         "omnid config --print-default   # every key\n#> [safety]\n#> max_torque_nm = …]",
     ));
-    assert_eq!(shown, Ok(1));
+    assert_eq!(shown.map(|w| w.0), Ok(1));
 
     let never_prints = walk(&block("true &\n#> ready")).unwrap_err();
     assert!(never_prints.contains("before printing"), "{never_prints}");
 
     // Never ends by itself: stopped at the end, and its shown lines were printed.
     let endless = "sh -c 'echo ready; sleep 100' &\n#> ready\necho\n";
-    assert_eq!(walk(&block(endless)), Ok(2));
+    assert_eq!(walk(&block(endless)).map(|w| w.0), Ok(2));
     // `wait` for one that ends, and what it printed is looked for.
     let background = "sh -c 'echo ready; echo done' &\n#> ready\necho\n";
-    assert_eq!(walk(&block(&format!("{background}wait\n#> done"))), Ok(3));
+    assert_eq!(
+        walk(&block(&format!("{background}wait\n#> done"))).map(|w| w.0),
+        Ok(3)
+    );
     let not_done = walk(&block(&format!("{background}wait\n#> finished"))).unwrap_err();
     assert!(not_done.contains("    finished"), "{not_done}");
 
