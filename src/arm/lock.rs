@@ -1,6 +1,8 @@
-//! One process per arm: a name in the abstract Unix socket namespace (`@omnid-arm-<name>`),
-//! bound and listening while the process drives the arm. Binding it is exclusive machine-wide
-//! and ends with the process, with no file to go stale, be followed through a symlink or be
+//! One process per arm: a name in the abstract Unix socket namespace, bound and listening while
+//! the process drives the arm: `@omnid-arm-<name>` for real hardware (one device, one process,
+//! whoever runs it), `@omnid-arm-u<uid>-<name>` for a simulated or replayed arm (each user's
+//! `sim` is their own, as their runtime and state directories are). Binding it is exclusive
+//! machine-wide and ends with the process, with no file to go stale, be followed through a symlink or be
 //! truncated; a second `run`, `serve` or `probe` of the same arm connects to it to learn the
 //! holder's process id (SO_PEERCRED) and names it. `hold` holds any such name (the daemon's
 //! socket paths are held the same way).
@@ -38,10 +40,33 @@ fn address(id: &str) -> (libc::sockaddr_un, libc::socklen_t) {
     (addr, len as libc::socklen_t)
 }
 
+/// The abstract name that locks arm `name`: host-wide for real hardware, per user (the
+/// effective uid in the name) for a simulated or replayed arm.
+pub fn lock_id(name: &str, simulated: bool) -> String {
+    if simulated {
+        // SAFETY: geteuid has no arguments and cannot fail.
+        let uid = unsafe { libc::geteuid() };
+        format!("omnid-arm-u{uid}-{name}")
+    } else {
+        format!("omnid-arm-{name}")
+    }
+}
+
 impl ArmLock {
-    /// Take arm `name`; refused, naming the holder, while another process has it.
+    /// Take the real arm `name` (host-wide); refused, naming the holder, while another
+    /// process has it.
     pub fn acquire(name: &str) -> Result<ArmLock, String> {
-        let fd = hold(&format!("omnid-arm-{name}"))
+        Self::take(name, false)
+    }
+
+    /// Take the simulated (or replayed) arm `name`: this user's only, so another user's arm
+    /// of the same name is not in the way.
+    pub fn acquire_simulated(name: &str) -> Result<ArmLock, String> {
+        Self::take(name, true)
+    }
+
+    fn take(name: &str, simulated: bool) -> Result<ArmLock, String> {
+        let fd = hold(&lock_id(name, simulated))
             .map_err(|holder| format!("the arm `{name}` is in use by {holder}; stop it first"))?;
         Ok(ArmLock { _fd: fd })
     }
@@ -143,5 +168,23 @@ mod tests {
         drop(held);
         // Released with its holder: the next one gets it.
         ArmLock::acquire(&name).unwrap();
+    }
+
+    #[test]
+    fn a_simulated_arm_is_locked_per_user_and_a_real_one_host_wide() {
+        // SAFETY: geteuid has no arguments and cannot fail.
+        let uid = unsafe { libc::geteuid() };
+        let sim = lock_id("left", true);
+        let real = lock_id("left", false);
+        assert_eq!(sim, format!("omnid-arm-u{uid}-left"));
+        assert_eq!(real, "omnid-arm-left");
+        assert!(!real.contains(&format!("u{uid}")), "{real}");
+        // The two are different names: a simulated `left` does not hold a real `left`.
+        let name = format!("test-scope-{}", std::process::id());
+        let held = ArmLock::acquire_simulated(&name).unwrap();
+        let real = ArmLock::acquire(&name).unwrap();
+        let e = ArmLock::acquire_simulated(&name).unwrap_err();
+        assert!(e.contains(&name), "{e}");
+        drop((held, real));
     }
 }

@@ -41,9 +41,18 @@ pub(crate) fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
     // The arm is this process's while it probes: a daemon or a run on it is refused, and so
     // is this probe while one of them has it.
     let arm = args.arm.clone().unwrap_or_else(|| "firewire".into());
+    // A configured arm that is simulated is locked as its runs and daemons lock it (per user).
+    let mut simulated = false;
     if args.arm.is_some() {
         match cfg.arm_named(&arm) {
-            Ok(a) => cfg = a.config,
+            Ok(a) => {
+                simulated = !matches!(
+                    a.device,
+                    omnid::device::registry::DeviceSpec::Usb
+                        | omnid::device::registry::DeviceSpec::Firewire
+                );
+                cfg = a.config
+            }
             Err(e) => {
                 omnid::errln!("omnid probe: --arm: {e}");
                 return Ok(EXIT_BAD_INPUT);
@@ -76,11 +85,10 @@ pub(crate) fn probe_cmd(args: ProbeArgs) -> Result<u8, anyhow::Error> {
         return Ok(EXIT_BAD_INPUT);
     }
     // A named arm is locked now (it may be a daemon's); the default one once the Omni is found.
-    let _lock = match args
-        .arm
-        .as_ref()
-        .map(|_| omnid::arm::ArmLock::acquire(&arm))
-    {
+    let _lock = match args.arm.as_ref().map(|_| match simulated {
+        true => omnid::arm::ArmLock::acquire_simulated(&arm),
+        false => omnid::arm::ArmLock::acquire(&arm),
+    }) {
         Some(Err(e)) => {
             omnid::errln!("omnid probe: {e}");
             return Ok(EXIT_BAD_INPUT);

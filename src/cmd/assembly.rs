@@ -181,12 +181,16 @@ pub(crate) fn assemble(
 ) -> Result<Pipeline, RunError> {
     let replay = matches!(opts.device, DeviceSpec::Replay(_));
     // One process per arm: real hardware always, a configured arm by name too.
-    let lock =
-        if matches!(opts.device, DeviceSpec::Usb | DeviceSpec::Firewire) || opts.arm_configured {
-            Some(ArmLock::acquire(opts.arm_name()).map_err(RunError::BadInput)?)
-        } else {
-            None
-        };
+    // Real hardware is locked host-wide; a simulated or replayed arm per user, so two users'
+    // `sim` (or configured `left`) do not collide (docs/ARCHITECTURE.md, `arm`).
+    let real = matches!(opts.device, DeviceSpec::Usb | DeviceSpec::Firewire);
+    let lock = if real {
+        Some(ArmLock::acquire(opts.arm_name()).map_err(RunError::BadInput)?)
+    } else if opts.arm_configured {
+        Some(ArmLock::acquire_simulated(opts.arm_name()).map_err(RunError::BadInput)?)
+    } else {
+        None
+    };
     let (controllers, identifier, weights_label) = laws(opts, cfg, faults, &stop)?;
     let mut warnings = Vec::new();
     let how = OpenOptions {

@@ -161,6 +161,60 @@ impl Drop for Listener {
 #[derive(Debug)]
 pub(crate) struct SocketLock {
     _held: OwnedFd,
+    /// The socket's directory as given: the directories this process created for it are
+    /// removed, when empty, as the lock goes ([`remove_created_dirs`]).
+    dir: Option<PathBuf>,
+}
+
+impl Drop for SocketLock {
+    fn drop(&mut self) {
+        if let Some(dir) = &self.dir {
+            remove_created_dirs(dir);
+        }
+    }
+}
+
+/// The directories this process created for its sockets (`create_socket_dir`), shallowest
+/// first: the daemon leaves no runtime directory of its own behind.
+static CREATED_DIRS: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+/// Create the socket directory `dir` and any missing parents, remembering each one this
+/// process made (one that appeared meanwhile, made by someone else, is not ours).
+pub(crate) fn create_socket_dir(dir: &Path) -> io::Result<()> {
+    let missing: Vec<&Path> = dir
+        .ancestors()
+        .take_while(|d| !d.as_os_str().is_empty() && !d.is_dir())
+        .collect();
+    for d in missing.into_iter().rev() {
+        match std::fs::create_dir(d) {
+            Ok(()) => {
+                let mut created = CREATED_DIRS.lock().unwrap_or_else(|e| e.into_inner());
+                if !created.iter().any(|c| c == d) {
+                    created.push(d.to_path_buf());
+                }
+            }
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists && d.is_dir() => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+/// Remove, deepest first, the directories holding `dir` (itself included) that this process
+/// created, while they are empty: one still holding another arm's or another daemon's socket
+/// (or anything else) stays, and so does every directory this process did not create.
+pub(crate) fn remove_created_dirs(dir: &Path) {
+    let mut created = CREATED_DIRS.lock().unwrap_or_else(|e| e.into_inner());
+    for d in dir.ancestors() {
+        let Some(i) = created.iter().position(|c| c == d) else {
+            continue;
+        };
+        if std::fs::remove_dir(d).is_err() {
+            // Not empty (or gone): its parents are not empty either.
+            break;
+        }
+        created.remove(i);
+    }
 }
 
 impl SocketLock {
@@ -183,7 +237,10 @@ impl SocketLock {
                 format!("already served by {holder}; stop it first")
             }
         })?;
-        Ok(SocketLock { _held: held })
+        Ok(SocketLock {
+            _held: held,
+            dir: path.parent().map(Path::to_path_buf),
+        })
     }
 }
 
@@ -285,6 +342,56 @@ mod tests {
         let _theirs = UnixListener::bind(&path).unwrap();
         drop(ours);
         assert!(is_live(&path), "their socket was left in place");
+    }
+
+    #[test]
+    fn a_socket_directory_this_process_created_goes_with_its_last_socket() {
+        let root = tempfile::tempdir().unwrap();
+        // Made here (two levels): removed once the last socket in it has gone.
+        let dir = root.path().join("run").join("omnid");
+        create_socket_dir(&dir).unwrap();
+        let (a, b) = (dir.join("a.sock"), dir.join("b.sock"));
+        let (lock_a, lock_b) = (
+            SocketLock::acquire(&a).unwrap(),
+            SocketLock::acquire(&b).unwrap(),
+        );
+        let (sock_a, sock_b) = (
+            Listener::bind(&a, None, 0o660).unwrap(),
+            Listener::bind(&b, None, 0o660).unwrap(),
+        );
+        drop(sock_a);
+        drop(lock_a);
+        assert!(dir.is_dir(), "b's socket is still in it");
+        drop(sock_b);
+        drop(lock_b);
+        assert!(!root.path().join("run").exists(), "both levels were ours");
+
+        // Already there: left alone, though empty.
+        let theirs = root.path().join("theirs");
+        std::fs::create_dir(&theirs).unwrap();
+        create_socket_dir(&theirs).unwrap();
+        let path = theirs.join("c.sock");
+        let lock = SocketLock::acquire(&path).unwrap();
+        drop(Listener::bind(&path, None, 0o660).unwrap());
+        drop(lock);
+        assert!(
+            theirs.is_dir(),
+            "a directory this process did not create stays"
+        );
+
+        // Ours, but something else was put in it: it stays, with what it holds.
+        let dir = root.path().join("shared");
+        create_socket_dir(&dir).unwrap();
+        let path = dir.join("d.sock");
+        let lock = SocketLock::acquire(&path).unwrap();
+        let other = std::os::unix::net::UnixListener::bind(dir.join("other.sock")).unwrap();
+        drop(Listener::bind(&path, None, 0o660).unwrap());
+        drop(lock);
+        assert!(
+            is_live(&dir.join("other.sock")),
+            "another daemon's socket is kept"
+        );
+        drop(other);
     }
 
     #[test]

@@ -476,3 +476,45 @@ fn ctl_teleop_align_brings_the_follower_to_the_leaders_pose_before_coupling() {
         "coupled {rms:.1} mm RMS from the leader (they started {before:.1} mm apart)"
     );
 }
+
+/// A daemon leaves no runtime directory of its own behind (issue "Leftovers and shared
+/// state"): the `omnid/` it made for its arms' sockets goes with the last of them, whichever
+/// arm ends last; one that was already there, or that holds another daemon's socket, stays.
+#[test]
+#[ignore = "paced"]
+fn a_daemon_removes_the_runtime_directory_it_made_and_only_that() {
+    let (a, b) = (unique("dir-a"), unique("dir-b"));
+    let config = format!("[[arm]]\nname = \"{a}\"\n\n[[arm]]\nname = \"{b}\"\n");
+    let mut d = Served::start(&[], Some(&config), &[&a, &b]);
+    let runtime = d.path("omnid");
+    assert!(runtime.is_dir(), "the daemon made {}", runtime.display());
+    let (code, err) = d.stop();
+    assert_eq!(code, Some(130), "{err}");
+    assert!(
+        !runtime.exists(),
+        "left behind: {}\n{err}",
+        runtime.display()
+    );
+
+    // Made by someone else (here, the test): left in place when the daemon ends.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("omnid")).unwrap();
+    let mut d = Served::start_in(dir, &["--device", "sim"], None, &["sim"]);
+    let (code, err) = d.stop();
+    assert_eq!(code, Some(130), "{err}");
+    assert!(
+        d.path("omnid").is_dir(),
+        "a directory it did not make was removed"
+    );
+    assert!(!d.socket("sim").exists(), "its socket goes: {err}");
+
+    // Made by this daemon, but another daemon's socket is in it when it ends: kept.
+    let name = unique("dir-c");
+    let config = format!("[[arm]]\nname = \"{name}\"\n");
+    let mut first = Served::start(&[], Some(&config), &[&name]);
+    let other = first.path("omnid").join("other.sock");
+    let _theirs = std::os::unix::net::UnixListener::bind(&other).unwrap();
+    let (code, err) = first.stop();
+    assert_eq!(code, Some(130), "{err}");
+    assert!(other.exists(), "another daemon's socket was removed");
+}

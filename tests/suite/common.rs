@@ -88,6 +88,20 @@ impl Served {
         served
     }
 
+    /// [`Served::start`] in `dir` (its runtime directory, prepared by the test).
+    pub fn start_in(
+        dir: tempfile::TempDir,
+        args: &[&str],
+        config: Option<&str>,
+        sockets: &[&str],
+    ) -> Served {
+        let served = Served::spawn_in(dir, args, config, None);
+        for s in sockets {
+            served.wait_for(&served.socket(s));
+        }
+        served
+    }
+
     /// `omnid serve --device sim --socket <dir>/sim.sock EXTRA` (with `config`), once its
     /// socket answers.
     pub fn sim(extra: &[&str], config: Option<&str>) -> Served {

@@ -106,20 +106,39 @@ fn prepare_socket(path: &Path, policy: &Policy) -> Result<(Listener, SocketLock)
             ));
         }
     }
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        if !dir.is_dir() {
-            std::fs::create_dir_all(dir).map_err(|e| {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+    let (mode, gid) = socket_permissions(policy);
+    // A directory this process creates goes when its last socket does (`SocketLock`); another
+    // daemon's may go just as this one sees it, so a vanished directory is made again.
+    let mut attempts = 3;
+    loop {
+        attempts -= 1;
+        if let Some(dir) = dir.filter(|d| !d.is_dir()) {
+            crate::transport::socket::create_socket_dir(dir).map_err(|e| {
                 bad(format!(
                     "cannot create its directory: {e} (pass --socket PATH in a writable \
                      directory, or run as the systemd service, udev/omnid@.service)"
                 ))
             })?;
         }
+        let vanished = || attempts > 0 && dir.is_some_and(|d| !d.is_dir());
+        let lock = match SocketLock::acquire(path) {
+            Ok(lock) => lock,
+            Err(_) if vanished() => continue,
+            Err(e) => {
+                if let Some(d) = dir {
+                    crate::transport::socket::remove_created_dirs(d);
+                }
+                return Err(bad(e));
+            }
+        };
+        match Listener::bind(path, gid, mode) {
+            Ok(listener) => return Ok((listener, lock)),
+            Err(_) if vanished() => continue,
+            // The lock, dropped, removes a directory made for nothing.
+            Err(e) => return Err(bad(e.to_string())),
+        }
     }
-    let lock = SocketLock::acquire(path).map_err(&bad)?;
-    let (mode, gid) = socket_permissions(policy);
-    let listener = Listener::bind(path, gid, mode).map_err(|e| bad(e.to_string()))?;
-    Ok((listener, lock))
 }
 
 /// The socket file's mode and group. With one group configured, the socket belongs to it
