@@ -419,6 +419,11 @@ async fn relay(mut outer: TcpStream, inner: SocketAddr, mut ticket: Ticket) {
         return;
     }
     ticket.handshake_done();
+    if let Some(refusal) = old_subprotocol_refusal(&head) {
+        let _ = outer.write_all(refusal.as_bytes()).await;
+        let _ = outer.shutdown().await;
+        return;
+    }
     let Ok(mut back) = TcpStream::connect(inner).await else {
         return;
     };
@@ -428,6 +433,32 @@ async fn relay(mut outer: TcpStream, inner: SocketAddr, mut ticket: Ticket) {
         return;
     }
     let _ = tokio::io::copy_bidirectional(&mut outer, &mut back).await;
+}
+
+/// A viewer that offers only the old `foxglove.websocket.v1` subprotocol (the open-source
+/// Foxglove Studio, older Lichtblick) is answered with a 400 that says what to use, instead of
+/// the SDK's bare refusal; None for any other request (the SDK's server decides).
+fn old_subprotocol_refusal(head: &[u8]) -> Option<String> {
+    let text = String::from_utf8_lossy(head);
+    let offered: Vec<&str> = text
+        .lines()
+        .filter_map(|l| l.split_once(':'))
+        .filter(|(k, _)| k.trim().eq_ignore_ascii_case("sec-websocket-protocol"))
+        .flat_map(|(_, v)| v.split(','))
+        .map(str::trim)
+        .collect();
+    let old = offered.contains(&"foxglove.websocket.v1");
+    let new = offered.iter().any(|p| p.starts_with("foxglove.sdk."));
+    (old && !new).then(|| {
+        let body = "omnid's live view speaks the Foxglove SDK's protocol (foxglove.sdk.v1); this \
+                    viewer offered only foxglove.websocket.v1. Open it with Foxglove, or \
+                    Lichtblick 1.22.1 or later (docs/ARCHITECTURE.md, the live view).\n";
+        format!(
+            "HTTP/1.1 400 Bad Request\r\nContent-Type: text/plain; charset=utf-8\r\n\
+             Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            body.len()
+        )
+    })
 }
 
 /// Read until the end of an HTTP request's head (a blank line) into `head`: false if the
@@ -448,5 +479,29 @@ async fn read_head(stream: &mut TcpStream, head: &mut Vec<u8>) -> bool {
         if head.len() > MAX_REQUEST_HEAD {
             return false;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_viewer_offering_only_the_old_subprotocol_is_told_what_to_use() {
+        let old =
+            b"GET / HTTP/1.1\r\nHost: x\r\nSec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n";
+        let r = old_subprotocol_refusal(old).expect("refused with a reason");
+        assert!(
+            r.starts_with("HTTP/1.1 400 ") && r.contains("Lichtblick 1.22.1"),
+            "{r}"
+        );
+        let (head, body) = r.split_once("\r\n\r\n").unwrap();
+        assert!(
+            head.contains(&format!("Content-Length: {}", body.len())),
+            "{r}"
+        );
+        let both = b"GET / HTTP/1.1\r\nsec-websocket-protocol: foxglove.websocket.v1, foxglove.sdk.v1\r\n\r\n";
+        assert_eq!(old_subprotocol_refusal(both), None);
+        assert_eq!(old_subprotocol_refusal(b"GET / HTTP/1.1\r\n\r\n"), None);
     }
 }

@@ -363,3 +363,90 @@ proptest! {
         }
     }
 }
+
+/// A chunk record (uncompressed size as declared, CRC 0) of `data` compressed as `compression`.
+fn chunk_record(compression: &str, declared: u64, data: &[u8]) -> Vec<u8> {
+    let mut b = Vec::new();
+    b.extend_from_slice(&[0; 16]); // start and end times
+    b.extend_from_slice(&declared.to_le_bytes());
+    b.extend_from_slice(&0u32.to_le_bytes());
+    b.extend_from_slice(&(compression.len() as u32).to_le_bytes());
+    b.extend_from_slice(compression.as_bytes());
+    b.extend_from_slice(&(data.len() as u64).to_le_bytes());
+    b.extend_from_slice(data);
+    let mut r = vec![mcap::records::op::CHUNK];
+    r.extend_from_slice(&(b.len() as u64).to_le_bytes());
+    r.extend(b);
+    r
+}
+
+/// Every command that reads a log refuses an invalid MCAP file the same way, through the
+/// one reader: a private record, and a 32 KiB chunk that would inflate to 1 GiB (zstd RLE
+/// blocks of 128 KiB, 4 bytes each).
+#[test]
+fn replay_convert_and_plot_refuse_invalid_mcap_files_alike() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = small_log();
+    // The header record follows the 8 bytes of magic.
+    let header_len = u64::from_le_bytes(good[9..17].try_into().unwrap()) as usize;
+    let after_header = 8 + 9 + header_len;
+    let mut bomb = vec![0x28, 0xb5, 0x2f, 0xfd, 0x00, 0x38];
+    for i in 0..8192u32 {
+        let header = (128u32 << 10) << 3 | 1 << 1 | u32::from(i == 8191);
+        bomb.extend_from_slice(&header.to_le_bytes()[..3]);
+        bomb.push(0);
+    }
+    let cases = [
+        (
+            "private.mcap",
+            vec![0x80, 0, 0, 0, 0, 0, 0, 0, 0],
+            "private record (opcode 0x80)",
+        ),
+        (
+            "bomb.mcap",
+            chunk_record("zstd", 1 << 30, &bomb),
+            "inflates to 1073741824 bytes",
+        ),
+    ];
+    for (name, inserted, reason) in cases {
+        let mut bytes = good[..after_header].to_vec();
+        bytes.extend_from_slice(&inserted);
+        bytes.extend_from_slice(&good[after_header..]);
+        let path = dir.path().join(name);
+        std::fs::write(&path, &bytes).unwrap();
+        let input = path.to_str().unwrap();
+        let replay = format!("replay:{input}");
+        let log = dir.path().join("r.csv");
+        let converted = dir.path().join("c.csv");
+        let figures = dir.path().join("figures");
+        for args in [
+            vec![
+                "run",
+                "--fast",
+                "--device",
+                &replay,
+                "--log",
+                log.to_str().unwrap(),
+            ],
+            vec![
+                "convert",
+                "--from",
+                "omnid",
+                input,
+                "--out",
+                converted.to_str().unwrap(),
+            ],
+            vec!["plot", input, "--out", figures.to_str().unwrap()],
+        ] {
+            let out = omnid().args(&args).output().unwrap();
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+            assert!(
+                err.contains(name)
+                    && err.contains(&format!("MCAP record 2 (at byte {after_header})"))
+                    && err.contains(reason),
+                "{args:?}: {err}"
+            );
+        }
+    }
+}

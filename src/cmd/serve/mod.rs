@@ -347,101 +347,17 @@ pub fn serve(
     stop: Arc<AtomicBool>,
 ) -> Result<ServeOutcome, RunError> {
     let arms = arms(opts, cfg)?;
-    // Descriptors first: the ports are capped below the limit, and the rest is the Unix
-    // socket's reserve (docs/ZENOH.md, "Ports and descriptors").
-    let (_, limit) = descriptors::raise_limit();
-    let zenoh_on = opts.zenoh || cfg.zenoh.enabled;
-    let budget = descriptors::Budget {
-        socket_clients: arms.len() as u64 * (cfg.serve.max_clients as u64 + 8 + 32),
-        zenoh: if zenoh_on { cfg.zenoh.descriptors() } else { 0 },
-        live_view: if opts.foxglove.is_some() {
-            3 * crate::transport::foxglove::MAX_CONNECTIONS as u64
-        } else {
-            0
-        },
-        arms: arms.len() as u64,
-    };
-    if let Some(w) = budget.warning(limit) {
-        crate::errln!("omnid: warning: {w}");
-    }
+    descriptor_budget(opts, cfg, arms.len() as u64);
     // Every arm ready before any starts: a daemon that cannot serve one serves none.
     let mut prepared = Vec::with_capacity(arms.len());
     for arm in &arms {
         prepared.push(prepare_arm(arm, opts, cfg, stop.clone())?);
     }
-    let default_dirs = crate::transport::default_socket_dirs();
-    for p in &prepared {
-        // The shortest `omnid ctl` line that reaches this arm.
-        let in_default_dir = p
-            .socket_path
-            .parent()
-            .is_some_and(|d| default_dirs.iter().any(|dd| dd == d));
-        let ctl = match (in_default_dir, prepared.len()) {
-            (true, 1) => "omnid ctl mode hold".to_string(),
-            (true, _) => format!("omnid ctl --arm {} mode hold", p.name),
-            (false, _) => format!("omnid ctl --socket {} mode hold", p.socket_path.display()),
-        };
-        crate::errln!(
-            "omnid serve: arm `{}` ({}) on {} (amplifiers off until a client asks for a mode; \
-             `{ctl}`)",
-            p.name,
-            p.station.arm.kind,
-            p.socket_path.display(),
-        );
-        for w in &p.pipeline.warnings {
-            crate::errln!("omnid: warning: {}: {w}", p.name);
-        }
-    }
+    announce(&prepared);
     // The live view is up before any arm starts: a port that cannot be had serves nothing.
-    let view = match opts.foxglove {
-        Some(addr) => {
-            let view = crate::transport::foxglove::LiveView::start(addr)
-                .map_err(|e| RunError::BadInput(e.to_string()))?;
-            crate::errln!(
-                "omnid serve: live view on ws://{} (Foxglove, or Lichtblick 1.22.1 or later: open \
-                 a connection, Foxglove WebSocket; layout in docs/omnid-layout.json)",
-                view.addr()
-            );
-            if !view.addr().ip().is_loopback() {
-                crate::errln!(
-                    "omnid: warning: the live view on {} can be reached from other machines and \
-                     asks no one who they are (it only sends; it takes no commands)",
-                    view.addr()
-                );
-            }
-            Some(view)
-        }
-        None => None,
-    };
+    let view = start_live_view(opts)?;
     // zenoh is up before any arm starts, like the live view.
-    let net = if opts.zenoh || cfg.zenoh.enabled {
-        let net = crate::transport::zenoh::ZenohNet::start(&cfg.zenoh)
-            .map_err(|e| RunError::BadInput(e.to_string()))?;
-        crate::errln!(
-            "omnid serve: zenoh session {} listening on {} (ROS 2 domain {}; {}; \
-             docs/ZENOH.md)",
-            net.zid(),
-            net.listening().join(", "),
-            cfg.zenoh.domain().unwrap_or(0),
-            net.allows()
-        );
-        if cfg.zenoh.allow_commands
-            && !net.exposure().reach.is_empty()
-            && net.exposure().auth.is_none()
-        {
-            crate::errln!(
-                "omnid: warning: [zenoh] insecure = true: anyone who reaches {} can command the \
-                 arms (docs/ZENOH.md)",
-                net.exposure().reach.join(", ")
-            );
-        }
-        Some(net)
-    } else {
-        if let Some(w) = zenoh_ignored(&cfg.zenoh) {
-            crate::errln!("omnid: warning: {w}");
-        }
-        None
-    };
+    let net = start_zenoh(opts, cfg)?;
     // The pairs a `teleop` op can form: between this daemon's arms, and with zenoh up with
     // other daemons' arms.
     let mut rendezvous =
@@ -510,33 +426,7 @@ pub fn serve(
             .map_err(|e| RunError::Internal(format!("cannot start a host thread: {e}")))?;
         threads.push(thread);
     }
-    let mut outcome = ServeOutcome {
-        arms: Vec::new(),
-        shutdown_requested: false,
-    };
-    let mut first_error = None;
-    for t in threads {
-        match t.join() {
-            Ok(Ok((arm, shutdown))) => {
-                outcome.shutdown_requested |= shutdown;
-                outcome.arms.push(arm);
-            }
-            Ok(Err(e)) => {
-                first_error.get_or_insert(e);
-            }
-            Err(_) => {
-                first_error.get_or_insert(RunError::Internal("a host thread panicked".into()));
-            }
-        }
-    }
-    match first_error {
-        Some(e) if outcome.arms.is_empty() => Err(e),
-        Some(e) => {
-            crate::errln!("omnid serve: {e}");
-            Ok(outcome)
-        }
-        None => Ok(outcome),
-    }
+    join_arms(threads)
 }
 
 /// `omnid devices`: the configured arms, each with its kind, serial, aliases, socket and
@@ -687,6 +577,149 @@ fn end_arm(
     // The clients' connections close only now, after the final safe packet went out.
     drop(host_report);
     Ok((outcome, shutdown))
+}
+
+/// Wait for every arm's host thread: the arms' outcomes, or the first error when no arm has
+/// one (an error beside arms that ended is said, and their outcomes kept).
+fn join_arms(
+    threads: Vec<std::thread::JoinHandle<Result<(ArmOutcome, bool), RunError>>>,
+) -> Result<ServeOutcome, RunError> {
+    let mut outcome = ServeOutcome {
+        arms: Vec::new(),
+        shutdown_requested: false,
+    };
+    let mut first_error = None;
+    for t in threads {
+        match t.join() {
+            Ok(Ok((arm, shutdown))) => {
+                outcome.shutdown_requested |= shutdown;
+                outcome.arms.push(arm);
+            }
+            Ok(Err(e)) => {
+                first_error.get_or_insert(e);
+            }
+            Err(_) => {
+                first_error.get_or_insert(RunError::Internal("a host thread panicked".into()));
+            }
+        }
+    }
+    match first_error {
+        Some(e) if outcome.arms.is_empty() => Err(e),
+        Some(e) => {
+            crate::errln!("omnid serve: {e}");
+            Ok(outcome)
+        }
+        None => Ok(outcome),
+    }
+}
+/// Descriptors first: the ports are capped below the limit, and the rest is the Unix socket's
+/// reserve (docs/ZENOH.md, "Ports and descriptors"); a budget past the limit is said.
+fn descriptor_budget(opts: &ServeOptions, cfg: &Config, arms: u64) {
+    let (_, limit) = descriptors::raise_limit();
+    let zenoh_on = opts.zenoh || cfg.zenoh.enabled;
+    let budget = descriptors::Budget {
+        socket_clients: arms * (cfg.serve.max_clients as u64 + 8 + 32),
+        zenoh: if zenoh_on { cfg.zenoh.descriptors() } else { 0 },
+        live_view: if opts.foxglove.is_some() {
+            3 * crate::transport::foxglove::MAX_CONNECTIONS as u64
+        } else {
+            0
+        },
+        arms,
+    };
+    if let Some(w) = budget.warning(limit) {
+        crate::errln!("omnid: warning: {w}");
+    }
+}
+
+/// Say where each arm is served, the shortest `omnid ctl` line that reaches it, and its
+/// warnings.
+fn announce(prepared: &[Prepared]) {
+    let default_dirs = crate::transport::default_socket_dirs();
+    for p in prepared {
+        // The shortest `omnid ctl` line that reaches this arm.
+        let in_default_dir = p
+            .socket_path
+            .parent()
+            .is_some_and(|d| default_dirs.iter().any(|dd| dd == d));
+        let ctl = match (in_default_dir, prepared.len()) {
+            (true, 1) => "omnid ctl mode hold".to_string(),
+            (true, _) => format!("omnid ctl --arm {} mode hold", p.name),
+            (false, _) => format!("omnid ctl --socket {} mode hold", p.socket_path.display()),
+        };
+        crate::errln!(
+            "omnid serve: arm `{}` ({}) on {} (amplifiers off until a client asks for a mode; \
+             `{ctl}`)",
+            p.name,
+            p.station.arm.kind,
+            p.socket_path.display(),
+        );
+        for w in &p.pipeline.warnings {
+            crate::errln!("omnid: warning: {}: {w}", p.name);
+        }
+    }
+}
+
+/// The live view (`--foxglove`), said where it is and who can reach it.
+fn start_live_view(
+    opts: &ServeOptions,
+) -> Result<Option<crate::transport::foxglove::LiveView>, RunError> {
+    Ok(match opts.foxglove {
+        Some(addr) => {
+            let view = crate::transport::foxglove::LiveView::start(addr)
+                .map_err(|e| RunError::BadInput(e.to_string()))?;
+            crate::errln!(
+                "omnid serve: live view on ws://{} (Foxglove, or Lichtblick 1.22.1 or later: open \
+                 a connection, Foxglove WebSocket; layout in docs/omnid-layout.json)",
+                view.addr()
+            );
+            if !view.addr().ip().is_loopback() {
+                crate::errln!(
+                    "omnid: warning: the live view on {} can be reached from other machines and \
+                     asks no one who they are (it only sends; it takes no commands)",
+                    view.addr()
+                );
+            }
+            Some(view)
+        }
+        None => None,
+    })
+}
+
+/// The daemon's zenoh session (`--zenoh`, `[zenoh] enabled`), said what it allows; or why a
+/// `[zenoh]` section is ignored.
+fn start_zenoh(
+    opts: &ServeOptions,
+    cfg: &Config,
+) -> Result<Option<crate::transport::zenoh::ZenohNet>, RunError> {
+    Ok(if opts.zenoh || cfg.zenoh.enabled {
+        let net = crate::transport::zenoh::ZenohNet::start(&cfg.zenoh)
+            .map_err(|e| RunError::BadInput(e.to_string()))?;
+        crate::errln!(
+            "omnid serve: zenoh session {} listening on {} (ROS 2 domain {}; {}; \
+             docs/ZENOH.md)",
+            net.zid(),
+            net.listening().join(", "),
+            cfg.zenoh.domain().unwrap_or(0),
+            net.allows()
+        );
+        if cfg.zenoh.allow_commands
+            && !net.exposure().reach.is_empty()
+            && net.exposure().auth.is_none()
+        {
+            crate::errln!(
+                "omnid: warning: [zenoh] insecure = true: anyone who reaches {} can command the \
+                 arms (docs/ZENOH.md)",
+                net.exposure().reach.join(", ")
+            );
+        }
+        Some(net)
+    } else {
+        if let Some(w) = zenoh_ignored(&cfg.zenoh) {
+            crate::errln!("omnid: warning: {w}");
+        }
+        None
+    })
 }
 
 /// A `[zenoh]` section that says something while zenoh is off (no `enabled = true`, no

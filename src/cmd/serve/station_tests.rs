@@ -375,6 +375,7 @@ fn weights_reset_puts_the_shipped_weights_back_and_removes_what_the_arm_learned(
 }
 
 #[test]
+#[ignore = "paced"] // a minute of debug-build ticks: the long-run tier, not the fast one
 fn an_arm_restarted_after_a_minute_of_tracking_starts_from_what_it_learned_and_tracks_better() {
     // docs/IDENTIFIER.md "Kept per arm": a minute of the sine under nnidc, kept at the end as
     // the daemon keeps it; the next start on the arm loads it, and its first second tracks

@@ -15,16 +15,49 @@ use thiserror::Error;
 /// The longest record accepted (a chunk omnid writes is about 1 MiB before compression).
 const MAX_RECORD_BYTES: usize = 64 << 20;
 
+/// The most a chunk may inflate to, checked against the size its header declares before any
+/// of it is decompressed; decompression then stops at the declared size (docs/MCAP.md,
+/// "Reading"). A chunk omnid writes inflates to about 1 MiB.
+pub const MAX_CHUNK_BYTES: u64 = 64 << 20;
+
+/// Where a record starts: its byte offset in the file, or, for a record inside a chunk, its
+/// offset in the chunk's decompressed records and the chunk's offset in the file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Place {
+    /// A record of the file itself.
+    File(u64),
+    /// A record inside a chunk.
+    Chunk {
+        /// The chunk record's offset in the file.
+        chunk: u64,
+        /// The record's offset in the chunk's decompressed records.
+        within: u64,
+    },
+}
+
+impl std::fmt::Display for Place {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Place::File(at) => write!(f, "at byte {at}"),
+            Place::Chunk { chunk, within } => {
+                write!(f, "at byte {within} inside the chunk at byte {chunk}")
+            }
+        }
+    }
+}
+
 /// Why an MCAP log cannot be read. Records are counted from 1 in file order, chunks'
 /// contents included; the file's name is added by whoever reports it.
 #[derive(Debug, Error)]
 pub enum McapReadError {
     /// The file is damaged (a bad CRC, a record that does not parse, a message that does
     /// not decode).
-    #[error("MCAP record {record}: {reason}")]
+    #[error("MCAP record {record} ({at}): {reason}")]
     Bad {
         /// Which record.
         record: u64,
+        /// Where it starts.
+        at: Place,
         /// What is wrong.
         reason: String,
     },
@@ -48,8 +81,13 @@ pub enum McapReadError {
 /// read).
 #[derive(Default)]
 struct Channels {
-    schema_names: std::collections::HashMap<u16, String>,
+    /// Each schema id's name and encoding.
+    schemas: std::collections::HashMap<u16, (String, String)>,
     by_id: std::collections::HashMap<u16, Option<usize>>,
+    /// The bytes each schema and channel id was first defined with: a record defining it
+    /// again must be the same (the MCAP format's rule).
+    schema_bytes: std::collections::HashMap<u16, Vec<u8>>,
+    channel_bytes: std::collections::HashMap<u16, Vec<u8>>,
     present: [bool; TOPICS.len()],
 }
 
@@ -58,6 +96,11 @@ struct Channels {
 pub struct McapTicks<R: Read> {
     input: R,
     reader: LinearReader,
+    /// Reads the chunk records the file reader hands over, one at a time, after their
+    /// declared size was checked.
+    chunks: LinearReader,
+    /// A chunk is being read from `chunks`.
+    in_chunk: bool,
     state: State,
     lenient: bool,
     done: bool,
@@ -68,6 +111,16 @@ pub struct McapTicks<R: Read> {
 struct State {
     channels: Channels,
     record: u64,
+    /// The file offset of the next record of the file, and of the chunk being read.
+    offset: u64,
+    chunk_at: u64,
+    /// The offset of the next record in the chunk's decompressed records.
+    within: u64,
+    /// Where the record being taken starts.
+    at: Place,
+    /// The sizes declared by the chunks handed to the decompressor: the most it can have
+    /// produced (it stops at a chunk's declared size).
+    inflated: u64,
     rows: u64,
     /// The row being put together, and which of its per-tick topics have come.
     row: TickRecord,
@@ -109,17 +162,31 @@ impl<R: Read> McapTicks<R> {
     pub fn new(input: R, lenient: bool) -> Self {
         // A chunk's CRC is checked before any of its messages is taken, so a chunk cut short
         // or damaged yields nothing rather than unchecked rows.
+        // Chunks are handed over whole, so their declared size is checked before anything is
+        // decompressed, and a record inside one is known to be.
         let options = LinearReaderOptions::default()
-            .with_prevalidate_chunk_crcs(true)
+            .with_emit_chunks(true)
             .with_validate_data_section_crc(true)
             .with_validate_summary_section_crc(true)
+            .with_record_length_limit(MAX_RECORD_BYTES);
+        let chunks = LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_prevalidate_chunk_crcs(true)
             .with_record_length_limit(MAX_RECORD_BYTES);
         McapTicks {
             input,
             reader: LinearReader::new_with_options(options),
+            chunks: LinearReader::new_with_options(chunks),
+            in_chunk: false,
             state: State {
                 channels: Channels::default(),
                 record: 0,
+                offset: super::MAGIC.len() as u64,
+                chunk_at: 0,
+                within: 0,
+                at: Place::File(0),
+                inflated: 0,
                 rows: 0,
                 row: blank(),
                 seen: 0,
@@ -147,7 +214,43 @@ impl<R: Read> McapTicks<R> {
         if self.done {
             return Ok(None);
         }
+        let result = self.next_record();
+        if result.is_err() {
+            self.done = true;
+        }
+        result
+    }
+
+    fn next_record(&mut self) -> Result<Option<TickRecord>, Next> {
         loop {
+            if self.in_chunk {
+                // The chunk was handed over whole: a request for more bytes means it is done.
+                match self.chunks.next_event() {
+                    None | Some(Ok(LinearReadEvent::ReadRequest(_))) => self.in_chunk = false,
+                    Some(Ok(LinearReadEvent::Record { data, opcode })) => {
+                        let state = &mut self.state;
+                        state.record += 1;
+                        state.at = Place::Chunk {
+                            chunk: state.chunk_at,
+                            within: state.within,
+                        };
+                        state.within += 9 + data.len() as u64;
+                        if let Some(row) = state.record_in(opcode, data, true)? {
+                            return Ok(Some(row));
+                        }
+                    }
+                    Some(Err(e)) => {
+                        let state = &mut self.state;
+                        state.at = Place::Chunk {
+                            chunk: state.chunk_at,
+                            within: state.within,
+                        };
+                        state.record += 1;
+                        return Err(Next::Read(state.bad(e.to_string())));
+                    }
+                }
+                continue;
+            }
             let event = match self.reader.next_event() {
                 None => {
                     self.done = true;
@@ -171,28 +274,21 @@ impl<R: Read> McapTicks<R> {
                 Ok(LinearReadEvent::Record { data, opcode }) => {
                     let state = &mut self.state;
                     state.record += 1;
-                    // Only schemas, channels and messages say anything about the rows; the
-                    // rest (indexes, statistics, metadata) is not parsed (that would allocate).
-                    use mcap::records::op;
-                    if ![op::SCHEMA, op::CHANNEL, op::MESSAGE].contains(&opcode)
-                        || state.known_again(opcode, data)
-                    {
+                    state.at = Place::File(state.offset);
+                    state.offset += 9 + data.len() as u64;
+                    if opcode == mcap::records::op::CHUNK {
+                        state.chunk(data)?;
+                        // The whole record, as the chunk reader reads it from a file.
+                        let buf = self.chunks.insert(9 + data.len());
+                        buf[0] = opcode;
+                        buf[1..9].copy_from_slice(&(data.len() as u64).to_le_bytes());
+                        buf[9..].copy_from_slice(data);
+                        self.chunks.notify_read(9 + data.len());
+                        self.in_chunk = true;
                         continue;
                     }
-                    let record = match mcap::parse_record(opcode, data) {
-                        Ok(r) => r,
-                        Err(e) => {
-                            self.done = true;
-                            return Err(Next::Read(state.bad(e.to_string())));
-                        }
-                    };
-                    match state.take(record) {
-                        Ok(Some(row)) => return Ok(Some(row)),
-                        Ok(None) => {}
-                        Err(e) => {
-                            self.done = true;
-                            return Err(Next::Read(e));
-                        }
+                    if let Some(row) = state.record_in(opcode, data, false)? {
+                        return Ok(Some(row));
                     }
                 }
                 Err(mcap::McapError::UnexpectedEof) => {
@@ -207,18 +303,100 @@ impl<R: Read> McapTicks<R> {
                     }));
                 }
                 Err(e) => {
-                    self.done = true;
-                    return Err(Next::Read(McapReadError::Bad {
-                        record: self.state.record + 1,
-                        reason: e.to_string(),
-                    }));
+                    let state = &mut self.state;
+                    state.record += 1;
+                    state.at = Place::File(state.offset);
+                    return Err(Next::Read(state.bad(e.to_string())));
                 }
             }
         }
     }
+
+    /// The most the decompressor can have produced so far: the sizes declared by the chunks
+    /// it was given (it stops at a chunk's declared size).
+    pub fn inflated_bytes(&self) -> u64 {
+        self.state.inflated
+    }
 }
 
 impl State {
+    /// A chunk record of the file: refused before any of it is decompressed if it declares
+    /// more than [`MAX_CHUNK_BYTES`].
+    fn chunk(&mut self, data: &[u8]) -> Result<(), Next> {
+        // Start and end times (8 + 8), then the uncompressed size.
+        let Some(size) = data.get(16..24) else {
+            return Err(Next::Read(
+                self.bad("a chunk record too short for its header"),
+            ));
+        };
+        let size = u64::from_le_bytes(size.try_into().unwrap_or_default());
+        if size > MAX_CHUNK_BYTES {
+            return Err(Next::Read(self.bad(format!(
+                "a chunk that inflates to {size} bytes, over the {} MiB a chunk may hold",
+                MAX_CHUNK_BYTES >> 20
+            ))));
+        }
+        self.inflated += size;
+        self.chunk_at = match self.at {
+            Place::File(at) => at,
+            Place::Chunk { chunk, .. } => chunk,
+        };
+        self.within = 0;
+        Ok(())
+    }
+
+    /// One record, of the file or (`in_chunk`) inside a chunk; a whole row when it completes
+    /// one.
+    fn record_in(
+        &mut self,
+        opcode: u8,
+        data: &[u8],
+        in_chunk: bool,
+    ) -> Result<Option<TickRecord>, Next> {
+        use mcap::records::op;
+        let refuse = |state: &Self, reason: String| Err(Next::Read(state.bad(reason)));
+        match opcode {
+            0x00 => return refuse(self, "opcode 0x00, which no record has".into()),
+            0x80..=0xff => {
+                return refuse(
+                    self,
+                    format!(
+                        "a private record (opcode {opcode:#04x}), which an omnid log does not \
+                         hold and omnid does not read"
+                    ),
+                )
+            }
+            op::SCHEMA | op::CHANNEL | op::MESSAGE => {}
+            op::CHUNK if in_chunk => return refuse(self, "a chunk inside a chunk".into()),
+            _ if in_chunk => {
+                return refuse(
+                    self,
+                    format!(
+                        "a record of opcode {opcode:#04x} inside a chunk, which holds only \
+                         schemas, channels and messages"
+                    ),
+                )
+            }
+            // Indexes, statistics, metadata: they say nothing about the rows, and are not
+            // parsed (that would allocate).
+            _ => return Ok(None),
+        }
+        if self.known_again(opcode, data).map_err(Next::Read)? {
+            return Ok(None);
+        }
+        let record =
+            mcap::parse_record(opcode, data).map_err(|e| Next::Read(self.bad(e.to_string())))?;
+        match &record {
+            mcap::records::Record::Schema { header, .. } => {
+                self.channels.schema_bytes.insert(header.id, data.to_vec());
+            }
+            mcap::records::Record::Channel(c) => {
+                self.channels.channel_bytes.insert(c.id, data.to_vec());
+            }
+            _ => {}
+        }
+        self.take(record).map_err(Next::Read)
+    }
     fn schema(&self) -> LogSchema {
         LogSchema {
             model: self.channels.present[super::TORQUE_MODEL.id],
@@ -229,23 +407,51 @@ impl State {
     }
 
     /// A Schema or Channel record whose id is already known: writers repeat them in every
-    /// chunk (so a chunk reads alone), and parsing one again would allocate its strings.
-    fn known_again(&self, opcode: u8, data: &[u8]) -> bool {
-        let id = || data.get(..2).map(|b| u16::from_le_bytes([b[0], b[1]]));
-        match opcode {
-            mcap::records::op::SCHEMA => {
-                id().is_some_and(|id| self.channels.schema_names.contains_key(&id))
+    /// chunk (so a chunk reads alone), and parsing one again would allocate its strings. The
+    /// format requires every record of an id to be the same: one that is not is refused.
+    fn known_again(&self, opcode: u8, data: &[u8]) -> Result<bool, McapReadError> {
+        let Some(id) = data.get(..2).map(|b| u16::from_le_bytes([b[0], b[1]])) else {
+            return Ok(false);
+        };
+        let (first, what) = match opcode {
+            mcap::records::op::SCHEMA => (self.channels.schema_bytes.get(&id), "schema"),
+            mcap::records::op::CHANNEL => (self.channels.channel_bytes.get(&id), "channel"),
+            _ => return Ok(false),
+        };
+        match first {
+            None => Ok(false),
+            Some(first) if first[..] == *data => Ok(true),
+            Some(first) => {
+                let describe = |bytes: &[u8]| match mcap::parse_record(opcode, bytes) {
+                    Ok(mcap::records::Record::Schema { header, .. }) => {
+                        format!("`{}` in {:?}", header.name, header.encoding)
+                    }
+                    Ok(mcap::records::Record::Channel(c)) => format!(
+                        "`{}` of schema {}{}",
+                        c.topic,
+                        c.schema_id,
+                        self.channels
+                            .schemas
+                            .get(&c.schema_id)
+                            .map(|(name, _)| format!(" ({name})"))
+                            .unwrap_or_default()
+                    ),
+                    _ => "a record that does not parse".into(),
+                };
+                Err(self.bad(format!(
+                    "{what} {id} defined again differently: first as {}, now as {} (a {what} \
+                     id must always mean the same)",
+                    describe(first),
+                    describe(data)
+                )))
             }
-            mcap::records::op::CHANNEL => {
-                id().is_some_and(|id| self.channels.by_id.contains_key(&id))
-            }
-            _ => false,
         }
     }
 
     fn bad(&self, reason: impl Into<String>) -> McapReadError {
         McapReadError::Bad {
             record: self.record,
+            at: self.at,
             reason: reason.into(),
         }
     }
@@ -271,19 +477,30 @@ impl State {
         use mcap::records::Record;
         match record {
             Record::Schema { header, .. } => {
-                self.channels.schema_names.insert(header.id, header.name);
+                self.channels
+                    .schemas
+                    .insert(header.id, (header.name, header.encoding));
             }
             Record::Channel(c) => {
                 let known = TOPICS.iter().position(|t| t.name == c.topic);
                 if let Some(i) = known {
                     let want = TOPICS[i].ty.name;
-                    let have = self.channels.schema_names.get(&c.schema_id);
-                    if have.map(String::as_str) != Some(want) || c.message_encoding != "cdr" {
+                    let have = self.channels.schemas.get(&c.schema_id);
+                    let name = have.map(|(name, _)| name.as_str());
+                    if name != Some(want) || c.message_encoding != "cdr" {
                         return Err(self.bad(format!(
                             "channel {} is {} in {:?}, not omnid's {want} in CDR",
                             c.topic,
-                            have.map(String::as_str).unwrap_or("(no schema)"),
+                            name.unwrap_or("(no schema)"),
                             c.message_encoding
+                        )));
+                    }
+                    // omnid reads its messages as the ROS 2 definitions say (docs/ROS2.md).
+                    if let Some((_, encoding)) = have.filter(|(_, e)| e != "ros2msg") {
+                        return Err(self.bad(format!(
+                            "channel {}'s schema {want} is in {encoding:?}, not the \
+                             \"ros2msg\" omnid reads",
+                            c.topic
                         )));
                     }
                     self.channels.present[i] = true;
@@ -611,5 +828,246 @@ impl Read for McapPrefetch {
         buf[..n].copy_from_slice(&self.current[self.at..self.at + n]);
         self.at += n;
         Ok(n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! Files that are not valid MCAP, built record by record.
+    use super::*;
+    use mcap::records::op;
+
+    fn string(out: &mut Vec<u8>, s: &str) {
+        out.extend_from_slice(&(s.len() as u32).to_le_bytes());
+        out.extend_from_slice(s.as_bytes());
+    }
+
+    fn record(opcode: u8, body: &[u8]) -> Vec<u8> {
+        let mut out = vec![opcode];
+        out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+        out.extend_from_slice(body);
+        out
+    }
+
+    fn schema(id: u16, name: &str, encoding: &str) -> Vec<u8> {
+        let mut b = id.to_le_bytes().to_vec();
+        string(&mut b, name);
+        string(&mut b, encoding);
+        string(&mut b, "float64 data\n");
+        record(op::SCHEMA, &b)
+    }
+
+    fn channel(id: u16, schema_id: u16, topic: &str) -> Vec<u8> {
+        let mut b = id.to_le_bytes().to_vec();
+        b.extend_from_slice(&schema_id.to_le_bytes());
+        string(&mut b, topic);
+        string(&mut b, "cdr");
+        b.extend_from_slice(&0u32.to_le_bytes()); // no metadata
+        record(op::CHANNEL, &b)
+    }
+
+    /// A chunk of `records`, with `compression`; `declared` is the uncompressed size its
+    /// header states.
+    fn chunk(compression: &str, declared: u64, crc: u32, records: &[u8]) -> Vec<u8> {
+        let mut b = Vec::new();
+        b.extend_from_slice(&0u64.to_le_bytes());
+        b.extend_from_slice(&0u64.to_le_bytes());
+        b.extend_from_slice(&declared.to_le_bytes());
+        b.extend_from_slice(&crc.to_le_bytes());
+        string(&mut b, compression);
+        b.extend_from_slice(&(records.len() as u64).to_le_bytes());
+        b.extend_from_slice(records);
+        record(op::CHUNK, &b)
+    }
+
+    /// Magic, a header, `records`, a data end, a footer, magic.
+    fn file(records: &[Vec<u8>]) -> Vec<u8> {
+        let mut out = MAGIC.to_vec();
+        let mut h = Vec::new();
+        string(&mut h, "ros2");
+        string(&mut h, "test");
+        out.extend(record(op::HEADER, &h));
+        for r in records {
+            out.extend_from_slice(r);
+        }
+        out.extend(record(op::DATA_END, &0u32.to_le_bytes()));
+        out.extend(record(op::FOOTER, &[0; 20]));
+        out.extend_from_slice(MAGIC);
+        out
+    }
+
+    /// Every tick of `bytes`, or the error's message; and what was inflated.
+    fn read(bytes: &[u8]) -> (Result<u64, String>, u64) {
+        let mut t = McapTicks::new(bytes, false);
+        let mut n = 0;
+        loop {
+            match t.next_tick() {
+                Ok(Some(_)) => n += 1,
+                Ok(None) => return (Ok(n), t.inflated_bytes()),
+                Err(e) => return (Err(e.to_string()), t.inflated_bytes()),
+            }
+        }
+    }
+
+    fn refused(bytes: &[u8]) -> String {
+        let (result, _) = read(bytes);
+        let e = result.expect_err("refused");
+        assert!(!e.contains('\n'), "{e}");
+        e
+    }
+
+    /// The file offset of record `i` (0 = the header) of a file made by [`file`].
+    fn offset(records: &[Vec<u8>], i: usize) -> usize {
+        let header = 9 + 8 + "ros2".len() + "test".len();
+        MAGIC.len() + header + records[..i - 1].iter().map(Vec::len).sum::<usize>()
+    }
+
+    #[test]
+    fn a_channel_id_defined_again_with_another_topic_and_type_is_refused() {
+        let records = [
+            schema(1, "std_msgs/msg/Float64", "ros2msg"),
+            channel(1, 1, "/omnid/time"),
+            schema(2, "std_msgs/msg/String", "ros2msg"),
+            channel(1, 2, "/chatter"),
+        ];
+        let e = refused(&file(&records));
+        assert!(
+            e.contains(&format!("MCAP record 5 (at byte {})", offset(&records, 4)))
+                && e.contains("channel 1 defined again differently")
+                && e.contains("`/omnid/time` of schema 1 (std_msgs/msg/Float64)")
+                && e.contains("`/chatter` of schema 2 (std_msgs/msg/String)"),
+            "{e}"
+        );
+        // Defined again the same, as writers do in every chunk: read on (to the end, where
+        // it is no omnid log).
+        let same = [
+            schema(1, "std_msgs/msg/Float64", "ros2msg"),
+            channel(1, 1, "/omnid/time"),
+            chunk(
+                "",
+                0,
+                0,
+                &[
+                    schema(1, "std_msgs/msg/Float64", "ros2msg"),
+                    channel(1, 1, "/omnid/time"),
+                ]
+                .concat(),
+            ),
+        ];
+        let e = refused(&file(&same));
+        assert!(e.contains("not an omnid log"), "{e}");
+        // A schema too.
+        let schemas = [
+            schema(1, "std_msgs/msg/Float64", "ros2msg"),
+            schema(1, "std_msgs/msg/String", "ros2msg"),
+        ];
+        let e = refused(&file(&schemas));
+        assert!(
+            e.contains("MCAP record 3")
+                && e.contains("schema 1 defined again differently")
+                && e.contains("`std_msgs/msg/String`"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_schema_omnid_cannot_read_is_refused() {
+        let records = [
+            schema(1, "std_msgs/msg/Float64", "protobuf"),
+            channel(1, 1, "/omnid/time"),
+        ];
+        let e = refused(&file(&records));
+        assert!(
+            e.contains(&format!("MCAP record 3 (at byte {})", offset(&records, 2)))
+                && e.contains("/omnid/time")
+                && e.contains("\"protobuf\"")
+                && e.contains("\"ros2msg\""),
+            "{e}"
+        );
+        // On a channel omnid does not read, any encoding is skipped.
+        let other = [schema(1, "foo.Bar", "protobuf"), channel(1, 1, "/other")];
+        assert!(refused(&file(&other)).contains("not an omnid log"));
+    }
+
+    #[test]
+    fn a_chunk_inside_a_chunk_is_refused() {
+        let inner = chunk("", 0, 0, &[]);
+        let records = [chunk("", inner.len() as u64, 0, &inner)];
+        let e = refused(&file(&records));
+        let at = offset(&records, 1);
+        assert!(
+            e.contains(&format!(
+                "MCAP record 3 (at byte 0 inside the chunk at byte {at})"
+            )) && e.contains("a chunk inside a chunk"),
+            "{e}"
+        );
+        // Nor anything but schemas, channels and messages.
+        let statistics = record(op::STATISTICS, &[0; 46]);
+        let records = [chunk("", statistics.len() as u64, 0, &statistics)];
+        let e = refused(&file(&records));
+        assert!(e.contains("opcode 0x0b inside a chunk"), "{e}");
+    }
+
+    #[test]
+    fn opcodes_0x00_and_0x80_to_0xff_are_refused() {
+        for opcode in [0x00, 0x80, 0xff] {
+            let records = [
+                schema(1, "std_msgs/msg/Float64", "ros2msg"),
+                record(opcode, &[1, 2]),
+            ];
+            let e = refused(&file(&records));
+            assert!(
+                e.contains(&format!("MCAP record 3 (at byte {})", offset(&records, 2)))
+                    && e.contains(&format!("{opcode:#04x}")),
+                "{e}"
+            );
+            // Inside a chunk too.
+            let inner = record(opcode, &[]);
+            let e = refused(&file(&[chunk("", inner.len() as u64, 0, &inner)]));
+            assert!(
+                e.contains("MCAP record 3 (at byte 0 inside the chunk")
+                    && e.contains(&format!("{opcode:#04x}")),
+                "{e}"
+            );
+        }
+    }
+
+    /// A zstd frame of `blocks` RLE blocks of 128 KiB of `byte` each: 4 bytes a block, so
+    /// 8192 blocks (32 KiB) inflate to 1 GiB.
+    fn zstd_bomb(blocks: u32, byte: u8) -> Vec<u8> {
+        // Magic, a descriptor with no content size, a 128 KiB window.
+        let mut out = vec![0x28, 0xb5, 0x2f, 0xfd, 0x00, 0x38];
+        for i in 0..blocks {
+            let last = u32::from(i + 1 == blocks);
+            let header = (128 << 10) << 3 | 1 << 1 | last;
+            out.extend_from_slice(&header.to_le_bytes()[..3]);
+            out.push(byte);
+        }
+        out
+    }
+
+    #[test]
+    fn a_chunk_declaring_more_than_the_cap_is_refused_before_decompressing() {
+        let bomb = zstd_bomb(8192, 0);
+        assert!(bomb.len() < 33 << 10);
+        for crc in [0, 1] {
+            let records = [chunk("zstd", 1 << 30, crc, &bomb)];
+            let (result, inflated) = read(&file(&records));
+            let e = result.unwrap_err();
+            assert!(
+                e.contains(&format!("MCAP record 2 (at byte {})", offset(&records, 1)))
+                    && e.contains("inflates to 1073741824 bytes, over the 64 MiB"),
+                "{e}"
+            );
+            assert_eq!(inflated, 0, "nothing was decompressed");
+        }
+        // A chunk that states less than it holds: decompression stops at what it states.
+        for crc in [0, 1] {
+            let records = [chunk("zstd", 1 << 20, crc, &bomb)];
+            let (result, inflated) = read(&file(&records));
+            let e = result.unwrap_err();
+            assert!(e.contains("inside the chunk at byte"), "{e}");
+            assert!(inflated <= 1 << 20, "{inflated}");
+        }
     }
 }
