@@ -9,7 +9,8 @@ use omnid::transport::client::{Client, Message};
 use serde_json::json;
 use std::time::{Duration, Instant};
 
-/// Arm names unique to this test process: configured arms are locked machine-wide.
+/// Arm names unique to this test process: a configured arm is locked for this user across
+/// every process (real hardware: machine-wide).
 fn unique(name: &str) -> String {
     format!("{name}-{}", std::process::id())
 }
