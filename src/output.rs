@@ -118,6 +118,38 @@ fn dir_of(path: &Path) -> &Path {
     }
 }
 
+/// Remove from `dir` the temporaries of omnid processes that are gone (`.omnid-<pid>-<n>.tmp`,
+/// left by a process killed mid-write: the file it was writing is whole, the temporary is
+/// litter). A live process's temporary, and anything else, is left alone. How many went.
+pub(crate) fn remove_orphan_temporaries(dir: &Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(".omnid-"))
+            .and_then(|n| n.strip_suffix(".tmp"))
+            .and_then(|n| n.split_once('-'))
+            .filter(|(_, k)| k.parse::<u64>().is_ok())
+            .and_then(|(pid, _)| pid.parse::<i32>().ok())
+        else {
+            continue;
+        };
+        // SAFETY: kill with signal 0 only asks whether the process exists.
+        let gone = pid > 0
+            && unsafe { libc::kill(pid, 0) } != 0
+            && io::Error::last_os_error().raw_os_error() == Some(libc::ESRCH);
+        let regular = entry.file_type().is_ok_and(|t| t.is_file());
+        if gone && regular && std::fs::remove_file(entry.path()).is_ok() {
+            removed += 1;
+        }
+    }
+    removed
+}
+
 /// A temporary file in `dir`, removed when dropped unless renamed into place.
 struct Temp {
     path: PathBuf,
@@ -383,6 +415,28 @@ mod tests {
             .unwrap()
             .file_type()
             .is_char_device());
+    }
+
+    #[test]
+    fn only_the_temporaries_of_processes_that_are_gone_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        // A process that has ended (its pid is free again, unless reused this instant).
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let dead = child.id();
+        child.wait().unwrap();
+        let orphan = dir.path().join(format!(".omnid-{dead}-3.tmp"));
+        let mine = dir
+            .path()
+            .join(format!(".omnid-{}-0.tmp", std::process::id()));
+        let other = dir.path().join("weights-sim.json");
+        let odd = dir.path().join(format!(".omnid-{dead}-x.tmp"));
+        for p in [&orphan, &mine, &other, &odd] {
+            std::fs::write(p, "x").unwrap();
+        }
+        assert_eq!(remove_orphan_temporaries(dir.path()), 1);
+        assert!(!orphan.exists());
+        assert!(mine.exists() && other.exists() && odd.exists());
+        assert_eq!(remove_orphan_temporaries(&dir.path().join("none")), 0);
     }
 
     #[test]

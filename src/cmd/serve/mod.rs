@@ -506,6 +506,16 @@ fn start_from_kept(
     pipeline: &mut crate::cmd::assembly::Pipeline,
 ) -> Option<String> {
     use crate::identifier::store::{self, Loaded};
+    // A save killed mid-write left its file whole and a temporary beside it: the litter goes.
+    if let Some(dir) = path.parent() {
+        let n = crate::output::remove_orphan_temporaries(dir);
+        if n > 0 {
+            crate::errln!(
+                "omnid: arm {arm}: removed {n} temporary file(s) an interrupted save left in {}",
+                dir.display()
+            );
+        }
+    }
     let serial = pipeline.servo.device_serial();
     match store::load(path, &cfg.identifier, serial.as_deref()) {
         Loaded::None => {}
