@@ -73,44 +73,53 @@ fn imports() -> BTreeMap<String, BTreeMap<String, String>> {
 fn no_import_cycle_between_top_level_modules() {
     let graph = imports();
     assert!(graph.len() > 10, "modules found: {:?}", graph.keys());
-    // Depth-first search; a grey node met again closes a cycle.
-    fn visit<'a>(
-        m: &'a str,
-        graph: &'a BTreeMap<String, BTreeMap<String, String>>,
-        state: &mut BTreeMap<&'a str, bool>,
-        path: &mut Vec<&'a str>,
-    ) -> Option<Vec<String>> {
-        match state.get(m) {
+    let edges: BTreeMap<&String, Vec<&String>> = graph
+        .iter()
+        .map(|(m, uses)| (m, uses.keys().collect()))
+        .collect();
+    if let Some(cycle) = find_cycle(&edges) {
+        let steps: Vec<String> = cycle
+            .windows(2)
+            .map(|w| format!("{} -> {} ({})", w[0], w[1], graph[*w[0]][*w[1]]))
+            .collect();
+        panic!("import cycle:\n{}", steps.join("\n"));
+    }
+}
+
+/// A cycle in `edges` (its first node repeated at the end), if there is one: depth-first, a
+/// node met again while still on the path closes it.
+fn find_cycle<K: Ord>(edges: &BTreeMap<K, Vec<K>>) -> Option<Vec<&K>> {
+    fn visit<'a, K: Ord>(
+        n: &'a K,
+        edges: &'a BTreeMap<K, Vec<K>>,
+        done: &mut BTreeMap<&'a K, bool>,
+        path: &mut Vec<&'a K>,
+    ) -> Option<Vec<&'a K>> {
+        match done.get(n) {
             Some(true) => return None,
             Some(false) => {
-                let from = path.iter().position(|p| *p == m).unwrap();
-                let mut cycle: Vec<String> = path[from..].iter().map(|s| s.to_string()).collect();
-                cycle.push(m.to_string());
+                let from = path.iter().position(|p| *p == n).unwrap();
+                let mut cycle = path[from..].to_vec();
+                cycle.push(n);
                 return Some(cycle);
             }
             None => {}
         }
-        state.insert(m, false);
-        path.push(m);
-        for next in graph[m].keys() {
-            if let Some(c) = visit(next, graph, state, path) {
+        done.insert(n, false);
+        path.push(n);
+        for next in edges.get(n).into_iter().flatten() {
+            if let Some(c) = visit(next, edges, done, path) {
                 return Some(c);
             }
         }
         path.pop();
-        state.insert(m, true);
+        done.insert(n, true);
         None
     }
-    let mut state = BTreeMap::new();
-    for m in graph.keys() {
-        if let Some(cycle) = visit(m, &graph, &mut state, &mut Vec::new()) {
-            let steps: Vec<String> = cycle
-                .windows(2)
-                .map(|w| format!("{} -> {} ({})", w[0], w[1], graph[&w[0]][&w[1]]))
-                .collect();
-            panic!("import cycle:\n{}", steps.join("\n"));
-        }
-    }
+    let mut done = BTreeMap::new();
+    edges
+        .keys()
+        .find_map(|n| visit(n, edges, &mut done, &mut Vec::new()))
 }
 
 #[test]
@@ -326,48 +335,19 @@ fn no_import_cycle_between_files() {
             )
         })
         .collect();
-    fn visit<'a>(
-        f: &'a PathBuf,
-        edges: &BTreeMap<&'a PathBuf, Vec<&'a PathBuf>>,
-        state: &mut BTreeMap<&'a PathBuf, bool>,
-        path: &mut Vec<&'a PathBuf>,
-    ) -> Option<Vec<&'a PathBuf>> {
-        match state.get(f) {
-            Some(true) => return None,
-            Some(false) => {
-                let from = path.iter().position(|p| *p == f).unwrap();
-                let mut cycle = path[from..].to_vec();
-                cycle.push(f);
-                return Some(cycle);
-            }
-            None => {}
-        }
-        state.insert(f, false);
-        path.push(f);
-        for next in edges.get(f).into_iter().flatten() {
-            if let Some(c) = visit(next, edges, state, path) {
-                return Some(c);
-            }
-        }
-        path.pop();
-        state.insert(f, true);
-        None
-    }
-    let mut state = BTreeMap::new();
-    for f in graph.keys() {
-        if let Some(cycle) = visit(f, &edges, &mut state, &mut Vec::new()) {
-            let steps: Vec<String> = cycle
-                .windows(2)
-                .map(|w| {
-                    format!(
-                        "{} -> {} ({})",
-                        w[0].display(),
-                        w[1].display(),
-                        graph[w[0]][w[1]]
-                    )
-                })
-                .collect();
-            panic!("import cycle between files:\n{}", steps.join("\n"));
-        }
+    if let Some(cycle) = find_cycle(&edges) {
+        let steps: Vec<String> = cycle
+            .windows(2)
+            .map(|w| {
+                let (from, to) = (*w[0], *w[1]);
+                format!(
+                    "{} -> {} ({})",
+                    from.display(),
+                    to.display(),
+                    graph[from][to]
+                )
+            })
+            .collect();
+        panic!("import cycle between files:\n{}", steps.join("\n"));
     }
 }
