@@ -240,18 +240,22 @@ pub fn execute(
 /// configuration under computed torque with the simulator's exact model and its friction
 /// (`[control] ct_friction = true`), in a second `--fast` pass with no log (so it costs a
 /// fraction of a `--fast` run's time). Its tracking RMS, rad; None for any other run (another
-/// controller or device, free mode, injected faults), or when the pass did not complete.
+/// controller or device, free mode, injected faults, a simulated payload), or when the pass
+/// did not complete.
 pub fn oracle_tracking(opts: &RunOptions, cfg: &Config) -> Option<[f64; 3]> {
     let eligible = opts.device == DeviceSpec::Sim
         && opts.controller == ControllerKind::Nnidc
         && !opts.haptics.free
         && opts.inject.is_empty()
-        && opts.duration_s.is_finite();
+        && opts.duration_s.is_finite()
+        // A payload makes the plant differ from the model computed torque knows.
+        && cfg.sim.payload_kg == 0.0;
     if !eligible {
         return None;
     }
     let mut cfg = cfg.clone();
-    cfg.control.ct_friction = true;
+    // The plant's own friction, when it has one.
+    cfg.control.ct_friction = cfg.sim.friction;
     cfg.control.ct_model_scale = 1.0;
     // The oracle's pass leaves the motors' heat as the run left it.
     cfg.safety.persist_heat = false;
