@@ -139,6 +139,15 @@ impl Remote {
     /// A client with a fresh key and the id `<prefix><its fingerprint>`, greeted: returns it
     /// and the daemon's first answer (its hello, or the hello's refusal).
     fn connect(s: &zenoh::Session, prefix: &str) -> (Remote, serde_json::Value) {
+        Remote::try_connect(s, prefix, Duration::from_secs(20)).expect("an answer to the hello")
+    }
+
+    /// [`Remote::connect`], or None when no answer came within `wait`.
+    fn try_connect(
+        s: &zenoh::Session,
+        prefix: &str,
+        wait: Duration,
+    ) -> Option<(Remote, serde_json::Value)> {
         let key = omnid::transport::zenoh::bind::ClientKey::new().unwrap();
         let cid = key.cid(prefix);
         let (tx, rx) = std::sync::mpsc::channel();
@@ -158,9 +167,11 @@ impl Remote {
             .unwrap();
         let hello = json!({"op": "hello", "protocol": 1, "name": cid, "key": key.public_base64()});
         // Put again until answered: the daemon's subscription may still be on its way.
-        let until = Instant::now() + Duration::from_secs(20);
+        let until = Instant::now() + wait;
         let answer = loop {
-            assert!(Instant::now() < until, "the hello of {cid} got no answer");
+            if Instant::now() > until {
+                return None;
+            }
             s.put(format!("omnid/sim/in/{cid}"), hello.to_string())
                 .wait()
                 .unwrap();
@@ -179,7 +190,7 @@ impl Remote {
             _sub: sub,
             _token: token,
         };
-        (r, answer)
+        Some((r, answer))
     }
 
     /// Put a request on this client's `in` key, sealed; returns its bytes and attachment.
@@ -1343,4 +1354,114 @@ fn a_peer_that_reads_a_remote_clients_traffic_cannot_act_as_it() {
     let (r, _, _) = victim.request(json!({"op": "mode", "mode": "idle"}));
     assert_eq!(r["type"], "reply", "the victim still commands: {r}");
     assert_eq!(status(&d).1, "idle");
+}
+
+/// docs/ZENOH.md, "A lab network", TLS: a CA and certificates made here (rcgen), the daemon
+/// listening on a `tls/` endpoint with `tls_certificate`, `tls_private_key` and `tls_root_ca`.
+/// A client that trusts the lab's CA connects and is greeted; one that does not (the system's
+/// roots only) gets no session. With `tls_mutual = true`, a client trusting the CA but showing
+/// no certificate of its own gets none either, and one with a certificate the CA signed does.
+#[test]
+#[ignore = "paced"]
+fn over_tls_a_client_with_the_labs_ca_connects_and_one_without_it_cannot() {
+    use rcgen::{
+        BasicConstraints, CertificateParams, CertifiedIssuer, DnType, ExtendedKeyUsagePurpose,
+        IsCa, KeyPair, KeyUsagePurpose,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, text: String| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        path.display().to_string()
+    };
+    let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca_params
+        .distinguished_name
+        .push(DnType::CommonName, "omnid test lab CA");
+    ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
+    let ca = CertifiedIssuer::self_signed(ca_params, KeyPair::generate().unwrap()).unwrap();
+    let ca_pem = write("ca.pem", ca.pem());
+    // A certificate the CA signed, for loopback, usable by a server and a client.
+    let leaf = |name: &str| -> (String, String) {
+        let mut p =
+            CertificateParams::new(vec!["localhost".to_string(), "127.0.0.1".to_string()]).unwrap();
+        p.distinguished_name.push(DnType::CommonName, name);
+        p.extended_key_usages = vec![
+            ExtendedKeyUsagePurpose::ServerAuth,
+            ExtendedKeyUsagePurpose::ClientAuth,
+        ];
+        let key = KeyPair::generate().unwrap();
+        let cert = p.signed_by(&key, &ca).unwrap();
+        (
+            write(&format!("{name}.pem"), cert.pem()),
+            write(&format!("{name}.key"), key.serialize_pem()),
+        )
+    };
+    let (daemon_cert, daemon_key) = leaf("daemon");
+    let (client_cert, client_key) = leaf("client");
+    // A client session to `port` over TLS: trusting the CA or not, with a certificate or not.
+    let client = |port: u16, ca: bool, cert: bool| -> Option<zenoh::Session> {
+        let mut c = zenoh::Config::default();
+        let mut keys = vec![
+            ("mode", "\"peer\"".to_string()),
+            ("connect/endpoints", format!("[\"tls/127.0.0.1:{port}\"]")),
+            ("listen/endpoints", "[]".into()),
+            ("scouting/multicast/enabled", "false".into()),
+        ];
+        if ca {
+            keys.push((
+                "transport/link/tls/root_ca_certificate",
+                format!("{ca_pem:?}"),
+            ));
+        }
+        if cert {
+            keys.push(("transport/link/tls/enable_mtls", "true".into()));
+            keys.push((
+                "transport/link/tls/connect_certificate",
+                format!("{client_cert:?}"),
+            ));
+            keys.push((
+                "transport/link/tls/connect_private_key",
+                format!("{client_key:?}"),
+            ));
+        }
+        for (k, v) in keys {
+            c.insert_json5(k, &v).unwrap();
+        }
+        zenoh::open(c).wait().ok()
+    };
+    let greeted = |s: Option<zenoh::Session>, who: &str| -> bool {
+        let Some(s) = s else { return false };
+        let answer = Remote::try_connect(&s, "tls-", Duration::from_secs(5));
+        let _ = s.close().wait();
+        answer.is_some_and(|(_, v)| {
+            assert_eq!(v["type"], "hello", "{who}: {v}");
+            true
+        })
+    };
+    for mutual in [false, true] {
+        let port = free_port();
+        let config = format!(
+            "[zenoh]\nenabled = true\nros2 = false\nlisten = [\"tls/127.0.0.1:{port}\"]\n\
+             connect = []\ntls_certificate = {daemon_cert:?}\ntls_private_key = \
+             {daemon_key:?}\ntls_root_ca = {ca_pem:?}\ntls_mutual = {mutual}\n"
+        );
+        let mut d = Served::start(&["--device", "sim"], Some(&config), &["sim"]);
+        if mutual {
+            assert!(greeted(client(port, true, true), "CA + certificate"));
+            assert!(
+                !greeted(client(port, true, false), "CA, no certificate"),
+                "mutual TLS greeted a client without a certificate"
+            );
+        } else {
+            assert!(greeted(client(port, true, false), "with the CA"));
+        }
+        assert!(
+            !greeted(client(port, false, mutual), "without the CA"),
+            "a client that does not trust the lab's CA was greeted (mutual: {mutual})"
+        );
+        let (_, err) = d.stop();
+        assert!(err.contains(&format!("tls/127.0.0.1:{port}")), "{err}");
+    }
 }
