@@ -860,6 +860,12 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .unwrap();
     assert!(moved > 10.0, "the hand moved the leader only {moved:.1} mm");
+    // (Reported, not asserted beyond the bound: the run's numbers for the docs.)
+    eprintln!(
+        "follower off the leader's motion by {rms:.2} mm RMS (best lag {} ms; none: {:.2} mm)",
+        lag * 10,
+        rms_at(0)
+    );
     assert!(
         rms < 3.0,
         "follower off the leader's motion by {rms:.2} mm RMS (best lag {} ms; none: {:.2} mm)",
