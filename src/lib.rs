@@ -36,74 +36,25 @@
 //!
 //! Terminal text goes through [`out!`], [`outln!`] and [`errln!`], which never panic on a
 //! closed pipe.
+//!
+//! # Crates
+//!
+//! The realtime core (everything up to the arm's station, and `run`/`identify`) is the
+//! `omnid-core` crate, which links neither zenoh nor the Foxglove SDK nor plotters; this crate
+//! adds the transports, `omnid serve`, [`plot`] and [`experiment`], and re-exports the core's
+//! modules under the same paths (docs/ARCHITECTURE.md, Crates).
 
 #![warn(missing_docs)]
 
-/// Terminal output that never panics. `print!` and `eprintln!` panic when the stream is a
-/// closed pipe or a hung-up terminal, which would lose the exit code, the summary JSON and the
-/// fault path after a run; these lose only the text (README, Exit codes). A failure other than
-/// a closed pipe is kept ([`diag::stdout_failed`]): the CLI then exits non-zero.
-#[macro_export]
-macro_rules! out {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let mut out = std::io::stdout().lock();
-        if let Err(e) = write!(out, $($arg)*).and_then(|()| out.flush()) {
-            $crate::diag::stdout_error(e);
-        }
-    }};
-}
+pub use omnid_core::{
+    arm, clock, config, control, convert, device, diag, estimate, haptics, human, identifier,
+    input, omni, output, progress, ros2, servo, station, telemetry, teleop, text, toml_place,
+};
+pub use omnid_core::{errln, out, outln};
 
-/// `println!` that never panics (see [`out!`]).
-#[macro_export]
-macro_rules! outln {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let mut out = std::io::stdout().lock();
-        if let Err(e) = writeln!(out, $($arg)*).and_then(|()| out.flush()) {
-            $crate::diag::stdout_error(e);
-        }
-    }};
-}
-
-/// `eprintln!` that never panics (see [`out!`]) and never blocks: the line goes to stderr
-/// through its own thread ([`diag`]).
-#[macro_export]
-macro_rules! errln {
-    ($($arg:tt)*) => {{
-        let mut line = format!($($arg)*);
-        line.push('\n');
-        $crate::diag::line(line);
-    }};
-}
-
-pub mod arm;
-pub mod clock;
 pub mod cmd;
-pub mod config;
-pub(crate) mod config_check;
-pub mod control;
-pub mod convert;
-pub mod device;
-pub mod diag;
-pub mod estimate;
 pub mod experiment;
-pub(crate) mod fast_tanh;
-pub mod haptics;
-pub mod human;
-pub mod identifier;
-pub mod input;
-pub mod omni;
-pub mod output;
 pub mod plot;
-pub mod progress;
-pub mod ros2;
-pub mod servo;
-pub mod station;
-pub mod telemetry;
-pub mod teleop;
-pub mod text;
-pub mod toml_place;
 pub mod transport;
 
 pub use cmd::run::{execute, DeviceSpec, RunError, RunOptions, RunOutcome};

@@ -37,7 +37,7 @@ from omnid_client import (  # noqa: E402
 OMNID_BIN = os.environ.get("OMNID_BIN")
 NEEDS_DAEMON = "OMNID_BIN is not set: point it at the omnid binary (cargo test --test python_client does)"
 
-# The default geometry of src/omni/kinematics.rs (Geometry::default), mm.
+# The default geometry of crates/omnid-core/src/omni/kinematics.rs (Geometry::default), mm.
 L1 = 133.35
 L2 = 133.35
 Y_OFFSET = 23.35

@@ -13,8 +13,9 @@
 mod haptics;
 pub mod teleop;
 
+use crate::cmd::assembly::{SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 use crate::cmd::identify::{identify, samples_from_log, IdentifyError};
-use crate::cmd::run::{execute, RunError, RunOptions, SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
+use crate::cmd::run::{execute, RunError, RunOptions};
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::identifier::{Identifier, PretuneConfig, PretuneReport, Progress, Sample, WeightsFile};

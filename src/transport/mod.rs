@@ -8,7 +8,7 @@ pub(crate) mod access;
 /// The Rust client (`omnid_client::client`), used by `omnid watch`, `omnid ctl`, the tests
 /// and the benchmarks.
 pub use omnid_client::client;
-pub(crate) mod config;
+pub(crate) use omnid_core::config::serve as config;
 pub mod foxglove;
 pub mod host;
 pub mod json;

@@ -1,6 +1,7 @@
 //! The layering docs/ARCHITECTURE.md states, checked on the source: no import cycle between
 //! the library's top-level modules (test code aside), and the servo imports neither the
-//! station nor a transport.
+//! station nor a transport. The library is two crates (the `omnid` crate re-exports the
+//! core's modules under the same paths), read here as one source tree.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -24,24 +25,36 @@ fn rust_files(path: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
+/// The library's source roots: the `omnid` crate's and the core's (docs/ARCHITECTURE.md,
+/// Crates).
+fn src_roots() -> [PathBuf; 2] {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    [root.join("src"), root.join("crates/omnid-core/src")]
+}
+
 /// Top-level module → the top-level modules its non-test code names (`crate::x`), with
-/// where.
+/// where. A module both crates have (`cmd`) is one module.
 fn imports() -> BTreeMap<String, BTreeMap<String, String>> {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-    let modules: BTreeSet<String> = std::fs::read_dir(&src)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.is_dir() || p.extension().is_some_and(|e| e == "rs"))
-        .map(|p| p.file_stem().unwrap().to_string_lossy().into_owned())
-        .filter(|m| m != "lib" && m != "main")
-        .collect();
+    let mut modules = BTreeSet::new();
+    for src in src_roots() {
+        for p in std::fs::read_dir(&src).unwrap().map(|e| e.unwrap().path()) {
+            let m = p.file_stem().unwrap().to_string_lossy().into_owned();
+            if (p.is_dir() || p.extension().is_some_and(|e| e == "rs")) && m != "lib" && m != "main"
+            {
+                modules.insert(m);
+            }
+        }
+    }
     let mut graph = BTreeMap::new();
     for m in &modules {
         let mut files = Vec::new();
-        let dir = src.join(m);
-        rust_files(if dir.is_dir() { &dir } else { &src }, &mut files);
-        if !dir.is_dir() {
-            files.retain(|f| f == &src.join(format!("{m}.rs")));
+        for src in src_roots() {
+            let dir = src.join(m);
+            if dir.is_dir() {
+                rust_files(&dir, &mut files);
+            } else if src.join(format!("{m}.rs")).is_file() {
+                files.push(src.join(format!("{m}.rs")));
+            }
         }
         let mut uses = BTreeMap::new();
         for f in files {
@@ -155,13 +168,16 @@ fn module_path(src: &Path, file: &Path) -> Vec<String> {
     segs
 }
 
-/// The file that defines the longest prefix of module path `segs` that is a file.
-fn file_of(src: &Path, segs: &[String]) -> Option<PathBuf> {
+/// The file, in either crate, that defines the longest prefix of module path `segs` that is
+/// a file.
+fn file_of(segs: &[String]) -> Option<PathBuf> {
     for n in (1..=segs.len()).rev() {
-        let base = segs[..n].iter().fold(src.to_path_buf(), |p, s| p.join(s));
-        for candidate in [base.with_extension("rs"), base.join("mod.rs")] {
-            if candidate.is_file() && !is_test_file(&candidate) {
-                return Some(candidate);
+        for src in src_roots() {
+            let base = segs[..n].iter().fold(src.clone(), |p, s| p.join(s));
+            for candidate in [base.with_extension("rs"), base.join("mod.rs")] {
+                if candidate.is_file() && !is_test_file(&candidate) {
+                    return Some(candidate);
+                }
             }
         }
     }
@@ -171,16 +187,19 @@ fn file_of(src: &Path, segs: &[String]) -> Option<PathBuf> {
 /// File → the other files of the library its non-test code names through `crate::` and
 /// `super::` paths (a child's items named without either are not seen), with where.
 fn file_imports() -> BTreeMap<PathBuf, BTreeMap<PathBuf, String>> {
-    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     let mut files = Vec::new();
-    rust_files(&src, &mut files);
-    files.retain(|f| {
-        let name = f.file_name().unwrap();
-        name != "main.rs" && !f.starts_with(src.join("cli"))
-    });
+    for src in src_roots() {
+        let mut found = Vec::new();
+        rust_files(&src, &mut found);
+        found.retain(|f| {
+            let name = f.file_name().unwrap();
+            name != "main.rs" && !f.starts_with(src.join("cli"))
+        });
+        files.extend(found.into_iter().map(|f| (src.clone(), f)));
+    }
     let mut graph = BTreeMap::new();
-    for f in &files {
-        let own = module_path(&src, f);
+    for (src, f) in &files {
+        let own = module_path(src, f);
         let text = std::fs::read_to_string(f).unwrap();
         let code = text.split("#[cfg(test)]").next().unwrap();
         let mut uses = BTreeMap::new();
@@ -213,7 +232,7 @@ fn file_imports() -> BTreeMap<PathBuf, BTreeMap<PathBuf, String>> {
                 rest = tail;
             }
             for segs in targets {
-                if let Some(to) = file_of(&src, &segs) {
+                if let Some(to) = file_of(&segs) {
                     if &to != f {
                         uses.entry(to)
                             .or_insert_with(|| format!("{}:{}", f.display(), n + 1));
@@ -350,4 +369,31 @@ fn no_import_cycle_between_files() {
             .collect();
         panic!("import cycle between files:\n{}", steps.join("\n"));
     }
+}
+
+/// The core crate — most of the tests — links none of the network and plotting stacks
+/// (docs/ARCHITECTURE.md, Crates): neither it nor the path crates it uses name them.
+#[test]
+fn the_core_links_no_network_or_plotting_stack() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let heavy = ["zenoh", "tokio", "foxglove", "plotters"];
+    let mut manifests = vec![root.join("crates/omnid-core/Cargo.toml")];
+    let mut seen = 0;
+    while let Some(manifest) = manifests.pop() {
+        let text = std::fs::read_to_string(&manifest).unwrap();
+        let doc: toml::Table = toml::from_str(&text).unwrap();
+        let deps = doc["dependencies"].as_table().unwrap();
+        for (name, spec) in deps {
+            assert!(
+                !heavy.iter().any(|h| name.contains(h)),
+                "{} depends on {name}",
+                manifest.display()
+            );
+            if let Some(path) = spec.get("path").and_then(|p| p.as_str()) {
+                manifests.push(manifest.parent().unwrap().join(path).join("Cargo.toml"));
+            }
+            seen += 1;
+        }
+    }
+    assert!(seen > 10, "only {seen} dependencies read");
 }

@@ -10,7 +10,7 @@
 //! checks and stream time to live as a socket client's.
 
 pub mod bind;
-pub mod config;
+pub use omnid_core::config::zenoh as config;
 pub(crate) mod door;
 pub mod port;
 mod remote;
@@ -540,6 +540,36 @@ mod tests {
 
     fn with(cfg: ZenohConfig) -> Result<ZenohNet, ZenohError> {
         ZenohNet::start(&cfg)
+    }
+
+    /// The core checks `[zenoh] connect`/`listen` by shape (it links no zenoh): it refuses what
+    /// zenoh's own parser refuses, so a config it passes does not fail later at start.
+    #[test]
+    fn the_cores_endpoint_shape_check_agrees_with_zenohs_parser() {
+        let cases = [
+            "tcp/127.0.0.1:7447",
+            "tls/lab-pc:7447",
+            "udp/[::1]:7447",
+            "tcp/host:1?rel=1",
+            "tcp/host:1#iface=eth0",
+            "tcp/host:1?rel=1;prio=2#iface=eth0",
+            "tcp/host:1?",
+            "tcp/host:1#",
+            "tcp/host:1?=1",
+            "tcp/host:1#=x",
+            "tcp/",
+            "/host:1",
+            "tcp",
+            "",
+            "tcp/host:1?a=1#",
+            "tcp/host:1?;;",
+            "tcp/host:1?a;b",
+        ];
+        for e in cases {
+            let ours = crate::config::zenoh::endpoint_shape_ok(e);
+            let theirs = e.parse::<zenoh::config::EndPoint>().is_ok();
+            assert_eq!(ours, theirs, "{e:?}: ours {ours}, zenoh's {theirs}");
+        }
     }
 
     #[test]
