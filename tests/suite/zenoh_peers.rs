@@ -1192,10 +1192,8 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
                 flood.put(&status);
                 sent += 1;
             }
-            // Its queued puts may outlast zenoh's close wait: the session goes either way.
-            drop(flood);
-            let _ = s.close().wait();
-            sent
+            // Still connected: status names it while it is here.
+            (sent, flood, s)
         })
     };
     // The haptic client: a zero force answering every state (50 ms to live: a loaded test
@@ -1217,7 +1215,7 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         }
     }
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    let sent = flood.join().unwrap();
+    let (sent, flood_client, session) = flood.join().unwrap();
     assert!(sent > 1000, "a flood: {sent} status requests");
     assert!(states > 3000, "{states} states in 6 s");
     assert_eq!(
@@ -1233,6 +1231,13 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         .iter()
         .find(|(cid, _)| cid.starts_with("flood-"));
     assert!(flooder.is_some_and(|(_, n)| n.as_u64().unwrap() > 0), "{z}");
+    assert_eq!(
+        z["forged"], 0,
+        "the flooding client's own requests are its own: {z}"
+    );
+    // Its queued puts may outlast zenoh's close wait: the session goes either way.
+    drop(flood_client);
+    let _ = session.close().wait();
 }
 
 /// Issue #40, a remote client's id used by another peer: a second zenoh session that reads
