@@ -1320,12 +1320,14 @@ fn a_peer_that_reads_a_remote_clients_traffic_cannot_act_as_it() {
         .declare_subscriber(format!("omnid/sim/out/{}", victim.cid))
         .wait()
         .unwrap();
+    // Its subscription reaches the daemon before the victim's next replies leave.
+    std::thread::sleep(Duration::from_millis(500));
     let (r, free, _) = victim.request(json!({"op": "mode", "mode": "free"}));
     assert_eq!(r["type"], "reply", "{r}");
     let (r, _, hold_tag) = victim.request(json!({"op": "mode", "mode": "hold"}));
     assert_eq!(r["type"], "reply", "{r}");
     // The spy read the victim's hello and requests, tags and all; and its replies.
-    std::thread::sleep(Duration::from_millis(300));
+    std::thread::sleep(Duration::from_millis(500));
     let got: Vec<_> = captured.try_iter().filter(|(k, ..)| *k == key).collect();
     let free_tag = got
         .iter()
