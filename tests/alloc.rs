@@ -67,7 +67,10 @@ fn the_counter_sees_an_allocation() {
 }
 
 fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
-    let cfg = Config::default();
+    ticks_allocate_nothing_with(Config::default(), kind, trajectory);
+}
+
+fn ticks_allocate_nothing_with(cfg: Config, kind: ControllerKind, trajectory: Trajectory) {
     let device = Box::new(SimOmni::new(&cfg, false));
     let controller = ControllerSet::new(&cfg, kind, 0.0);
     let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
@@ -119,6 +122,13 @@ fn sim_pd_multisine_allocates_nothing_per_tick() {
 #[test]
 fn sim_nnidc_adapting_allocates_nothing_per_tick() {
     ticks_allocate_nothing(ControllerKind::Nnidc, Trajectory::Sine);
+}
+
+#[test]
+fn sim_nnidc_adapting_with_the_lag_matched_error_allocates_nothing_per_tick() {
+    let mut cfg = Config::default();
+    cfg.identifier.lag_match = true;
+    ticks_allocate_nothing_with(cfg, ControllerKind::Nnidc, Trajectory::Sine);
 }
 
 #[test]
