@@ -130,6 +130,8 @@ struct Remote {
     cid: String,
     rx: std::sync::mpsc::Receiver<serde_json::Value>,
     sealer: Option<omnid::transport::zenoh::bind::Sealer>,
+    /// Its public key, base64 (as in its hello).
+    public: String,
     next_id: u64,
     _sub: zenoh::pubsub::Subscriber<()>,
     _token: zenoh::liveliness::LivelinessToken,
@@ -165,7 +167,8 @@ impl Remote {
             .declare_token(format!("omnid/sim/client/{cid}"))
             .wait()
             .unwrap();
-        let hello = json!({"op": "hello", "protocol": 1, "name": cid, "key": key.public_base64()});
+        let public = key.public_base64();
+        let hello = json!({"op": "hello", "protocol": 1, "name": cid, "key": public});
         // Put again until answered: the daemon's subscription may still be on its way.
         let until = Instant::now() + wait;
         let answer = loop {
@@ -186,6 +189,7 @@ impl Remote {
             cid,
             rx,
             sealer,
+            public,
             next_id: 1,
             _sub: sub,
             _token: token,
@@ -1023,8 +1027,8 @@ fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_
 }
 
 /// A peer declares 200 client liveliness tokens and says no hello: they take no slot, so a
-/// legitimate client is greeted. A peer that greets from every slot: a further hello gets an
-/// explicit refusal, not silence.
+/// legitimate client is greeted, and its key cannot take a second slot. A peer that greets
+/// from every slot: a further hello gets an explicit refusal, not silence.
 #[test]
 #[ignore = "paced"]
 fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_refused() {
@@ -1059,10 +1063,39 @@ fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_ref
         std::thread::sleep(Duration::from_millis(100));
     }
     std::thread::sleep(Duration::from_millis(500));
-    let (_legit, v) = Remote::connect(&client, "legit-");
+    let (legit, v) = Remote::connect(&client, "legit-");
     assert_eq!(
         v["type"], "hello",
         "200 squatted tokens kept a client out: {v}"
+    );
+    // One slot per key: the greeted client's key on a second id (ending with its
+    // fingerprint) is refused, saying so.
+    let again = format!("again-{}", &legit.cid[legit.cid.len() - 32..]);
+    let answers = client
+        .declare_subscriber(format!("omnid/sim/out/{again}"))
+        .wait()
+        .unwrap();
+    let hello = json!({"op": "hello", "protocol": 1, "key": legit.public});
+    client
+        .put(format!("omnid/sim/in/{again}"), hello.to_string())
+        .wait()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(
+        &answers
+            .recv_timeout(Duration::from_secs(20))
+            .unwrap()
+            .expect("an answer")
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    assert_eq!(v["type"], "error", "{v}");
+    assert!(
+        v["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("one client per key"),
+        "{v}"
     );
     // Every other slot taken by greeted clients: the next hello is refused, saying so.
     let mut held = Vec::new();
@@ -1198,10 +1231,8 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
                 flood.put(&status);
                 sent += 1;
             }
-            // Its queued puts may outlast zenoh's close wait: the session goes either way.
-            drop(flood);
-            let _ = s.close().wait();
-            sent
+            // Still connected: status names it while it is here.
+            (sent, flood, s)
         })
     };
     // The haptic client: a zero force answering every state (50 ms to live: a loaded test
@@ -1223,7 +1254,7 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         }
     }
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    let sent = flood.join().unwrap();
+    let (sent, flood_client, session) = flood.join().unwrap();
     assert!(sent > 1000, "a flood: {sent} status requests");
     assert!(states > 3000, "{states} states in 6 s");
     assert_eq!(
@@ -1239,6 +1270,13 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         .iter()
         .find(|(cid, _)| cid.starts_with("flood-"));
     assert!(flooder.is_some_and(|(_, n)| n.as_u64().unwrap() > 0), "{z}");
+    assert_eq!(
+        z["forged"], 0,
+        "the flooding client's own requests are its own: {z}"
+    );
+    // Its queued puts may outlast zenoh's close wait: the session goes either way.
+    drop(flood_client);
+    let _ = session.close().wait();
 }
 
 /// Issue #40, a remote client's id used by another peer: a second zenoh session that reads
@@ -1288,12 +1326,14 @@ fn a_peer_that_reads_a_remote_clients_traffic_cannot_act_as_it() {
         .declare_subscriber(format!("omnid/sim/out/{}", victim.cid))
         .wait()
         .unwrap();
+    // Its subscription reaches the daemon before the victim's next replies leave.
+    std::thread::sleep(Duration::from_millis(500));
     let (r, free, _) = victim.request(json!({"op": "mode", "mode": "free"}));
     assert_eq!(r["type"], "reply", "{r}");
     let (r, _, hold_tag) = victim.request(json!({"op": "mode", "mode": "hold"}));
     assert_eq!(r["type"], "reply", "{r}");
     // The spy read the victim's hello and requests, tags and all; and its replies.
-    std::thread::sleep(Duration::from_millis(300));
+    std::thread::sleep(Duration::from_millis(500));
     let got: Vec<_> = captured.try_iter().filter(|(k, ..)| *k == key).collect();
     let free_tag = got
         .iter()
