@@ -291,43 +291,8 @@ fn whole_log<W: Write>(
     stop: Option<&Arc<AtomicBool>>,
 ) -> Result<ConvertReport, ConvertError> {
     use crate::telemetry::mcap_log::LogFormat;
-    use crate::telemetry::reader::RowFault;
-    use crate::telemetry::record::{HapticRecord, LogSchema, Mode, TickRecord};
     let mut reader = ColumnReader::open(input, &["t"], lenient, stop)?;
-    // An optional group is there when any of its columns is (a partial group is then a
-    // missing column, named); logs written before the force estimate was logged have none of
-    // `tau_ext`/`fext` and convert without them.
-    let any = |names: &[&str]| reader.header().iter().any(|h| names.contains(&h.as_str()));
-    let schema = LogSchema {
-        model: any(&["tau_model1"]),
-        external: any(&[
-            "tau_ext1", "tau_ext2", "tau_ext3", "fext1", "fext2", "fext3",
-        ]),
-        buttons: any(&crate::telemetry::record::STYLUS_COLUMNS),
-    };
-    let columns = schema.columns();
-    let names: Vec<&str> = columns.iter().map(String::as_str).collect();
-    let idx: Vec<usize> = names
-        .iter()
-        .map(|c| reader.require(c, &names))
-        .collect::<Result<_, _>>()?;
-    let col = |name: &str| idx[names.iter().position(|n| *n == name).expect("a log column")];
-    let three = |group: &str| [1, 2, 3].map(|j| col(&format!("{group}{j}")));
-    let (q, tau, qf, qd, qdd) = (
-        three("q"),
-        three("tau"),
-        three("qf"),
-        three("qd"),
-        three("qdd"),
-    );
-    let (reference, tau_cmd, tau_hat) = (three("ref"), three("tau_cmd"), three("tau_hat"));
-    let (tip, fcmd, enc) = (three("tip"), three("fcmd"), three("enc"));
-    let model = schema.model.then(|| (three("tau_model"), three("fhand")));
-    let external = schema.external.then(|| (three("tau_ext"), three("fext")));
-    let (amps, mode, flags) = (col("amps"), col("mode"), col("flags"));
-    let stylus = schema
-        .buttons
-        .then(|| crate::telemetry::record::STYLUS_COLUMNS.map(col));
+    let (schema, at) = LogColumns::locate(&reader)?;
     let format = LogFormat::for_path(out, crate::omni::kinematics::Geometry::default());
     let mut rec = crate::telemetry::writer::recorder(schema, format);
     let werr = |source: io::Error| ConvertError::Write {
@@ -337,59 +302,7 @@ fn whole_log<W: Write>(
     let mut bytes = Vec::with_capacity(1 << 16);
     rec.header(&mut bytes).map_err(werr)?;
     let mut rows = 0u64;
-    loop {
-        let next = reader.next_with(|row| {
-            let nums = |c: [usize; 3]| -> Result<[f64; 3], RowFault> {
-                Ok([
-                    row.number_or_gap(c[0])?,
-                    row.number_or_gap(c[1])?,
-                    row.number_or_gap(c[2])?,
-                ])
-            };
-            let m = std::str::from_utf8(row.field(mode))
-                .ok()
-                .and_then(Mode::parse)
-                .ok_or(RowFault::UnknownMode { col: mode })?;
-            let (tau_model, hand) = match model {
-                Some((tm, fh)) => (nums(tm)?, nums(fh)?),
-                None => ([f64::NAN; 3], [f64::NAN; 3]),
-            };
-            let (tau_ext, fext) = match external {
-                Some((te, fe)) => (nums(te)?, nums(fe)?),
-                None => ([f64::NAN; 3], [f64::NAN; 3]),
-            };
-            let mut live = crate::telemetry::record::Live::default();
-            if let Some(s) = stylus {
-                live.buttons = [row.i64(s[0])? != 0, row.i64(s[1])? != 0];
-                live.inkwell = row.i64(s[2])? != 0;
-            }
-            Ok(TickRecord {
-                t: row.t,
-                q: nums(q)?,
-                tau: nums(tau)?,
-                qf: nums(qf)?,
-                qd: nums(qd)?,
-                qdd: nums(qdd)?,
-                reference: nums(reference)?,
-                tau_cmd: nums(tau_cmd)?,
-                tau_hat: nums(tau_hat)?,
-                tau_model,
-                tau_ext,
-                enc: [row.i64(enc[0])?, row.i64(enc[1])?, row.i64(enc[2])?],
-                amps: row.i64(amps)? != 0,
-                mode: m,
-                flags: u32::try_from(row.i64(flags)?)
-                    .map_err(|_| RowFault::NotAnInteger { col: flags })?,
-                haptic: HapticRecord {
-                    tip_mm: nums(tip)?,
-                    force: nums(fcmd)?,
-                    hand,
-                    fext,
-                },
-                live,
-            })
-        })?;
-        let Some(r) = next else { break };
+    while let Some(r) = reader.next_with(|row| at.record(row))? {
         rec.row(&r, &mut bytes).map_err(werr)?;
         rows += 1;
         if bytes.len() >= 1 << 16 {
@@ -400,7 +313,144 @@ fn whole_log<W: Write>(
     rec.finish_rows(&mut bytes).map_err(werr)?;
     rec.footer(&mut bytes).map_err(werr)?;
     file.write_all(&bytes).map_err(werr)?;
-    finish(rows, columns, reader.skipped().clone(), reader.path())
+    finish(
+        rows,
+        schema.columns(),
+        reader.skipped().clone(),
+        reader.path(),
+    )
+}
+
+/// Where each of an omnid log's columns is in the file being converted (its header may order
+/// them otherwise, or hold more).
+struct LogColumns {
+    q: [usize; 3],
+    tau: [usize; 3],
+    qf: [usize; 3],
+    qd: [usize; 3],
+    qdd: [usize; 3],
+    reference: [usize; 3],
+    tau_cmd: [usize; 3],
+    tau_hat: [usize; 3],
+    tip: [usize; 3],
+    fcmd: [usize; 3],
+    enc: [usize; 3],
+    /// `tau_model` and `fhand`, in logs of the simulator.
+    model: Option<([usize; 3], [usize; 3])>,
+    /// `tau_ext` and `fext`, in logs written since the force estimate was logged.
+    external: Option<([usize; 3], [usize; 3])>,
+    amps: usize,
+    mode: usize,
+    flags: usize,
+    /// The buttons and the inkwell, in logs written since they were logged.
+    stylus: Option<[usize; 3]>,
+}
+
+impl LogColumns {
+    /// The log's schema as its header shows it, and where its columns are; a column the schema
+    /// needs and the header lacks is refused, named.
+    fn locate<R: io::Read>(
+        reader: &ColumnReader<R>,
+    ) -> Result<(crate::telemetry::record::LogSchema, LogColumns), ConvertError> {
+        // An optional group is there when any of its columns is (a partial group is then a
+        // missing column, named); logs written before the force estimate was logged have none
+        // of `tau_ext`/`fext` and convert without them.
+        let any = |names: &[&str]| reader.header().iter().any(|h| names.contains(&h.as_str()));
+        let schema = crate::telemetry::record::LogSchema {
+            model: any(&["tau_model1"]),
+            external: any(&[
+                "tau_ext1", "tau_ext2", "tau_ext3", "fext1", "fext2", "fext3",
+            ]),
+            buttons: any(&crate::telemetry::record::STYLUS_COLUMNS),
+        };
+        let columns = schema.columns();
+        let names: Vec<&str> = columns.iter().map(String::as_str).collect();
+        let idx: Vec<usize> = names
+            .iter()
+            .map(|c| reader.require(c, &names))
+            .collect::<Result<_, _>>()?;
+        let col = |name: &str| idx[names.iter().position(|n| *n == name).expect("a log column")];
+        let three = |group: &str| [1, 2, 3].map(|j| col(&format!("{group}{j}")));
+        let at = LogColumns {
+            q: three("q"),
+            tau: three("tau"),
+            qf: three("qf"),
+            qd: three("qd"),
+            qdd: three("qdd"),
+            reference: three("ref"),
+            tau_cmd: three("tau_cmd"),
+            tau_hat: three("tau_hat"),
+            tip: three("tip"),
+            fcmd: three("fcmd"),
+            enc: three("enc"),
+            model: schema.model.then(|| (three("tau_model"), three("fhand"))),
+            external: schema.external.then(|| (three("tau_ext"), three("fext"))),
+            amps: col("amps"),
+            mode: col("mode"),
+            flags: col("flags"),
+            stylus: schema
+                .buttons
+                .then(|| crate::telemetry::record::STYLUS_COLUMNS.map(col)),
+        };
+        Ok((schema, at))
+    }
+
+    /// One row as the tick it records (a group the log lacks reads NaN, or released buttons).
+    fn record(
+        &self,
+        row: &crate::telemetry::reader::Row<'_>,
+    ) -> Result<crate::telemetry::record::TickRecord, crate::telemetry::reader::RowFault> {
+        use crate::telemetry::reader::RowFault;
+        use crate::telemetry::record::{HapticRecord, Live, Mode, TickRecord};
+        let nums = |c: [usize; 3]| -> Result<[f64; 3], RowFault> {
+            Ok([
+                row.number_or_gap(c[0])?,
+                row.number_or_gap(c[1])?,
+                row.number_or_gap(c[2])?,
+            ])
+        };
+        let pair = |group: Option<([usize; 3], [usize; 3])>| match group {
+            Some((a, b)) => Ok((nums(a)?, nums(b)?)),
+            None => Ok(([f64::NAN; 3], [f64::NAN; 3])),
+        };
+        let mode = std::str::from_utf8(row.field(self.mode))
+            .ok()
+            .and_then(Mode::parse)
+            .ok_or(RowFault::UnknownMode { col: self.mode })?;
+        let (tau_model, hand) = pair(self.model)?;
+        let (tau_ext, fext) = pair(self.external)?;
+        let mut live = Live::default();
+        if let Some(s) = self.stylus {
+            live.buttons = [row.i64(s[0])? != 0, row.i64(s[1])? != 0];
+            live.inkwell = row.i64(s[2])? != 0;
+        }
+        let enc = self.enc;
+        Ok(TickRecord {
+            t: row.t,
+            q: nums(self.q)?,
+            tau: nums(self.tau)?,
+            qf: nums(self.qf)?,
+            qd: nums(self.qd)?,
+            qdd: nums(self.qdd)?,
+            reference: nums(self.reference)?,
+            tau_cmd: nums(self.tau_cmd)?,
+            tau_hat: nums(self.tau_hat)?,
+            tau_model,
+            tau_ext,
+            enc: [row.i64(enc[0])?, row.i64(enc[1])?, row.i64(enc[2])?],
+            amps: row.i64(self.amps)? != 0,
+            mode,
+            flags: u32::try_from(row.i64(self.flags)?)
+                .map_err(|_| RowFault::NotAnInteger { col: self.flags })?,
+            haptic: HapticRecord {
+                tip_mm: nums(self.tip)?,
+                force: nums(self.fcmd)?,
+                hand,
+                fext,
+            },
+            live,
+        })
+    }
 }
 
 fn capture<W: Write>(
