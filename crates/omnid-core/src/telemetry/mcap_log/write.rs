@@ -104,28 +104,66 @@ impl TickEncoder {
     /// The tick's messages, each handed to `put` with its topic and log time (ns since the
     /// Unix epoch); `/robot_description` before the first tick.
     pub fn encode(&mut self, r: &TickRecord, put: &mut Put<'_>) -> io::Result<()> {
+        let time = self.log_time(r.t);
+        let header = Header {
+            stamp: Stamp::from_nanos(time),
+            frame_id: "",
+        };
+        if std::mem::take(&mut self.describe) {
+            self.msg.clear();
+            msgs::write_string(&mut self.msg, &self.arm.urdf());
+            put(super::ROBOT_DESCRIPTION, time, &self.msg)?;
+        }
+        self.every_tick(r, time, &header, put)?;
+        self.on_change(r, time, &header, put)?;
+        let m = &mut self.msg;
+        if let Some(ev) = r.live.event {
+            m.clear();
+            msgs::write_string(m, &event_text(ev));
+            put(super::EVENTS, time, m)?;
+        }
+        if self.ticks.is_multiple_of(TF_EVERY) {
+            m.clear();
+            msgs::write_f64_array(m, "joint", &r.live.heat);
+            put(super::HEAT, time, m)?;
+            m.clear();
+            msgs::write_tf(m, &self.arm.transforms(&r.q, header));
+            put(super::TF, time, m)?;
+        }
+        m.clear();
+        msgs::write_joint_state(m, &header, &JOINT_NAMES, &r.q, &r.qd, &r.tau);
+        put(super::JOINT_STATES, time, m)?;
+        self.ticks += 1;
+        Ok(())
+    }
+
+    /// The log time of device time `t`, ns since the Unix epoch: the first tick is stamped
+    /// with the wall clock, the rest follow the device's clock from there.
+    fn log_time(&mut self, t: f64) -> u64 {
         let epoch = *self.epoch_ns.get_or_insert_with(|| {
             let now = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map(|d| d.as_nanos() as u64)
                 .unwrap_or(0);
-            now.saturating_sub(device_ns(r.t))
+            now.saturating_sub(device_ns(t))
         });
-        let time = epoch.saturating_add(device_ns(r.t));
-        let header = Header {
-            stamp: Stamp::from_nanos(time),
-            frame_id: "",
-        };
+        epoch.saturating_add(device_ns(t))
+    }
+
+    /// The topics every tick carries (those of the log's schema): time, the estimate, the
+    /// torques, the tip and its forces, the encoders.
+    fn every_tick(
+        &mut self,
+        r: &TickRecord,
+        time: u64,
+        header: &Header<'_>,
+        put: &mut Put<'_>,
+    ) -> io::Result<()> {
         let based = Header {
             frame_id: self.arm.base_frame(),
-            ..header
+            ..*header
         };
         let m = &mut self.msg;
-        if std::mem::take(&mut self.describe) {
-            m.clear();
-            msgs::write_string(m, &self.arm.urdf());
-            put(super::ROBOT_DESCRIPTION, time, m)?;
-        }
         m.clear();
         msgs::write_float64(m, r.t);
         put(super::TIME, time, m)?;
@@ -168,8 +206,18 @@ impl TickEncoder {
         }
         m.clear();
         msgs::write_i64_array(m, "joint", &r.enc);
-        put(super::ENCODERS, time, m)?;
+        put(super::ENCODERS, time, m)
+    }
 
+    /// The topics written only when their value changes (and at the first tick): flags,
+    /// mode, amplifiers, buttons, controller.
+    fn on_change(
+        &mut self,
+        r: &TickRecord,
+        time: u64,
+        header: &Header<'_>,
+        put: &mut Put<'_>,
+    ) -> io::Result<()> {
         let now = Carried {
             mode: r.mode,
             amps: r.amps,
@@ -178,6 +226,7 @@ impl TickEncoder {
             controller: r.live.controller,
         };
         let last = self.last.replace(now);
+        let m = &mut self.msg;
         if last.is_none_or(|l| l.flags != now.flags) {
             m.clear();
             msgs::write_uint32(m, now.flags);
@@ -195,7 +244,7 @@ impl TickEncoder {
         }
         if self.schema.has(super::BUTTONS.group) && last.is_none_or(|l| l.buttons != now.buttons) {
             m.clear();
-            msgs::write_joy(m, &header, &[], &now.buttons.map(i32::from));
+            msgs::write_joy(m, header, &[], &now.buttons.map(i32::from));
             put(super::BUTTONS, time, m)?;
         }
         if let Some(c) = now.controller {
@@ -205,23 +254,6 @@ impl TickEncoder {
                 put(super::CONTROLLER, time, m)?;
             }
         }
-        if let Some(ev) = r.live.event {
-            m.clear();
-            msgs::write_string(m, &event_text(ev));
-            put(super::EVENTS, time, m)?;
-        }
-        if self.ticks.is_multiple_of(TF_EVERY) {
-            m.clear();
-            msgs::write_f64_array(m, "joint", &r.live.heat);
-            put(super::HEAT, time, m)?;
-            m.clear();
-            msgs::write_tf(m, &self.arm.transforms(&r.q, header));
-            put(super::TF, time, m)?;
-        }
-        m.clear();
-        msgs::write_joint_state(m, &header, &JOINT_NAMES, &r.q, &r.qd, &r.tau);
-        put(super::JOINT_STATES, time, m)?;
-        self.ticks += 1;
         Ok(())
     }
 }
