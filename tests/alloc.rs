@@ -463,16 +463,23 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         assert!(servo.tick().is_none());
     }
     counting.store(true, Ordering::SeqCst);
+    // Ticks counted while a client's stream drove the arm (a loaded machine may stall the
+    // commander past a stream's time to live now and then: the arm holds meanwhile).
+    let mut streamed = 0u32;
     let n = count_allocations(|| {
         for _ in 0..3_000 {
             assert!(servo.tick().is_none());
+            streamed += matches!(
+                servo.activity(),
+                omnid::servo::Activity::ServoJp | omnid::servo::Activity::ServoCf
+            ) as u32;
         }
     });
     let done = cycles.load(Ordering::SeqCst);
-    assert!(matches!(
-        servo.activity(),
-        omnid::servo::Activity::ServoJp | omnid::servo::Activity::ServoCf
-    ));
+    assert!(
+        streamed > 100,
+        "only {streamed} of the counted ticks were streamed"
+    );
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
     hub.join().unwrap();

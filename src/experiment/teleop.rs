@@ -220,6 +220,10 @@ fn side_config(scene: &Scene, leader: bool, quick: bool) -> Config {
     cfg.sim.start_pose = cfg.reference.center;
     cfg.sim.docked = false;
     cfg.safety.persist_heat = false;
+    // Both arms start coupled at the workspace centre: with the start-up ramp a side would
+    // wait for its full authority before engaging (docs/TELEOP.md §3), and the runs measure
+    // the coupling, not the ramp.
+    cfg.safety.ramp_s = 0.0;
     if leader {
         cfg.haptics.hand = HandConfig {
             pattern: match scene {

@@ -296,6 +296,7 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
         err2 += (0..3).map(|k| (df[k] - dl[k]).powi(2)).sum::<f64>();
     }
     let rms = (err2 / engaged.len() as f64).sqrt();
+    eprintln!("follower off the leader's motion by {rms:.2} mm RMS");
     assert!(moved > 10.0, "the hand moved the leader only {moved:.1} mm");
     assert!(
         rms < 3.0,

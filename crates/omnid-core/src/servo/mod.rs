@@ -906,6 +906,7 @@ impl Servo {
                 fext_n: self.external.force,
                 buttons: self.buttons,
                 active: self.activity == Activity::Teleop,
+                ready: self.safety.full_authority(),
             };
             self.teleop_force = c.step(&side);
         }

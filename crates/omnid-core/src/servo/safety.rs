@@ -270,6 +270,11 @@ impl SafetyLayer {
         self.heat_up(&Joint3::zeros(), &mut unused);
     }
 
+    /// Whether the start-up ramp is over: the commands pass at full authority.
+    pub fn full_authority(&self) -> bool {
+        self.ramp_elapsed >= self.cfg.ramp_s
+    }
+
     /// Start the ramp again (after a recovery): authority returns gradually.
     pub fn restart_ramp(&mut self) {
         self.ramp_elapsed = 0.0;

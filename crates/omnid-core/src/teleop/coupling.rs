@@ -69,6 +69,12 @@ pub struct SideInput {
     pub buttons: [bool; 2],
     /// The arm is coupled (in teleop); false: it is idle or faulted, the pair is down.
     pub active: bool,
+    /// The arm acts with its full authority (the safety layer's start-up ramp after idle is
+    /// over). A follower takes an engagement up only then: an arm still ramping up cannot
+    /// follow, and the motion it missed was pulled in at once when it could (docs/TELEOP.md
+    /// §3). The leader needs none: its force ramps in anyway, and the follower copies the
+    /// motion its ramp makes (what keeps a pair `--align`ed).
+    pub ready: bool,
 }
 
 /// A link that came back counts as up again after this long (operator `always`), s.
@@ -579,9 +585,11 @@ impl Coupling {
     }
 
     fn follow(&mut self, x: &SideInput, link_up: bool, peer_down: bool) -> V3 {
+        // An arm still ramping up holds: it takes the engagement up (or back) once it can
+        // follow (docs/TELEOP.md §3).
         let leader = self
             .peer
-            .filter(|p| link_up && p.engage != 0 && p.flags & packet_flags::DOWN == 0);
+            .filter(|p| link_up && x.ready && p.engage != 0 && p.flags & packet_flags::DOWN == 0);
         match leader {
             Some(p) => {
                 let here = x.tip_mm - V3::from(p.pos_mm);
@@ -788,6 +796,7 @@ mod tests {
             fext_n: V3::zeros(),
             buttons: [false; 2],
             active: true,
+            ready: true,
         }
     }
 
@@ -845,6 +854,60 @@ mod tests {
         let k = cfg.stiffness_n_per_mm;
         assert!((ff - V3::new(k, 0.0, 0.0)).norm() < 1e-9, "{ff:?}");
         assert!((lf - V3::new(-k, 0.0, 0.0)).norm() < 1e-9, "{lf:?}");
+    }
+
+    /// Issue #42: a follower that entered teleop from idle rested on its stops while its
+    /// authority ramped up, and the leader's motion meanwhile was pulled in at once when it
+    /// could (up to 25 mm, the arm rushing at 0.5 m/s). A follower still ramping up does not
+    /// take the engagement up; it takes it up where it then stands.
+    #[test]
+    fn a_follower_still_ramping_up_takes_the_engagement_up_only_once_it_can_follow() {
+        let cfg = always();
+        let ramping = |tip: [f64; 3]| SideInput {
+            ready: false,
+            ..input(0.0, tip)
+        };
+        // The follower ramping up: the leader engages, the follower holds and the leader's
+        // motion puts no force on either.
+        let mut p = sides(&cfg);
+        let (lf, ff) = run(
+            &mut p,
+            0,
+            40,
+            input(0.0, [10.0, 0.0, 0.0]),
+            ramping([-5.0, 3.0, 0.0]),
+        );
+        assert_eq!(p.0.state(), TeleopState::Engaged);
+        assert_eq!(p.1.state(), TeleopState::Waiting);
+        let (lf2, ff2) = run(
+            &mut p,
+            40,
+            40,
+            input(0.0, [30.0, 0.0, 0.0]),
+            ramping([-5.0, 3.0, 0.0]),
+        );
+        for f in [lf, ff, lf2, ff2] {
+            assert!(f.norm() < 1e-12, "{f:?}");
+        }
+        // Ready: it takes the engagement up where it stands (no pull), then follows.
+        let (_, ff) = run(
+            &mut p,
+            80,
+            5,
+            input(0.0, [30.0, 0.0, 0.0]),
+            input(0.0, [-5.0, 3.0, 0.0]),
+        );
+        assert_eq!(p.1.state(), TeleopState::Engaged);
+        assert!(ff.norm() < 1e-12, "{ff:?}");
+        let (_, ff) = run(
+            &mut p,
+            85,
+            3,
+            input(0.0, [31.0, 0.0, 0.0]),
+            input(0.0, [-5.0, 3.0, 0.0]),
+        );
+        let k = cfg.stiffness_n_per_mm;
+        assert!((ff - V3::new(k, 0.0, 0.0)).norm() < 1e-9, "{ff:?}");
     }
 
     #[test]
