@@ -15,7 +15,7 @@ pub mod teleop;
 
 use crate::cmd::assembly::{SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 use crate::cmd::identify::{identify, samples_from_log, IdentifyError};
-use crate::cmd::run::{execute, RunError, RunOptions};
+use crate::cmd::run::{execute, oracle_tracking, RunError, RunOptions};
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
 use crate::identifier::{Identifier, PretuneConfig, PretuneReport, Progress, Sample, WeightsFile};
@@ -439,7 +439,20 @@ fn validation(
              `mock/nnidc-pretuned.json`: the pipeline reproduces them.\n",
         );
     }
-    tracking_side_by_side(&mut md, &overview);
+    // The oracle beside NNIDC: computed torque with the exact model and the plant's friction
+    // on the same sine (docs/IDENTIFIER.md).
+    let mut oracle_cfg = cfg.clone();
+    oracle_cfg.safety.persist_heat = false;
+    let oracle = oracle_tracking(
+        &RunOptions {
+            trajectory: Trajectory::Sine,
+            duration_s: sine_secs,
+            fast: true,
+            ..RunOptions::default()
+        },
+        &oracle_cfg,
+    );
+    tracking_side_by_side(&mut md, &overview, oracle);
     md.push_str("\n## Figures\n\n");
     md.push_str(&figs_md);
     bar.finish_and_clear();
@@ -539,14 +552,30 @@ fn validation_intro(
     md
 }
 
-/// The tracking RMS of every controller's run, one row each, mrad.
-fn tracking_side_by_side(md: &mut String, overview: &[(&str, RunSummary)]) {
+/// The tracking RMS of every controller's run, one row each, mrad; then the oracle's (computed
+/// torque with the exact model and friction) and NNIDC's ratio to it.
+fn tracking_side_by_side(
+    md: &mut String,
+    overview: &[(&str, RunSummary)],
+    oracle: Option<[f64; 3]>,
+) {
     md.push_str("## Tracking RMS side by side (mrad)\n\n| controller | joint 1 | joint 2 | joint 3 |\n|---|---:|---:|---:|\n");
-    for (name, s) in overview {
-        let v = s.tracking_rms_rad;
-        let cell = |j: usize| num(v.map(|v| v[j] * 1e3), 3);
+    let row = |md: &mut String, name: &str, v: Option<[f64; 3]>, scale: f64, digits: usize| {
+        let cell = |j: usize| num(v.map(|v| v[j] * scale), digits);
         let _ = writeln!(md, "| {name} | {} | {} | {} |", cell(0), cell(1), cell(2));
+    };
+    for (name, s) in overview {
+        row(md, name, s.tracking_rms_rad, 1e3, 3);
     }
+    row(md, "oracle (ct, exact model and friction)", oracle, 1e3, 3);
+    let nnidc = overview
+        .iter()
+        .find(|(name, _)| *name == "nnidc")
+        .and_then(|(_, s)| s.tracking_rms_rad);
+    let ratio = nnidc
+        .zip(oracle)
+        .map(|(n, o)| [0, 1, 2].map(|j| n[j] / o[j]));
+    row(md, "nnidc ÷ oracle (×)", ratio, 1.0, 2);
 }
 
 // ---------------------------------------------------------------------------------------------

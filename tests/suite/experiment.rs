@@ -74,8 +74,10 @@ fn validation_quick_writes_a_finite_report_and_figures() {
     let rep = run_experiment(Experiment::Validation, dir.path(), true).unwrap();
     let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
     assert_eq!(md, rep.markdown);
-    // Six rows of three joints per controller, plus the side-by-side table.
-    assert_eq!(assert_tables_finite(&md), 3 * 6 * 3 + 3 * 3, "{md}");
+    // Six rows of three joints per controller, plus the side-by-side table (a row per
+    // controller, the oracle's and NNIDC's ratio to it).
+    assert_eq!(assert_tables_finite(&md), 3 * 6 * 3 + 5 * 3, "{md}");
+    assert!(md.contains("| nnidc ÷ oracle (×) |"), "{md}");
     assert!(dir.path().join("pretune/weights.json").exists());
     for c in VALIDATION_CONTROLLERS {
         assert_figures(&dir.path().join(c), &["angles", "tracking_error"]);
