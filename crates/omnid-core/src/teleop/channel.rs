@@ -106,8 +106,16 @@ pub struct Endpoint {
     len: usize,
     /// When the last packet put in the line is due (delivery keeps order).
     last_due: f64,
+    /// A playout buffer ([`Endpoint::set_playout`]): the largest arrival time less the
+    /// sender's `t` seen so far (it falls at [`PLAYOUT_FALL`]), s; off while `None`.
+    playout: Option<f64>,
     stats: ChannelStats,
 }
+
+/// A playout buffer's hold comes down at this rate (s a second): a spike of delay (a stalled
+/// thread, a burst on the network) is not held for ever, and a delay that shrinks this slowly
+/// puts out less than came in (docs/TELEOP.md §5).
+pub const PLAYOUT_FALL: f64 = 0.005;
 
 /// Two joined endpoints (the leader's, the follower's), each impaired as given on what it
 /// receives.
@@ -137,8 +145,18 @@ impl Endpoint {
             head: 0,
             len: 0,
             last_due: f64::NEG_INFINITY,
+            playout: None,
             stats: ChannelStats::default(),
         }
+    }
+
+    /// Deliver every packet at one delay: that of the latest packet yet (its arrival less
+    /// its sender's time `t`, the two clocks' offset included), coming down slowly
+    /// ([`PLAYOUT_FALL`]). A jittery delay then reaches the receiver as a constant one at
+    /// about its largest value — what wave variables need to stay passive (a delay that
+    /// changes from packet to packet stretches and squeezes the waves: docs/TELEOP.md §5).
+    pub fn set_playout(&mut self, on: bool) {
+        self.playout = on.then_some(f64::NEG_INFINITY);
     }
 
     /// Send without waiting (a full queue drops the packet: the next one supersedes it).
@@ -171,7 +189,15 @@ impl Endpoint {
                 0.0
             };
             let delay_s = (imp.delay_ms + jitter).max(0.0) * 1e-3;
-            let due = (now + delay_s).max(self.last_due);
+            let mut due = (now + delay_s).max(self.last_due);
+            if let Some(hold) = self.playout.as_mut() {
+                // The hold comes down with the time since the last packet.
+                let since = (due - self.last_due).clamp(0.0, 1.0);
+                *hold = (*hold - PLAYOUT_FALL * since).max(due - p.t);
+                if hold.is_finite() {
+                    due = due.max(p.t + *hold);
+                }
+            }
             self.last_due = due;
             let slot = (self.head + self.len) % LINE;
             self.line[slot] = (due, p);
@@ -194,6 +220,7 @@ impl Endpoint {
         self.head = 0;
         self.len = 0;
         self.last_due = f64::NEG_INFINITY;
+        self.playout = self.playout.map(|_| f64::NEG_INFINITY);
         self.stats = ChannelStats::default();
     }
 
@@ -268,6 +295,49 @@ mod tests {
         // Binomial: σ = sqrt(0.1·0.9/20000) ≈ 0.002.
         assert!((lost - 0.1).abs() < 0.01, "{lost}");
         assert_eq!(s.received, n);
+    }
+
+    /// Issue #42: wave variables were unstable under a jittery delay (100 ms ±50 %); a
+    /// playout buffer delivers every packet at one delay, about the largest seen.
+    #[test]
+    fn a_playout_buffer_turns_a_jittery_delay_into_a_constant_one_at_its_largest() {
+        let imp = Impairment {
+            delay_ms: 50.0,
+            jitter_ms: 25.0,
+            loss: 0.0,
+        };
+        let run = |playout: bool| {
+            let (mut leader, mut follower) = pair(Impairment::default(), imp, 7);
+            follower.set_playout(playout);
+            // Each packet's delay as delivered, over the last of 5 s (after the first
+            // seconds have shown the largest delay).
+            let mut delays = Vec::new();
+            for k in 0..5000u64 {
+                let t = k as f64 * 1e-3;
+                leader.send(Packet {
+                    seq: k,
+                    t,
+                    ..Packet::default()
+                });
+                if let Some(p) = follower.receive(t) {
+                    if k >= 4000 {
+                        delays.push(t - p.t);
+                    }
+                }
+            }
+            let lo = delays.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = delays.iter().copied().fold(0.0, f64::max);
+            (delays.len(), lo, hi)
+        };
+        // Without: the delay wanders over the jitter's span and packets come in bursts
+        // (only the newest of a burst is handed over).
+        let (n, lo, hi) = run(false);
+        assert!(hi - lo > 0.02 && n < 900, "{n} {lo} {hi}");
+        // With: one packet a tick, each about 75 ms old (the hold comes down 5 ms a second
+        // and goes back up to the largest delay it meets).
+        let (n, lo, hi) = run(true);
+        assert!(n >= 995, "{n}");
+        assert!(lo > 0.068 && hi < 0.0765, "{lo} {hi}");
     }
 
     #[test]
