@@ -67,7 +67,10 @@ fn the_counter_sees_an_allocation() {
 }
 
 fn ticks_allocate_nothing(kind: ControllerKind, trajectory: Trajectory) {
-    let cfg = Config::default();
+    ticks_allocate_nothing_with(Config::default(), kind, trajectory);
+}
+
+fn ticks_allocate_nothing_with(cfg: Config, kind: ControllerKind, trajectory: Trajectory) {
     let device = Box::new(SimOmni::new(&cfg, false));
     let controller = ControllerSet::new(&cfg, kind, 0.0);
     let reference = Reference::new(trajectory, &cfg.reference, cfg.sim.seed);
@@ -119,6 +122,13 @@ fn sim_pd_multisine_allocates_nothing_per_tick() {
 #[test]
 fn sim_nnidc_adapting_allocates_nothing_per_tick() {
     ticks_allocate_nothing(ControllerKind::Nnidc, Trajectory::Sine);
+}
+
+#[test]
+fn sim_nnidc_adapting_with_the_lag_matched_error_allocates_nothing_per_tick() {
+    let mut cfg = Config::default();
+    cfg.identifier.lag_match = true;
+    ticks_allocate_nothing_with(cfg, ControllerKind::Nnidc, Trajectory::Sine);
 }
 
 #[test]
@@ -453,16 +463,23 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
         assert!(servo.tick().is_none());
     }
     counting.store(true, Ordering::SeqCst);
+    // Ticks counted while a client's stream drove the arm (a loaded machine may stall the
+    // commander past a stream's time to live now and then: the arm holds meanwhile).
+    let mut streamed = 0u32;
     let n = count_allocations(|| {
         for _ in 0..3_000 {
             assert!(servo.tick().is_none());
+            streamed += matches!(
+                servo.activity(),
+                omnid::servo::Activity::ServoJp | omnid::servo::Activity::ServoCf
+            ) as u32;
         }
     });
     let done = cycles.load(Ordering::SeqCst);
-    assert!(matches!(
-        servo.activity(),
-        omnid::servo::Activity::ServoJp | omnid::servo::Activity::ServoCf
-    ));
+    assert!(
+        streamed > 100,
+        "only {streamed} of the counted ticks were streamed"
+    );
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());
     hub.join().unwrap();

@@ -304,11 +304,107 @@ def find_arm_socket(arm: str) -> str:
 Message = Union[State, Dict[str, Any]]
 
 
+# A remote client is bound to its owner (docs/ZENOH.md, "A client is bound to its key"): at
+# hello it agrees a secret with the daemon by ephemeral X25519 Diffie-Hellman through
+# HKDF-SHA256, and every later request carries a counter and an HMAC-SHA256 with that secret in
+# the zenoh sample's attachment, so no other peer's request is taken as this client's.
+
+_KDF_LABEL = b"omnid remote client v1"
+_MAC_LABEL = b"omnid request v1\0"
+_P25519 = 2**255 - 19
+
+
+def _x25519(scalar: bytes, u: bytes) -> bytes:
+    """RFC 7748's X25519 function (the Montgomery ladder of its section 5), used when the
+    ``cryptography`` package is not installed."""
+    k = bytearray(scalar)
+    k[0] &= 248
+    k[31] &= 127
+    k[31] |= 64
+    n = int.from_bytes(bytes(k), "little")
+    x1 = int.from_bytes(u, "little") & ((1 << 255) - 1)
+    p = _P25519
+    x2, z2, x3, z3, swap = 1, 0, x1, 1, 0
+    for t in range(254, -1, -1):
+        bit = (n >> t) & 1
+        swap ^= bit
+        if swap:
+            x2, x3, z2, z3 = x3, x2, z3, z2
+        swap = bit
+        a, b = (x2 + z2) % p, (x2 - z2) % p
+        aa, bb = a * a % p, b * b % p
+        e = (aa - bb) % p
+        c, d = (x3 + z3) % p, (x3 - z3) % p
+        da, cb = d * a % p, c * b % p
+        x3 = (da + cb) ** 2 % p
+        z3 = x1 * ((da - cb) ** 2) % p
+        x2 = aa * bb % p
+        z2 = e * (aa + 121665 * e) % p
+    if swap:
+        x2, x3, z2, z3 = x3, x2, z3, z2
+    return (x2 * pow(z2, p - 2, p) % p).to_bytes(32, "little")
+
+
+class _KeyPair:
+    """An ephemeral X25519 key pair (``cryptography``'s when installed, else :func:`_x25519`)."""
+
+    def __init__(self) -> None:
+        try:
+            from cryptography.hazmat.primitives.asymmetric import x25519  # type: ignore
+            from cryptography.hazmat.primitives import serialization  # type: ignore
+
+            self._private: Any = x25519.X25519PrivateKey.generate()
+            raw = serialization.Encoding.Raw, serialization.PublicFormat.Raw
+            self.public = self._private.public_key().public_bytes(*raw)
+        except ImportError:
+            self._private = os.urandom(32)
+            self.public = _x25519(self._private, (9).to_bytes(32, "little"))
+
+    def shared(self, peer: bytes) -> bytes:
+        if isinstance(self._private, bytes):
+            out = _x25519(self._private, peer)
+        else:
+            from cryptography.hazmat.primitives.asymmetric import x25519  # type: ignore
+
+            out = self._private.exchange(x25519.X25519PublicKey.from_public_bytes(peer))
+        if out == bytes(32):
+            raise ValueError("the daemon's key is a degenerate X25519 point")
+        return out
+
+
+def _fingerprint(public: bytes) -> str:
+    """The end of a remote client's id: the first 16 bytes of its key's SHA-256, hex."""
+    import hashlib
+
+    return hashlib.sha256(public).digest()[:16].hex()
+
+
+def _derive(shared: bytes, cid: str, client: bytes, daemon: bytes) -> bytes:
+    """HKDF-SHA256 (RFC 5869) of the X25519 output: the client's 32-byte secret."""
+    import hashlib
+    import hmac
+
+    prk = hmac.new(_KDF_LABEL, shared, hashlib.sha256).digest()
+    info = _KDF_LABEL + cid.encode() + b"\0" + client + daemon
+    return hmac.new(prk, info + b"\x01", hashlib.sha256).digest()
+
+
+def _seal(secret: bytes, counter: int, data: bytes) -> bytes:
+    """A request's attachment: its counter (u64, little-endian), then the HMAC-SHA256."""
+    import hashlib
+    import hmac
+    import struct
+
+    c = struct.pack("<Q", counter)
+    return c + hmac.new(secret, _MAC_LABEL + c + data, hashlib.sha256).digest()
+
+
 class _ZenohLink:
     """omnid's protocol over zenoh (needs ``pip install eclipse-zenoh``): this client's
     liveliness token ``omnid/<arm>/client/<id>``, its requests put on ``omnid/<arm>/in/<id>``
     and the daemon's messages for it, from ``omnid/<arm>/out/<id>``, written into a socket
-    pair the client reads."""
+    pair the client reads. Its id ends with its key's fingerprint; after the hello every
+    request carries the code of the secret agreed there."""
 
     def __init__(
         self,
@@ -324,9 +420,15 @@ class _ZenohLink:
             raise ConnectError(
                 "a remote client needs the zenoh package: pip install eclipse-zenoh"
             ) from e
-        import uuid
+        import base64
+        import threading
 
-        self.cid = "py-" + uuid.uuid4().hex[:16]
+        self._keys = _KeyPair()
+        self.key = base64.b64encode(self._keys.public).decode()
+        self.cid = "py-" + _fingerprint(self._keys.public)
+        self._secret: Optional[bytes] = None
+        self._counter = 0
+        self._put_lock = threading.Lock()
         self.dropped = 0
         self.reader, self._writer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._writer.setblocking(False)
@@ -360,14 +462,34 @@ class _ZenohLink:
         getattr(threading, "_register_atexit", lambda f: None)(self.close)
 
     def _arrived(self, sample: Any) -> None:
+        data = bytes(sample.payload.to_bytes())
+        if self._secret is None and b'"hello"' in data:
+            # The daemon's hello: its key completes the agreement, before the client reads it.
+            try:
+                import base64
+
+                m = json.loads(data)
+                if m.get("type") != "hello":
+                    raise ValueError("not the hello")
+                daemon = base64.b64decode(m["key"])
+                shared = self._keys.shared(daemon)
+                self._secret = _derive(shared, self.cid, self._keys.public, daemon)
+            except (ValueError, KeyError, TypeError):
+                pass
         try:
-            self._writer.send(bytes(sample.payload.to_bytes()))
+            self._writer.send(data)
         except (BlockingIOError, OSError):
             # The reader is not keeping up (or is closed): the message is dropped.
             self.dropped += 1
 
     def put(self, data: bytes) -> None:
-        self._in.put(data)
+        # One lock: the counters leave in order (the daemon takes each only once, ascending).
+        with self._put_lock:
+            if self._secret is None:
+                self._in.put(data)
+                return
+            self._counter += 1
+            self._in.put(data, attachment=_seal(self._secret, self._counter, data))
 
     def close(self) -> None:
         if self._closed:
@@ -512,8 +634,11 @@ class Client:
     # ---------------------------------------------------------------- session
 
     def _greet(self, timeout: float) -> None:
+        hello: Dict[str, Any] = {"op": "hello", "protocol": PROTOCOL_VERSION, "name": self.name}
+        if self._zenoh is not None:
+            hello["key"] = self._zenoh.key
         try:
-            self.send({"op": "hello", "protocol": PROTOCOL_VERSION, "name": self.name})
+            self.send(hello)
         except ConnectionClosedError:
             # A daemon that refuses the connection (access, too many clients) says why and
             # closes at once: its reason is still there to read.

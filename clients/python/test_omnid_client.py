@@ -54,6 +54,48 @@ def tip_mm(q):
     return (-s1 * r, L1 * s2 - L2 * c3 + Y_OFFSET, c1 * r - Z_OFFSET)
 
 
+class RemoteBindingTests(unittest.TestCase):
+    """The remote client's key agreement and request codes (docs/ZENOH.md), without a daemon:
+    RFC 7748's X25519 vectors, and the secret and tag the daemon's src/transport/zenoh/bind.rs
+    derives from the same inputs (its test the_secret_is_rfc_7748s_x25519_through_hkdf)."""
+
+    def test_x25519_is_rfc_7748s(self):
+        alice = bytes.fromhex("77076d0a7318a57d3c16c17251b26645df4c2f87ebc0992ab177fba51db92c2a")
+        bob = bytes.fromhex("5dab087e624a8a4b79e17f8b83800ee66f3bb1292618b6fd1c2f8b27ff88e0eb")
+        nine = (9).to_bytes(32, "little")
+        a_pub = omnid_client._x25519(alice, nine)
+        b_pub = omnid_client._x25519(bob, nine)
+        self.assertEqual(
+            a_pub.hex(), "8520f0098930a754748b7ddcb43ef75a0dbf3a0d26381af4eba4a98eaa9b4e6a"
+        )
+        self.assertEqual(
+            b_pub.hex(), "de9edb7d7b7dc1b4d35b61c2ece435373f8343c85b78674dadfc7e146f882b4f"
+        )
+        shared = "4a5d9d5ba4ce2de1728e3bf480350f25e07e21c947d19e3376f09b3c1e161742"
+        self.assertEqual(omnid_client._x25519(alice, b_pub).hex(), shared)
+        self.assertEqual(omnid_client._x25519(bob, a_pub).hex(), shared)
+
+    def test_secret_and_tag_are_the_daemons(self):
+        a_pub = bytes.fromhex("8520f0098930a754748b7ddcb43ef75a0dbf3a0d26381af4eba4a98eaa9b4e6a")
+        b_pub = bytes.fromhex("de9edb7d7b7dc1b4d35b61c2ece435373f8343c85b78674dadfc7e146f882b4f")
+        shared = bytes.fromhex("4a5d9d5ba4ce2de1728e3bf480350f25e07e21c947d19e3376f09b3c1e161742")
+        secret = omnid_client._derive(shared, "py-abc", a_pub, b_pub)
+        self.assertEqual(
+            secret.hex(), "9327c8ff1944d0c35ca05439b0417d16dd4874e8c208005ca138f79e92d76dcd"
+        )
+        self.assertEqual(
+            omnid_client._seal(secret, 1, b'{"op":"status"}').hex(),
+            "010000000000000067ce1dc74910e163124a05a2651ff3df0d90d5e84041215698ca04fc73db8c7e",
+        )
+
+    def test_two_key_pairs_agree_and_the_id_ends_with_the_fingerprint(self):
+        a, b = omnid_client._KeyPair(), omnid_client._KeyPair()
+        self.assertEqual(a.shared(b.public), b.shared(a.public))
+        self.assertEqual(len(omnid_client._fingerprint(a.public)), 32)
+        with self.assertRaises(ValueError):
+            a.shared(bytes(32))
+
+
 class Daemon:
     """One `omnid serve --device sim` in a temporary directory."""
 

@@ -4,7 +4,7 @@ use crate::{
     load_config, stop_on_signal, EXIT_BAD_INPUT, EXIT_DEVICE_FAULT, EXIT_INTERNAL,
     EXIT_OPERATOR_STOP, EXIT_SAFETY_FAULT,
 };
-use omnid::cmd::run::{execute, DeviceSpec, RunError, RunOptions};
+use omnid::cmd::run::{execute, oracle_tracking, DeviceSpec, RunError, RunOptions};
 use omnid::control::{ControllerKind, Trajectory};
 use omnid::device::inject::Fault;
 use omnid::servo::EndReason;
@@ -154,10 +154,14 @@ pub(crate) fn run(args: RunArgs) -> Result<u8, anyhow::Error> {
         no_adapt: args.no_adapt,
         haptics,
     };
-    let outcome = match execute(&opts, &cfg, stop) {
+    let mut outcome = match execute(&opts, &cfg, stop) {
         Ok(o) => o,
         Err(e) => return run_failed(e),
     };
+    // Beside a completed NNIDC run on the simulator: the oracle's tracking, for the ratio.
+    if outcome.end == EndReason::Completed && outcome.summary.tracking_rms_rad.is_some() {
+        outcome.summary.oracle_tracking_rms_rad = oracle_tracking(&opts, &cfg);
+    }
     omnid::out!("{}", outcome.summary.human());
     for w in &outcome.warnings {
         omnid::errln!("omnid: warning: {w}");

@@ -16,6 +16,10 @@ pub(crate) enum Request {
         name: Option<String>,
         #[serde(default)]
         id: Option<serde_json::Value>,
+        /// Over zenoh: the client's X25519 public key, base64 (docs/PROTOCOL.md); the socket
+        /// ignores it.
+        #[serde(default)]
+        key: Option<String>,
     },
     /// Start (rate_hz > 0, up to the device's rate) or stop (0) the state stream.
     Stream {

@@ -239,3 +239,59 @@ fn closed_stdout_and_stderr_change_no_exit_code_or_file() {
     assert_eq!(child.wait().unwrap().code(), Some(130));
     assert!(!std::path::Path::new(&socket).exists());
 }
+
+/// `omnid run` with NNIDC on the simulator prints its ratio to the oracle: the oracle's figures
+/// are those of a `--controller ct` run with `[control] ct_friction = true` on the same
+/// reference, and a run of another controller has none.
+#[test]
+fn an_nnidc_run_on_the_simulator_shows_its_ratio_to_the_oracle() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |controller: &str, config: Option<&str>| {
+        let summary = dir.path().join(format!("{controller}.json"));
+        let log = dir.path().join(format!("{controller}.csv"));
+        let mut args = vec![
+            "run",
+            "--fast",
+            "--duration",
+            "4",
+            "--controller",
+            controller,
+            "--log",
+            log.to_str().unwrap(),
+            "--summary-json",
+            summary.to_str().unwrap(),
+        ];
+        let cfg = dir.path().join("ct.toml");
+        if let Some(text) = config {
+            std::fs::write(&cfg, text).unwrap();
+            args.extend_from_slice(&["--config", cfg.to_str().unwrap()]);
+        }
+        let out = run_ok(&args);
+        let s: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+        (String::from_utf8(out.stdout).unwrap(), s)
+    };
+    let (printed, nnidc) = run("nnidc", None);
+    let (ct_printed, oracle) = run("ct", Some("[control]\nct_friction = true\n"));
+    assert_eq!(
+        nnidc["oracle_tracking_rms_rad"], oracle["tracking_rms_rad"],
+        "the oracle's pass is the ct run with friction"
+    );
+    assert!(oracle["oracle_tracking_rms_rad"].is_null());
+    assert!(!ct_printed.contains("vs oracle"), "{ct_printed}");
+    let own = &nnidc["tracking_rms_rad"];
+    let ratio: Vec<String> = (0..3)
+        .map(|j| {
+            let r = own[j].as_f64().unwrap() / oracle["tracking_rms_rad"][j].as_f64().unwrap();
+            format!("{r:.2}")
+        })
+        .collect();
+    let line = printed
+        .lines()
+        .find(|l| l.trim_start().starts_with("vs oracle"))
+        .unwrap_or_else(|| panic!("no `vs oracle` line in {printed}"));
+    assert!(
+        line.contains(&format!("{} ×", ratio.join(" / "))),
+        "{line} vs {ratio:?}"
+    );
+}

@@ -3,7 +3,7 @@
 //! fast, deterministic tests; those marked `#[ignore = "paced"]` run daemons ticking in real
 //! time, C/C++ compiles, PyPI checkers or paper experiments, and run with
 //! `cargo test -- --include-ignored` (as `.ci/run` does). Tests that need a global allocator
-//! of their own are in `tests/alloc.rs`; `tests/replay_memory.rs` measures the process's peak
+//! of their own are in `tests/alloc.rs`; `crates/omnid-core/tests/replay_memory.rs` measures the process's peak
 //! memory, so it has a process to itself.
 
 mod common;

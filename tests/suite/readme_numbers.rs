@@ -55,6 +55,7 @@ fn what_omnid_run_prints_shows_the_numbers_of_the_run_it_names() {
     let labels = [
         "tracking RMS",
         "tracking max",
+        "vs oracle",
         "torque RMS",
         "torque TV",
         "ident NRMSE",

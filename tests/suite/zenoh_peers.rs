@@ -122,6 +122,111 @@ fn a_zenoh_peer_finds_the_node_and_reads_measured_js_with_rmw_zenohs_attachments
     assert_eq!(code, Some(130), "{err}");
 }
 
+/// A remote client of the test's own on arm `sim` (docs/ZENOH.md, Remote clients): its
+/// liveliness token, its `out` key read into a channel, and after a hello that was answered
+/// with the daemon's key, the sealer of its requests (`omnid::transport::zenoh::bind`).
+struct Remote {
+    s: zenoh::Session,
+    cid: String,
+    rx: std::sync::mpsc::Receiver<serde_json::Value>,
+    sealer: Option<omnid::transport::zenoh::bind::Sealer>,
+    /// Its public key, base64 (as in its hello).
+    public: String,
+    next_id: u64,
+    _sub: zenoh::pubsub::Subscriber<()>,
+    _token: zenoh::liveliness::LivelinessToken,
+}
+
+impl Remote {
+    /// A client with a fresh key and the id `<prefix><its fingerprint>`, greeted: returns it
+    /// and the daemon's first answer (its hello, or the hello's refusal).
+    fn connect(s: &zenoh::Session, prefix: &str) -> (Remote, serde_json::Value) {
+        Remote::try_connect(s, prefix, Duration::from_secs(20)).expect("an answer to the hello")
+    }
+
+    /// [`Remote::connect`], or None when no answer came within `wait`.
+    fn try_connect(
+        s: &zenoh::Session,
+        prefix: &str,
+        wait: Duration,
+    ) -> Option<(Remote, serde_json::Value)> {
+        let key = omnid::transport::zenoh::bind::ClientKey::new().unwrap();
+        let cid = key.cid(prefix);
+        let (tx, rx) = std::sync::mpsc::channel();
+        let sub = s
+            .declare_subscriber(format!("omnid/sim/out/{cid}"))
+            .callback(move |m| {
+                let v: serde_json::Value =
+                    serde_json::from_slice(&m.payload().to_bytes()).unwrap_or_default();
+                let _ = tx.send(v);
+            })
+            .wait()
+            .unwrap();
+        let token = s
+            .liveliness()
+            .declare_token(format!("omnid/sim/client/{cid}"))
+            .wait()
+            .unwrap();
+        let public = key.public_base64();
+        let hello = json!({"op": "hello", "protocol": 1, "name": cid, "key": public});
+        // Put again until answered: the daemon's subscription may still be on its way.
+        let until = Instant::now() + wait;
+        let answer = loop {
+            if Instant::now() > until {
+                return None;
+            }
+            s.put(format!("omnid/sim/in/{cid}"), hello.to_string())
+                .wait()
+                .unwrap();
+            if let Ok(a) = rx.recv_timeout(Duration::from_millis(1000)) {
+                break a;
+            }
+        };
+        let sealer = (answer["type"] == "hello")
+            .then(|| key.finish(&cid, answer["key"].as_str().unwrap()).unwrap());
+        let r = Remote {
+            s: s.clone(),
+            cid,
+            rx,
+            sealer,
+            public,
+            next_id: 1,
+            _sub: sub,
+            _token: token,
+        };
+        Some((r, answer))
+    }
+
+    /// Put a request on this client's `in` key, sealed; returns its bytes and attachment.
+    fn put(&mut self, request: &serde_json::Value) -> (Vec<u8>, Vec<u8>) {
+        let body = request.to_string().into_bytes();
+        let tag = self.sealer.as_mut().expect("greeted").seal(&body).to_vec();
+        self.s
+            .put(format!("omnid/sim/in/{}", self.cid), body.clone())
+            .attachment(tag.clone())
+            .wait()
+            .unwrap();
+        (body, tag)
+    }
+
+    /// A request and its answer (the message that echoes its id); the request's bytes and
+    /// attachment too.
+    fn request(&mut self, mut request: serde_json::Value) -> (serde_json::Value, Vec<u8>, Vec<u8>) {
+        let id = self.next_id;
+        self.next_id += 1;
+        request["id"] = json!(id);
+        let (body, tag) = self.put(&request);
+        let until = Instant::now() + Duration::from_secs(20);
+        loop {
+            let left = until.saturating_duration_since(Instant::now());
+            let m = self.rx.recv_timeout(left).expect("an answer");
+            if m["id"] == json!(id) {
+                return (m, body, tag);
+            }
+        }
+    }
+}
+
 fn python() -> Option<PathBuf> {
     let py = common::venv(
         "zenoh-venv",
@@ -922,8 +1027,8 @@ fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_
 }
 
 /// A peer declares 200 client liveliness tokens and says no hello: they take no slot, so a
-/// legitimate client is greeted. A peer that greets from every slot: a further hello gets an
-/// explicit refusal, not silence.
+/// legitimate client is greeted, and its key cannot take a second slot. A peer that greets
+/// from every slot: a further hello gets an explicit refusal, not silence.
 #[test]
 #[ignore = "paced"]
 fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_refused() {
@@ -958,54 +1063,48 @@ fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_ref
         std::thread::sleep(Duration::from_millis(100));
     }
     std::thread::sleep(Duration::from_millis(500));
-    // A client's hello, answered: the first answer on its out key.
-    let greet = |who: &zenoh::Session, cid: &str| -> serde_json::Value {
-        let (tx, rx) = std::sync::mpsc::channel::<String>();
-        let sub = who
-            .declare_subscriber(format!("omnid/sim/out/{cid}"))
-            .callback(move |s| {
-                let _ = tx.send(String::from_utf8_lossy(&s.payload().to_bytes()).into_owned());
-            })
-            .wait()
-            .unwrap();
-        let hello = format!(r#"{{"op":"hello","protocol":1,"name":"{cid}"}}"#);
-        let until = Instant::now() + Duration::from_secs(20);
-        let answer = loop {
-            assert!(Instant::now() < until, "the hello of {cid} got no answer");
-            who.put(format!("omnid/sim/in/{cid}"), hello.clone())
-                .wait()
-                .unwrap();
-            if let Ok(a) = rx.recv_timeout(Duration::from_millis(500)) {
-                break a;
-            }
-        };
-        drop(sub);
-        serde_json::from_str(&answer).unwrap()
-    };
-    let _token = client
-        .liveliness()
-        .declare_token("omnid/sim/client/legit")
-        .wait()
-        .unwrap();
-    let v = greet(&client, "legit");
+    let (legit, v) = Remote::connect(&client, "legit-");
     assert_eq!(
         v["type"], "hello",
         "200 squatted tokens kept a client out: {v}"
     );
+    // One slot per key: the greeted client's key on a second id (ending with its
+    // fingerprint) is refused, saying so.
+    let again = format!("again-{}", &legit.cid[legit.cid.len() - 32..]);
+    let answers = client
+        .declare_subscriber(format!("omnid/sim/out/{again}"))
+        .wait()
+        .unwrap();
+    let hello = json!({"op": "hello", "protocol": 1, "key": legit.public});
+    client
+        .put(format!("omnid/sim/in/{again}"), hello.to_string())
+        .wait()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(
+        &answers
+            .recv_timeout(Duration::from_secs(20))
+            .unwrap()
+            .expect("an answer")
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    assert_eq!(v["type"], "error", "{v}");
+    assert!(
+        v["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("one client per key"),
+        "{v}"
+    );
     // Every other slot taken by greeted clients: the next hello is refused, saying so.
     let mut held = Vec::new();
     for i in 0..63 {
-        held.push(
-            squatter
-                .liveliness()
-                .declare_token(format!("omnid/sim/client/held{i}"))
-                .wait()
-                .unwrap(),
-        );
-        let v = greet(&squatter, &format!("held{i}"));
+        let (r, v) = Remote::connect(&squatter, &format!("held{i}-"));
         assert_eq!(v["type"], "hello", "held{i}: {v}");
+        held.push(r);
     }
-    let v = greet(&client, "late");
+    let (_late, v) = Remote::connect(&client, "late-");
     assert_eq!(v["type"], "error", "{v}");
     assert!(
         v["message"].as_str().unwrap_or("").contains("no room"),
@@ -1124,33 +1223,16 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         let stop = stop.clone();
         std::thread::spawn(move || {
             let s = peer(port);
-            let _token = s
-                .liveliness()
-                .declare_token("omnid/sim/client/flood")
-                .wait()
-                .unwrap();
-            let replies = s.declare_subscriber("omnid/sim/out/flood").wait().unwrap();
-            let p = s.declare_publisher("omnid/sim/in/flood").wait().unwrap();
-            p.put(r#"{"op":"hello","protocol":1,"name":"flood"}"#)
-                .wait()
-                .unwrap();
-            let until = Instant::now() + Duration::from_secs(10);
-            let mut greeted = false;
-            while !greeted && Instant::now() < until {
-                if let Ok(Some(r)) = replies.recv_timeout(Duration::from_millis(200)) {
-                    greeted = String::from_utf8_lossy(&r.payload().to_bytes()).contains("hello");
-                }
-            }
-            assert!(greeted, "the flooding client was greeted");
+            let (mut flood, v) = Remote::connect(&s, "flood-");
+            assert_eq!(v["type"], "hello", "the flooding client was greeted: {v}");
             let mut sent = 0u64;
+            let status = json!({"op": "status"});
             while !stop.load(std::sync::atomic::Ordering::Relaxed) {
-                p.put(r#"{"op":"status"}"#).wait().unwrap();
+                flood.put(&status);
                 sent += 1;
             }
-            // Its queued puts may outlast zenoh's close wait: the session goes either way.
-            drop(replies);
-            let _ = s.close().wait();
-            sent
+            // Still connected: status names it while it is here.
+            (sent, flood, s)
         })
     };
     // The haptic client: a zero force answering every state (50 ms to live: a loaded test
@@ -1172,7 +1254,7 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         }
     }
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    let sent = flood.join().unwrap();
+    let (sent, flood_client, session) = flood.join().unwrap();
     assert!(sent > 1000, "a flood: {sent} status requests");
     assert!(states > 3000, "{states} states in 6 s");
     assert_eq!(
@@ -1182,5 +1264,250 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
     let status = c.request(json!({"op": "status"})).unwrap();
     let z = &status["status"]["zenoh"];
     assert!(z["throttled"].as_u64().unwrap() > 0, "{z}");
-    assert!(z["throttled_clients"]["flood"].as_u64().unwrap() > 0, "{z}");
+    let flooder = z["throttled_clients"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(cid, _)| cid.starts_with("flood-"));
+    assert!(flooder.is_some_and(|(_, n)| n.as_u64().unwrap() > 0), "{z}");
+    assert_eq!(
+        z["forged"], 0,
+        "the flooding client's own requests are its own: {z}"
+    );
+    // Its queued puts may outlast zenoh's close wait: the session goes either way.
+    drop(flood_client);
+    let _ = session.close().wait();
+}
+
+/// Issue #40, a remote client's id used by another peer: a second zenoh session that reads
+/// the victim's `in` and `out` keys (as any peer that reaches the daemon can) puts requests on
+/// the victim's id: plainly, a captured request of the victim's put again, the victim's tag on
+/// other bytes, a hello with its own key, and the victim's own hello again. Every one is
+/// refused and counted (`forged`), the arm keeps the victim's mode, and the victim's next
+/// request is still served.
+#[test]
+#[ignore = "paced"]
+fn a_peer_that_reads_a_remote_clients_traffic_cannot_act_as_it() {
+    let port = free_port();
+    let d = serve(port, COMMANDS);
+    // The attacker records everything put on any client's id, from before the victim comes.
+    let thief = peer(port);
+    let (tx, captured) = std::sync::mpsc::channel::<(String, Vec<u8>, Option<Vec<u8>>)>();
+    let _spy = thief
+        .declare_subscriber("omnid/sim/in/*")
+        .callback(move |m| {
+            let tag = m.attachment().map(|a| a.to_bytes().into_owned());
+            let key = m.key_expr().to_string();
+            let _ = tx.send((key, m.payload().to_bytes().into_owned(), tag));
+        })
+        .wait()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let victim_session = peer(port);
+    // The thief reads the victim's puts once the two sessions meet (zenoh's gossip).
+    let until = Instant::now() + Duration::from_secs(20);
+    while !victim_session
+        .info()
+        .peers_zid()
+        .wait()
+        .any(|z| z == thief.zid())
+    {
+        assert!(
+            Instant::now() < until,
+            "the thief's session never met the victim's"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let (mut victim, hello) = Remote::connect(&victim_session, "victim-");
+    assert_eq!(hello["access"], "control", "{hello}");
+    let key = format!("omnid/sim/in/{}", victim.cid);
+    let seen = thief
+        .declare_subscriber(format!("omnid/sim/out/{}", victim.cid))
+        .wait()
+        .unwrap();
+    // Its subscription reaches the daemon before the victim's next replies leave.
+    std::thread::sleep(Duration::from_millis(500));
+    let (r, free, _) = victim.request(json!({"op": "mode", "mode": "free"}));
+    assert_eq!(r["type"], "reply", "{r}");
+    let (r, _, hold_tag) = victim.request(json!({"op": "mode", "mode": "hold"}));
+    assert_eq!(r["type"], "reply", "{r}");
+    // The spy read the victim's hello and requests, tags and all; and its replies.
+    std::thread::sleep(Duration::from_millis(500));
+    let got: Vec<_> = captured.try_iter().filter(|(k, ..)| *k == key).collect();
+    let free_tag = got
+        .iter()
+        .find(|(_, b, t)| *b == free && t.is_some())
+        .and_then(|(_, _, t)| t.clone())
+        .expect("the spy read the victim's request");
+    let victims_hello = got
+        .iter()
+        .find(|(_, b, _)| String::from_utf8_lossy(b).contains(r#""op":"hello""#))
+        .map(|(_, b, _)| b.clone())
+        .expect("the spy read the victim's hello");
+    let mut replies = 0;
+    while let Ok(Some(_)) = seen.recv_timeout(Duration::from_millis(300)) {
+        replies += 1;
+    }
+    assert!(replies >= 2, "the spy read the victim's replies");
+    let status = |d: &Served| -> (u64, String) {
+        let mut c = d.client("sim", "checker");
+        let r = c.request(json!({"op": "status"})).unwrap();
+        let z = r["status"]["zenoh"]["forged"].as_u64().unwrap_or(0);
+        (z, r["status"]["mode"].as_str().unwrap_or("").to_string())
+    };
+    let (before, mode) = status(&d);
+    assert_eq!(mode, "hold");
+    // 1. A plain request on the victim's id (on the code before the binding, it was served).
+    thief
+        .put(&key, r#"{"op":"mode","mode":"idle","id":"x1"}"#)
+        .wait()
+        .unwrap();
+    // 2. The victim's captured `free` put again, tag and all.
+    thief
+        .put(&key, free.clone())
+        .attachment(free_tag)
+        .wait()
+        .unwrap();
+    // 3. The victim's newest tag on other bytes.
+    thief
+        .put(&key, r#"{"op":"mode","mode":"idle","id":2}"#)
+        .attachment(hold_tag)
+        .wait()
+        .unwrap();
+    // 4. A hello on the victim's id with the thief's own key; 5. the victim's hello again.
+    let own = omnid::transport::zenoh::bind::ClientKey::new().unwrap();
+    let hello = json!({"op": "hello", "protocol": 1, "key": own.public_base64()});
+    thief.put(&key, hello.to_string()).wait().unwrap();
+    thief.put(&key, victims_hello).wait().unwrap();
+    let until = Instant::now() + Duration::from_secs(20);
+    let (after, mode) = loop {
+        let (n, mode) = status(&d);
+        if n >= before + 5 || Instant::now() > until {
+            break (n, mode);
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert_eq!(mode, "hold", "another session's request moved the arm");
+    assert_eq!(after - before, 5, "each of the five was refused as forged");
+    // None of them was answered on the victim's key.
+    if let Ok(Some(m)) = seen.recv_timeout(Duration::from_millis(500)) {
+        panic!(
+            "a forged request was answered: {}",
+            String::from_utf8_lossy(&m.payload().to_bytes())
+        );
+    }
+    let (r, _, _) = victim.request(json!({"op": "mode", "mode": "idle"}));
+    assert_eq!(r["type"], "reply", "the victim still commands: {r}");
+    assert_eq!(status(&d).1, "idle");
+}
+
+/// docs/ZENOH.md, "A lab network", TLS: a CA and certificates made here (rcgen), the daemon
+/// listening on a `tls/` endpoint with `tls_certificate`, `tls_private_key` and `tls_root_ca`.
+/// A client that trusts the lab's CA connects and is greeted; one that does not (the system's
+/// roots only) gets no session. With `tls_mutual = true`, a client trusting the CA but showing
+/// no certificate of its own gets none either, and one with a certificate the CA signed does.
+#[test]
+#[ignore = "paced"]
+fn over_tls_a_client_with_the_labs_ca_connects_and_one_without_it_cannot() {
+    use rcgen::{
+        BasicConstraints, CertificateParams, CertifiedIssuer, DnType, ExtendedKeyUsagePurpose,
+        IsCa, KeyPair, KeyUsagePurpose,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, text: String| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        path.display().to_string()
+    };
+    let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    ca_params
+        .distinguished_name
+        .push(DnType::CommonName, "omnid test lab CA");
+    ca_params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
+    let ca = CertifiedIssuer::self_signed(ca_params, KeyPair::generate().unwrap()).unwrap();
+    let ca_pem = write("ca.pem", ca.pem());
+    // A certificate the CA signed, for loopback, usable by a server and a client.
+    let leaf = |name: &str| -> (String, String) {
+        let mut p =
+            CertificateParams::new(vec!["localhost".to_string(), "127.0.0.1".to_string()]).unwrap();
+        p.distinguished_name.push(DnType::CommonName, name);
+        p.extended_key_usages = vec![
+            ExtendedKeyUsagePurpose::ServerAuth,
+            ExtendedKeyUsagePurpose::ClientAuth,
+        ];
+        let key = KeyPair::generate().unwrap();
+        let cert = p.signed_by(&key, &ca).unwrap();
+        (
+            write(&format!("{name}.pem"), cert.pem()),
+            write(&format!("{name}.key"), key.serialize_pem()),
+        )
+    };
+    let (daemon_cert, daemon_key) = leaf("daemon");
+    let (client_cert, client_key) = leaf("client");
+    // A client session to `port` over TLS: trusting the CA or not, with a certificate or not.
+    let client = |port: u16, ca: bool, cert: bool| -> Option<zenoh::Session> {
+        let mut c = zenoh::Config::default();
+        let mut keys = vec![
+            ("mode", "\"peer\"".to_string()),
+            ("connect/endpoints", format!("[\"tls/127.0.0.1:{port}\"]")),
+            ("listen/endpoints", "[]".into()),
+            ("scouting/multicast/enabled", "false".into()),
+        ];
+        if ca {
+            keys.push((
+                "transport/link/tls/root_ca_certificate",
+                format!("{ca_pem:?}"),
+            ));
+        }
+        if cert {
+            keys.push(("transport/link/tls/enable_mtls", "true".into()));
+            keys.push((
+                "transport/link/tls/connect_certificate",
+                format!("{client_cert:?}"),
+            ));
+            keys.push((
+                "transport/link/tls/connect_private_key",
+                format!("{client_key:?}"),
+            ));
+        }
+        for (k, v) in keys {
+            c.insert_json5(k, &v).unwrap();
+        }
+        zenoh::open(c).wait().ok()
+    };
+    let greeted = |s: Option<zenoh::Session>, who: &str| -> bool {
+        let Some(s) = s else { return false };
+        let answer = Remote::try_connect(&s, "tls-", Duration::from_secs(5));
+        let _ = s.close().wait();
+        answer.is_some_and(|(_, v)| {
+            assert_eq!(v["type"], "hello", "{who}: {v}");
+            true
+        })
+    };
+    for mutual in [false, true] {
+        let port = free_port();
+        let config = format!(
+            "[zenoh]\nenabled = true\nros2 = false\nlisten = [\"tls/127.0.0.1:{port}\"]\n\
+             connect = []\ntls_certificate = {daemon_cert:?}\ntls_private_key = \
+             {daemon_key:?}\ntls_root_ca = {ca_pem:?}\ntls_mutual = {mutual}\n"
+        );
+        let mut d = Served::start(&["--device", "sim"], Some(&config), &["sim"]);
+        if mutual {
+            assert!(greeted(client(port, true, true), "CA + certificate"));
+            assert!(
+                !greeted(client(port, true, false), "CA, no certificate"),
+                "mutual TLS greeted a client without a certificate"
+            );
+        } else {
+            assert!(greeted(client(port, true, false), "with the CA"));
+        }
+        assert!(
+            !greeted(client(port, false, mutual), "without the CA"),
+            "a client that does not trust the lab's CA was greeted (mutual: {mutual})"
+        );
+        let (_, err) = d.stop();
+        assert!(err.contains(&format!("tls/127.0.0.1:{port}")), "{err}");
+    }
 }

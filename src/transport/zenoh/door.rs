@@ -16,8 +16,13 @@ const OUT_QUEUE: usize = 4096;
 
 /// What came from the network for the hub.
 pub(crate) enum Inbound {
-    /// A remote client's message, JSON as a socket client sends it.
-    Message { cid: Arc<str>, bytes: Vec<u8> },
+    /// A remote client's message, JSON as a socket client sends it, with the sample's
+    /// attachment when it was an authentication tag's length (`bind`).
+    Message {
+        cid: Arc<str>,
+        bytes: Vec<u8>,
+        tag: Option<[u8; super::bind::TAG_LEN]>,
+    },
     /// A remote client's liveliness token appeared.
     Joined(Arc<str>),
     /// It went away (the client closed, or its session died).
@@ -54,6 +59,10 @@ pub struct ZenohStats {
     /// Remote clients' requests refused because the client already had its share of the
     /// arm's time waiting (`throttled_clients` in status says whose).
     pub throttled: AtomicU64,
+    /// Requests on a bound remote client's id without its authentication code, or with a
+    /// counter already taken: another session's, or replayed (docs/ZENOH.md); and hellos whose
+    /// key was refused.
+    pub forged: AtomicU64,
 }
 
 /// [`ZenohStats`] read once, for `status`.
@@ -65,6 +74,7 @@ pub struct StatsSnapshot {
     pub published: u64,
     pub dropped_out: u64,
     pub throttled: u64,
+    pub forged: u64,
 }
 
 impl ZenohStats {
@@ -82,6 +92,7 @@ impl ZenohStats {
             published: r(&self.published),
             dropped_out: r(&self.dropped_out),
             throttled: r(&self.throttled),
+            forged: r(&self.forged),
         }
     }
 }

@@ -9,6 +9,7 @@
 //! to the arm's hub through a bounded inbox (`door`) and become the same station ops, lease
 //! checks and stream time to live as a socket client's.
 
+pub mod bind;
 pub use omnid_core::config::zenoh as config;
 pub(crate) mod door;
 pub mod port;

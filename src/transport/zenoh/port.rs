@@ -4,6 +4,7 @@
 //! keep coming. The network side (subscribers, publishers) is `zenoh::remote` and `zenoh::ros`
 //! on their own thread; this side runs on the host's.
 
+use super::bind::{self, Binding};
 use super::door::ZenohStats;
 use super::door::{Door, Inbound};
 use crate::station::{FileRights, Op, SessionId, SessionInfo};
@@ -55,6 +56,8 @@ struct RemoteClient {
     throttled: u64,
     /// When it was last told it is throttled.
     told: Option<Instant>,
+    /// The secret agreed at its hello: every later request must carry its code.
+    binding: Option<Binding>,
 }
 
 impl RemoteClient {
@@ -68,6 +71,7 @@ impl RemoteClient {
             later: 0,
             throttled: 0,
             told: None,
+            binding: None,
         }
     }
 }
@@ -131,7 +135,9 @@ impl Port for ZenohPort {
                 break;
             };
             match m {
-                Inbound::Message { cid, bytes } => self.message(cid, &bytes, desk),
+                Inbound::Message { cid, bytes, tag } => {
+                    self.message(cid, &bytes, tag.as_ref().map(|t| &t[..]), desk)
+                }
                 Inbound::Joined(cid) => self.joined(cid),
                 Inbound::Gone(cid) => self.gone(&cid, desk),
                 Inbound::Ros(op) => self.ros_command(op, desk),
@@ -289,7 +295,7 @@ impl ZenohPort {
         }
     }
 
-    fn message(&mut self, cid: Arc<str>, bytes: &[u8], desk: &mut Desk<'_>) {
+    fn message(&mut self, cid: Arc<str>, bytes: &[u8], tag: Option<&[u8]>, desk: &mut Desk<'_>) {
         let k = match self.clients.iter().position(|c| c.cid == cid) {
             Some(k) => k,
             None if self.clients.len() < MAX_REMOTE => {
@@ -305,6 +311,14 @@ impl ZenohPort {
             let n = bytes.len();
             let why = format!("message of {n} bytes is larger than {MAX_MESSAGE}");
             return self.send(&cid, &json::error("message", None, why));
+        }
+        // A greeted client's requests carry the code of the secret agreed at its hello: any
+        // other session's (or one put again) is refused before it is read, and counted.
+        if let Some(b) = self.clients[k].binding.as_mut() {
+            if b.check(bytes, tag).is_err() {
+                ZenohStats::count(&self.door.stats.forged);
+                return;
+            }
         }
         let request = match json::parse(bytes) {
             Ok(q) => q,
@@ -375,10 +389,47 @@ impl ZenohPort {
     ) {
         let id = request.id().cloned();
         let cid = self.clients[k].cid.clone();
+        let key = match &request {
+            crate::transport::protocol::Request::Hello { key, .. } => key.clone(),
+            _ => None,
+        };
         let name = match json::greeting(request) {
             Ok(name) => name,
             Err(error) => return self.send(&cid, &error),
         };
+        // The key agreement that binds the client to its owner; one slot per key.
+        let refused = match bind::accept(&cid, key.as_deref()) {
+            Ok((daemon_key, binding)) => {
+                let taken = self.clients.iter().any(|c| {
+                    c.binding
+                        .as_ref()
+                        .is_some_and(|b| b.client_key() == binding.client_key())
+                });
+                if !taken {
+                    self.clients[k].binding = Some(binding);
+                    return self.open(k, name, daemon_key, id, desk);
+                }
+                "this key already holds a slot on this arm: one client per key".to_string()
+            }
+            Err(e) => e.to_string(),
+        };
+        // Refused: the slot is given back at once.
+        ZenohStats::count(&self.door.stats.forged);
+        self.send(&cid, &json::error("hello", id.as_ref(), refused));
+        self.clients.remove(k);
+        self.door.forget(&cid);
+    }
+
+    /// Client `k`'s session, opened and answered with the daemon's key.
+    fn open(
+        &mut self,
+        k: usize,
+        name: String,
+        daemon_key: String,
+        id: Option<Value>,
+        desk: &mut Desk<'_>,
+    ) {
+        let cid = self.clients[k].cid.clone();
         let control = self.door.allow_commands;
         // A nameless client is still told apart from a local one.
         let name = if name.is_empty() {
@@ -393,7 +444,8 @@ impl ZenohPort {
             Access::Read
         };
         self.clients[k].session = Some(session);
-        let v = json::hello(desk.station, session, access, id.as_ref());
+        let mut v = json::hello(desk.station, session, access, id.as_ref());
+        v["key"] = Value::from(daemon_key);
         self.send(&cid, &v);
     }
 

@@ -2,9 +2,10 @@
 //! A client picks an id (`<cid>`: 1 to 64 letters, digits, `-` or `_`), declares the
 //! liveliness token `omnid/<arm>/client/<cid>`, puts its JSON requests on
 //! `omnid/<arm>/in/<cid>` and reads every message for it (replies, errors, states, events) on
-//! `omnid/<arm>/out/<cid>`, the socket's messages byte for byte. Its token going away (it
-//! closed, or its zenoh session died) closes its session on the arm, as a socket's hang-up
-//! does.
+//! `omnid/<arm>/out/<cid>`, the socket's messages byte for byte; each request after the hello
+//! with the attachment that binds it to the client's key (`bind`, checked by the port). Its
+//! token going away (it closed, or its zenoh session died) closes its session on the arm, as a
+//! socket's hang-up does.
 
 use super::config::ZenohConfig;
 use super::door::{Inbound, NetSide, ZenohStats};
@@ -59,10 +60,15 @@ impl RemoteArm {
             .declare_subscriber(key.clone())
             .callback(move |sample: zenoh::sample::Sample| {
                 let payload = sample.payload();
+                // A request's counter and code (`bind`): anything else is no tag.
+                let tag = sample
+                    .attachment()
+                    .and_then(|a| a.to_bytes().as_ref().try_into().ok());
                 match client_id(sample.key_expr().as_str()) {
                     Some(cid) if payload.len() <= max => in_net.send(Inbound::Message {
                         cid,
                         bytes: payload.to_bytes().into_owned(),
+                        tag,
                     }),
                     _ => in_net.refuse(),
                 }

@@ -231,6 +231,49 @@ pub fn execute(
     })
 }
 
+/// The oracle beside an NNIDC run on the simulator: the same reference, device time and
+/// configuration under computed torque with the simulator's exact model and its friction
+/// (`[control] ct_friction = true`), in a second `--fast` pass with no log (so it costs a
+/// fraction of a `--fast` run's time). Its tracking RMS, rad; None for any other run (another
+/// controller or device, free mode, injected faults, a simulated payload), or when the pass
+/// did not complete.
+pub fn oracle_tracking(opts: &RunOptions, cfg: &Config) -> Option<[f64; 3]> {
+    let eligible = opts.device == DeviceSpec::Sim
+        && opts.controller == ControllerKind::Nnidc
+        && !opts.haptics.free
+        && opts.inject.is_empty()
+        && opts.duration_s.is_finite()
+        // A payload makes the plant differ from the model computed torque knows.
+        && cfg.sim.payload_kg == 0.0;
+    if !eligible {
+        return None;
+    }
+    let mut cfg = cfg.clone();
+    // The plant's own friction, when it has one.
+    cfg.control.ct_friction = cfg.sim.friction;
+    cfg.control.ct_model_scale = 1.0;
+    // The oracle's pass leaves the motors' heat as the run left it.
+    cfg.safety.persist_heat = false;
+    let oracle = RunOptions {
+        controller: ControllerKind::Ct,
+        fast: true,
+        log: None,
+        summary_json: None,
+        weights: None,
+        ..opts.clone()
+    };
+    let (tx, rx) = crossbeam_channel::bounded(1);
+    // No writer: the rows are not wanted (an unpaced loop counts them as dropped and goes on).
+    drop(rx);
+    let pipeline = assemble(&oracle, &cfg, &[], tx, Arc::new(AtomicBool::new(false))).ok()?;
+    let (handle, _ending) = pipeline.spawn().ok()?;
+    let (report, _) = join_servo(handle).ok()?;
+    if report.end != EndReason::Completed {
+        return None;
+    }
+    report.stats.tracking_rms()
+}
+
 /// The log file: `--log`, else a new time-stamped file under `logs/`.
 fn open_log(opts: &RunOptions) -> Result<LogFile, RunError> {
     Ok(match &opts.log {

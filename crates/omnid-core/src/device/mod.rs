@@ -173,6 +173,15 @@ pub enum DeviceError {
     /// The backend cannot do what was asked (on this platform or with this device).
     #[error("{0}")]
     Unsupported(String),
+    /// Another process drives this very unit (whatever arm name it gave it): refused before
+    /// anything is written to the device.
+    #[error("{what} is in use by {holder}; stop it first")]
+    InUse {
+        /// The unit (kind, serial, node).
+        what: String,
+        /// Who holds it (`omnid (pid N: COMMAND)`).
+        holder: String,
+    },
 }
 
 /// What the simulator's hand does with the stylus (`[sim] stylus`, the `stylus` op of

@@ -147,13 +147,20 @@ impl JointKalman {
     }
 }
 
-/// How far the filter's position estimate falls behind a sinusoidal motion of `freq_hz`
-/// sampled every `dt`, once the filter has settled: |1 − G(e^{jωT})| with G the steady-state
-/// transfer from measurement to estimate (0: tracks exactly; 1: as large as the motion
-/// itself). A config can then be refused before torque is sent when the estimate could not
-/// follow a hand-speed motion, instead of letting the safety limits act on a lagging estimate.
-pub(crate) fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
-    use nalgebra::Complex;
+/// The settled filter's acceleration estimate as a response to the true acceleration: with
+/// the acceleration u_k held over the interval ending at sample k, the estimate's error
+/// d = x̂ − [q, q̇, u] obeys d_k = A·d_{k−1} − b·(u_k − u_{k−1}), and the estimate of u_k is
+/// u_k + d_k[2] (A = (I − KH)F, b = (I − KH)F·e₃, K the steady-state gain). The identifier
+/// passes its torque through the same response, so its error compares like with like
+/// (docs/IDENTIFIER.md, "Lag-matched e1").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AccelLag {
+    pub(crate) a: Matrix3<f64>,
+    pub(crate) b: Vector3<f64>,
+}
+
+/// The steady-state gain K and transition F of the filter at step `dt`.
+fn steady_state(jerk_psd: f64, measurement_var: f64, dt: f64) -> (Matrix3<f64>, Vector3<f64>) {
     let mut kf = JointKalman::new(jerk_psd, measurement_var);
     kf.reset(0.0);
     // Iterate the covariance to its steady state (the measurements do not enter it).
@@ -169,10 +176,40 @@ pub(crate) fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_
     kf.model(dt);
     let prior = kf.f * kf.p * kf.f.transpose() + kf.q;
     let k: Vector3<f64> = prior.column(0) / (prior[(0, 0)] + kf.r);
+    (kf.f, k)
+}
+
+impl AccelLag {
+    /// The response of the `[kalman]` filter at the servo step `dt`, s.
+    pub fn of(cfg: &KalmanConfig, dt: f64) -> AccelLag {
+        let (f, k) = steady_state(cfg.jerk_psd, cfg.measurement_var, dt);
+        let mut a = f;
+        for c in 0..3 {
+            let f0 = f[(0, c)];
+            for r in 0..3 {
+                a[(r, c)] -= k[r] * f0;
+            }
+        }
+        let f3 = f.column(2).into_owned();
+        AccelLag {
+            a,
+            b: f3 - k * f3[0],
+        }
+    }
+}
+
+/// How far the filter's position estimate falls behind a sinusoidal motion of `freq_hz`
+/// sampled every `dt`, once the filter has settled: |1 − G(e^{jωT})| with G the steady-state
+/// transfer from measurement to estimate (0: tracks exactly; 1: as large as the motion
+/// itself). A config can then be refused before torque is sent when the estimate could not
+/// follow a hand-speed motion, instead of letting the safety limits act on a lagging estimate.
+pub(crate) fn tracking_error(jerk_psd: f64, measurement_var: f64, dt: f64, freq_hz: f64) -> f64 {
+    use nalgebra::Complex;
+    let (f, k) = steady_state(jerk_psd, measurement_var, dt);
     // x̂ₖ = A x̂ₖ₋₁ + K zₖ with A = (I − K H) F, so q̂/z = H (I − A z⁻¹)⁻¹ K.
-    let mut a = kf.f;
+    let mut a = f;
     for c in 0..3 {
-        let f0 = kf.f[(0, c)];
+        let f0 = f[(0, c)];
         for r in 0..3 {
             a[(r, c)] -= k[r] * f0;
         }
@@ -311,6 +348,38 @@ mod tests {
                 "{q} {r} {f}: run {worst}, formula {e}"
             );
         }
+    }
+
+    #[test]
+    fn the_acceleration_response_is_what_the_filter_does_to_an_acceleration() {
+        // The filter itself on the positions an acceleration history gives (held over each
+        // interval, integrated exactly), against the response's prediction of its q̈.
+        let cfg = super::KalmanConfig::default();
+        let dt = 1e-3;
+        let lag = super::AccelLag::of(&cfg, dt);
+        let mut kf = super::JointKalman::new(cfg.jerk_psd, cfg.measurement_var);
+        kf.reset(0.0);
+        // Settle at rest: the estimate's error is then zero and the gain steady.
+        for _ in 0..20_000 {
+            kf.step(dt, 0.0);
+        }
+        let (mut p, mut v, mut prev) = (0.0, 0.0, 0.0);
+        let mut d = nalgebra::Vector3::zeros();
+        let (mut worst, mut lagged): (f64, f64) = (0.0, 0.0);
+        for k in 0..3000 {
+            let t = k as f64 * dt;
+            // A sine with a step in it: the kind of torque a reversal gives.
+            let u = 2.0 * (9.0 * t).sin() + if t > 1.5 { 1.0 } else { 0.0 };
+            p += v * dt + 0.5 * u * dt * dt;
+            v += u * dt;
+            kf.step(dt, p);
+            d = lag.a * d - lag.b * (u - prev);
+            prev = u;
+            worst = worst.max((kf.state()[2] - (u + d[2])).abs());
+            lagged = lagged.max((kf.state()[2] - u).abs());
+        }
+        assert!(lagged > 0.5, "the estimate lags the acceleration: {lagged}");
+        assert!(worst < 1e-6 * lagged, "response {worst} vs lag {lagged}");
     }
 
     use super::*;

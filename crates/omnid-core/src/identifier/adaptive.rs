@@ -8,6 +8,7 @@
 use super::mlp::{Mlp, MlpError, NetScaling};
 use super::settings::IdentifierConfig;
 use crate::config_check::ConfigError;
+use crate::estimate::kalman::AccelLag;
 use nalgebra::{Matrix3, SVector, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -168,6 +169,49 @@ pub struct Identifier {
     /// sample was seen with (what the momentum observer integrates). Cleared when weights are
     /// replaced from outside.
     model_at: Option<(Vector3<f64>, Vector3<f64>)>,
+    /// The lag-matched e1's filters (`lag_match`), once the servo has said what its estimator's
+    /// acceleration response is.
+    lag: Option<LagMatch>,
+}
+
+/// The lag-matched e1's filter (docs/IDENTIFIER.md, "Lag-matched e1"): τ − Ĉq̇ − Ĝ − F̂ per
+/// joint through the estimator's acceleration response L.
+#[derive(Debug, Clone, Copy)]
+struct LagMatch {
+    resp: AccelLag,
+    /// Per joint: L's error state.
+    d: [Vector3<f64>; 3],
+    /// The previous input.
+    prev: Vector3<f64>,
+    /// The filter holds a history (cleared by a tick that does not learn).
+    running: bool,
+}
+
+impl LagMatch {
+    fn new(resp: AccelLag) -> Self {
+        LagMatch {
+            resp,
+            d: [Vector3::zeros(); 3],
+            prev: Vector3::zeros(),
+            running: false,
+        }
+    }
+
+    /// L[u] for this tick's input u (a restarted filter starts settled at u).
+    fn step(&mut self, u: &Vector3<f64>) -> Vector3<f64> {
+        let mut out = *u;
+        for j in 0..3 {
+            self.d[j] = if self.running {
+                self.resp.a * self.d[j] - self.resp.b * (u[j] - self.prev[j])
+            } else {
+                Vector3::zeros()
+            };
+            out[j] += self.d[j][2];
+        }
+        self.prev = *u;
+        self.running = true;
+        out
+    }
 }
 
 fn sym_from6(m: &[f64]) -> Matrix3<f64> {
@@ -240,6 +284,7 @@ impl Identifier {
             forward_at: None,
             tangent_done: false,
             model_at: None,
+            lag: None,
         };
         id.set_anchor();
         id.anchored = false;
@@ -481,7 +526,20 @@ impl Identifier {
         qd: &Vector3<f64>,
         qdd: &Vector3<f64>,
     ) -> Vector3<f64> {
+        // A tick that does not learn breaks the lag-matched e1's history.
+        if let Some(lag) = &mut self.lag {
+            lag.running = false;
+        }
         self.inverse_dynamics(q, qd, qdd)
+    }
+
+    /// The servo's estimator: the acceleration response the lag-matched e1 passes the torque
+    /// through (`lag_match`; nothing changes without it, or when it is already this one).
+    pub(crate) fn match_estimator(&mut self, resp: &AccelLag) {
+        if !self.cfg.lag_match || self.lag.as_ref().is_some_and(|l| l.resp == *resp) {
+            return;
+        }
+        self.lag = Some(LagMatch::new(*resp));
     }
 
     fn forward(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>, tangent: bool) {
@@ -661,7 +719,10 @@ impl Identifier {
             self.snap.e1 = Vector3::zeros();
             return Vector3::zeros();
         }
-        let eps = self.evaluate_wae(q, qd, qdd, tau);
+        let mut eps = self.evaluate_wae(q, qd, qdd, tau);
+        if self.lag.is_some() {
+            self.lag_match_e1(&mut eps, qd, qdd, tau);
+        }
         if !(eps.iter().all(|x| x.is_finite()) && finite3(&self.tau_hat)) {
             self.trip(Fault::NonFiniteOutput);
             self.snap.tau_hat = Vector3::zeros();
@@ -686,6 +747,27 @@ impl Identifier {
             self.adapt_step(t);
         }
         self.tau_hat
+    }
+
+    /// The lag-matched e1: e1 = L[τ − Ĉq̇ − Ĝ − F̂] − M̂·q̈ with L the estimator's acceleration
+    /// response, so a torque meets the estimated acceleration it caused with the lag that
+    /// estimate has (M̂ varies slowly against L: L[M̂a] ≈ M̂·L[a]); replaces ε's first three
+    /// entries. The gradient stays the unfiltered regressor's (docs/IDENTIFIER.md).
+    fn lag_match_e1(
+        &mut self,
+        eps: &mut Wae,
+        qd: &Vector3<f64>,
+        qdd: &Vector3<f64>,
+        tau: &Vector3<f64>,
+    ) {
+        let Some(lag) = self.lag.as_mut() else { return };
+        let n = self.chat * qd + self.ghat + self.fhat;
+        let filtered = lag.step(&(tau - n));
+        let e1 = filtered - self.mhat * qdd;
+        let ts = 1.0 / self.cfg.torque_scale;
+        for j in 0..3 {
+            eps[j] = e1[j] * ts;
+        }
     }
 
     fn adapt_step(&mut self, t: f64) {

@@ -46,6 +46,11 @@ pub struct IdentifierConfig {
     /// loaded. Without it (1e-4 before) NNIDC's weights drift and the arm goes unstable after
     /// ~50 s of the sine.
     pub sigma: f64,
+    /// Lag-matched e1 (docs/IDENTIFIER.md, "Lag-matched e1"): online, τ − Ĉq̇ − Ĝ − F̂ passes
+    /// through the Kalman filter's own acceleration response before it meets M̂·q̈ (so the
+    /// torque and the estimated q̈ carry the same lag); false is e1 = τ − τ̂ as the paper
+    /// writes it.
+    pub lag_match: bool,
     /// Projection: bound on each network's parameter norm ‖θ‖_F; 0 switches it off.
     pub w_max: f64,
     /// Lower bound on the eigenvalues of M̂ (e4), kg·m².
@@ -108,6 +113,7 @@ impl Default for IdentifierConfig {
             rate_f: [50.0, 50.0],
             dead_zone: 1e-4,
             sigma: 3e-3,
+            lag_match: false,
             w_max: 100.0,
             eig_min: 2e-4,
             eig_max: 1.5e-2,

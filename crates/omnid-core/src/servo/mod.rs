@@ -17,7 +17,7 @@ use crate::device::{
     decode_state, encode_command, DacScale, Device, DeviceError, EncoderUnwrap, MotorCommand,
     COMMAND_LEN,
 };
-use crate::estimate::kalman::{Estimate, KalmanConfig};
+use crate::estimate::kalman::{AccelLag, Estimate, KalmanConfig};
 use crate::estimate::KalmanBank;
 use crate::haptics::external::ExternalForce;
 use crate::haptics::HapticsConfig;
@@ -217,6 +217,9 @@ pub struct Servo {
     setpoint: Joint3,
     slew_rad_s: f64,
     kalman: KalmanBank,
+    /// The estimator's acceleration response at the servo rate (the identifier's lag-matched
+    /// e1, docs/IDENTIFIER.md).
+    accel_lag: AccelLag,
     unwrap: EncoderUnwrap,
     dac: DacScale,
     rad_per_count: f64,
@@ -335,6 +338,7 @@ impl Servo {
             setpoint: Joint3::zeros(),
             slew_rad_s: cfg.reference.slew_rad_s,
             kalman: KalmanBank::new(cfg.kalman),
+            accel_lag: AccelLag::of(cfg.kalman, 1.0 / cfg.device.rate_hz),
             unwrap: EncoderUnwrap::new(),
             dac: DacScale {
                 nm_per_count: cfg.device.nm_per_count,
@@ -524,6 +528,7 @@ impl Servo {
         let Some(id) = self.identifier.as_mut() else {
             return (tau_hat, ident_flag);
         };
+        id.match_estimator(&self.accel_lag);
         match self.acting_tau {
             // Amplifiers off, or a hand moving the arm (free, servo_cf): whatever holds or
             // moves it is not in the torque, so there is nothing true to learn from

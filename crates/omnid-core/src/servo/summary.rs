@@ -412,6 +412,12 @@ pub struct RunSummary {
     pub tracking_rms_rad: Option<[f64; 3]>,
     /// Largest tracking error per joint, rad.
     pub tracking_max_rad: Option<[f64; 3]>,
+    /// The oracle's RMS tracking error on the same reference, rad: computed torque with the
+    /// simulator's exact model and its friction, run in a second `--fast` pass after an NNIDC
+    /// run on the simulator (`omnid run` only; null otherwise). The summary prints NNIDC's
+    /// ratio to it (docs/IDENTIFIER.md).
+    #[serde(default)]
+    pub oracle_tracking_rms_rad: Option<[f64; 3]>,
     /// RMS commanded torque per joint, N·m.
     pub torque_rms_nm: Option<[f64; 3]>,
     /// Sum of tick-to-tick torque changes per joint, N·m (how much the command chattered).
@@ -583,6 +589,7 @@ impl RunSummary {
             duration_s,
             tracking_rms_rad: stats.tracking_rms(),
             tracking_max_rad: stats.tracking_max(),
+            oracle_tracking_rms_rad: None,
             torque_rms_nm: stats.torque_rms(),
             torque_total_variation_nm: stats.torque_total_variation(),
             identifier: IdentifierSummary {
@@ -655,6 +662,15 @@ impl RunSummary {
                 "  tracking max    {}\n",
                 triple(self.tracking_max_rad, 1e3, "mrad")
             );
+            if let (Some(own), Some(oracle)) = (self.tracking_rms_rad, self.oracle_tracking_rms_rad)
+            {
+                let ratio = [0, 1, 2].map(|j| own[j] / oracle[j]);
+                s += &format!(
+                    "  vs oracle       {}   (tracking RMS ÷ ct with the exact model and friction: {})\n",
+                    triple(Some(ratio), 1.0, "×"),
+                    triple(Some(oracle), 1e3, "mrad")
+                );
+            }
         }
         if let Some(h) = &self.haptics {
             s += &h.human();

@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::device::COMMAND_LEN;
+use std::os::fd::OwnedFd;
 use std::time::Duration;
 use thiserror::Error;
 
@@ -99,4 +100,13 @@ pub trait FireWireBus: Send {
         buf: &mut [u8; ISO_PAYLOAD_MAX],
         timeout: Duration,
     ) -> Result<BusEvent, BusError>;
+    /// Hold the unit named `id` for this process, host-wide, for as long as the returned
+    /// descriptor lives; refused, naming the holder, while another process holds it. The
+    /// kernel lets any number of processes open a FireWire node, so this is what keeps two
+    /// arms (of any names) off one Omni (docs/FIREWIRE.md, One process per Omni). A bus that
+    /// reaches no real unit holds nothing.
+    fn hold_unit(&mut self, id: &str) -> Result<Option<OwnedFd>, String> {
+        let _ = id;
+        Ok(None)
+    }
 }

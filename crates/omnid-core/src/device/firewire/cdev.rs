@@ -788,6 +788,10 @@ fn rx_control() -> u32 {
 }
 
 impl FireWireBus for CdevBus {
+    fn hold_unit(&mut self, id: &str) -> Result<Option<OwnedFd>, String> {
+        crate::arm::lock::hold(id).map(Some)
+    }
+
     fn read_quadlet(&mut self, offset: u64) -> Result<u32, BusError> {
         let mut b = [0u8; 4];
         self.transact(TCODE_READ_QUADLET_REQUEST, offset, &mut b)?;

@@ -252,6 +252,9 @@ pub struct FakeNode {
     /// How the motors move the arm: per packet with the amplifiers on, encoder `j` moves by
     /// (motor word − 0x7FF) × `motor_gain[j]` / 8 counts (the sign is the fake's "DAC sign").
     pub motor_gain: [i32; 3],
+    /// Take real host-wide unit locks under this prefix (unique per test, so tests running
+    /// beside each other or beside a real daemon never meet); None: hold nothing.
+    pub unit_lock_prefix: Option<String>,
 }
 
 impl Default for FakeNode {
@@ -291,6 +294,7 @@ impl Default for FakeNode {
             scratch_broken: false,
             last_command: None,
             motor_gain: [0; 3],
+            unit_lock_prefix: None,
         }
     }
 }
@@ -384,6 +388,13 @@ pub fn state(counter: u32) -> [u8; wire::STATE_LEN] {
 }
 
 impl FireWireBus for FakeBus {
+    fn hold_unit(&mut self, id: &str) -> Result<Option<std::os::fd::OwnedFd>, String> {
+        match self.node().unit_lock_prefix.clone() {
+            Some(prefix) => crate::arm::lock::hold(&format!("{prefix}{id}")).map(Some),
+            None => Ok(None),
+        }
+    }
+
     fn read_quadlet(&mut self, offset: u64) -> Result<u32, BusError> {
         let mut n = self.node();
         if n.gone {

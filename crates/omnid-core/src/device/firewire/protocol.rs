@@ -108,6 +108,8 @@ pub struct FireWireOmni<B: FireWireBus> {
     stale_stream_cleared: bool,
     /// `omnid probe`: every packet received and sent, when on.
     tap: Option<Vec<Tapped>>,
+    /// This process's hold on the unit, host-wide, from the first start to the close.
+    unit: Option<std::os::fd::OwnedFd>,
 }
 
 impl<B: FireWireBus> FireWireOmni<B> {
@@ -138,6 +140,7 @@ impl<B: FireWireBus> FireWireOmni<B> {
             closed: false,
             stale_stream_cleared: false,
             tap: None,
+            unit: None,
         }
     }
 
@@ -227,8 +230,34 @@ impl<B: FireWireBus> FireWireOmni<B> {
             .collect()
     }
 
-    /// The start sequence (docs/FIREWIRE.md §2), redone after every bus reset.
+    /// The lock id of this unit: by its serial once identified (whatever node it is on), else
+    /// by its node.
+    pub(crate) fn unit_id(&self) -> String {
+        format!(
+            "omnid-dev-firewire-{}",
+            self.serial.as_deref().unwrap_or(&self.name)
+        )
+    }
+
+    /// The start sequence (docs/FIREWIRE.md §2), redone after every bus reset. The first
+    /// start takes the unit for this process before anything is written (another process's
+    /// arm on the same Omni, under any name, is refused here: docs/FIREWIRE.md, One process
+    /// per Omni).
     pub(crate) fn start(&mut self) -> Result<(), DeviceError> {
+        if self.unit.is_none() {
+            let id = self.unit_id();
+            self.unit = self
+                .bus
+                .hold_unit(&id)
+                .map_err(|holder| DeviceError::InUse {
+                    what: format!(
+                        "FireWire Omni {} (at {})",
+                        self.serial.as_deref().unwrap_or("of unknown serial"),
+                        self.name
+                    ),
+                    holder,
+                })?;
+        }
         match self.start_sequence() {
             Ok(()) => Ok(()),
             Err(e) => {
@@ -711,6 +740,8 @@ impl<B: FireWireBus> Device for FireWireOmni<B> {
             return Ok(());
         }
         self.closed = true;
+        // Held to the end of the stop sequence (whichever way it returns), then let go.
+        let _unit = self.unit.take();
         if self.gone || !self.touched {
             return Ok(());
         }

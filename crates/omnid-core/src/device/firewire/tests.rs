@@ -887,3 +887,53 @@ fn shipped_udev_files_match_and_are_not_world_writable() {
         .lines()
         .any(|l| l.starts_with("@plugdev") && l.contains("memlock")));
 }
+
+/// Two arms on one Omni, whatever their names: the second start is refused before it writes
+/// anything, naming the unit and who holds it; once the first closes, the unit is free. Another
+/// serial is another unit. (Real host-wide locks, under a prefix only this test uses.)
+#[test]
+fn a_second_start_on_the_same_unit_is_refused_before_any_write() {
+    let prefix = format!("omnid-test-{}-unit-", std::process::id());
+    let bus_for = |serial: u32| {
+        FakeBus::with(|n| {
+            n.unit_lock_prefix = Some(prefix.clone());
+            n.serial = serial;
+        })
+    };
+    let first_bus = bus_for(SERIAL_QUADLET);
+    let mut first = open(&first_bus);
+
+    let second_bus = bus_for(SERIAL_QUADLET);
+    let mut second = FireWireOmni::with_options(second_bus.clone(), "fake-fw2".into(), measured());
+    second.identify().unwrap();
+    let e = second.start().expect_err("the unit is taken");
+    let DeviceError::InUse { what, holder } = &e else {
+        panic!("expected InUse, got {e:?}");
+    };
+    assert!(
+        what.contains("10203400567") && what.contains("fake-fw2"),
+        "{what}"
+    );
+    assert!(holder.contains("this same omnid process"), "{holder}");
+    let wrote = second_bus
+        .node()
+        .ops
+        .iter()
+        .any(|op| !matches!(op, Op::ReadQuadlet(_) | Op::ReadByte(_)));
+    assert!(
+        !wrote,
+        "the refused start touched the bus: {:?}",
+        second_bus.node().ops
+    );
+
+    // Another serial is another unit.
+    let other_bus = bus_for(SERIAL_QUADLET ^ (1 << 1));
+    let mut other = FireWireOmni::with_options(other_bus, "fake-fw3".into(), measured());
+    other.identify().unwrap();
+    other.start().expect("another unit");
+    other.close().unwrap();
+
+    first.close().unwrap();
+    second.start().expect("free once the first closed");
+    second.close().unwrap();
+}

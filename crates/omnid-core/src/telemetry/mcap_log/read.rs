@@ -63,12 +63,14 @@ pub enum McapReadError {
     },
     /// The file ends before its end (a run killed mid-way).
     #[error(
-        "the MCAP file ends inside record {record}, after {rows} whole rows (a run that was \
-         killed mid-way?); --lenient reads those rows"
+        "the MCAP file ends inside record {record} (which starts at byte {at}), after {rows} \
+         whole rows (a run that was killed mid-way?); --lenient reads those rows"
     )]
     Truncated {
         /// The record it ends in.
         record: u64,
+        /// The file offset where that record starts.
+        at: u64,
         /// Whole rows before it.
         rows: u64,
     },
@@ -276,6 +278,15 @@ impl<R: Read> McapTicks<R> {
                     state.record += 1;
                     state.at = Place::File(state.offset);
                     state.offset += 9 + data.len() as u64;
+                    // The format has one Header, the file's first record.
+                    let first = state.record == 1;
+                    if first != (opcode == mcap::records::op::HEADER) {
+                        return Err(Next::Read(state.bad(if first {
+                            format!("the first record is opcode {opcode:#04x}, not a Header")
+                        } else {
+                            "a second Header record (a file has one, its first)".into()
+                        })));
+                    }
                     if opcode == mcap::records::op::CHUNK {
                         state.chunk(data)?;
                         // The whole record, as the chunk reader reads it from a file.
@@ -299,6 +310,7 @@ impl<R: Read> McapTicks<R> {
                     }
                     return Err(Next::Read(McapReadError::Truncated {
                         record: self.state.record + 1,
+                        at: self.state.offset,
                         rows: self.state.rows,
                     }));
                 }
@@ -368,6 +380,7 @@ impl State {
             }
             op::SCHEMA | op::CHANNEL | op::MESSAGE => {}
             op::CHUNK if in_chunk => return refuse(self, "a chunk inside a chunk".into()),
+
             _ if in_chunk => {
                 return refuse(
                     self,
@@ -920,6 +933,73 @@ mod tests {
     fn offset(records: &[Vec<u8>], i: usize) -> usize {
         let header = 9 + 8 + "ros2".len() + "test".len();
         MAGIC.len() + header + records[..i - 1].iter().map(Vec::len).sum::<usize>()
+    }
+
+    #[test]
+    fn a_header_that_is_not_the_first_record_is_refused_where_it_is() {
+        let records = [
+            schema(1, "std_msgs/msg/Float64", "ros2msg"),
+            header_record(),
+        ];
+        let e = refused(&file(&records));
+        assert!(
+            e.contains(&format!("MCAP record 3 (at byte {})", offset(&records, 2)))
+                && e.contains("a second Header record"),
+            "{e}"
+        );
+        // A file whose first record is not its Header.
+        let mut no_header = MAGIC.to_vec();
+        no_header.extend(schema(1, "std_msgs/msg/Float64", "ros2msg"));
+        no_header.extend_from_slice(MAGIC);
+        let e = refused(&no_header);
+        assert!(
+            e.contains(&format!("MCAP record 1 (at byte {})", MAGIC.len()))
+                && e.contains("the first record is opcode 0x03, not a Header"),
+            "{e}"
+        );
+    }
+
+    /// A Header record as [`file`] writes it.
+    fn header_record() -> Vec<u8> {
+        let mut h = Vec::new();
+        string(&mut h, "ros2");
+        string(&mut h, "test");
+        record(op::HEADER, &h)
+    }
+
+    /// Cut anywhere inside a record, the error names that record and the byte it starts at,
+    /// found here by walking the file's record framing (opcode, u64 length) on its own.
+    #[test]
+    fn a_file_that_ends_early_names_the_record_and_its_byte() {
+        let records = [
+            schema(1, "std_msgs/msg/Float64", "ros2msg"),
+            channel(1, 1, "/omnid/time"),
+            schema(2, "std_msgs/msg/String", "ros2msg"),
+        ];
+        let whole = file(&records);
+        for cut in [
+            offset(&records, 2) + 3,
+            offset(&records, 3) + 12,
+            whole.len() - 30,
+        ] {
+            // The record the cut falls in, and where it starts.
+            let (mut at, mut index) = (MAGIC.len(), 1u64);
+            loop {
+                let len = u64::from_le_bytes(whole[at + 1..at + 9].try_into().unwrap()) as usize;
+                if cut < at + 9 + len {
+                    break;
+                }
+                at += 9 + len;
+                index += 1;
+            }
+            let e = refused(&whole[..cut]);
+            assert!(
+                e.contains(&format!(
+                    "ends inside record {index} (which starts at byte {at})"
+                )),
+                "cut at {cut}: {e}"
+            );
+        }
     }
 
     #[test]

@@ -4,7 +4,7 @@
 //! running test's. The whole pipeline (`omnid run --device replay:… --fast` on such a file)
 //! is measured by the command in `mock/README.md`.
 
-use omnid::telemetry::reader::{LogReader, ReadError, MAX_ROW_BYTES};
+use omnid_core::telemetry::reader::{LogReader, ReadError, MAX_ROW_BYTES};
 use std::io::Read;
 use std::sync::Mutex;
 
