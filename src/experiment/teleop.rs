@@ -1009,6 +1009,91 @@ impl Drop for Spinner {
 }
 
 /// Wave variables beside the delay-aware gains, in process with control on.
+/// Issue #42's acceptance beside its *before*: at 100 ms, pf's 1 N press k ratio (≥ 0.5) and
+/// free path (≤ 2 mm) under the delay-aware gains (before) and wave variables (after), in
+/// process and over zenoh with and without a CPU hog beside it; and how many runs with control
+/// are stable, per delay control and link.
+fn acceptance_table(md: &mut String, all: &[PairResult]) {
+    let find = |dc: &str, link: &str, hog: bool, scene: &str| {
+        all.iter().find(|r| {
+            r.architecture == "pf"
+                && r.passivity
+                && r.controller == "ct"
+                && r.delay_control == dc
+                && r.link == link
+                && r.cpu_hog == hog
+                && r.rt_ms == 100.0
+                && r.channel == "100 ms"
+                && r.scene.starts_with(scene)
+        })
+    };
+    md.push_str(
+        "## Acceptance at 100 ms (issue #42)\n\nPosition–force, 100 ms round trip, control on: \
+         the hand should feel at least 0.5 of the floor's stiffness (1 N press into 1 N/mm) with \
+         a free path within 2 mm. *Before* is the delay-aware gains, *after* wave variables \
+         (docs/TELEOP.md §5).\n\n\
+         | delay control | link | CPU hog | press k ratio | free path mm | press stable | free stable | meets |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for (dc, link, hog) in [
+        ("gains", "in_process", false),
+        ("gains", "zenoh", false),
+        ("wave", "in_process", false),
+        ("wave", "zenoh", false),
+        ("wave", "zenoh", true),
+    ] {
+        let (press, free) = (
+            find(dc, link, hog, "press 1 N, 1 N/mm"),
+            find(dc, link, hog, "free"),
+        );
+        if press.is_none() && free.is_none() {
+            continue;
+        }
+        let k = press.map_or(f64::NAN, |r| r.stiffness_ratio);
+        let x = free.map_or(f64::NAN, |r| r.position_rms_mm);
+        let st = |r: Option<&PairResult>| match r {
+            Some(r) if r.stable => "yes",
+            Some(_) => "**no**",
+            None => "–",
+        };
+        let meets = k >= 0.5
+            && x <= 2.0
+            && press.is_some_and(|r| r.stable)
+            && free.is_some_and(|r| r.stable);
+        let _ = writeln!(
+            md,
+            "| {dc} | {} | {} | {} | {} | {} | {} | {} |",
+            link.replace('_', " "),
+            if hog { "yes" } else { "no" },
+            num(k, 2),
+            num(x, 2),
+            st(press),
+            st(free),
+            if meets { "yes" } else { "**no**" }
+        );
+    }
+    md.push_str("\nStable with control, every run of the experiment:\n\n| delay control | link | stable runs |\n|---|---|---|\n");
+    for dc in ["gains", "wave"] {
+        for link in ["in_process", "zenoh"] {
+            let runs: Vec<&PairResult> = all
+                .iter()
+                .filter(|r| r.passivity && r.delay_control == dc && r.link == link)
+                .collect();
+            if runs.is_empty() {
+                continue;
+            }
+            let _ = writeln!(
+                md,
+                "| {dc} | {} | {} of {} |",
+                link.replace('_', " "),
+                runs.iter().filter(|r| r.stable).count(),
+                runs.len()
+            );
+        }
+    }
+    md.push('\n');
+}
+
 fn wave_table(md: &mut String, all: &[PairResult]) {
     let local = |dc: &str| {
         all.iter()
@@ -1270,6 +1355,7 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
     }
     md.push_str("![press](teleop-press.png)\n\n");
     controller_table(&mut md, all);
+    acceptance_table(&mut md, all);
     wave_table(&mut md, all);
     zenoh_table(&mut md, all);
     let unstable: Vec<&PairResult> = all.iter().filter(|r| !r.stable).collect();

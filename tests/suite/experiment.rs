@@ -230,8 +230,19 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
         "## Position–force without passivity control",
         "## Two daemons over zenoh",
         "## The press under each controller",
+        "## Acceptance at 100 ms (issue #42)",
+        "## Wave variables beside the delay-aware gains",
     ] {
         assert!(report.contains(heading), "{heading}");
+    }
+    // The acceptance table: before (gains) and after (waves) in process, and the row over
+    // zenoh with a CPU hog beside it.
+    for row in [
+        "| gains | in process | no |",
+        "| wave | in process | no |",
+        "| wave | zenoh | yes |",
+    ] {
+        assert!(report.contains(row), "{row}");
     }
     assert!(dir.path().join("teleop-press.png").is_file());
     assert!(dir.path().join("teleop-press.svg").is_file());

@@ -314,3 +314,35 @@ fn under_nnidc_the_learned_force_estimate_makes_position_force_as_transparent_as
         ct.hf_force_n
     );
 }
+
+/// Issue #42: wave variables under a jittery delay (100 ms round trip ±50 %) pressed into the
+/// floor unstably (pf 1 N: 0.22 N above 20 Hz at the leader, 2 N into 2 N/mm 0.42 N; pp
+/// 0.24 N): the delay changing from packet to packet stretched and squeezed the waves. With
+/// the playout buffer (docs/TELEOP.md §5) the presses are quiet and the hand feels the floor.
+#[test]
+fn wave_variables_press_stably_under_a_jittery_delay() {
+    use omnid::teleop::DelayControl;
+    let wave = TeleopConfig {
+        delay_control: DelayControl::Wave,
+        ..TeleopConfig::default()
+    };
+    let jitter = *CHANNELS.iter().find(|c| c.jitter > 0.0).unwrap();
+    let stiff = Scene::Press {
+        force_n: 2.0,
+        wall_n_per_mm: 2.0,
+    };
+    for (arch, scene) in [
+        (Architecture::Pf, PRESS),
+        (Architecture::Pf, stiff),
+        (Architecture::Pp, PRESS),
+    ] {
+        let (r, _) = run_pair(&wave, arch, true, &scene, &jitter, false).unwrap();
+        assert!(r.stable, "{arch:?} {}: {:?}", r.scene, r.why);
+        assert!(
+            r.stiffness_ratio >= 0.4,
+            "{arch:?} {}: k ratio {}",
+            r.scene,
+            r.stiffness_ratio
+        );
+    }
+}

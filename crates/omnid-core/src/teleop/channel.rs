@@ -106,8 +106,22 @@ pub struct Endpoint {
     len: usize,
     /// When the last packet put in the line is due (delivery keeps order).
     last_due: f64,
+    /// A playout buffer ([`Endpoint::set_playout`]): the delay every packet is delivered at,
+    /// measured as arrival time less the sender's `t`, s; off while `None`, not yet known
+    /// while NaN.
+    playout: Option<f64>,
     stats: ChannelStats,
 }
+
+/// A playout buffer holds packets to this quantile of their delays: the rest arrive after
+/// their time and are delivered late (the waves squeezed, which puts out less than came in)
+/// rather than holding every packet to a spike.
+pub const PLAYOUT_QUANTILE: f64 = 0.99;
+/// How far one packet moves a playout buffer's delay, s (up by this times the quantile when
+/// it came later, down by this times the rest when not): a delay rises to a new level at up
+/// to a tenth of real time (the waves stretched by at most that) and comes down at 1 ms a
+/// second at 1 kHz.
+pub const PLAYOUT_STEP_S: f64 = 1e-4;
 
 /// Two joined endpoints (the leader's, the follower's), each impaired as given on what it
 /// receives.
@@ -137,8 +151,18 @@ impl Endpoint {
             head: 0,
             len: 0,
             last_due: f64::NEG_INFINITY,
+            playout: None,
             stats: ChannelStats::default(),
         }
+    }
+
+    /// Deliver every packet at one delay, tracked as the [`PLAYOUT_QUANTILE`] of the packets'
+    /// arrival less their sender's time `t` (the two clocks' offset is the same in every
+    /// packet and falls out). A jittery delay then reaches the receiver as a constant one
+    /// near its largest — what wave variables need to stay passive (a delay that changes
+    /// from packet to packet stretches and squeezes the waves: docs/TELEOP.md §5).
+    pub fn set_playout(&mut self, on: bool) {
+        self.playout = on.then_some(f64::NAN);
     }
 
     /// Send without waiting (a full queue drops the packet: the next one supersedes it).
@@ -171,7 +195,18 @@ impl Endpoint {
                 0.0
             };
             let delay_s = (imp.delay_ms + jitter).max(0.0) * 1e-3;
-            let due = (now + delay_s).max(self.last_due);
+            let mut due = (now + delay_s).max(self.last_due);
+            if let Some(hold) = self.playout.as_mut() {
+                let late = due - p.t;
+                *hold = if hold.is_nan() {
+                    late
+                } else if late > *hold {
+                    *hold + PLAYOUT_STEP_S * PLAYOUT_QUANTILE
+                } else {
+                    *hold - PLAYOUT_STEP_S * (1.0 - PLAYOUT_QUANTILE)
+                };
+                due = due.max(p.t + *hold);
+            }
             self.last_due = due;
             let slot = (self.head + self.len) % LINE;
             self.line[slot] = (due, p);
@@ -194,6 +229,7 @@ impl Endpoint {
         self.head = 0;
         self.len = 0;
         self.last_due = f64::NEG_INFINITY;
+        self.playout = self.playout.map(|_| f64::NAN);
         self.stats = ChannelStats::default();
     }
 
@@ -268,6 +304,49 @@ mod tests {
         // Binomial: σ = sqrt(0.1·0.9/20000) ≈ 0.002.
         assert!((lost - 0.1).abs() < 0.01, "{lost}");
         assert_eq!(s.received, n);
+    }
+
+    /// Issue #42: wave variables were unstable under a jittery delay (100 ms ±50 %); a
+    /// playout buffer delivers every packet at one delay, about the largest seen.
+    #[test]
+    fn a_playout_buffer_turns_a_jittery_delay_into_a_constant_one_at_its_largest() {
+        let imp = Impairment {
+            delay_ms: 50.0,
+            jitter_ms: 25.0,
+            loss: 0.0,
+        };
+        let run = |playout: bool| {
+            let (mut leader, mut follower) = pair(Impairment::default(), imp, 7);
+            follower.set_playout(playout);
+            // Each packet's delay as delivered, over the last of 5 s (after the first
+            // seconds have shown the largest delay).
+            let mut delays = Vec::new();
+            for k in 0..5000u64 {
+                let t = k as f64 * 1e-3;
+                leader.send(Packet {
+                    seq: k,
+                    t,
+                    ..Packet::default()
+                });
+                if let Some(p) = follower.receive(t) {
+                    if k >= 4000 {
+                        delays.push(t - p.t);
+                    }
+                }
+            }
+            let lo = delays.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = delays.iter().copied().fold(0.0, f64::max);
+            (delays.len(), lo, hi)
+        };
+        // Without: the delay wanders over the jitter's span and packets come in bursts
+        // (only the newest of a burst is handed over).
+        let (n, lo, hi) = run(false);
+        assert!(hi - lo > 0.02 && n < 900, "{n} {lo} {hi}");
+        // With: one packet a tick, nearly all of them held to one delay near the largest
+        // (the 99th percentile of 25–75 ms: 74.5 ms).
+        let (n, lo, hi) = run(true);
+        assert!(n >= 980, "{n}");
+        assert!(lo > 0.070 && hi < 0.0765, "{lo} {hi}");
     }
 
     #[test]

@@ -159,7 +159,10 @@ const RTT_FALL_S: f64 = 1.0;
 
 impl Coupling {
     /// A side in `role` over `endpoint`, stepped every `dt` s.
-    pub fn new(role: Role, cfg: &TeleopConfig, endpoint: Endpoint, dt: f64) -> Coupling {
+    pub fn new(role: Role, cfg: &TeleopConfig, mut endpoint: Endpoint, dt: f64) -> Coupling {
+        // Wave variables stay passive only under a constant delay: a playout buffer makes a
+        // jittery one constant (docs/TELEOP.md §5).
+        endpoint.set_playout(cfg.delay_control == DelayControl::Wave);
         Coupling {
             role,
             cfg: cfg.clone(),
