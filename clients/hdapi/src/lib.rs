@@ -250,7 +250,7 @@ fn get_nums(param: u32) -> Option<Vec<f64>> {
             None
         }
         Err(HD_INVALID_ENUM) => {
-            refuse_once(param);
+            refuse_once(param, Access::Read);
             None
         }
         Err(code) => {
@@ -260,17 +260,26 @@ fn get_nums(param: u32) -> Option<Vec<f64>> {
     }
 }
 
-/// Parameters already refused as unsupported.
-static REFUSED: LazyLock<Mutex<std::collections::HashSet<u32>>> = LazyLock::new(Default::default);
+/// Which way a program used a parameter.
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+enum Access {
+    Read,
+    Write,
+}
 
-/// An unsupported parameter is an `HD_INVALID_ENUM` the first time a program asks for it, and
-/// left alone after that (its output untouched): a servo callback that reads it every tick
-/// gets one error, not a thousand a second (docs/HDAPI.md, Parameters).
-fn refuse_once(param: u32) {
+/// Parameters already refused as unsupported, each way.
+static REFUSED: LazyLock<Mutex<std::collections::HashSet<(u32, Access)>>> =
+    LazyLock::new(Default::default);
+
+/// An unsupported parameter is an `HD_INVALID_ENUM` the first time a program reads it and the
+/// first time it writes it, and left alone after that (an output untouched, a write dropped):
+/// a servo callback that reads or writes it every tick, as the SDK's CommandMotorDAC writes
+/// DAC values, gets one error each way, not a thousand a second (docs/HDAPI.md, Parameters).
+fn refuse_once(param: u32, access: Access) {
     let first = REFUSED
         .lock()
         .unwrap_or_else(|e| e.into_inner())
-        .insert(param);
+        .insert((param, access));
     if first {
         push(HD_INVALID_ENUM, Internal::None);
     }
@@ -370,7 +379,7 @@ pub extern "C" fn hdGetString(param: u32) -> *const c_char {
 /// `v` is NULL or holds the parameter's values.
 unsafe fn set_from<T: Copy>(param: u32, v: *const T, conv: impl Fn(T) -> f64) {
     let Some(n) = params::set_count(param) else {
-        return push(HD_INVALID_ENUM, Internal::None);
+        return refuse_once(param, Access::Write);
     };
     if v.is_null() {
         return push(HD_INVALID_VALUE, Internal::NullPointer);
@@ -381,8 +390,10 @@ unsafe fn set_from<T: Copy>(param: u32, v: *const T, conv: impl Fn(T) -> f64) {
         let Some(d) = REGISTRY.current() else {
             return push(HD_BAD_HANDLE, Internal::None);
         };
-        if let Err(code) = params::set(&d, param, &values) {
-            push(code, Internal::None);
+        match params::set(&d, param, &values) {
+            Ok(()) => {}
+            Err(HD_INVALID_ENUM) => refuse_once(param, Access::Write),
+            Err(code) => push(code, Internal::None),
         }
     })
 }

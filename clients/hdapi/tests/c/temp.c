@@ -1,5 +1,6 @@
 /* What the daemon knows, answered: HD_MOTOR_TEMPERATURE from the thermal model while a force
- * is pushed, and an unsupported parameter read every tick refused once, not every tick. */
+ * is pushed, and unsupported parameters read or written every tick refused once each, not
+ * every tick (as the SDK's CommandMotorDAC writes DAC values every tick). */
 #include "hdtest.h"
 
 static volatile int ticks, invalid_enum, other_errors, limit_errors, last_other;
@@ -14,6 +15,9 @@ static HDCallbackCode HDCALLBACK servo(void *data)
     HDdouble t[3], v[3] = {0, 0, 0};
     hdGetDoublev(HD_MOTOR_TEMPERATURE, t);
     hdGetDoublev(HD_SOFTWARE_VELOCITY_LIMIT, v);
+    HDlong dac[6] = {0, 0, 0, 0, 0, 0};
+    hdGetLongv(HD_CURRENT_MOTOR_DAC_VALUES, dac);
+    hdSetLongv(HD_CURRENT_MOTOR_DAC_VALUES, dac);
     hdEndFrame(hdGetCurrentDevice());
     HDErrorInfo e;
     while (HD_DEVICE_ERROR(e = hdGetError())) {
