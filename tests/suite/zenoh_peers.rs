@@ -1236,7 +1236,11 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
         })
     };
     // The haptic client: a zero force answering every state (50 ms to live: a loaded test
-    // machine's own scheduling stays well inside it; the stalls a flood made were longer).
+    // machine's own scheduling stays well inside it; the stalls a flood made were longer). It
+    // runs as a haptic client's 1 kHz thread does (libHD's scheduler: SCHED_FIFO 60, where
+    // permitted): on 2 cores the flooding peer's own threads, in this process, could otherwise
+    // starve it past its time to live, which would say nothing about the daemon.
+    let fifo = omnid_client::realtime::set_fifo_priority(60).is_ok();
     let until = Instant::now() + Duration::from_secs(6);
     let (mut stale, mut states) = (0, 0);
     while Instant::now() < until {
@@ -1252,6 +1256,9 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
             Message::Other(v) if v["event"] == "stream-stale" => stale += 1,
             Message::Other(_) => {}
         }
+    }
+    if fifo {
+        let _ = omnid_client::realtime::set_fifo_priority(0);
     }
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     let (sent, flood_client, session) = flood.join().unwrap();
