@@ -6,8 +6,10 @@
 //! the median p99 with / without (the goal: at most 1.1).
 //! `cargo bench --bench flood -- [SECONDS] [ROUNDS]` (default 10 s, 3).
 
-use omnid::cmd::serve::{serve, ServeOptions};
-use omnid::config::Config;
+#[path = "../tests/suite/common.rs"]
+mod common;
+mod support;
+
 use omnid::transport::zenoh::bind::ClientKey;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc;
@@ -15,36 +17,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn peer(port: u16) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_string()),
-        ("connect/endpoints", format!("[\"tcp/127.0.0.1:{port}\"]")),
-        ("listen/endpoints", "[\"tcp/127.0.0.1:0\"]".into()),
-        ("scouting/multicast/enabled", "false".into()),
-    ] {
-        c.insert_json5(k, &v).unwrap();
-    }
-    zenoh::open(c).wait().unwrap()
-}
-
 /// A remote client on arm `sim` that says hello (with its key) and then puts sealed `status`
 /// requests until `stop`; returns how many it put.
 fn flood(port: u16, stop: Arc<AtomicBool>, greeted: mpsc::Sender<()>) -> u64 {
-    let s = peer(port);
+    let s = common::zenoh_peer(&format!("tcp/127.0.0.1:{port}"));
     let key = ClientKey::new().unwrap();
     let cid = key.cid("flood-");
     let replies = s
@@ -90,40 +66,14 @@ fn flood(port: u16, stop: Arc<AtomicBool>, greeted: mpsc::Sender<()>) -> u64 {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let secs: f64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(10.0);
-    let rounds: usize = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(3);
+    let (secs, rounds) = support::seconds_and_rounds(10.0, 3);
     let mut p99 = [Vec::new(), Vec::new()];
     for round in 0..rounds {
         for flooded in [false, true] {
-            let dir = tempfile::tempdir().unwrap();
-            let port = free_port();
-            let mut cfg = Config::default();
-            cfg.safety.persist_heat = false;
-            cfg.serve.dump_dir = dir.path().display().to_string();
-            cfg.zenoh.listen = vec![format!("tcp/127.0.0.1:{port}")];
-            cfg.zenoh.connect = vec![];
-            cfg.zenoh.ros2 = false;
-            let opts = ServeOptions {
-                devices: vec![omnid::cmd::run::DeviceSpec::Sim],
-                arms: Vec::new(),
-                controller: omnid::control::ControllerKind::Nnidc,
-                socket: Some(dir.path().join("bench.sock")),
-                weights: None,
-                no_adapt: false,
-                lenient: false,
-                inject: Vec::new(),
-                foxglove: None,
-                zenoh: true,
-            };
-            let stop = Arc::new(AtomicBool::new(false));
-            let daemon = {
-                let stop = stop.clone();
-                std::thread::spawn(move || serve(&opts, &cfg, stop))
-            };
+            let port = common::free_port();
+            let daemon = support::SimServe::start(|cfg, opts| {
+                support::zenoh_on_loopback(cfg, opts, port, false)
+            });
             let flood_stop = Arc::new(AtomicBool::new(false));
             let sent = Arc::new(AtomicU64::new(0));
             let flooder = flooded.then(|| {
@@ -139,10 +89,8 @@ fn main() {
             if let Some(h) = flooder {
                 h.join().unwrap();
             }
-            stop.store(true, Ordering::SeqCst);
-            let outcome = daemon.join().unwrap().expect("serve ran");
-            let arm = &outcome.arms[0];
-            let t = &arm.summary.timing_us;
+            let outcome = daemon.finish();
+            let t = &outcome.arms[0].summary.timing_us;
             let late = t.lateness.expect("paced");
             let flood_line = if flooded {
                 format!(
@@ -166,7 +114,7 @@ fn main() {
             p99[flooded as usize].push(late.p99);
         }
     }
-    let (quiet, flooded) = (median(p99[0].clone()), median(p99[1].clone()));
+    let (quiet, flooded) = (support::median(&p99[0]), support::median(&p99[1]));
     println!(
         "median lateness p99: without a flood {quiet:.1} µs, with {flooded:.1} µs, \
          with / without {:.3} (goal <= 1.1)",

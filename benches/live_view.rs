@@ -7,18 +7,11 @@
 //! The viewers are a few lines of WebSocket by hand (handshake, one masked text frame to
 //! subscribe): a test client, not a protocol omnid speaks.
 
-use omnid::cmd::serve::{serve, ServeOptions};
-use omnid::config::Config;
+mod support;
+
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpStream};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 use std::time::Duration;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// Read one server frame (unmasked): (opcode, payload).
 fn frame(s: &mut impl Read) -> std::io::Result<(u8, Vec<u8>)> {
@@ -90,42 +83,18 @@ fn viewer(addr: SocketAddr) -> TcpStream {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let secs: f64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(20.0);
-    let rounds: usize = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(2);
+    let (secs, rounds) = support::seconds_and_rounds(20.0, 2);
     let cases = ["no view", "reading viewer", "stuck viewer"];
     let mut p99s: Vec<Vec<f64>> = vec![Vec::new(); cases.len()];
     for round in 0..rounds {
         for (k, case) in cases.iter().enumerate() {
-            let dir = tempfile::tempdir().unwrap();
-            let mut cfg = Config::default();
-            cfg.safety.persist_heat = false;
-            cfg.serve.dump_dir = dir.path().display().to_string();
             // A free port for the view (taken and let go: the daemon binds it next).
             let port = std::net::TcpListener::bind("127.0.0.1:0")
                 .unwrap()
                 .local_addr()
                 .unwrap();
-            let opts = ServeOptions {
-                devices: vec![omnid::cmd::run::DeviceSpec::Sim],
-                arms: Vec::new(),
-                controller: omnid::control::ControllerKind::Nnidc,
-                socket: Some(dir.path().join("bench.sock")),
-                weights: None,
-                no_adapt: false,
-                lenient: false,
-                inject: Vec::new(),
-                foxglove: (k > 0).then_some(port),
-                zenoh: false,
-            };
-            let stop = Arc::new(AtomicBool::new(false));
-            let daemon = {
-                let stop = stop.clone();
-                std::thread::spawn(move || serve(&opts, &cfg, stop))
-            };
+            let daemon =
+                support::SimServe::start(|_, opts| opts.foxglove = (k > 0).then_some(port));
             let mut keep = None;
             if k > 0 {
                 let deadline = std::time::Instant::now() + Duration::from_secs(30);
@@ -144,8 +113,7 @@ fn main() {
                 keep = Some(s);
             }
             std::thread::sleep(Duration::from_secs_f64(secs));
-            stop.store(true, Ordering::SeqCst);
-            let outcome = daemon.join().unwrap().expect("serve ran");
+            let outcome = daemon.finish();
             drop(keep);
             let t = &outcome.arms[0].summary.timing_us;
             let late = t.lateness.expect("paced");
@@ -165,13 +133,13 @@ fn main() {
     for (k, case) in cases.iter().enumerate() {
         println!(
             "median {case:14}: lateness p99 {:.1} µs",
-            median(p99s[k].clone())
+            support::median(&p99s[k])
         );
     }
-    let base = median(p99s[0].clone());
+    let base = support::median(&p99s[0]);
     println!(
         "lateness p99 / no view: reading {:.3}, stuck {:.3}",
-        median(p99s[1].clone()) / base,
-        median(p99s[2].clone()) / base
+        support::median(&p99s[1]) / base,
+        support::median(&p99s[2]) / base
     );
 }

@@ -2,23 +2,15 @@
 //! interleaved, each round's lateness and compute percentiles, then the median over rounds.
 //! `cargo bench --bench recording -- [SECONDS] [ROUNDS]` (default 20 s, 3 rounds).
 
+mod support;
+
 use omnid::cmd::run::{execute, RunOptions};
 use omnid::config::Config;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let secs: f64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(20.0);
-    let rounds: usize = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(3);
+    let (secs, rounds) = support::seconds_and_rounds(20.0, 3);
     let dir = tempfile::tempdir().expect("temp dir");
     let mut cfg = Config::default();
     cfg.safety.persist_heat = false;
@@ -51,7 +43,7 @@ fn main() {
         }
     }
     for (i, ext) in formats.iter().enumerate() {
-        let col = |k: usize| median(results[i].iter().map(|r| r[k]).collect());
+        let col = |k: usize| support::median(&results[i].iter().map(|r| r[k]).collect::<Vec<_>>());
         println!(
             "median {ext:4}: lateness p50 {:.1} p99 {:.1} p99.9 {:.1} µs, compute p99 {:.1} µs",
             col(0),
@@ -60,6 +52,6 @@ fn main() {
             col(3)
         );
     }
-    let p99 = |i: usize| median(results[i].iter().map(|r| r[1]).collect());
+    let p99 = |i: usize| support::median(&results[i].iter().map(|r| r[1]).collect::<Vec<_>>());
     println!("lateness p99 mcap / csv: {:.3}", p99(1) / p99(0));
 }

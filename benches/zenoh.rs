@@ -6,23 +6,14 @@
 //! measured in the same run between two sessions of this process; samples received vs ticks
 //! and sequence gaps. `cargo bench --bench zenoh -- [SECONDS] [ROUNDS]` (default 10 s, 2).
 
-use omnid::cmd::serve::{serve, ServeOptions};
-use omnid::config::Config;
+#[path = "../tests/suite/common.rs"]
+mod common;
+mod support;
+
 use omnid::ros2::{msgs, rmw_zenoh as rmw};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use zenoh::Wait;
-
-fn pct(v: &mut [f64], p: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * p).round() as usize]
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn now_ns() -> i64 {
     std::time::SystemTime::now()
@@ -31,64 +22,20 @@ fn now_ns() -> i64 {
         .as_nanos() as i64
 }
 
-fn peer(connect: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_string()),
-        ("connect/endpoints", format!("[\"{connect}\"]")),
-        ("listen/endpoints", "[\"tcp/127.0.0.1:0\"]".into()),
-        ("scouting/multicast/enabled", "false".into()),
-    ] {
-        c.insert_json5(k, &v).unwrap();
-    }
-    zenoh::open(c).wait().unwrap()
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let secs: f64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(10.0);
-    let rounds: usize = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(2);
+    let (secs, rounds) = support::seconds_and_rounds(10.0, 2);
     let mut p99 = [Vec::new(), Vec::new()];
     for round in 0..rounds {
         for on in [false, true] {
-            let dir = tempfile::tempdir().unwrap();
-            let port = free_port();
-            let mut cfg = Config::default();
-            cfg.safety.persist_heat = false;
-            cfg.serve.dump_dir = dir.path().display().to_string();
-            cfg.zenoh.listen = vec![format!("tcp/127.0.0.1:{port}")];
-            cfg.zenoh.connect = vec![];
-            let opts = ServeOptions {
-                devices: vec![omnid::cmd::run::DeviceSpec::Sim],
-                arms: Vec::new(),
-                controller: omnid::control::ControllerKind::Nnidc,
-                socket: Some(dir.path().join("bench.sock")),
-                weights: None,
-                no_adapt: false,
-                lenient: false,
-                inject: Vec::new(),
-                foxglove: None,
-                zenoh: on,
-            };
-            let stop = Arc::new(AtomicBool::new(false));
-            let daemon = {
-                let stop = stop.clone();
-                std::thread::spawn(move || serve(&opts, &cfg, stop))
-            };
+            let port = common::free_port();
+            let daemon = support::SimServe::start(|cfg, opts| {
+                if on {
+                    support::zenoh_on_loopback(cfg, opts, port, true)
+                }
+            });
             let mut report = String::new();
             if on {
-                let sub_session = peer(&format!("tcp/127.0.0.1:{port}"));
+                let sub_session = common::zenoh_peer(&format!("tcp/127.0.0.1:{port}"));
                 let key =
                     rmw::data_key(0, "/sim/measured_js", &rmw::JOINT_STATE, Default::default());
                 let got: Arc<Mutex<Vec<(i64, i64)>>> = Arc::default();
@@ -111,7 +58,7 @@ fn main() {
                     .wait()
                     .unwrap();
                 // The floor: a bare put from a second session of this process to the first.
-                let floor_port = free_port();
+                let floor_port = common::free_port();
                 let mut c = zenoh::Config::default();
                 for (k, v) in [
                     ("mode", "\"peer\"".to_string()),
@@ -135,7 +82,7 @@ fn main() {
                     })
                     .wait()
                     .unwrap();
-                let pub_session = peer(&format!("tcp/127.0.0.1:{floor_port}"));
+                let pub_session = common::zenoh_peer(&format!("tcp/127.0.0.1:{floor_port}"));
                 let publisher = pub_session.declare_publisher("bench/floor").wait().unwrap();
                 std::thread::sleep(Duration::from_millis(500));
                 got.lock().unwrap().clear();
@@ -155,8 +102,14 @@ fn main() {
                 let mut lat: Vec<f64> = got.iter().map(|g| g.0 as f64 * 1e-3).collect();
                 let gaps = got.windows(2).filter(|w| w[1].1 != w[0].1 + 1).count();
                 let mut fl = std::mem::take(&mut *floor.lock().unwrap());
-                let (l50, l99) = (pct(&mut lat, 0.5), pct(&mut lat, 0.99));
-                let (f50, f99) = (pct(&mut fl, 0.5), pct(&mut fl, 0.99));
+                let (l50, l99) = (
+                    support::percentile(&mut lat, 0.5),
+                    support::percentile(&mut lat, 0.99),
+                );
+                let (f50, f99) = (
+                    support::percentile(&mut fl, 0.5),
+                    support::percentile(&mut fl, 0.99),
+                );
                 report = format!(
                     "\n    measured_js: {} samples in {elapsed:.1} s ({:.0} Hz), {gaps} sequence \
                      gaps; latency p50 {l50:.0} p99 {l99:.0} µs | floor put→sub p50 {f50:.0} \
@@ -168,8 +121,7 @@ fn main() {
             } else {
                 std::thread::sleep(Duration::from_secs_f64(secs + 0.5));
             }
-            stop.store(true, Ordering::SeqCst);
-            let outcome = daemon.join().unwrap().expect("serve ran");
+            let outcome = daemon.finish();
             let t = &outcome.arms[0].summary.timing_us;
             let late = t.lateness.expect("paced");
             println!(
@@ -185,7 +137,7 @@ fn main() {
             p99[on as usize].push(late.p99);
         }
     }
-    let (off, on) = (median(p99[0].clone()), median(p99[1].clone()));
+    let (off, on) = (support::median(&p99[0]), support::median(&p99[1]));
     println!(
         "median lateness p99: off {off:.1} µs, on {on:.1} µs, on / off {:.3}",
         on / off

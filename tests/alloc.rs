@@ -324,6 +324,8 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = Config::default();
     cfg.safety.persist_heat = false;
+    // The user's kept weights are neither read nor written by a test.
+    cfg.identifier.persist = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let socket = dir.path().join("sim.sock");
     let opts = omnid::cmd::serve::ServeOptions {
@@ -509,6 +511,8 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = Config::default();
     cfg.safety.persist_heat = false;
+    // The user's kept weights are neither read nor written by a test.
+    cfg.identifier.persist = false;
     cfg.serve.dump_dir = dir.path().display().to_string();
     let opts = omnid::cmd::serve::ServeOptions {
         devices: vec![

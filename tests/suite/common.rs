@@ -390,3 +390,28 @@ pub fn ticks_to_fade(
     }
     zero_at
 }
+
+/// A port free on loopback now (taken and let go: the daemon binds it next).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A zenoh peer of this process connected to `connect` only: it listens on a loopback port of
+/// its own and does not scout, so it meets nobody else's daemon on the machine.
+pub fn zenoh_peer(connect: &str) -> zenoh::Session {
+    use zenoh::Wait;
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\"".to_string()),
+        ("connect/endpoints", format!("[\"{connect}\"]")),
+        ("listen/endpoints", "[\"tcp/127.0.0.1:0\"]".into()),
+        ("scouting/multicast/enabled", "false".into()),
+    ] {
+        c.insert_json5(k, &v).unwrap();
+    }
+    zenoh::open(c).wait().unwrap()
+}

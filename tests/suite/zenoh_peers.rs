@@ -11,15 +11,6 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
-/// A port free on loopback now.
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// `omnid serve --device sim` with zenoh listening on loopback `port`.
 fn serve(port: u16, extra: &str) -> Served {
     let config = format!(
@@ -28,17 +19,9 @@ fn serve(port: u16, extra: &str) -> Served {
     Served::start(&["--device", "sim"], Some(&config), &["sim"])
 }
 
+/// A zenoh peer connected to the daemon listening on loopback `port`.
 fn peer(port: u16) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_string()),
-        ("connect/endpoints", format!("[\"tcp/127.0.0.1:{port}\"]")),
-        ("listen/endpoints", "[\"tcp/127.0.0.1:0\"]".into()),
-        ("scouting/multicast/enabled", "false".into()),
-    ] {
-        c.insert_json5(k, &v).unwrap();
-    }
-    zenoh::open(c).wait().unwrap()
+    common::zenoh_peer(&format!("tcp/127.0.0.1:{port}"))
 }
 
 /// Every ROS 2 token seen within a few seconds (the daemon's session may still be joining).
@@ -63,7 +46,7 @@ fn tokens(s: &zenoh::Session, want: usize) -> Vec<String> {
 #[test]
 #[ignore = "paced"]
 fn a_zenoh_peer_finds_the_node_and_reads_measured_js_with_rmw_zenohs_attachments() {
-    let port = free_port();
+    let port = common::free_port();
     let mut d = serve(port, "");
     let s = peer(port);
     // Read-only by default: the node, six publishers, no subscriptions.
@@ -265,7 +248,7 @@ const COMMANDS: &str = "allow_commands = true\n";
 #[ignore = "paced"]
 fn ros2_tools_see_omnid_as_rmw_zenoh_does_and_servo_cf_pushes_the_arm() {
     let Some(py) = python() else { return };
-    let port = free_port();
+    let port = common::free_port();
     let d = serve(port, COMMANDS);
     let r = check(&py, "ros", port, &d);
     eprintln!("{r:#}");
@@ -309,7 +292,7 @@ fn ros2_tools_see_omnid_as_rmw_zenoh_does_and_servo_cf_pushes_the_arm() {
 #[ignore = "paced"]
 fn a_remote_python_client_streams_and_commands_and_loses_its_command_when_it_dies() {
     let Some(py) = python() else { return };
-    let port = free_port();
+    let port = common::free_port();
     let d = serve(port, COMMANDS);
     let r = check(&py, "remote", port, &d);
     eprintln!("{r:#}");
@@ -336,7 +319,7 @@ fn a_remote_python_client_streams_and_commands_and_loses_its_command_when_it_die
 #[ignore = "paced"]
 fn bad_samples_and_floods_from_the_network_are_refused_and_counted() {
     let Some(py) = python() else { return };
-    let port = free_port();
+    let port = common::free_port();
     let mut d = serve(port, COMMANDS);
     let r = check(&py, "hostile", port, &d);
     eprintln!("{r:#}");
@@ -356,7 +339,7 @@ fn bad_samples_and_floods_from_the_network_are_refused_and_counted() {
 #[ignore = "paced"]
 fn without_allow_commands_a_remote_client_is_read_only() {
     let Some(py) = python() else { return };
-    let port = free_port();
+    let port = common::free_port();
     let d = serve(port, "");
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let script = format!(
@@ -469,7 +452,7 @@ mod teleop_over_zenoh {
         use omnid::teleop::{Packet, Role};
         use omnid::transport::zenoh::ZenohNet;
         use zenoh::Wait;
-        let port = super::free_port();
+        let port = super::common::free_port();
         let at = vec![format!("tcp/127.0.0.1:{port}")];
         let lnet = ZenohNet::start(&zenoh_cfg(&at[0], &[])).unwrap();
         let fnet = ZenohNet::start(&zenoh_cfg("tcp/127.0.0.1:0", &at)).unwrap();
@@ -697,7 +680,7 @@ fn two_daemons(tag: &str) -> TwoDaemons {
         format!("zl{tag}-{}", std::process::id()),
         format!("zf{tag}-{}", std::process::id()),
     );
-    let port = free_port();
+    let port = common::free_port();
     // The pair's key, the same on both daemons.
     let common = format!(
         "ros2 = false\nallow_commands = true\nteleop_keys = {{ \"{leader}/{follower}\" = \
@@ -987,7 +970,7 @@ fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_
         format!(
             "[zenoh]\nenabled = true\nros2 = false\nallow_commands = true\ninsecure = {insecure}\n\
              listen = [\"tcp/0.0.0.0:{}\"]\nconnect = []\n\n[[arm]]\nname = \"{arm}\"\n",
-            free_port()
+            common::free_port()
         )
     };
     let dir = tempfile::tempdir().unwrap();
@@ -1032,7 +1015,7 @@ fn serve_refuses_commands_on_a_reachable_endpoint_without_authentication_unless_
 #[test]
 #[ignore = "paced"]
 fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_refused() {
-    let port = free_port();
+    let port = common::free_port();
     let d = serve(port, "");
     let squatter = peer(port);
     let _tokens: Vec<_> = (0..200)
@@ -1118,7 +1101,7 @@ fn squatted_tokens_take_no_slot_and_a_hello_that_finds_every_slot_greeted_is_ref
 fn a_ros2_command_under_another_type_hash_is_counted_and_said() {
     // Issue #43: a node built against other message definitions publishes servo_cf under a
     // type hash that is not ours: the sample never reached a subscriber, and nothing said so.
-    let port = free_port();
+    let port = common::free_port();
     let mut d = serve(port, "allow_commands = true\n");
     let s = peer(port);
     let ours = rmw::data_key(0, "/sim/servo_cf", &rmw::WRENCH_STAMPED, Default::default());
@@ -1160,7 +1143,7 @@ fn only_the_labs_commander_commands_and_an_unauthenticated_peer_cannot_connect()
     let dir = tempfile::tempdir().unwrap();
     let users = dir.path().join("zenoh-users");
     std::fs::write(&users, "lab:lab-secret\nviewer:viewer-secret\n").unwrap();
-    let port = free_port();
+    let port = common::free_port();
     let mut d = serve(
         port,
         &format!(
@@ -1212,7 +1195,7 @@ fn only_the_labs_commander_commands_and_an_unauthenticated_peer_cannot_connect()
 #[ignore = "paced"]
 fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
     use omnid::transport::client::Message;
-    let port = free_port();
+    let port = common::free_port();
     let d = serve(port, "ros2 = false\n");
     let mut c = d.client("sim", "haptic");
     c.request(json!({"op": "stream", "rate_hz": 1000})).unwrap();
@@ -1295,7 +1278,7 @@ fn a_status_flood_over_zenoh_never_makes_a_local_force_stream_stale() {
 #[test]
 #[ignore = "paced"]
 fn a_peer_that_reads_a_remote_clients_traffic_cannot_act_as_it() {
-    let port = free_port();
+    let port = common::free_port();
     let d = serve(port, COMMANDS);
     // The attacker records everything put on any client's id, from before the victim comes.
     let thief = peer(port);
@@ -1494,7 +1477,7 @@ fn over_tls_a_client_with_the_labs_ca_connects_and_one_without_it_cannot() {
         })
     };
     for mutual in [false, true] {
-        let port = free_port();
+        let port = common::free_port();
         let config = format!(
             "[zenoh]\nenabled = true\nros2 = false\nlisten = [\"tls/127.0.0.1:{port}\"]\n\
              connect = []\ntls_certificate = {daemon_cert:?}\ntls_private_key = \
