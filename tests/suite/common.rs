@@ -124,13 +124,19 @@ impl Served {
     /// As [`Served::with_live_view`], the daemon started with a soft descriptor limit of
     /// `nofile` if given.
     pub fn with_live_view_limited(args: &[&str], nofile: Option<u64>) -> Served {
-        use std::io::BufRead;
         let mut all = args.to_vec();
         all.extend_from_slice(&["--foxglove", "127.0.0.1:0"]);
         let mut served = Served::spawn_in(tempfile::tempdir().unwrap(), &all, None, nofile);
-        let stderr = served.child.as_mut().unwrap().stderr.take().unwrap();
+        served.url = served.read_live_view_address();
+        served
+    }
+
+    /// Read the daemon's stderr to the end in a thread of its own (so the pipe never fills)
+    /// and return the live view's address once it says it.
+    fn read_live_view_address(&mut self) -> String {
+        use std::io::BufRead;
+        let stderr = self.child.as_mut().unwrap().stderr.take().unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
-        // Read every line (so the pipe never fills); hand over the live view's address.
         std::thread::spawn(move || {
             for line in std::io::BufReader::new(stderr)
                 .lines()
@@ -142,10 +148,8 @@ impl Served {
                 }
             }
         });
-        served.url = rx
-            .recv_timeout(std::time::Duration::from_secs(60))
-            .expect("omnid serve says where the live view is");
-        served
+        rx.recv_timeout(std::time::Duration::from_secs(60))
+            .expect("omnid serve says where the live view is")
     }
 
     fn spawn(args: &[&str], config: Option<&str>) -> Served {
@@ -158,7 +162,28 @@ impl Served {
         config: Option<&str>,
         nofile: Option<u64>,
     ) -> Served {
+        Served::spawn_with(dir, args, config, nofile, false)
+    }
+
+    /// As `spawn_in`; with `end_with_parent`, the daemon gets SIGTERM when the thread that
+    /// started it ends (Linux's parent-death signal).
+    fn spawn_with(
+        dir: tempfile::TempDir,
+        args: &[&str],
+        config: Option<&str>,
+        nofile: Option<u64>,
+        end_with_parent: bool,
+    ) -> Served {
         let mut cmd = omnid();
+        if end_with_parent {
+            // SAFETY: only async-signal-safe calls between fork and exec.
+            unsafe {
+                std::os::unix::process::CommandExt::pre_exec(&mut cmd, || {
+                    libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                    Ok(())
+                });
+            }
+        }
         if let Some(n) = nofile {
             // SAFETY: only async-signal-safe calls between fork and exec.
             unsafe {
@@ -291,6 +316,55 @@ impl Served {
             String::from_utf8_lossy(&out.stderr).into_owned(),
         )
     }
+}
+
+/// The daemon the read-only tests share: `omnid serve --device sim --socket <dir>/sim.sock
+/// --foxglove 127.0.0.1:0`, started by the first test that asks and stopped (SIGTERM, waited
+/// for, its directory removed) when the test process exits. A test on it may connect, read
+/// states and status, watch the live view and try things that are refused; it never takes
+/// the lease, commands, changes a mode or stops it: those tests start a daemon of their own.
+pub fn shared_sim() -> &'static Served {
+    static SHARED: std::sync::OnceLock<Served> = std::sync::OnceLock::new();
+    extern "C" fn stop_at_exit() {
+        if let Some(d) = SHARED.get() {
+            let pid = d.pid();
+            // SAFETY: signal and reap our own child.
+            unsafe {
+                libc::kill(pid, libc::SIGTERM);
+                libc::waitpid(pid, std::ptr::null_mut(), 0);
+            }
+            let _ = std::fs::remove_dir_all(d.dir.path());
+        }
+    }
+    SHARED.get_or_init(|| {
+        // Started from a thread that lives as long as the process, so the daemon's parent-death
+        // signal fires only when the test process ends, even killed outright.
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let dir = tempfile::tempdir().unwrap();
+            let sock = dir.path().join("sim.sock");
+            let args = [
+                "--device",
+                "sim",
+                "--socket",
+                sock.to_str().unwrap(),
+                "--foxglove",
+                "127.0.0.1:0",
+            ];
+            let mut served = Served::spawn_with(dir, &args, None, None, true);
+            served.sock = sock;
+            served.url = served.read_live_view_address();
+            let _ = tx.send(served);
+            loop {
+                std::thread::park();
+            }
+        });
+        let served = rx.recv().expect("the shared daemon starts");
+        served.wait_for(&served.sock);
+        // SAFETY: registering a plain extern "C" function.
+        unsafe { libc::atexit(stop_at_exit) };
+        served
+    })
 }
 
 impl Drop for Served {

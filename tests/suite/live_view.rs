@@ -54,7 +54,7 @@ fn assert_all_decode(report: &serde_json::Value) {
 #[ignore = "paced"]
 fn a_viewer_gets_every_arm_channel_at_the_device_rate_and_every_payload_decodes() {
     let Some(py) = python() else { return };
-    let d = Served::with_live_view(&["--device", "sim"]);
+    let d = common::shared_sim();
     let report = viewer(&py, &[&d.url, "5"]);
     assert_all_decode(&report);
     let hz = rate(&report, "/joint_states");

@@ -707,7 +707,7 @@ fn a_full_daemon_refuses_with_its_reason() {
 #[test]
 #[ignore = "paced"]
 fn a_second_daemon_on_the_same_socket_is_refused() {
-    let d = Served::sim(&[], None);
+    let d = common::shared_sim();
     let out = omnid()
         .args(["serve", "--device", "sim", "--socket"])
         .arg(&d.sock)
