@@ -2,6 +2,7 @@
 //! catches a non-finite output.
 
 use super::{ControlInput, Controller};
+use crate::estimate::kalman::Estimate;
 use crate::identifier::Identifier;
 use crate::omni::Joint3;
 
@@ -23,5 +24,46 @@ impl Controller for NanAfter {
         } else {
             tau
         }
+    }
+
+    // The wrapped law's model stays its own: free mode and a coupling under the injection
+    // compensate as the law would (the fault is in its tracking output only).
+    fn compensation(&mut self, estimate: &Estimate, learned: Option<&mut Identifier>) -> Joint3 {
+        self.inner.compensation(estimate, learned)
+    }
+
+    fn coupling_compensation(
+        &mut self,
+        estimate: &Estimate,
+        learned: Option<&mut Identifier>,
+    ) -> Joint3 {
+        self.inner.coupling_compensation(estimate, learned)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+    use crate::control::{make_controller, ControllerKind};
+
+    #[test]
+    fn the_wrapped_laws_compensation_passes_through_unchanged() {
+        let cfg = Config::default();
+        let x = Estimate {
+            q: Joint3::new(0.2, 0.4, -0.3),
+            qd: Joint3::new(0.5, -0.2, 0.1),
+            qdd: Joint3::zeros(),
+        };
+        let mut ct = make_controller(ControllerKind::Ct, &cfg);
+        let want = ct.compensation(&x, None);
+        let want_coupling = ct.coupling_compensation(&x, None);
+        assert!(want.norm() > 1e-3, "CT compensates gravity: {want}");
+        let mut faulty = NanAfter {
+            inner: make_controller(ControllerKind::Ct, &cfg),
+            at_s: 0.0,
+        };
+        assert_eq!(faulty.compensation(&x, None), want);
+        assert_eq!(faulty.coupling_compensation(&x, None), want_coupling);
     }
 }
