@@ -89,6 +89,26 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// Note the daemon's limit flags at a committed frame (`pushes`: it sends a force or a
+    /// torque): the limits that began acting are raised once (at most once a second each). The
+    /// limits on a program's force (the force limit, a warm motor) concern only frames that
+    /// push: a program that pushes nothing (force output disabled, a read-only loop) is not
+    /// stopped by the daemon's own holding of the arm, and one that starts pushing while such a
+    /// limit acts is told at its first pushing frame.
+    pub fn note_limits(&mut self, flags: u32, one_tick: u32, pushes: bool, now: Instant) {
+        let watched = LIMITS.iter().fold(0, |m, (bit, _, _)| m | bit)
+            & if pushes { !0 } else { !FORCE_LIMITS };
+        let began = (flags & !self.limit_flags & watched) | one_tick;
+        self.limit_flags = flags & watched & !crate::link::ONE_TICK;
+        for (k, (bit, _, _)) in LIMITS.iter().enumerate() {
+            let quiet = self.limit_raised_at[k].is_none_or(|t| now - t >= LIMIT_HOLD_OFF);
+            if began & bit != 0 && quiet {
+                self.new_limits |= bit;
+                self.limit_raised_at[k] = Some(now);
+            }
+        }
+    }
+
     /// Begin a frame on the calling thread; the outermost takes `latest` and clears the
     /// forces.
     pub fn begin(&mut self, latest: Option<State>) {
@@ -127,6 +147,9 @@ const LIMITS: [(u32, u32, Internal); 4] = [
     (1 << 11, HD_EXCEEDED_MAX_VELOCITY, Internal::DaemonLimit),
     (1 << 12, HD_TIMER_ERROR, Internal::ServoStall),
 ];
+
+/// The limits of [`LIMITS`] on a program's own force: the force limit and a warm motor.
+const FORCE_LIMITS: u32 = (1 << 9) | (1 << 6);
 
 /// The HD errors (code, internal code) for the limits that began acting between two samples'
 /// `flags`.
@@ -314,31 +337,21 @@ impl Device {
         let Some(state) = f.current.clone() else {
             return Ok(true);
         };
-        let watched = LIMITS.iter().fold(0, |m, (bit, _, _)| m | bit);
-        // One-tick bits (a trip, a stall) from every sample since the last frame, so a frame
-        // that runs on a later sample still sees them; the others from this frame's sample.
-        let one_tick = std::mem::take(&mut self.link.inbox().one_tick_flags);
-        let began = (state.flags & !f.limit_flags & watched) | one_tick;
-        f.limit_flags = state.flags & watched & !crate::link::ONE_TICK;
-        let now = Instant::now();
-        for (k, (bit, _, _)) in LIMITS.iter().enumerate() {
-            let quiet = f.limit_raised_at[k].is_none_or(|t| now - t >= LIMIT_HOLD_OFF);
-            if began & bit != 0 && quiet {
-                f.new_limits |= bit;
-                f.limit_raised_at[k] = Some(now);
-            }
-        }
         let (force, joint_torque) = if force_output {
             (f.force, f.joint_torque)
         } else {
             ([0.0; 3], [0.0; 3])
         };
+        let pushes = force != [0.0; 3] || joint_torque != [0.0; 3];
+        // One-tick bits (a trip, a stall) from every sample since the last frame, so a frame
+        // that runs on a later sample still sees them; the others from this frame's sample.
+        let one_tick = std::mem::take(&mut self.link.inbox().one_tick_flags);
         let now = Instant::now();
+        f.note_limits(state.flags, one_tick, pushes, now);
         let interval_ms = f
             .committed_at
             .replace(now)
             .map(|t| (now - t).as_secs_f64() * 1e3);
-        let pushes = force != [0.0; 3] || joint_torque != [0.0; 3];
         match interval_ms {
             Some(i) if pushes && i > MAX_FORCE_TTL_MS => {
                 if !f.slow {
@@ -504,5 +517,32 @@ mod limit_tests {
         // Bits the library does not raise (a clamp, the kick limit, the ramp, a wall) raise
         // nothing.
         assert_eq!(limit_errors(0, 1 | kick | 16 | 32).count(), 0);
+    }
+
+    /// ServoLoopRate with force output disabled was stopped by HD_WARM_MOTORS: the daemon's
+    /// own gravity compensation had warmed the motors, and the program pushed nothing.
+    #[test]
+    fn force_limits_reach_only_frames_that_push_and_a_first_push_is_told() {
+        let (force, warm, speed) = (1 << 9, 1 << 6, 1 << 11);
+        let t0 = Instant::now();
+        let mut f = Frame::default();
+        let raised = |f: &mut Frame| {
+            let bits = std::mem::take(&mut f.new_limits);
+            limit_errors(0, bits).map(|e| e.0).collect::<Vec<_>>()
+        };
+        // Warm motors and the force limit while the program pushes nothing: no error; the
+        // speed trip (the arm's, not the program's force) still is one.
+        f.note_limits(warm | force | speed, 0, false, t0);
+        assert_eq!(raised(&mut f), [HD_EXCEEDED_MAX_VELOCITY]);
+        f.note_limits(warm, 0, false, t0 + Duration::from_millis(1));
+        assert!(raised(&mut f).is_empty());
+        // The first frame that pushes while the motors are still warm is told, once.
+        f.note_limits(warm, 0, true, t0 + Duration::from_millis(2));
+        assert_eq!(raised(&mut f), [HD_WARM_MOTORS]);
+        f.note_limits(warm, 0, true, t0 + Duration::from_millis(3));
+        assert!(raised(&mut f).is_empty());
+        // A pushing frame at the force limit is told too.
+        f.note_limits(warm | force, 0, true, t0 + Duration::from_millis(4));
+        assert_eq!(raised(&mut f), [HD_EXCEEDED_MAX_FORCE]);
     }
 }

@@ -59,6 +59,12 @@ pub(crate) fn limit_force(f: &Force3, max: f64) -> Force3 {
     }
 }
 
+/// Whether a limit held `asked` back to `given`: by more than rounding, so a force a client
+/// already scaled to the limit itself (its norm a last bit above it) is not said to be held.
+pub(crate) fn held_back(asked: &Force3, given: &Force3) -> bool {
+    (given - asked).norm() > 1e-9 * (1.0 + asked.norm())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -129,7 +129,7 @@ impl HapticLoop {
         // Visible when it acts: the log's flags, and an event at its start (the servo).
         use crate::telemetry::record::flags;
         self.flags = 0;
-        if (f - asked).norm() > 1e-9 * (1.0 + asked.norm()) {
+        if super::held_back(&asked, &f) {
             self.flags |= flags::FORCE_LIMIT;
         }
         if self.scene.skipped {

@@ -21,7 +21,9 @@ use crate::estimate::kalman::{AccelLag, Estimate, KalmanConfig};
 use crate::estimate::KalmanBank;
 use crate::haptics::external::ExternalForce;
 use crate::haptics::HapticsConfig;
-use crate::haptics::{limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop};
+use crate::haptics::{
+    held_back, limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop,
+};
 use crate::identifier::Identifier;
 use crate::identifier::IdentifierConfig;
 use crate::omni::Joint3;
@@ -1038,7 +1040,7 @@ impl Servo {
                         self.enter(Activity::ServoCf, q);
                         let asked = Force3::from(force);
                         self.stream_force = limit_force(&asked, self.max_force_n);
-                        self.stream_force_limited = asked.norm() > self.max_force_n;
+                        self.stream_force_limited = held_back(&asked, &self.stream_force);
                         self.cmd_seq = seq;
                         self.stream_deadline = t + ttl_s;
                     }
@@ -1517,6 +1519,21 @@ mod tests {
             seen.push(next(&mut servo, &rx));
         }
         assert!(seen[1..].iter().all(|r| r.flags & flags::FORCE_LIMIT != 0));
+        // A client that scaled its force to the peak itself (libHD clamps to 3.3 N) is at the
+        // limit, not held by it, even when its norm is a last bit above 3.3 N.
+        let at_peak = [1.0, -4.0, 2.0].map(|v: f64| v * 3.3 / 21f64.sqrt());
+        assert!(
+            Force3::from(at_peak).norm() > 3.3,
+            "the case rounding makes"
+        );
+        cmd.send(ServoCommand::ServoCf {
+            seq: 500,
+            force: at_peak,
+            ttl_s: 1.0,
+        })
+        .unwrap();
+        let r = next(&mut servo, &rx);
+        assert_eq!(r.flags & flags::FORCE_LIMIT, 0, "{:#x}", r.flags);
         let announced: Vec<_> = seen
             .iter()
             .filter(|r| matches!(r.live.event, Some(ServoEvent::Limit { .. })))
