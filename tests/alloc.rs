@@ -330,15 +330,8 @@ fn serve_servo_allocates_nothing_with_clients_connected() {
     let socket = dir.path().join("sim.sock");
     let opts = omnid::cmd::serve::ServeOptions {
         devices: vec![omnid::cmd::run::DeviceSpec::Sim],
-        arms: Vec::new(),
-        controller: ControllerKind::Nnidc,
         socket: Some(socket.clone()),
-        weights: None,
-        no_adapt: false,
-        lenient: false,
-        inject: Vec::new(),
-        foxglove: None,
-        zenoh: false,
+        ..Default::default()
     };
     let stop = Arc::new(AtomicBool::new(false));
     // The daemon as `omnid serve` assembles it; its servo ticks on this (watched) thread.
@@ -519,15 +512,7 @@ fn two_served_arms_allocate_nothing_with_a_client_streaming_each() {
             omnid::cmd::run::DeviceSpec::Sim,
             omnid::cmd::run::DeviceSpec::Sim,
         ],
-        arms: Vec::new(),
-        controller: ControllerKind::Nnidc,
-        socket: None,
-        weights: None,
-        no_adapt: false,
-        lenient: false,
-        inject: Vec::new(),
-        foxglove: None,
-        zenoh: false,
+        ..Default::default()
     };
     let stop = Arc::new(AtomicBool::new(false));
     let mut servos = Vec::new();

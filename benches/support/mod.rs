@@ -53,15 +53,8 @@ impl SimServe {
         cfg.serve.dump_dir = dir.path().display().to_string();
         let mut opts = ServeOptions {
             devices: vec![omnid::cmd::run::DeviceSpec::Sim],
-            arms: Vec::new(),
-            controller: omnid::control::ControllerKind::Nnidc,
             socket: Some(dir.path().join("bench.sock")),
-            weights: None,
-            no_adapt: false,
-            lenient: false,
-            inject: Vec::new(),
-            foxglove: None,
-            zenoh: false,
+            ..ServeOptions::default()
         };
         adjust(&mut cfg, &mut opts);
         let stop = Arc::new(AtomicBool::new(false));

@@ -52,6 +52,25 @@ pub struct ServeOptions {
     pub zenoh: bool,
 }
 
+impl Default for ServeOptions {
+    /// `omnid serve` with no flags: the config's arms (else one simulated arm), NNIDC, the
+    /// shipped weights, no live view, no zenoh unless the config enables it.
+    fn default() -> Self {
+        ServeOptions {
+            devices: Vec::new(),
+            arms: Vec::new(),
+            controller: crate::control::ControllerKind::Nnidc,
+            socket: None,
+            weights: None,
+            no_adapt: false,
+            lenient: false,
+            inject: Vec::new(),
+            foxglove: None,
+            zenoh: false,
+        }
+    }
+}
+
 /// How one arm ended.
 pub struct ArmOutcome {
     /// The arm's name.

@@ -86,15 +86,9 @@ fn served_sim_with(
     cfg.serve.dump_dir = dir.path().display().to_string();
     let opts = ServeOptions {
         devices: vec![crate::cmd::run::DeviceSpec::Sim],
-        arms: Vec::new(),
         controller,
         socket: Some(dir.path().join("unused.sock")),
-        weights: None,
-        no_adapt: false,
-        lenient: false,
-        inject: Vec::new(),
-        foxglove: None,
-        zenoh: false,
+        ..ServeOptions::default()
     };
     let mut p = prepare(&opts, &cfg, Arc::new(AtomicBool::new(false))).unwrap();
     if let Some(path) = kept {
