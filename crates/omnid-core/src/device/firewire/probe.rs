@@ -369,19 +369,17 @@ fn run<B: FireWireBus, W: Write>(
     Ok(())
 }
 
-/// The capture with the amplifiers off, guided. Long on purpose: it is the operator's script
-/// (prompt, wait, record, check), step by step in the order they are asked.
-fn capture_phase<B: FireWireBus, W: Write>(
-    s: &mut Session<'_, B, W>,
-    report: &mut ProbeReport,
-) -> Result<(), ProbeError> {
-    #[derive(Clone, Copy, PartialEq)]
-    enum Want {
-        Docked,
-        Undocked,
-        Button(usize),
-        Joint(usize),
-    }
+/// A step of the capture: what the operator is asked to do.
+#[derive(Clone, Copy, PartialEq)]
+enum Want {
+    Docked,
+    Undocked,
+    Button(usize),
+    Joint(usize),
+}
+
+/// The capture's steps, in the order they are asked.
+fn capture_steps() -> Vec<(Want, String)> {
     let mut todo: Vec<(Want, String)> = vec![
         (Want::Docked, "put the stylus in the inkwell".into()),
         (Want::Undocked, "take the stylus out of the inkwell".into()),
@@ -394,6 +392,16 @@ fn capture_phase<B: FireWireBus, W: Write>(
             format!("joint {}: {}", j + 1, JOINT_PLUS[j]),
         ));
     }
+    todo
+}
+
+/// The capture with the amplifiers off, guided: the operator's script (prompt, wait, record,
+/// check), each step asked in turn until every one was seen or the packets are all in.
+fn capture_phase<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    report: &mut ProbeReport,
+) -> Result<(), ProbeError> {
+    let mut todo = capture_steps();
     let total = todo.len();
     s.say(&format!(
         "capturing {} packets with the amplifiers off. Do what it asks, one at a time \
@@ -401,7 +409,7 @@ fn capture_phase<B: FireWireBus, W: Write>(
         s.opts.capture_packets
     ))?;
     s.say(&format!("  now: {}", todo[0].1))?;
-    let mut done: Vec<String> = Vec::new();
+    let mut done = 0usize;
     let mut last_sw: Option<u8> = None;
     let mut joint_from: Option<[i64; 3]> = None;
     let per_second = s.per_second();
@@ -418,79 +426,14 @@ fn capture_phase<B: FireWireBus, W: Write>(
         since += 1;
         if last_sw != Some(sw) {
             if let Some(prev) = last_sw {
-                let (b1, b2, docked) = bits(sw);
-                let (p1, p2, pd) = bits(prev);
-                let mut what = Vec::new();
-                if docked != pd {
-                    what.push(if docked {
-                        "stylus docked"
-                    } else {
-                        "stylus out of the inkwell"
-                    });
-                }
-                if b1 != p1 {
-                    what.push(if b1 {
-                        "button 1 pressed"
-                    } else {
-                        "button 1 released"
-                    });
-                }
-                if b2 != p2 {
-                    what.push(if b2 {
-                        "button 2 pressed"
-                    } else {
-                        "button 2 released"
-                    });
-                }
-                if sw & 0xF8 != prev & 0xF8 {
-                    what.push("bits 3..7 of byte 19 changed");
-                }
-                s.say(&format!(
-                    "switch byte 19: {prev:#04x} -> {sw:#04x}: {}",
-                    what.join(", ")
-                ))?;
+                s.say(&switch_change(prev, sw))?;
             }
             last_sw = Some(sw);
         }
         // The current instruction.
         if let Some((want, text)) = todo.first().cloned() {
-            let (b1, b2, docked) = bits(sw);
-            let seen = match want {
-                Want::Docked => docked,
-                Want::Undocked => !docked,
-                Want::Button(0) => b1,
-                Want::Button(_) => b2,
-                Want::Joint(j) => {
-                    let from = *joint_from.get_or_insert(s.counts);
-                    let d = s.counts[j] - from[j];
-                    if d.abs() >= MOVE_COUNTS {
-                        let sign: i8 = if d > 0 { 1 } else { -1 };
-                        report.encoder_sign_seen[j] = Some(sign);
-                        let msg = if sign > 0 {
-                            format!(
-                                "joint {} counts up as it should (encoder_sign[{j}] = {} is right)",
-                                j + 1,
-                                s.opts.encoder_sign[j]
-                            )
-                        } else {
-                            format!(
-                                "joint {} counts DOWN: firewire.encoder_sign[{j}] should be {}, \
-                                 not {} (docs/FIREWIRE.md §6); please report this",
-                                j + 1,
-                                -s.opts.encoder_sign[j],
-                                s.opts.encoder_sign[j]
-                            )
-                        };
-                        s.say(&msg)?;
-                        joint_from = None;
-                        true
-                    } else {
-                        false
-                    }
-                }
-            };
-            if seen {
-                done.push(text.clone());
+            if step_seen(s, report, want, sw, &mut joint_from)? {
+                done += 1;
                 todo.remove(0);
                 report.checks.push((text, true));
                 match todo.first() {
@@ -503,16 +446,7 @@ fn capture_phase<B: FireWireBus, W: Write>(
             }
         }
         if since >= per_second {
-            let window = s.window.report();
-            s.say(&format!(
-                "{:.0} s: {} packets, {} missed, {} lost by the counter; {window}; switches \
-                 {:#04x}",
-                (k + 1) as f64 / s.opts.rate_hz,
-                s.packets,
-                missed,
-                s.omni.stats().lost,
-                last_sw.unwrap_or(0)
-            ))?;
+            say_second(s, k, missed, last_sw)?;
             since = 0;
         }
         if todo.is_empty() && k + 1 >= per_second {
@@ -523,11 +457,117 @@ fn capture_phase<B: FireWireBus, W: Write>(
         report.checks.push((text, false));
     }
     s.say(&format!(
-        "capture: {} of {total} steps seen; {} packets",
-        done.len(),
+        "capture: {done} of {total} steps seen; {} packets",
         s.packets
     ))?;
     Ok(())
+}
+
+/// What changed from switch byte `prev` to `sw`, as the operator would say it.
+fn switch_change(prev: u8, sw: u8) -> String {
+    let (b1, b2, docked) = bits(sw);
+    let (p1, p2, pd) = bits(prev);
+    let mut what = Vec::new();
+    if docked != pd {
+        what.push(if docked {
+            "stylus docked"
+        } else {
+            "stylus out of the inkwell"
+        });
+    }
+    if b1 != p1 {
+        what.push(if b1 {
+            "button 1 pressed"
+        } else {
+            "button 1 released"
+        });
+    }
+    if b2 != p2 {
+        what.push(if b2 {
+            "button 2 pressed"
+        } else {
+            "button 2 released"
+        });
+    }
+    if sw & 0xF8 != prev & 0xF8 {
+        what.push("bits 3..7 of byte 19 changed");
+    }
+    format!(
+        "switch byte 19: {prev:#04x} -> {sw:#04x}: {}",
+        what.join(", ")
+    )
+}
+
+/// Whether this packet (switch byte `sw`) shows the step `want` done.
+fn step_seen<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    report: &mut ProbeReport,
+    want: Want,
+    sw: u8,
+    joint_from: &mut Option<[i64; 3]>,
+) -> Result<bool, ProbeError> {
+    let (b1, b2, docked) = bits(sw);
+    Ok(match want {
+        Want::Docked => docked,
+        Want::Undocked => !docked,
+        Want::Button(0) => b1,
+        Want::Button(_) => b2,
+        Want::Joint(j) => joint_moved(s, report, j, joint_from)?,
+    })
+}
+
+/// A joint's step: seen once joint `j` moved [`MOVE_COUNTS`] from where the step began; its
+/// direction is checked against `firewire.encoder_sign` and said.
+fn joint_moved<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    report: &mut ProbeReport,
+    j: usize,
+    joint_from: &mut Option<[i64; 3]>,
+) -> Result<bool, ProbeError> {
+    let from = *joint_from.get_or_insert(s.counts);
+    let d = s.counts[j] - from[j];
+    if d.abs() < MOVE_COUNTS {
+        return Ok(false);
+    }
+    let sign: i8 = if d > 0 { 1 } else { -1 };
+    report.encoder_sign_seen[j] = Some(sign);
+    let msg = if sign > 0 {
+        format!(
+            "joint {} counts up as it should (encoder_sign[{j}] = {} is right)",
+            j + 1,
+            s.opts.encoder_sign[j]
+        )
+    } else {
+        format!(
+            "joint {} counts DOWN: firewire.encoder_sign[{j}] should be {}, \
+             not {} (docs/FIREWIRE.md §6); please report this",
+            j + 1,
+            -s.opts.encoder_sign[j],
+            s.opts.encoder_sign[j]
+        )
+    };
+    s.say(&msg)?;
+    *joint_from = None;
+    Ok(true)
+}
+
+/// The capture's progress, once a second: packets, misses, the rate window, the switches.
+fn say_second<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    k: usize,
+    missed: usize,
+    last_sw: Option<u8>,
+) -> Result<(), ProbeError> {
+    let window = s.window.report();
+    s.say(&format!(
+        "{:.0} s: {} packets, {} missed, {} lost by the counter; {window}; switches \
+         {:#04x}",
+        (k + 1) as f64 / s.opts.rate_hz,
+        s.packets,
+        missed,
+        s.omni.stats().lost,
+        last_sw.unwrap_or(0)
+    ))
 }
 
 /// Why the output steps stopped.
