@@ -626,17 +626,32 @@ fn hold<B: FireWireBus, W: Write>(
     Ok(moved)
 }
 
-/// The output steps; on any stop the caller sends safe packets and closes. Long on purpose:
-/// each step is confirmed by the operator before any torque, in the order they are asked.
+/// The output steps; on any stop the caller sends safe packets and closes. Each step is
+/// confirmed by the operator before any torque, in the order they are asked.
 fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3], Stop> {
     let per_second = s.per_second();
-    let counts = s.opts.pulse_counts.clamp(1, MAX_PULSE_COUNTS);
     let safe = MotorCommand::safe(0);
     s.say(
         "output steps: each asks first. Press a stylus button at any time to stop (zero \
          torque, amplifiers off).",
     )?;
-    // Step 1: the lamp, motors off.
+    lamp_step(s, safe)?;
+    let amps = amplifier_step(s, safe)?;
+    // Step 3: one motor at a time, + then - counts.
+    let mut signs = [0i8; 3];
+    for (j, sign) in signs.iter_mut().enumerate() {
+        *sign = motor_step(s, j, amps)?;
+    }
+    hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
+    Ok(signs)
+}
+
+/// Step 1: the lamp, motors off; the operator says whether it changed.
+fn lamp_step<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    safe: MotorCommand,
+) -> Result<(), Stop> {
+    let per_second = s.per_second();
     if !s.op.confirm(
         "step 1 of 3: set the inkwell lamp bits for 2 s with the motors OFF (no torque). Go on?",
     ) {
@@ -666,7 +681,16 @@ fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3
                 .into(),
         ));
     }
-    // Step 2: amplifiers on at zero torque.
+    Ok(())
+}
+
+/// Step 2: amplifiers on at zero torque; the operator says nothing unexpected happened.
+/// Returns that command (the motor steps add their DAC words to it).
+fn amplifier_step<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    safe: MotorCommand,
+) -> Result<MotorCommand, Stop> {
+    let per_second = s.per_second();
     if !s.op.confirm(
         "step 2 of 3: amplifiers ON at zero torque for 1 s. Hold the stylus lightly. Go on?",
     ) {
@@ -689,97 +713,109 @@ fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3
             "the operator saw something unexpected at zero torque (or did not answer)".into(),
         ));
     }
-    // Step 3: one motor at a time, + then - counts.
-    let mut signs = [0i8; 3];
+    Ok(amps)
+}
+
+/// Step 3.`j+1`: motor `j` pulsed + then -, its sign read from the encoder and checked
+/// against what the operator saw. Returns the sign (0: no motion at this size).
+fn motor_step<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    j: usize,
+    amps: MotorCommand,
+) -> Result<i8, Stop> {
+    let per_second = s.per_second();
+    let counts = s.opts.pulse_counts.clamp(1, MAX_PULSE_COUNTS);
+    let safe = MotorCommand::safe(0);
     let pulse = per_second / 2;
-    for j in 0..3 {
-        let mnm = f64::from(counts) * s.opts.nm_per_count[j] * 1e3;
-        if !s.op.confirm(&format!(
-            "step 3.{} of 3: motor {}: +{counts} DAC counts (about {mnm:.0} mN·m) for 0.5 s, \
-             zero, then -{counts} for 0.5 s, zero. Hold the stylus lightly so joint {} can \
-             move a little. Go on?",
-            j + 1,
-            j + 1,
-            j + 1
-        )) {
-            return Err(Stop::Abort(format!("step 3.{} not confirmed", j + 1)));
-        }
-        let mut dac = [DAC_ZERO; 3];
-        dac[j] = DAC_ZERO + counts;
-        s.note(&format!(
-            "step 3.{}: motor {} at {:#06x}",
-            j + 1,
-            j + 1,
-            dac[j]
-        ))?;
-        let plus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
-        hold(s, amps, pulse, SURPRISE_COUNTS)?;
-        dac[j] = DAC_ZERO - counts;
-        s.note(&format!(
-            "step 3.{}: motor {} at {:#06x}",
-            j + 1,
-            j + 1,
-            dac[j]
-        ))?;
-        let minus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
-        hold(s, amps, pulse / 2, SURPRISE_COUNTS)?;
-        // Amplifiers off while the operator answers.
-        hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
-        let (p, m) = (plus[j], minus[j]);
-        let seen = match (p.signum(), m.signum()) {
-            _ if p.abs() < PULSE_MOTION_COUNTS && m.abs() < PULSE_MOTION_COUNTS => 0,
-            (a, b) if a != 0 && a == -b => a as i8,
-            _ => {
-                return Err(Stop::Abort(format!(
-                    "motor {}: +{counts} moved joint {} by {p} counts and -{counts} by {m}: not \
-                     opposite directions",
-                    j + 1,
-                    j + 1
-                )))
-            }
-        };
-        let answer = s.op.ask(
-            &format!("which way did joint {} go on the first (+) pulse?", j + 1),
-            &[
-                ('+', JOINT_PLUS[j]),
-                ('-', "the other way"),
-                ('0', "it did not move"),
-            ],
-        );
-        let said: i8 = match answer {
-            Some('+') => 1,
-            Some('-') => -1,
-            Some('0') => 0,
-            _ => return Err(Stop::Abort(format!("no answer at step 3.{}", j + 1))),
-        };
-        if said != seen {
-            return Err(Stop::Abort(format!(
-                "joint {}: you saw {} but the encoder counted {p} counts (OpenHaptics-signed): \
-                 check firewire.encoder_sign first (the capture step checks it)",
-                j + 1,
-                match said {
-                    1 => "+",
-                    -1 => "-",
-                    _ => "no motion",
-                }
-            )));
-        }
-        signs[j] = seen;
-        s.say(&format!(
-            "motor {}: {}",
-            j + 1,
-            match seen {
-                0 => "no motion at this size: its sign stays unknown (0)".to_string(),
-                v => format!(
-                    "a positive DAC word turns joint {} {}: dac_sign[{j}] = {v}",
-                    j + 1,
-                    if v > 0 { "positive" } else { "negative" }
-                ),
-            }
-        ))?;
+    let mnm = f64::from(counts) * s.opts.nm_per_count[j] * 1e3;
+    if !s.op.confirm(&format!(
+        "step 3.{} of 3: motor {}: +{counts} DAC counts (about {mnm:.0} mN·m) for 0.5 s, \
+         zero, then -{counts} for 0.5 s, zero. Hold the stylus lightly so joint {} can \
+         move a little. Go on?",
+        j + 1,
+        j + 1,
+        j + 1
+    )) {
+        return Err(Stop::Abort(format!("step 3.{} not confirmed", j + 1)));
     }
+    let mut dac = [DAC_ZERO; 3];
+    dac[j] = DAC_ZERO + counts;
+    s.note(&format!(
+        "step 3.{}: motor {} at {:#06x}",
+        j + 1,
+        j + 1,
+        dac[j]
+    ))?;
+    let plus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
+    hold(s, amps, pulse, SURPRISE_COUNTS)?;
+    dac[j] = DAC_ZERO - counts;
+    s.note(&format!(
+        "step 3.{}: motor {} at {:#06x}",
+        j + 1,
+        j + 1,
+        dac[j]
+    ))?;
+    let minus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
+    hold(s, amps, pulse / 2, SURPRISE_COUNTS)?;
+    // Amplifiers off while the operator answers.
     hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
-    Ok(signs)
+    let (p, m) = (plus[j], minus[j]);
+    let seen = match (p.signum(), m.signum()) {
+        _ if p.abs() < PULSE_MOTION_COUNTS && m.abs() < PULSE_MOTION_COUNTS => 0,
+        (a, b) if a != 0 && a == -b => a as i8,
+        _ => {
+            return Err(Stop::Abort(format!(
+                "motor {}: +{counts} moved joint {} by {p} counts and -{counts} by {m}: not \
+                 opposite directions",
+                j + 1,
+                j + 1
+            )))
+        }
+    };
+    let said = operator_saw(s, j)?;
+    if said != seen {
+        return Err(Stop::Abort(format!(
+            "joint {}: you saw {} but the encoder counted {p} counts (OpenHaptics-signed): \
+             check firewire.encoder_sign first (the capture step checks it)",
+            j + 1,
+            match said {
+                1 => "+",
+                -1 => "-",
+                _ => "no motion",
+            }
+        )));
+    }
+    s.say(&format!(
+        "motor {}: {}",
+        j + 1,
+        match seen {
+            0 => "no motion at this size: its sign stays unknown (0)".to_string(),
+            v => format!(
+                "a positive DAC word turns joint {} {}: dac_sign[{j}] = {v}",
+                j + 1,
+                if v > 0 { "positive" } else { "negative" }
+            ),
+        }
+    ))?;
+    Ok(seen)
+}
+
+/// Which way the operator saw joint `j` go on the + pulse: 1, -1 or 0 (no motion).
+fn operator_saw<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>, j: usize) -> Result<i8, Stop> {
+    let answer = s.op.ask(
+        &format!("which way did joint {} go on the first (+) pulse?", j + 1),
+        &[
+            ('+', JOINT_PLUS[j]),
+            ('-', "the other way"),
+            ('0', "it did not move"),
+        ],
+    );
+    match answer {
+        Some('+') => Ok(1),
+        Some('-') => Ok(-1),
+        Some('0') => Ok(0),
+        _ => Err(Stop::Abort(format!("no answer at step 3.{}", j + 1))),
+    }
 }
 
 /// What `omnid probe` was asked to do.
