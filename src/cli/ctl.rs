@@ -118,67 +118,10 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     if let CtlCommand::Teleop { action } = args.command {
         return teleop_console(action, args.json);
     }
-    let request = match &args.command {
-        CtlCommand::Status => json!({ "op": "status" }),
-        CtlCommand::Mode { mode, trajectory } => {
-            json!({ "op": "mode", "mode": mode, "trajectory": trajectory })
-        }
-        CtlCommand::Controller { controller } => {
-            json!({ "op": "controller", "controller": controller })
-        }
-        CtlCommand::Record { action, path } => match action.as_str() {
-            "start" => json!({ "op": "record_start", "path": path }),
-            "stop" => json!({ "op": "record_stop" }),
-            other => {
-                omnid::errln!("omnid ctl: record {other}: expected start or stop");
-                return Ok(EXIT_BAD_INPUT);
-            }
-        },
-        CtlCommand::Weights { action, path } => {
-            match (action.as_str(), path) {
-                ("save", Some(path)) => json!({ "op": "weights_save", "path": absolute(path) }),
-                ("load", Some(path)) => json!({ "op": "weights_load", "path": absolute(path) }),
-                ("reset", None) => json!({ "op": "weights_reset" }),
-                ("save" | "load", None) => {
-                    omnid::errln!("omnid ctl: weights {action}: which file? (omnid ctl weights {action} PATH)");
-                    return Ok(EXIT_BAD_INPUT);
-                }
-                ("reset", Some(_)) => {
-                    omnid::errln!(
-                        "omnid ctl: weights reset takes no file (it puts the shipped weights back)"
-                    );
-                    return Ok(EXIT_BAD_INPUT);
-                }
-                (other, _) => {
-                    omnid::errln!(
-                        "omnid ctl: weights {}: expected save, load or reset",
-                        omnid::text::cut(other)
-                    );
-                    return Ok(EXIT_BAD_INPUT);
-                }
-            }
-        }
-        CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
-        CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
-        CtlCommand::Shutdown => json!({ "op": "shutdown" }),
-        CtlCommand::Button { button, action } => match action.as_str() {
-            "press" | "release" | "click" => {
-                json!({ "op": "stylus", "action": action, "button": button })
-            }
-            other => {
-                omnid::errln!(
-                    "omnid ctl: button {button} {}: expected press, release or click",
-                    omnid::text::cut(other)
-                );
-                return Ok(EXIT_BAD_INPUT);
-            }
-        },
-        CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
-        CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
-        CtlCommand::Teleop { .. } => unreachable!("handled above"),
+    let Some(mut request) = request_for(&args.command) else {
+        return Ok(EXIT_BAD_INPUT);
     };
     // Paths are the daemon's to open: make relative ones relative to where ctl runs.
-    let mut request = request;
     if let Some(p) = request
         .get("path")
         .and_then(|p| p.as_str())
@@ -192,21 +135,7 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     };
     match client.request(request) {
         Ok(reply) => {
-            let text = match &args.command {
-                CtlCommand::Status if args.json => serde_json::to_string_pretty(&reply["status"])?,
-                CtlCommand::Status => omnid::human::status_block(&reply["status"])
-                    .trim_end()
-                    .to_string(),
-                _ if !args.json => omnid::human::reply_line(&reply),
-                _ => {
-                    let mut r = reply.clone();
-                    if let Some(o) = r.as_object_mut() {
-                        o.remove("type");
-                        o.remove("id");
-                    }
-                    r.to_string()
-                }
-            };
+            let text = reply_text(&args.command, args.json, &reply)?;
             omnid::outln!("{text}");
             Ok(0)
         }
@@ -215,6 +144,101 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
             Ok(EXIT_REFUSED)
         }
     }
+}
+
+/// The request a command sends; `None` once a bad argument has been said (the exit is
+/// `EXIT_BAD_INPUT`).
+fn request_for(command: &CtlCommand) -> Option<serde_json::Value> {
+    use serde_json::json;
+    Some(match command {
+        CtlCommand::Status => json!({ "op": "status" }),
+        CtlCommand::Mode { mode, trajectory } => {
+            json!({ "op": "mode", "mode": mode, "trajectory": trajectory })
+        }
+        CtlCommand::Controller { controller } => {
+            json!({ "op": "controller", "controller": controller })
+        }
+        CtlCommand::Record { action, path } => match action.as_str() {
+            "start" => json!({ "op": "record_start", "path": path }),
+            "stop" => json!({ "op": "record_stop" }),
+            other => {
+                omnid::errln!("omnid ctl: record {other}: expected start or stop");
+                return None;
+            }
+        },
+        CtlCommand::Weights { action, path } => return weights_request(action, path.as_deref()),
+        CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
+        CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
+        CtlCommand::Shutdown => json!({ "op": "shutdown" }),
+        CtlCommand::Button { button, action } => match action.as_str() {
+            "press" | "release" | "click" => {
+                json!({ "op": "stylus", "action": action, "button": button })
+            }
+            other => {
+                omnid::errln!(
+                    "omnid ctl: button {button} {}: expected press, release or click",
+                    omnid::text::cut(other)
+                );
+                return None;
+            }
+        },
+        CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
+        CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
+        CtlCommand::Teleop { .. } => unreachable!("handled by teleop_console"),
+    })
+}
+
+/// `weights save|load PATH`, `weights reset`; `None` once a bad argument has been said.
+fn weights_request(action: &str, path: Option<&std::path::Path>) -> Option<serde_json::Value> {
+    use serde_json::json;
+    match (action, path) {
+        ("save", Some(path)) => Some(json!({ "op": "weights_save", "path": absolute(path) })),
+        ("load", Some(path)) => Some(json!({ "op": "weights_load", "path": absolute(path) })),
+        ("reset", None) => Some(json!({ "op": "weights_reset" })),
+        ("save" | "load", None) => {
+            omnid::errln!(
+                "omnid ctl: weights {action}: which file? (omnid ctl weights {action} PATH)"
+            );
+            None
+        }
+        ("reset", Some(_)) => {
+            omnid::errln!(
+                "omnid ctl: weights reset takes no file (it puts the shipped weights back)"
+            );
+            None
+        }
+        (other, _) => {
+            omnid::errln!(
+                "omnid ctl: weights {}: expected save, load or reset",
+                omnid::text::cut(other)
+            );
+            None
+        }
+    }
+}
+
+/// The daemon's reply as printed: `status` as its block (or pretty JSON), others as a line
+/// (or the reply's JSON without its envelope).
+fn reply_text(
+    command: &CtlCommand,
+    json: bool,
+    reply: &serde_json::Value,
+) -> Result<String, anyhow::Error> {
+    Ok(match command {
+        CtlCommand::Status if json => serde_json::to_string_pretty(&reply["status"])?,
+        CtlCommand::Status => omnid::human::status_block(&reply["status"])
+            .trim_end()
+            .to_string(),
+        _ if !json => omnid::human::reply_line(reply),
+        _ => {
+            let mut r = reply.clone();
+            if let Some(o) = r.as_object_mut() {
+                o.remove("type");
+                o.remove("id");
+            }
+            r.to_string()
+        }
+    })
 }
 
 /// `omnid ctl teleop start`: the pair's console, until Ctrl-C, SIGTERM or --seconds.
