@@ -5,6 +5,7 @@ use crate::{
     EXIT_REFUSED,
 };
 use clap::Subcommand;
+use omnid::transport::client::{Client, ClientError};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -243,7 +244,7 @@ fn reply_text(
 
 /// `omnid ctl teleop start`: the pair's console, until Ctrl-C, SIGTERM or --seconds.
 pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, anyhow::Error> {
-    use omnid::teleop::console::{self, ConsoleEnd, PairSettings};
+    use omnid::teleop::console::{self, PairSettings};
     let TeleopAction::Start {
         leader,
         follower,
@@ -260,43 +261,10 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
         return Ok(EXIT_BAD_INPUT);
     }
     let stop = stop_on_signal()?;
-    // Each arm on this PC, or served by another daemon (then its side is started there).
-    let found = [&leader, &follower].map(|arm| omnid::transport::find_arm_socket(arm));
-    if let [Err(a), Err(b)] = &found {
-        omnid::errln!("omnid: {a}");
-        omnid::errln!("omnid: {b}");
-        return Ok(EXIT_DEVICE_FAULT);
-    }
-    let mut clients = Vec::new();
-    for (p, who) in found.iter().zip(["leader", "follower"]) {
-        clients.push(match p {
-            Ok(p) => {
-                let name = format!("omnid ctl teleop ({who})");
-                match omnid::transport::client::Client::connect(p, &name) {
-                    Ok(c) => Some(c),
-                    Err(e) => {
-                        omnid::errln!("omnid: {e}");
-                        return Ok(match e {
-                            omnid::transport::client::ClientError::Refused(_) => EXIT_REFUSED,
-                            _ => EXIT_DEVICE_FAULT,
-                        });
-                    }
-                }
-            }
-            Err(_) => None,
-        });
-    }
-    let mut f_client = clients.pop().flatten();
-    let mut l_client = clients.pop().flatten();
-    fn side<'a>(
-        c: Option<&'a mut omnid::transport::client::Client>,
-        name: &str,
-    ) -> console::Side<'a> {
-        match c {
-            Some(c) => console::Side::Here(c),
-            None => console::Side::Elsewhere(name.to_string()),
-        }
-    }
+    let (mut l_client, mut f_client) = match connect_pair(&leader, &follower) {
+        Ok(clients) => clients,
+        Err(code) => return Ok(code),
+    };
     let settings = PairSettings {
         architecture,
         motion_scale,
@@ -310,26 +278,80 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
         json,
         out: &mut out,
     };
-    match console::run(
+    let end = console::run(
         side(l_client.as_mut(), &leader),
         side(f_client.as_mut(), &follower),
         &settings,
         seconds,
         &stop,
         &mut say,
-    ) {
+    );
+    Ok(say_console_end(end, &leader, &follower, seconds))
+}
+
+/// A client on each arm served on this PC (`None`: served by another daemon, its side started
+/// there); `Err`: the exit, once the reason is said.
+fn connect_pair(leader: &str, follower: &str) -> Result<(Option<Client>, Option<Client>), u8> {
+    let found = [leader, follower].map(omnid::transport::find_arm_socket);
+    if let [Err(a), Err(b)] = &found {
+        omnid::errln!("omnid: {a}");
+        omnid::errln!("omnid: {b}");
+        return Err(EXIT_DEVICE_FAULT);
+    }
+    let mut clients = Vec::new();
+    for (p, who) in found.iter().zip(["leader", "follower"]) {
+        clients.push(match p {
+            Ok(p) => {
+                let name = format!("omnid ctl teleop ({who})");
+                match Client::connect(p, &name) {
+                    Ok(c) => Some(c),
+                    Err(e) => {
+                        omnid::errln!("omnid: {e}");
+                        return Err(match e {
+                            ClientError::Refused(_) => EXIT_REFUSED,
+                            _ => EXIT_DEVICE_FAULT,
+                        });
+                    }
+                }
+            }
+            Err(_) => None,
+        });
+    }
+    let f_client = clients.pop().flatten();
+    let l_client = clients.pop().flatten();
+    Ok((l_client, f_client))
+}
+
+/// An arm's side for the console: its client here, or its name.
+fn side<'a>(c: Option<&'a mut Client>, name: &str) -> omnid::teleop::console::Side<'a> {
+    use omnid::teleop::console::Side;
+    match c {
+        Some(c) => Side::Here(c),
+        None => Side::Elsewhere(name.to_string()),
+    }
+}
+
+/// How the console ended, said; the exit.
+fn say_console_end(
+    end: Result<omnid::teleop::console::ConsoleEnd, ClientError>,
+    leader: &str,
+    follower: &str,
+    seconds: Option<f64>,
+) -> u8 {
+    use omnid::teleop::console::ConsoleEnd;
+    match end {
         Ok(ConsoleEnd::Elapsed) => {
             omnid::outln!(
                 "teleop: uncoupled after {} s; both arms hold",
                 seconds.unwrap_or(0.0)
             );
-            Ok(0)
+            0
         }
         Ok(ConsoleEnd::Stopped) => {
             omnid::errln!(
                 "omnid ctl teleop: stopped by the operator; both arms uncoupled, holding"
             );
-            Ok(EXIT_OPERATOR_STOP)
+            EXIT_OPERATOR_STOP
         }
         Ok(ConsoleEnd::ArmLeft { arm, mode }) => {
             // What each side does now: the one that left is in its new mode.
@@ -347,22 +369,22 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
                 "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled \
                  ({follower_now}, {leader_now}); `omnid ctl --arm {arm} status` says why"
             );
-            Ok(EXIT_DEVICE_FAULT)
+            EXIT_DEVICE_FAULT
         }
         Ok(ConsoleEnd::PeerDown { arm, peer }) => {
             omnid::errln!(
                 "omnid ctl teleop: {peer}'s side is down (it ended or faulted on its daemon): the \
                  pair is uncoupled, {arm} holds"
             );
-            Ok(EXIT_DEVICE_FAULT)
+            EXIT_DEVICE_FAULT
         }
         Ok(ConsoleEnd::Gone(arm)) => {
             omnid::errln!("omnid ctl teleop: {arm}'s daemon closed the connection");
-            Ok(EXIT_DEVICE_FAULT)
+            EXIT_DEVICE_FAULT
         }
         Err(e) => {
             omnid::errln!("omnid ctl teleop: {e}");
-            Ok(EXIT_REFUSED)
+            EXIT_REFUSED
         }
     }
 }
