@@ -5,6 +5,7 @@ use crate::{
     EXIT_REFUSED,
 };
 use clap::Subcommand;
+use omnid::transport::client::{Client, ClientError};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -118,67 +119,10 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     if let CtlCommand::Teleop { action } = args.command {
         return teleop_console(action, args.json);
     }
-    let request = match &args.command {
-        CtlCommand::Status => json!({ "op": "status" }),
-        CtlCommand::Mode { mode, trajectory } => {
-            json!({ "op": "mode", "mode": mode, "trajectory": trajectory })
-        }
-        CtlCommand::Controller { controller } => {
-            json!({ "op": "controller", "controller": controller })
-        }
-        CtlCommand::Record { action, path } => match action.as_str() {
-            "start" => json!({ "op": "record_start", "path": path }),
-            "stop" => json!({ "op": "record_stop" }),
-            other => {
-                omnid::errln!("omnid ctl: record {other}: expected start or stop");
-                return Ok(EXIT_BAD_INPUT);
-            }
-        },
-        CtlCommand::Weights { action, path } => {
-            match (action.as_str(), path) {
-                ("save", Some(path)) => json!({ "op": "weights_save", "path": absolute(path) }),
-                ("load", Some(path)) => json!({ "op": "weights_load", "path": absolute(path) }),
-                ("reset", None) => json!({ "op": "weights_reset" }),
-                ("save" | "load", None) => {
-                    omnid::errln!("omnid ctl: weights {action}: which file? (omnid ctl weights {action} PATH)");
-                    return Ok(EXIT_BAD_INPUT);
-                }
-                ("reset", Some(_)) => {
-                    omnid::errln!(
-                        "omnid ctl: weights reset takes no file (it puts the shipped weights back)"
-                    );
-                    return Ok(EXIT_BAD_INPUT);
-                }
-                (other, _) => {
-                    omnid::errln!(
-                        "omnid ctl: weights {}: expected save, load or reset",
-                        omnid::text::cut(other)
-                    );
-                    return Ok(EXIT_BAD_INPUT);
-                }
-            }
-        }
-        CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
-        CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
-        CtlCommand::Shutdown => json!({ "op": "shutdown" }),
-        CtlCommand::Button { button, action } => match action.as_str() {
-            "press" | "release" | "click" => {
-                json!({ "op": "stylus", "action": action, "button": button })
-            }
-            other => {
-                omnid::errln!(
-                    "omnid ctl: button {button} {}: expected press, release or click",
-                    omnid::text::cut(other)
-                );
-                return Ok(EXIT_BAD_INPUT);
-            }
-        },
-        CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
-        CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
-        CtlCommand::Teleop { .. } => unreachable!("handled above"),
+    let Some(mut request) = request_for(&args.command) else {
+        return Ok(EXIT_BAD_INPUT);
     };
     // Paths are the daemon's to open: make relative ones relative to where ctl runs.
-    let mut request = request;
     if let Some(p) = request
         .get("path")
         .and_then(|p| p.as_str())
@@ -192,21 +136,7 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     };
     match client.request(request) {
         Ok(reply) => {
-            let text = match &args.command {
-                CtlCommand::Status if args.json => serde_json::to_string_pretty(&reply["status"])?,
-                CtlCommand::Status => omnid::human::status_block(&reply["status"])
-                    .trim_end()
-                    .to_string(),
-                _ if !args.json => omnid::human::reply_line(&reply),
-                _ => {
-                    let mut r = reply.clone();
-                    if let Some(o) = r.as_object_mut() {
-                        o.remove("type");
-                        o.remove("id");
-                    }
-                    r.to_string()
-                }
-            };
+            let text = reply_text(&args.command, args.json, &reply)?;
             omnid::outln!("{text}");
             Ok(0)
         }
@@ -217,9 +147,104 @@ pub(crate) fn ctl_cmd(args: CtlArgs) -> Result<u8, anyhow::Error> {
     }
 }
 
+/// The request a command sends; `None` once a bad argument has been said (the exit is
+/// `EXIT_BAD_INPUT`).
+fn request_for(command: &CtlCommand) -> Option<serde_json::Value> {
+    use serde_json::json;
+    Some(match command {
+        CtlCommand::Status => json!({ "op": "status" }),
+        CtlCommand::Mode { mode, trajectory } => {
+            json!({ "op": "mode", "mode": mode, "trajectory": trajectory })
+        }
+        CtlCommand::Controller { controller } => {
+            json!({ "op": "controller", "controller": controller })
+        }
+        CtlCommand::Record { action, path } => match action.as_str() {
+            "start" => json!({ "op": "record_start", "path": path }),
+            "stop" => json!({ "op": "record_stop" }),
+            other => {
+                omnid::errln!("omnid ctl: record {other}: expected start or stop");
+                return None;
+            }
+        },
+        CtlCommand::Weights { action, path } => return weights_request(action, path.as_deref()),
+        CtlCommand::Freeze => json!({ "op": "adapt", "on": false }),
+        CtlCommand::Adapt => json!({ "op": "adapt", "on": true }),
+        CtlCommand::Shutdown => json!({ "op": "shutdown" }),
+        CtlCommand::Button { button, action } => match action.as_str() {
+            "press" | "release" | "click" => {
+                json!({ "op": "stylus", "action": action, "button": button })
+            }
+            other => {
+                omnid::errln!(
+                    "omnid ctl: button {button} {}: expected press, release or click",
+                    omnid::text::cut(other)
+                );
+                return None;
+            }
+        },
+        CtlCommand::Dock => json!({ "op": "stylus", "action": "dock" }),
+        CtlCommand::Undock => json!({ "op": "stylus", "action": "undock" }),
+        CtlCommand::Teleop { .. } => unreachable!("handled by teleop_console"),
+    })
+}
+
+/// `weights save|load PATH`, `weights reset`; `None` once a bad argument has been said.
+fn weights_request(action: &str, path: Option<&std::path::Path>) -> Option<serde_json::Value> {
+    use serde_json::json;
+    match (action, path) {
+        ("save", Some(path)) => Some(json!({ "op": "weights_save", "path": absolute(path) })),
+        ("load", Some(path)) => Some(json!({ "op": "weights_load", "path": absolute(path) })),
+        ("reset", None) => Some(json!({ "op": "weights_reset" })),
+        ("save" | "load", None) => {
+            omnid::errln!(
+                "omnid ctl: weights {action}: which file? (omnid ctl weights {action} PATH)"
+            );
+            None
+        }
+        ("reset", Some(_)) => {
+            omnid::errln!(
+                "omnid ctl: weights reset takes no file (it puts the shipped weights back)"
+            );
+            None
+        }
+        (other, _) => {
+            omnid::errln!(
+                "omnid ctl: weights {}: expected save, load or reset",
+                omnid::text::cut(other)
+            );
+            None
+        }
+    }
+}
+
+/// The daemon's reply as printed: `status` as its block (or pretty JSON), others as a line
+/// (or the reply's JSON without its envelope).
+fn reply_text(
+    command: &CtlCommand,
+    json: bool,
+    reply: &serde_json::Value,
+) -> Result<String, anyhow::Error> {
+    Ok(match command {
+        CtlCommand::Status if json => serde_json::to_string_pretty(&reply["status"])?,
+        CtlCommand::Status => omnid::human::status_block(&reply["status"])
+            .trim_end()
+            .to_string(),
+        _ if !json => omnid::human::reply_line(reply),
+        _ => {
+            let mut r = reply.clone();
+            if let Some(o) = r.as_object_mut() {
+                o.remove("type");
+                o.remove("id");
+            }
+            r.to_string()
+        }
+    })
+}
+
 /// `omnid ctl teleop start`: the pair's console, until Ctrl-C, SIGTERM or --seconds.
 pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, anyhow::Error> {
-    use omnid::teleop::console::{self, ConsoleEnd, PairSettings};
+    use omnid::teleop::console::{self, PairSettings};
     let TeleopAction::Start {
         leader,
         follower,
@@ -236,43 +261,10 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
         return Ok(EXIT_BAD_INPUT);
     }
     let stop = stop_on_signal()?;
-    // Each arm on this PC, or served by another daemon (then its side is started there).
-    let found = [&leader, &follower].map(|arm| omnid::transport::find_arm_socket(arm));
-    if let [Err(a), Err(b)] = &found {
-        omnid::errln!("omnid: {a}");
-        omnid::errln!("omnid: {b}");
-        return Ok(EXIT_DEVICE_FAULT);
-    }
-    let mut clients = Vec::new();
-    for (p, who) in found.iter().zip(["leader", "follower"]) {
-        clients.push(match p {
-            Ok(p) => {
-                let name = format!("omnid ctl teleop ({who})");
-                match omnid::transport::client::Client::connect(p, &name) {
-                    Ok(c) => Some(c),
-                    Err(e) => {
-                        omnid::errln!("omnid: {e}");
-                        return Ok(match e {
-                            omnid::transport::client::ClientError::Refused(_) => EXIT_REFUSED,
-                            _ => EXIT_DEVICE_FAULT,
-                        });
-                    }
-                }
-            }
-            Err(_) => None,
-        });
-    }
-    let mut f_client = clients.pop().flatten();
-    let mut l_client = clients.pop().flatten();
-    fn side<'a>(
-        c: Option<&'a mut omnid::transport::client::Client>,
-        name: &str,
-    ) -> console::Side<'a> {
-        match c {
-            Some(c) => console::Side::Here(c),
-            None => console::Side::Elsewhere(name.to_string()),
-        }
-    }
+    let (mut l_client, mut f_client) = match connect_pair(&leader, &follower) {
+        Ok(clients) => clients,
+        Err(code) => return Ok(code),
+    };
     let settings = PairSettings {
         architecture,
         motion_scale,
@@ -286,26 +278,80 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
         json,
         out: &mut out,
     };
-    match console::run(
+    let end = console::run(
         side(l_client.as_mut(), &leader),
         side(f_client.as_mut(), &follower),
         &settings,
         seconds,
         &stop,
         &mut say,
-    ) {
+    );
+    Ok(say_console_end(end, &leader, &follower, seconds))
+}
+
+/// A client on each arm served on this PC (`None`: served by another daemon, its side started
+/// there); `Err`: the exit, once the reason is said.
+fn connect_pair(leader: &str, follower: &str) -> Result<(Option<Client>, Option<Client>), u8> {
+    let found = [leader, follower].map(omnid::transport::find_arm_socket);
+    if let [Err(a), Err(b)] = &found {
+        omnid::errln!("omnid: {a}");
+        omnid::errln!("omnid: {b}");
+        return Err(EXIT_DEVICE_FAULT);
+    }
+    let mut clients = Vec::new();
+    for (p, who) in found.iter().zip(["leader", "follower"]) {
+        clients.push(match p {
+            Ok(p) => {
+                let name = format!("omnid ctl teleop ({who})");
+                match Client::connect(p, &name) {
+                    Ok(c) => Some(c),
+                    Err(e) => {
+                        omnid::errln!("omnid: {e}");
+                        return Err(match e {
+                            ClientError::Refused(_) => EXIT_REFUSED,
+                            _ => EXIT_DEVICE_FAULT,
+                        });
+                    }
+                }
+            }
+            Err(_) => None,
+        });
+    }
+    let f_client = clients.pop().flatten();
+    let l_client = clients.pop().flatten();
+    Ok((l_client, f_client))
+}
+
+/// An arm's side for the console: its client here, or its name.
+fn side<'a>(c: Option<&'a mut Client>, name: &str) -> omnid::teleop::console::Side<'a> {
+    use omnid::teleop::console::Side;
+    match c {
+        Some(c) => Side::Here(c),
+        None => Side::Elsewhere(name.to_string()),
+    }
+}
+
+/// How the console ended, said; the exit.
+fn say_console_end(
+    end: Result<omnid::teleop::console::ConsoleEnd, ClientError>,
+    leader: &str,
+    follower: &str,
+    seconds: Option<f64>,
+) -> u8 {
+    use omnid::teleop::console::ConsoleEnd;
+    match end {
         Ok(ConsoleEnd::Elapsed) => {
             omnid::outln!(
                 "teleop: uncoupled after {} s; both arms hold",
                 seconds.unwrap_or(0.0)
             );
-            Ok(0)
+            0
         }
         Ok(ConsoleEnd::Stopped) => {
             omnid::errln!(
                 "omnid ctl teleop: stopped by the operator; both arms uncoupled, holding"
             );
-            Ok(EXIT_OPERATOR_STOP)
+            EXIT_OPERATOR_STOP
         }
         Ok(ConsoleEnd::ArmLeft { arm, mode }) => {
             // What each side does now: the one that left is in its new mode.
@@ -323,22 +369,22 @@ pub(crate) fn teleop_console(action: TeleopAction, json: bool) -> Result<u8, any
                 "omnid ctl teleop: {arm} left teleop (now {mode}): the pair is uncoupled \
                  ({follower_now}, {leader_now}); `omnid ctl --arm {arm} status` says why"
             );
-            Ok(EXIT_DEVICE_FAULT)
+            EXIT_DEVICE_FAULT
         }
         Ok(ConsoleEnd::PeerDown { arm, peer }) => {
             omnid::errln!(
                 "omnid ctl teleop: {peer}'s side is down (it ended or faulted on its daemon): the \
                  pair is uncoupled, {arm} holds"
             );
-            Ok(EXIT_DEVICE_FAULT)
+            EXIT_DEVICE_FAULT
         }
         Ok(ConsoleEnd::Gone(arm)) => {
             omnid::errln!("omnid ctl teleop: {arm}'s daemon closed the connection");
-            Ok(EXIT_DEVICE_FAULT)
+            EXIT_DEVICE_FAULT
         }
         Err(e) => {
             omnid::errln!("omnid ctl teleop: {e}");
-            Ok(EXIT_REFUSED)
+            EXIT_REFUSED
         }
     }
 }

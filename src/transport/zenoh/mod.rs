@@ -311,107 +311,145 @@ fn json_list(v: &[String]) -> String {
     serde_json::to_string(v).unwrap_or_else(|_| "[]".into())
 }
 
+/// Zenoh's defaults, or `[zenoh] config_file`'s.
+fn base_config(cfg: &ZenohConfig) -> Result<zenoh::Config, ZenohError> {
+    if cfg.config_file.is_empty() {
+        return Ok(zenoh::Config::default());
+    }
+    zenoh::Config::from_file(&cfg.config_file).map_err(|e| ZenohError::Config {
+        key: "config_file",
+        value: cfg.config_file.clone(),
+        why: e.to_string(),
+    })
+}
+
+/// Where the session connects: `[zenoh] connect`, or a peer's try at ROS 2's router on this PC.
+fn connect_endpoints(cfg: &ZenohConfig) -> Vec<String> {
+    if cfg.connect.is_empty() && cfg.mode == ZenohMode::Peer {
+        // ROS 2's router on this PC, if there is one; tried again in the background.
+        vec!["tcp/127.0.0.1:7447".to_string()]
+    } else {
+        cfg.connect.clone()
+    }
+}
+
+/// Who can reach the session; refused when commands would be open to them unauthenticated
+/// (unless `[zenoh] insecure`).
+fn judge_exposure(
+    cfg: &ZenohConfig,
+    zc: &zenoh::Config,
+    connect: &[String],
+) -> Result<Exposure, ZenohError> {
+    let exposure = exposure(
+        cfg,
+        zc,
+        // Empty: the default ports, all on loopback.
+        if cfg.mode == ZenohMode::Peer {
+            &cfg.listen
+        } else {
+            &[]
+        },
+        connect,
+    );
+    if cfg.allow_commands && !exposure.reach.is_empty() && exposure.auth.is_none() && !cfg.insecure
+    {
+        return Err(ZenohError::Insecure {
+            reach: exposure.reach.join(", "),
+        });
+    }
+    Ok(exposure)
+}
+
+/// The session's mode, endpoints and scouting.
+fn session_settings(cfg: &ZenohConfig, connect: &[String]) -> Vec<(&'static str, String)> {
+    let mode = match cfg.mode {
+        ZenohMode::Peer => "\"peer\"",
+        ZenohMode::Client => "\"client\"",
+    };
+    let mut settings: Vec<(&'static str, String)> = vec![
+        ("mode", mode.into()),
+        ("connect/endpoints", json_list(connect)),
+        (
+            "scouting/multicast/enabled",
+            cfg.multicast_scouting.to_string(),
+        ),
+    ];
+    if cfg.mode == ZenohMode::Peer {
+        // A router that is not there yet is not an error: ROS 2 starts in any order.
+        settings.push(("connect/exit_on_failure", "false".into()));
+    }
+    settings
+}
+
+/// Open the session: a client as configured, a peer on `[zenoh] listen` or else on a default
+/// port. Returns it with the endpoints it listens on.
+fn open_session(
+    cfg: &ZenohConfig,
+    mut zc: zenoh::Config,
+) -> Result<(zenoh::Session, Vec<String>), ZenohError> {
+    if cfg.mode != ZenohMode::Peer {
+        let session = zenoh::open(zc)
+            .wait()
+            .map_err(|e| ZenohError::Open(e.to_string()))?;
+        Ok((session, Vec::new()))
+    } else if !cfg.listen.is_empty() {
+        let listen = cfg.listen.clone();
+        set(&mut zc, "listen/endpoints", json_list(&listen))?;
+        let session = zenoh::open(zc)
+            .wait()
+            .map_err(|e| ZenohError::Open(e.to_string()))?;
+        Ok((session, listen))
+    } else {
+        open_on_a_default_port(zc)
+    }
+}
+
+/// The ROS 2 node this session is, and its liveliness token when `[zenoh] ros2` declares it.
+fn declare_node(
+    cfg: &ZenohConfig,
+    domain: u32,
+    session: &zenoh::Session,
+) -> Result<(Node, Option<zenoh::liveliness::LivelinessToken>), ZenohError> {
+    let node = Node {
+        domain,
+        zid: session.zid().to_string(),
+        id: 0,
+        enclave: String::new(),
+        namespace: cfg.namespace.clone(),
+        name: cfg.node_name.clone(),
+    };
+    if !cfg.ros2 {
+        return Ok((node, None));
+    }
+    let token = session
+        .liveliness()
+        .declare_token(node.token())
+        .wait()
+        .map_err(|e| ZenohError::Declare {
+            what: node.token(),
+            why: e.to_string(),
+        })?;
+    Ok((node, Some(token)))
+}
+
 impl ZenohNet {
     /// Open the session as `[zenoh]` says (loopback and no multicast unless configured) and
     /// declare the ROS 2 node.
     pub fn start(cfg: &ZenohConfig) -> Result<ZenohNet, ZenohError> {
         let domain = cfg.domain().map_err(ZenohError::Domain)?;
-        let mut zc = if cfg.config_file.is_empty() {
-            zenoh::Config::default()
-        } else {
-            zenoh::Config::from_file(&cfg.config_file).map_err(|e| ZenohError::Config {
-                key: "config_file",
-                value: cfg.config_file.clone(),
-                why: e.to_string(),
-            })?
-        };
-        let connect = if cfg.connect.is_empty() && cfg.mode == ZenohMode::Peer {
-            // ROS 2's router on this PC, if there is one; tried again in the background.
-            vec!["tcp/127.0.0.1:7447".to_string()]
-        } else {
-            cfg.connect.clone()
-        };
-        let mode = match cfg.mode {
-            ZenohMode::Peer => "\"peer\"",
-            ZenohMode::Client => "\"client\"",
-        };
-        let mut settings: Vec<(&'static str, String)> = vec![
-            ("mode", mode.into()),
-            ("connect/endpoints", json_list(&connect)),
-            (
-                "scouting/multicast/enabled",
-                cfg.multicast_scouting.to_string(),
-            ),
-        ];
-        if cfg.mode == ZenohMode::Peer {
-            // A router that is not there yet is not an error: ROS 2 starts in any order.
-            settings.push(("connect/exit_on_failure", "false".into()));
-        }
+        let mut zc = base_config(cfg)?;
+        let connect = connect_endpoints(cfg);
         // Authentication, TLS and access control from `[zenoh]`'s own keys, before the
         // exposure is judged (docs/ZENOH.md, "A lab network").
         for (key, value) in security_settings(cfg) {
             set(&mut zc, key, value)?;
         }
-        let exposure = exposure(
-            cfg,
-            &zc,
-            // Empty: the default ports, all on loopback.
-            if cfg.mode == ZenohMode::Peer {
-                &cfg.listen
-            } else {
-                &[]
-            },
-            &connect,
-        );
-        if cfg.allow_commands
-            && !exposure.reach.is_empty()
-            && exposure.auth.is_none()
-            && !cfg.insecure
-        {
-            return Err(ZenohError::Insecure {
-                reach: exposure.reach.join(", "),
-            });
-        }
-        for (key, value) in settings {
+        let exposure = judge_exposure(cfg, &zc, &connect)?;
+        for (key, value) in session_settings(cfg, &connect) {
             set(&mut zc, key, value)?;
         }
-        let (session, listening) = if cfg.mode != ZenohMode::Peer {
-            let session = zenoh::open(zc)
-                .wait()
-                .map_err(|e| ZenohError::Open(e.to_string()))?;
-            (session, Vec::new())
-        } else if !cfg.listen.is_empty() {
-            let listen = cfg.listen.clone();
-            set(&mut zc, "listen/endpoints", json_list(&listen))?;
-            let session = zenoh::open(zc)
-                .wait()
-                .map_err(|e| ZenohError::Open(e.to_string()))?;
-            (session, listen)
-        } else {
-            open_on_a_default_port(zc)?
-        };
-        let node = Node {
-            domain,
-            zid: session.zid().to_string(),
-            id: 0,
-            enclave: String::new(),
-            namespace: cfg.namespace.clone(),
-            name: cfg.node_name.clone(),
-        };
-        let node_token = if cfg.ros2 {
-            Some(
-                session
-                    .liveliness()
-                    .declare_token(node.token())
-                    .wait()
-                    .map_err(|e| ZenohError::Declare {
-                        what: node.token(),
-                        why: e.to_string(),
-                    })?,
-            )
-        } else {
-            None
-        };
+        let (session, listening) = open_session(cfg, zc)?;
+        let (node, node_token) = declare_node(cfg, domain, &session)?;
         Ok(ZenohNet {
             teleop: Arc::new(teleop::TeleopNet::new(session.clone(), cfg)),
             session,

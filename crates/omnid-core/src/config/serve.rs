@@ -102,6 +102,14 @@ impl ServeConfig {
     /// Check every value; the first problem names its field (`serve.…`).
     /// `servo_fifo_priority` is `realtime.fifo_priority`: the hub must stay below the servo.
     pub fn validate(&self, servo_fifo_priority: i32) -> Result<(), ConfigError> {
+        self.check_streams()?;
+        self.check_priority(servo_fifo_priority)?;
+        self.check_limits()?;
+        self.check_access()
+    }
+
+    /// A stream's time to live and the fade between sources.
+    fn check_streams(&self) -> Result<(), ConfigError> {
         check::in_range(
             "serve.stream_ttl_ms",
             self.stream_ttl_ms,
@@ -115,14 +123,18 @@ impl ServeConfig {
             0.0,
             10.0,
             "0 ..= 10 s",
+        )
+    }
+
+    /// The hub's SCHED_FIFO priority, below the servo's.
+    fn check_priority(&self, servo_fifo_priority: i32) -> Result<(), ConfigError> {
+        check::int_in(
+            "serve.hub_fifo_priority",
+            self.hub_fifo_priority,
+            0,
+            98,
+            "0 ..= 98",
         )?;
-        if !(0..=98).contains(&self.hub_fifo_priority) {
-            return Err(check::invalid(
-                "serve.hub_fifo_priority",
-                self.hub_fifo_priority.to_string(),
-                "0 ..= 98",
-            ));
-        }
         if self.hub_fifo_priority > 0
             && servo_fifo_priority > 0
             && self.hub_fifo_priority >= servo_fifo_priority
@@ -133,14 +145,13 @@ impl ServeConfig {
                 format!("below realtime.fifo_priority ({servo_fifo_priority}), so the hub never delays a tick"),
             ));
         }
+        Ok(())
+    }
+
+    /// The ring, clients, dumps, timeouts and queues.
+    fn check_limits(&self) -> Result<(), ConfigError> {
         check::in_range("serve.ring_s", self.ring_s, 0.0, 600.0, "0 ..= 600 s")?;
-        if !(1..=1024).contains(&self.max_clients) {
-            return Err(check::invalid(
-                "serve.max_clients",
-                self.max_clients.to_string(),
-                "1 ..= 1024",
-            ));
-        }
+        check::int_in("serve.max_clients", self.max_clients, 1, 1024, "1 ..= 1024")?;
         check::in_range(
             "serve.dump_interval_s",
             self.dump_interval_s,
@@ -148,20 +159,14 @@ impl ServeConfig {
             86_400.0,
             "0 ..= 86400 s",
         )?;
-        if !(1..=10_000).contains(&self.max_dumps) {
-            return Err(check::invalid(
-                "serve.max_dumps",
-                self.max_dumps.to_string(),
-                "1 ..= 10000",
-            ));
-        }
-        if !(1..=1024).contains(&self.max_clients_per_user) {
-            return Err(check::invalid(
-                "serve.max_clients_per_user",
-                self.max_clients_per_user.to_string(),
-                "1 ..= 1024",
-            ));
-        }
+        check::int_in("serve.max_dumps", self.max_dumps, 1, 10_000, "1 ..= 10000")?;
+        check::int_in(
+            "serve.max_clients_per_user",
+            self.max_clients_per_user,
+            1,
+            1024,
+            "1 ..= 1024",
+        )?;
         check::in_range(
             "serve.hello_timeout_ms",
             self.hello_timeout_ms,
@@ -176,13 +181,17 @@ impl ServeConfig {
             60_000.0,
             "50 ..= 60000 ms",
         )?;
-        if !(16..=1_000_000).contains(&self.client_queue) {
-            return Err(check::invalid(
-                "serve.client_queue",
-                self.client_queue.to_string(),
-                "16 ..= 1000000",
-            ));
-        }
+        check::int_in(
+            "serve.client_queue",
+            self.client_queue,
+            16,
+            1_000_000,
+            "16 ..= 1000000",
+        )
+    }
+
+    /// Who may read and command (the groups), and the paths.
+    fn check_access(&self) -> Result<(), ConfigError> {
         for (field, group) in [
             ("serve.read_group", &self.read_group),
             ("serve.control_group", &self.control_group),

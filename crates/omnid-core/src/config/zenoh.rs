@@ -216,6 +216,15 @@ fn ros_token_ok(s: &str) -> bool {
 impl ZenohConfig {
     /// Check every value; the first problem names its field (`zenoh.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
+        self.check_ros_names()?;
+        self.check_endpoints()?;
+        self.check_limits()?;
+        self.check_access()?;
+        self.check_teleop_keys()
+    }
+
+    /// The ROS 2 domain, namespace and node name.
+    fn check_ros_names(&self) -> Result<(), ConfigError> {
         if !(-1..=232).contains(&self.domain_id) {
             return Err(check::invalid(
                 "zenoh.domain_id",
@@ -240,6 +249,11 @@ impl ZenohConfig {
                 "letters, digits and _, not starting with a digit",
             ));
         }
+        Ok(())
+    }
+
+    /// Where the session connects and listens.
+    fn check_endpoints(&self) -> Result<(), ConfigError> {
         for (field, list) in [
             ("zenoh.connect", &self.connect),
             ("zenoh.listen", &self.listen),
@@ -254,6 +268,11 @@ impl ZenohConfig {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Publishing rates, the inbox and sample sizes, sessions and handshakes.
+    fn check_limits(&self) -> Result<(), ConfigError> {
         check::in_range(
             "zenoh.joint_rate_hz",
             self.joint_rate_hz,
@@ -268,20 +287,14 @@ impl ZenohConfig {
             100_000.0,
             "0 (every tick) ..= 100000 Hz",
         )?;
-        if !(16..=1 << 20).contains(&self.inbox) {
-            return Err(check::invalid(
-                "zenoh.inbox",
-                self.inbox.to_string(),
-                "16 ..= 1048576",
-            ));
-        }
-        if !(1024..=16 << 20).contains(&self.max_sample_bytes) {
-            return Err(check::invalid(
-                "zenoh.max_sample_bytes",
-                self.max_sample_bytes.to_string(),
-                "1024 ..= 16777216",
-            ));
-        }
+        check::int_in("zenoh.inbox", self.inbox, 16, 1 << 20, "16 ..= 1048576")?;
+        check::int_in(
+            "zenoh.max_sample_bytes",
+            self.max_sample_bytes,
+            1024,
+            16 << 20,
+            "1024 ..= 16777216",
+        )?;
         for (field, value, range) in [
             ("zenoh.max_sessions", self.max_sessions as u64, 1..=65536),
             ("zenoh.max_handshakes", self.max_handshakes as u64, 1..=4096),
@@ -299,6 +312,11 @@ impl ZenohConfig {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// Who may connect and command: user and password, commanders, mutual TLS.
+    fn check_access(&self) -> Result<(), ConfigError> {
         if self.user.is_empty() != self.password.is_empty() {
             return Err(check::invalid(
                 "zenoh.user",
@@ -342,6 +360,11 @@ impl ZenohConfig {
                 "needs zenoh.tls_certificate, zenoh.tls_private_key and zenoh.tls_root_ca",
             ));
         }
+        Ok(())
+    }
+
+    /// Each teleoperation pair's name and pre-shared key.
+    fn check_teleop_keys(&self) -> Result<(), ConfigError> {
         for (pair, key) in &self.teleop_keys {
             let names_ok = pair.split_once('/').is_some_and(|(l, f)| {
                 omnid_client::find::check_arm_name(l).is_ok()

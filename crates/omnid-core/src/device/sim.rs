@@ -274,13 +274,26 @@ impl StylusEvent {
 impl SimConfig {
     /// What the simulated plant needs beyond `validate` (checked when the simulator is the
     /// device, so a hardware configuration at another servo rate is not refused for it).
-    /// Long on purpose: an ordered list of checks, each naming its field.
+    /// An ordered list of checks, each naming its field: the substeps for the plant's own
+    /// fastest mode, then each spring at the tip.
     pub(crate) fn check_plant(
         &self,
         d: &DeviceConfig,
         m: &ModelParams,
         geometry: Geometry,
         hand: Option<&HandConfig>,
+    ) -> Result<(), ConfigError> {
+        self.check_substeps(d, m, geometry)?;
+        self.check_tip_springs(d, m, geometry, hand)
+    }
+
+    /// The RK4 substep against the plant's fastest mode; a refusal blames the servo rate, the
+    /// substeps or the model's stiffest term, whichever a default would fix.
+    fn check_substeps(
+        &self,
+        d: &DeviceConfig,
+        m: &ModelParams,
+        geometry: Geometry,
     ) -> Result<(), ConfigError> {
         let s = self;
         let least_inertia = m
@@ -355,6 +368,18 @@ impl SimConfig {
                 )
             });
         }
+        Ok(())
+    }
+
+    /// The hand on the stylus and the simulated wall, each a spring and a damper at the tip.
+    fn check_tip_springs(
+        &self,
+        d: &DeviceConfig,
+        m: &ModelParams,
+        geometry: Geometry,
+        hand: Option<&HandConfig>,
+    ) -> Result<(), ConfigError> {
+        let s = self;
         let mut springs = Vec::new();
         if let Some(h) = hand {
             springs.push((

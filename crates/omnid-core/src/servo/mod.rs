@@ -979,117 +979,143 @@ impl Servo {
             else {
                 break;
             };
-            // A stop sent before this command comes first; a command that would move the arm,
-            // sent before a stop already applied, is void.
-            let moves = matches!(
-                command,
-                ServoCommand::Hold | ServoCommand::Track(_) | ServoCommand::Free
-            );
-            // Force an owner set up is theirs: once they have left, what they sent is void.
-            let makes_force = matches!(
-                command,
-                ServoCommand::ServoJp { .. }
-                    | ServoCommand::ServoJf { .. }
-                    | ServoCommand::ServoCf { .. }
-                    | ServoCommand::Effect { .. }
-                    | ServoCommand::Free
-                    | ServoCommand::Teleop(_)
-            );
-            if halts > self.halts_seen {
-                self.halts_seen = halts;
-                self.enter(Activity::Idle, q);
-            } else if halts < self.halts_seen && (moves || makes_force) {
-                continue;
-            }
-            if makes_force && epoch != self.owner_epoch {
-                continue;
-            }
-            match command {
-                ServoCommand::Idle => self.enter(Activity::Idle, q),
-                ServoCommand::Hold => self.enter(Activity::Hold, q),
-                ServoCommand::Free => self.enter(Activity::Free, q),
-                ServoCommand::Track(kind) => {
-                    self.enter(Activity::Track, q);
-                    self.target = Target::Trajectory {
-                        reference: Reference::new(kind, &self.reference_cfg, self.seed),
-                        t0: t,
-                    };
-                }
-                ServoCommand::ServoJp { .. }
-                | ServoCommand::ServoJf { .. }
-                | ServoCommand::ServoCf { .. }
-                    if self.latched => {}
-                ServoCommand::ServoJp { seq, q: sp, ttl_s } => {
-                    if sp.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
-                        self.enter(Activity::ServoJp, q);
-                        self.setpoint = self.inside_walls(&sp.into());
-                        self.cmd_seq = seq;
-                        self.stream_deadline = t + ttl_s;
-                    }
-                }
-                ServoCommand::ServoJf { seq, tau, ttl_s } => {
-                    if tau.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
-                        self.enter(Activity::ServoJf, q);
-                        self.stream_tau = tau.into();
-                        self.cmd_seq = seq;
-                        self.stream_deadline = t + ttl_s;
-                    }
-                }
-                ServoCommand::ServoCf { seq, force, ttl_s } => {
-                    if force.iter().all(|v| v.is_finite()) && ttl_s > 0.0 {
-                        self.enter(Activity::ServoCf, q);
-                        let asked = Force3::from(force);
-                        self.stream_force = limit_force(&asked, self.max_force_n);
-                        self.stream_force_limited = held_back(&asked, &self.stream_force);
-                        self.cmd_seq = seq;
-                        self.stream_deadline = t + ttl_s;
-                    }
-                }
-                ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
-                ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
-                ServoCommand::Teleop(coupling) => {
-                    self.enter(Activity::Teleop, q);
-                    if let Some(old) = self.set_teleop(coupling) {
-                        self.reply(ServoReply::Teleop(old));
-                    }
-                }
-                ServoCommand::TeleopEnd => {
-                    if let Some(mut old) = self.teleop.take() {
-                        // The other side hears that this one ended (docs/TELEOP.md §4).
-                        old.end(teleop_clock(self.paced, t));
-                        if self.activity == Activity::Teleop {
-                            self.enter(Activity::Hold, q);
-                        }
-                        self.reply(ServoReply::Teleop(old));
-                    }
-                }
-                ServoCommand::TeleopScale(scale) => {
-                    if let Some(c) = self.teleop.as_mut() {
-                        c.set_motion_scale(scale);
-                    }
-                }
-                ServoCommand::Stylus(action) => {
-                    self.device.stylus(action);
-                }
-                ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
-                ServoCommand::Adapt(on) => {
-                    if let Some(id) = self.identifier.as_mut() {
-                        id.set_adapt(on);
-                    }
-                }
-                ServoCommand::LoadIdentifier(mut incoming) => {
-                    if let Some(id) = self.identifier.as_mut() {
-                        std::mem::swap(id, &mut *incoming);
-                    }
-                    self.reply(ServoReply::Identifier(incoming));
-                }
-                ServoCommand::Snapshot(mut snap) => {
-                    self.fill(&mut snap);
-                    self.reply(ServoReply::Snapshot(snap));
-                }
+            if self.admit(epoch, halts, &command, q) {
+                self.apply_command(command, t, q);
             }
         }
         self.apply_halts(q);
+    }
+
+    /// A stop sent before this command comes first (the arm goes idle). False for a void
+    /// command: one that would move the arm, sent before a stop already applied, or force an
+    /// owner set up who has since left.
+    #[inline]
+    fn admit(&mut self, epoch: u64, halts: u64, command: &ServoCommand, q: &Joint3) -> bool {
+        let moves = matches!(
+            command,
+            ServoCommand::Hold | ServoCommand::Track(_) | ServoCommand::Free
+        );
+        // Force an owner set up is theirs: once they have left, what they sent is void.
+        let makes_force = matches!(
+            command,
+            ServoCommand::ServoJp { .. }
+                | ServoCommand::ServoJf { .. }
+                | ServoCommand::ServoCf { .. }
+                | ServoCommand::Effect { .. }
+                | ServoCommand::Free
+                | ServoCommand::Teleop(_)
+        );
+        if halts > self.halts_seen {
+            self.halts_seen = halts;
+            self.enter(Activity::Idle, q);
+        } else if halts < self.halts_seen && (moves || makes_force) {
+            return false;
+        }
+        !(makes_force && epoch != self.owner_epoch)
+    }
+
+    /// One admitted command, by family: modes, streams, teleoperation, the servo's settings,
+    /// and the requests answered by a reply.
+    fn apply_command(&mut self, command: ServoCommand, t: f64, q: &Joint3) {
+        match command {
+            ServoCommand::Idle => self.enter(Activity::Idle, q),
+            ServoCommand::Hold => self.enter(Activity::Hold, q),
+            ServoCommand::Free => self.enter(Activity::Free, q),
+            ServoCommand::Track(kind) => {
+                self.enter(Activity::Track, q);
+                self.target = Target::Trajectory {
+                    reference: Reference::new(kind, &self.reference_cfg, self.seed),
+                    t0: t,
+                };
+            }
+            ServoCommand::ServoJp { .. }
+            | ServoCommand::ServoJf { .. }
+            | ServoCommand::ServoCf { .. }
+                if self.latched => {}
+            ServoCommand::ServoJp { seq, q: sp, ttl_s } => {
+                if self.stream_starts(Activity::ServoJp, &sp, seq, ttl_s, t, q) {
+                    self.setpoint = self.inside_walls(&sp.into());
+                }
+            }
+            ServoCommand::ServoJf { seq, tau, ttl_s } => {
+                if self.stream_starts(Activity::ServoJf, &tau, seq, ttl_s, t, q) {
+                    self.stream_tau = tau.into();
+                }
+            }
+            ServoCommand::ServoCf { seq, force, ttl_s } => {
+                if self.stream_starts(Activity::ServoCf, &force, seq, ttl_s, t, q) {
+                    let asked = Force3::from(force);
+                    self.stream_force = limit_force(&asked, self.max_force_n);
+                    self.stream_force_limited = held_back(&asked, &self.stream_force);
+                }
+            }
+            ServoCommand::Teleop(coupling) => {
+                self.enter(Activity::Teleop, q);
+                if let Some(old) = self.set_teleop(coupling) {
+                    self.reply(ServoReply::Teleop(old));
+                }
+            }
+            ServoCommand::TeleopEnd => self.teleop_end(t, q),
+            ServoCommand::TeleopScale(scale) => {
+                if let Some(c) = self.teleop.as_mut() {
+                    c.set_motion_scale(scale);
+                }
+            }
+            ServoCommand::Effect { slot, effect } => self.haptics.set_effect(slot, effect, t),
+            ServoCommand::Passivity(on) => self.haptics.set_passivity(on),
+            ServoCommand::Stylus(action) => {
+                self.device.stylus(action);
+            }
+            ServoCommand::Controller(kind) => self.controllers.switch(kind, t),
+            ServoCommand::Adapt(on) => {
+                if let Some(id) = self.identifier.as_mut() {
+                    id.set_adapt(on);
+                }
+            }
+            ServoCommand::LoadIdentifier(mut incoming) => {
+                if let Some(id) = self.identifier.as_mut() {
+                    std::mem::swap(id, &mut *incoming);
+                }
+                self.reply(ServoReply::Identifier(incoming));
+            }
+            ServoCommand::Snapshot(mut snap) => {
+                self.fill(&mut snap);
+                self.reply(ServoReply::Snapshot(snap));
+            }
+        }
+    }
+
+    /// A stream command's common part: finite `values` and a time to live, or it is void
+    /// (false). Enters `activity` and keeps the stream's sequence number and deadline.
+    #[inline]
+    fn stream_starts(
+        &mut self,
+        activity: Activity,
+        values: &[f64; 3],
+        seq: u64,
+        ttl_s: f64,
+        t: f64,
+        q: &Joint3,
+    ) -> bool {
+        if !(values.iter().all(|v| v.is_finite()) && ttl_s > 0.0) {
+            return false;
+        }
+        self.enter(activity, q);
+        self.cmd_seq = seq;
+        self.stream_deadline = t + ttl_s;
+        true
+    }
+
+    /// `TeleopEnd`: the other side hears that this one ended (docs/TELEOP.md §4); an arm
+    /// still in teleop holds.
+    fn teleop_end(&mut self, t: f64, q: &Joint3) {
+        if let Some(mut old) = self.teleop.take() {
+            old.end(teleop_clock(self.paced, t));
+            if self.activity == Activity::Teleop {
+                self.enter(Activity::Hold, q);
+            }
+            self.reply(ServoReply::Teleop(old));
+        }
     }
 
     /// Ownership, read before the commands: an owner who left takes everything they set up

@@ -625,9 +625,29 @@ impl RunSummary {
         }
     }
 
-    /// The printout at the end of a run. Long on purpose: one line per figure, in the order
-    /// they are printed.
+    /// The printout at the end of a run: one block after another, one line per figure, in
+    /// the order they are printed.
     pub fn human(&self) -> String {
+        let mut s = self.headline();
+        // A run that only rendered forces tracked nothing: its figures are the forces. A run
+        // that followed nothing (`--controller off`) has no tracking to report.
+        let haptic_only = self.tracking_rms_rad.is_none() && self.haptics.is_some();
+        if !haptic_only && self.trajectory != "none" {
+            s += &self.tracking_block();
+        }
+        if let Some(h) = &self.haptics {
+            s += &h.human();
+        }
+        s += &self.torque_block();
+        s += &self.model_block();
+        s += &self.timing_block();
+        s += &self.counters_block();
+        s += &self.faults_and_log_block();
+        s
+    }
+
+    /// What ran, on what, following what, and how it ended.
+    fn headline(&self) -> String {
         // A daemon's session follows whatever its clients asked for.
         let what = match self.trajectory.as_str() {
             "serve" => format!("omnid serve: {} ticks", self.ticks),
@@ -637,7 +657,7 @@ impl RunSummary {
             "off" => "the controller off".to_string(),
             c => c.to_string(),
         };
-        let mut s = format!(
+        format!(
             "{what} ({:.3} s device time) on {} with {controller}{}{}; ended: {}\n",
             self.duration_s,
             self.device,
@@ -649,40 +669,42 @@ impl RunSummary {
             },
             if self.fast { " (--fast)" } else { "" },
             end_for_people(&self.end)
-        );
-        // A run that only rendered forces tracked nothing: its figures are the forces. A run
-        // that followed nothing (`--controller off`) has no tracking to report.
-        let haptic_only = self.tracking_rms_rad.is_none() && self.haptics.is_some();
-        if !haptic_only && self.trajectory != "none" {
-            s += &format!(
-                "  tracking RMS    {}   (joints 1/2/3, after the start-up blend)\n",
-                triple(self.tracking_rms_rad, 1e3, "mrad")
-            );
-            s += &format!(
-                "  tracking max    {}\n",
-                triple(self.tracking_max_rad, 1e3, "mrad")
-            );
-            if let (Some(own), Some(oracle)) = (self.tracking_rms_rad, self.oracle_tracking_rms_rad)
-            {
-                let ratio = [0, 1, 2].map(|j| own[j] / oracle[j]);
-                s += &format!(
-                    "  vs oracle       {}   (tracking RMS ÷ ct with the exact model and friction: {})\n",
-                    triple(Some(ratio), 1.0, "×"),
-                    triple(Some(oracle), 1e3, "mrad")
-                );
-            }
-        }
-        if let Some(h) = &self.haptics {
-            s += &h.human();
-        }
-        s += &format!(
-            "  torque RMS      {}\n",
-            triple(self.torque_rms_nm, 1e3, "mN·m")
+        )
+    }
+
+    /// Tracking RMS and max, and against the oracle when it ran.
+    fn tracking_block(&self) -> String {
+        let mut s = format!(
+            "  tracking RMS    {}   (joints 1/2/3, after the start-up blend)\n",
+            triple(self.tracking_rms_rad, 1e3, "mrad")
         );
         s += &format!(
-            "  torque TV       {}   (total variation: chattering)\n",
+            "  tracking max    {}\n",
+            triple(self.tracking_max_rad, 1e3, "mrad")
+        );
+        if let (Some(own), Some(oracle)) = (self.tracking_rms_rad, self.oracle_tracking_rms_rad) {
+            let ratio = [0, 1, 2].map(|j| own[j] / oracle[j]);
+            s += &format!(
+                "  vs oracle       {}   (tracking RMS ÷ ct with the exact model and friction: {})\n",
+                triple(Some(ratio), 1.0, "×"),
+                triple(Some(oracle), 1e3, "mrad")
+            );
+        }
+        s
+    }
+
+    /// Torque RMS and total variation.
+    fn torque_block(&self) -> String {
+        format!(
+            "  torque RMS      {}\n  torque TV       {}   (total variation: chattering)\n",
+            triple(self.torque_rms_nm, 1e3, "mN·m"),
             triple(Some(self.torque_total_variation_nm), 1.0, "N·m")
-        );
+        )
+    }
+
+    /// The identifier's fit and whether it stopped; the estimator's restarts.
+    fn model_block(&self) -> String {
+        let mut s = String::new();
         if self.identifier.nrmse.is_some() || self.identifier.nrmse_oracle.is_some() {
             s += &format!(
                 "  ident NRMSE     {}   (last 20 %: {}; exact model: {})\n",
@@ -704,7 +726,12 @@ impl RunSummary {
                 self.estimator_restarts, self.longest_gap_s
             );
         }
-        s += &format!("  period          {}\n", pct(&self.timing_us.period));
+        s
+    }
+
+    /// The tick's period, lateness and compute time; the wall clock.
+    fn timing_block(&self) -> String {
+        let mut s = format!("  period          {}\n", pct(&self.timing_us.period));
         s += &format!("  lateness        {}\n", pct(&self.timing_us.lateness));
         s += &format!(
             "  compute         {}   overruns {}\n",
@@ -714,7 +741,12 @@ impl RunSummary {
         if let (Some(w), Some(f)) = (self.wall_s, self.realtime_factor) {
             s += &format!("  wall clock      {w:.3} s   ({f:.0}× real time)\n");
         }
-        s += &format!(
+        s
+    }
+
+    /// Missed packets, clamped and force-held ticks, dropped telemetry; the real-time setup.
+    fn counters_block(&self) -> String {
+        let mut s = format!(
             "  packets missed {}  clamped ticks {}  telemetry dropped {}\n",
             self.missed_packets, self.clamped_ticks, self.telemetry_dropped
         );
@@ -734,6 +766,12 @@ impl RunSummary {
                 if rt.signals_blocked { "yes" } else { "no" },
             );
         }
+        s
+    }
+
+    /// Each fault, then the log written.
+    fn faults_and_log_block(&self) -> String {
+        let mut s = String::new();
         for f in &self.faults {
             s += &format!(
                 "  FAULT at tick {} (t = {:.3} s): {}: {}\n",

@@ -453,101 +453,55 @@ impl Station {
         self.apply(k, op)
     }
 
-    /// One op, access and lease already granted. Long only in its match: one arm per op, each
-    /// a call or a few lines, so the whole interface reads in one place.
+    /// One op, access and lease already granted: the whole interface in one table, by op
+    /// family; what an op does beyond a line is its own function below.
     fn apply(&mut self, k: usize, op: Op) -> Result<Answer, OpError> {
         let id = self.sessions[k].id;
-        let now = |r: Reply| Ok(Answer::Now(r));
         match op {
+            // The session's own: its stream, the status, the lease.
             Op::Stream { rate_hz } => self.subscribe(k, rate_hz).map(Answer::Now),
-            Op::Status => {
-                let ticket = self.ticket();
-                self.ask_snapshot(Waiting::Status {
-                    ticket,
-                    session: id,
-                });
-                Ok(Answer::Later(ticket))
-            }
-            Op::Lease { fallback } => {
-                if let Some(to) = fallback {
-                    self.lease_fallback = Some(to);
-                    self.s.signals.set_fallback(to);
-                }
-                now(Reply::Lease {
-                    holder: id,
-                    fallback: self.current_fallback().mode().as_str(),
-                })
-            }
-            Op::Release => {
-                self.end_lease();
-                self.announce(Event::lease(
-                    None,
-                    format!("client {id} released the command lease"),
-                ));
-                now(Reply::Done {})
-            }
-            Op::Mode(m) => {
-                self.sessions[k].stopped_by = None;
-                self.latched = None;
-                let command = match m {
-                    ModeRequest::Idle => ServoCommand::Idle,
-                    ModeRequest::Hold => ServoCommand::Hold,
-                    ModeRequest::Free => ServoCommand::Free,
-                    ModeRequest::Track(t) => ServoCommand::Track(t),
-                };
-                self.send(command)?;
-                now(Reply::Mode { mode: m.as_str() })
-            }
+            Op::Status => Ok(self.status_later(id)),
+            Op::Lease { fallback } => Ok(self.lease_fallback_to(id, fallback)),
+            Op::Release => Ok(self.release(id)),
+            // What the arm does: a mode, or a stream of setpoints.
+            Op::Mode(m) => self.mode(k, m),
             Op::ServoJp { seq, q, ttl_ms } => {
-                let ttl_s = self.stream_check(&q, ttl_ms)?;
-                self.send(ServoCommand::ServoJp { seq, q, ttl_s })?;
-                now(Reply::Silent)
+                self.stream(&q, ttl_ms, |ttl_s| ServoCommand::ServoJp { seq, q, ttl_s })
             }
-            Op::ServoJf { seq, tau, ttl_ms } => {
-                let ttl_s = self.stream_check(&tau, ttl_ms)?;
-                self.send(ServoCommand::ServoJf { seq, tau, ttl_s })?;
-                now(Reply::Silent)
-            }
-            Op::ServoCf { seq, force, ttl_ms } => {
-                let ttl_s = self.stream_check(&force, ttl_ms)?;
-                self.send(ServoCommand::ServoCf { seq, force, ttl_s })?;
-                now(Reply::Silent)
-            }
+            Op::ServoJf { seq, tau, ttl_ms } => self.stream(&tau, ttl_ms, |ttl_s| {
+                ServoCommand::ServoJf { seq, tau, ttl_s }
+            }),
+            Op::ServoCf { seq, force, ttl_ms } => self.stream(&force, ttl_ms, |ttl_s| {
+                ServoCommand::ServoCf { seq, force, ttl_s }
+            }),
+            // The servo's settings.
             Op::Effect { slot, effect } => {
                 effect_check(slot, effect.as_ref())?;
-                self.send(ServoCommand::Effect { slot, effect })?;
-                now(Reply::Effect { slot, effect })
+                self.command(
+                    ServoCommand::Effect { slot, effect },
+                    Reply::Effect { slot, effect },
+                )
             }
-            Op::Passivity(on) => {
-                self.send(ServoCommand::Passivity(on))?;
-                now(Reply::Passivity { passivity: on })
-            }
-            Op::Controller(kind) => {
-                self.send(ServoCommand::Controller(kind))?;
-                now(Reply::Controller {
+            Op::Passivity(on) => self.command(
+                ServoCommand::Passivity(on),
+                Reply::Passivity { passivity: on },
+            ),
+            Op::Controller(kind) => self.command(
+                ServoCommand::Controller(kind),
+                Reply::Controller {
                     controller: kind.as_str(),
-                })
-            }
+                },
+            ),
             Op::Adapt(on) => {
                 self.adapt = on;
-                self.send(ServoCommand::Adapt(on))?;
-                now(Reply::Adapt { adapt: on })
+                self.command(ServoCommand::Adapt(on), Reply::Adapt { adapt: on })
             }
-            Op::WeightsSave(path) => {
-                absolute(&path)?;
-                let ticket = self.ticket();
-                let rights = self.sessions[k].info.files.clone();
-                self.ask_snapshot(Waiting::Save {
-                    ticket,
-                    session: id,
-                    path,
-                    rights,
-                });
-                Ok(Answer::Later(ticket))
-            }
+            Op::Stylus(action) => self.stylus(action),
+            // Files, opened with the session's rights.
+            Op::WeightsSave(path) => self.weights_save(k, path),
             Op::WeightsLoad(path) => {
                 absolute(&path)?;
-                let rights = self.sessions[k].info.files.clone();
+                let rights = self.rights(k);
                 self.weights_load(id, path, &rights)
             }
             Op::WeightsReset => self.weights_reset(id),
@@ -555,61 +509,153 @@ impl Station {
                 if let Some(p) = &path {
                     absolute(p)?;
                 }
-                let rights = self.sessions[k].info.files.clone();
+                let rights = self.rights(k);
                 self.record_start(path, &rights).map(Answer::Now)
             }
-            Op::RecordStop => match self.record_stop() {
-                Some((path, rows, error)) => now(Reply::RecordStop { path, rows, error }),
-                None => Err(OpError::Failed("not recording".into())),
-            },
+            Op::RecordStop => self
+                .record_stop()
+                .map(|(path, rows, error)| Answer::Now(Reply::RecordStop { path, rows, error }))
+                .ok_or_else(|| OpError::Failed("not recording".into())),
+            // Teleoperation.
             Op::Teleop(request) => self.teleop_start(k, &request).map(Answer::Now),
-            Op::TeleopStop => {
-                if self.teleop.take().is_some() {
-                    self.send(ServoCommand::TeleopEnd)?;
-                }
-                now(Reply::Done {})
-            }
-            Op::TeleopScale(scale) => {
-                let Some((side, _)) = self.teleop.as_mut() else {
-                    return Err(OpError::Invalid(
-                        "teleop_scale: this arm is not in a pair (`teleop` first)".into(),
-                    ));
-                };
-                if side.role != crate::teleop::Role::Leader {
-                    return Err(OpError::Invalid(format!(
-                        "teleop_scale: the motion scale is the leader's; ask `{}`",
-                        side.peer
-                    )));
-                }
-                if !(0.05..=20.0).contains(&scale) {
-                    return Err(OpError::Invalid(format!(
-                        "teleop_scale: motion_scale = {} is out of range: allowed 0.05 ..= 20",
-                        crate::text::number(&scale.to_string())
-                    )));
-                }
-                side.motion_scale = scale;
-                self.send(ServoCommand::TeleopScale(scale))?;
-                now(Reply::TeleopScale {
-                    motion_scale: scale,
-                })
-            }
-            Op::Stylus(action) => {
-                if self.s.arm.kind != "sim" {
-                    return Err(OpError::Invalid(format!(
-                        "stylus {}: only the simulator's stylus can be worked from here; this \
-                         arm's device is {} (press its buttons, dock it, with your hand)",
-                        action.name(),
-                        self.s.arm.kind
-                    )));
-                }
-                self.send(ServoCommand::Stylus(action))?;
-                now(Reply::Stylus {
-                    stylus: action.name(),
-                    button: action.button(),
-                })
-            }
+            Op::TeleopStop => self.teleop_stop(),
+            Op::TeleopScale(scale) => self.teleop_scale(scale),
             Op::Shutdown => unreachable!("a stop is handled by Station::stop"),
         }
+    }
+
+    /// Hand the servo `command`; once it is in the mailbox the answer is `reply`.
+    fn command(&self, command: ServoCommand, reply: Reply) -> Result<Answer, OpError> {
+        self.send(command)?;
+        Ok(Answer::Now(reply))
+    }
+
+    /// Whose rights open the files session `k` names.
+    fn rights(&self, k: usize) -> FileRights {
+        self.sessions[k].info.files.clone()
+    }
+
+    /// `status`: answered once the servo's snapshot is back.
+    fn status_later(&mut self, session: SessionId) -> Answer {
+        let ticket = self.ticket();
+        self.ask_snapshot(Waiting::Status { ticket, session });
+        Answer::Later(ticket)
+    }
+
+    /// `lease`: the holder's stream fallback, if it names one.
+    fn lease_fallback_to(&mut self, holder: SessionId, fallback: Option<Activity>) -> Answer {
+        if let Some(to) = fallback {
+            self.lease_fallback = Some(to);
+            self.s.signals.set_fallback(to);
+        }
+        Answer::Now(Reply::Lease {
+            holder,
+            fallback: self.current_fallback().mode().as_str(),
+        })
+    }
+
+    /// `release`: the lease is free, and every session hears it.
+    fn release(&mut self, id: SessionId) -> Answer {
+        self.end_lease();
+        self.announce(Event::lease(
+            None,
+            format!("client {id} released the command lease"),
+        ));
+        Answer::Now(Reply::Done {})
+    }
+
+    /// `mode`: re-arms an arm a trip or a stop left idle.
+    fn mode(&mut self, k: usize, m: ModeRequest) -> Result<Answer, OpError> {
+        self.sessions[k].stopped_by = None;
+        self.latched = None;
+        let command = match m {
+            ModeRequest::Idle => ServoCommand::Idle,
+            ModeRequest::Hold => ServoCommand::Hold,
+            ModeRequest::Free => ServoCommand::Free,
+            ModeRequest::Track(t) => ServoCommand::Track(t),
+        };
+        self.command(command, Reply::Mode { mode: m.as_str() })
+    }
+
+    /// `servo_jp`, `servo_jf`, `servo_cf`: checked, then `command` with the time to live in
+    /// seconds; a stream is not answered.
+    fn stream(
+        &mut self,
+        values: &[f64; 3],
+        ttl_ms: Option<f64>,
+        command: impl FnOnce(f64) -> ServoCommand,
+    ) -> Result<Answer, OpError> {
+        let ttl_s = self.stream_check(values, ttl_ms)?;
+        self.command(command(ttl_s), Reply::Silent)
+    }
+
+    /// `stylus`: only the simulator's stylus is worked from here.
+    fn stylus(&mut self, action: crate::device::StylusAction) -> Result<Answer, OpError> {
+        if self.s.arm.kind != "sim" {
+            return Err(OpError::Invalid(format!(
+                "stylus {}: only the simulator's stylus can be worked from here; this \
+                 arm's device is {} (press its buttons, dock it, with your hand)",
+                action.name(),
+                self.s.arm.kind
+            )));
+        }
+        self.command(
+            ServoCommand::Stylus(action),
+            Reply::Stylus {
+                stylus: action.name(),
+                button: action.button(),
+            },
+        )
+    }
+
+    /// `weights_save`: written once the servo's snapshot (with the weights) is back.
+    fn weights_save(&mut self, k: usize, path: PathBuf) -> Result<Answer, OpError> {
+        absolute(&path)?;
+        let ticket = self.ticket();
+        let rights = self.rights(k);
+        self.ask_snapshot(Waiting::Save {
+            ticket,
+            session: self.sessions[k].id,
+            path,
+            rights,
+        });
+        Ok(Answer::Later(ticket))
+    }
+
+    /// `teleop_stop`: the servo leaves the pair (if this arm is in one).
+    fn teleop_stop(&mut self) -> Result<Answer, OpError> {
+        if self.teleop.take().is_some() {
+            self.send(ServoCommand::TeleopEnd)?;
+        }
+        Ok(Answer::Now(Reply::Done {}))
+    }
+
+    /// `teleop_scale`: the leader's motion scale.
+    fn teleop_scale(&mut self, scale: f64) -> Result<Answer, OpError> {
+        let Some((side, _)) = self.teleop.as_mut() else {
+            return Err(OpError::Invalid(
+                "teleop_scale: this arm is not in a pair (`teleop` first)".into(),
+            ));
+        };
+        if side.role != crate::teleop::Role::Leader {
+            return Err(OpError::Invalid(format!(
+                "teleop_scale: the motion scale is the leader's; ask `{}`",
+                side.peer
+            )));
+        }
+        if !(0.05..=20.0).contains(&scale) {
+            return Err(OpError::Invalid(format!(
+                "teleop_scale: motion_scale = {} is out of range: allowed 0.05 ..= 20",
+                crate::text::number(&scale.to_string())
+            )));
+        }
+        side.motion_scale = scale;
+        self.command(
+            ServoCommand::TeleopScale(scale),
+            Reply::TeleopScale {
+                motion_scale: scale,
+            },
+        )
     }
 
     /// `mode idle` and `shutdown`: never refused by a lease. Idle goes through the signals

@@ -369,19 +369,17 @@ fn run<B: FireWireBus, W: Write>(
     Ok(())
 }
 
-/// The capture with the amplifiers off, guided. Long on purpose: it is the operator's script
-/// (prompt, wait, record, check), step by step in the order they are asked.
-fn capture_phase<B: FireWireBus, W: Write>(
-    s: &mut Session<'_, B, W>,
-    report: &mut ProbeReport,
-) -> Result<(), ProbeError> {
-    #[derive(Clone, Copy, PartialEq)]
-    enum Want {
-        Docked,
-        Undocked,
-        Button(usize),
-        Joint(usize),
-    }
+/// A step of the capture: what the operator is asked to do.
+#[derive(Clone, Copy, PartialEq)]
+enum Want {
+    Docked,
+    Undocked,
+    Button(usize),
+    Joint(usize),
+}
+
+/// The capture's steps, in the order they are asked.
+fn capture_steps() -> Vec<(Want, String)> {
     let mut todo: Vec<(Want, String)> = vec![
         (Want::Docked, "put the stylus in the inkwell".into()),
         (Want::Undocked, "take the stylus out of the inkwell".into()),
@@ -394,6 +392,16 @@ fn capture_phase<B: FireWireBus, W: Write>(
             format!("joint {}: {}", j + 1, JOINT_PLUS[j]),
         ));
     }
+    todo
+}
+
+/// The capture with the amplifiers off, guided: the operator's script (prompt, wait, record,
+/// check), each step asked in turn until every one was seen or the packets are all in.
+fn capture_phase<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    report: &mut ProbeReport,
+) -> Result<(), ProbeError> {
+    let mut todo = capture_steps();
     let total = todo.len();
     s.say(&format!(
         "capturing {} packets with the amplifiers off. Do what it asks, one at a time \
@@ -401,7 +409,7 @@ fn capture_phase<B: FireWireBus, W: Write>(
         s.opts.capture_packets
     ))?;
     s.say(&format!("  now: {}", todo[0].1))?;
-    let mut done: Vec<String> = Vec::new();
+    let mut done = 0usize;
     let mut last_sw: Option<u8> = None;
     let mut joint_from: Option<[i64; 3]> = None;
     let per_second = s.per_second();
@@ -418,79 +426,14 @@ fn capture_phase<B: FireWireBus, W: Write>(
         since += 1;
         if last_sw != Some(sw) {
             if let Some(prev) = last_sw {
-                let (b1, b2, docked) = bits(sw);
-                let (p1, p2, pd) = bits(prev);
-                let mut what = Vec::new();
-                if docked != pd {
-                    what.push(if docked {
-                        "stylus docked"
-                    } else {
-                        "stylus out of the inkwell"
-                    });
-                }
-                if b1 != p1 {
-                    what.push(if b1 {
-                        "button 1 pressed"
-                    } else {
-                        "button 1 released"
-                    });
-                }
-                if b2 != p2 {
-                    what.push(if b2 {
-                        "button 2 pressed"
-                    } else {
-                        "button 2 released"
-                    });
-                }
-                if sw & 0xF8 != prev & 0xF8 {
-                    what.push("bits 3..7 of byte 19 changed");
-                }
-                s.say(&format!(
-                    "switch byte 19: {prev:#04x} -> {sw:#04x}: {}",
-                    what.join(", ")
-                ))?;
+                s.say(&switch_change(prev, sw))?;
             }
             last_sw = Some(sw);
         }
         // The current instruction.
         if let Some((want, text)) = todo.first().cloned() {
-            let (b1, b2, docked) = bits(sw);
-            let seen = match want {
-                Want::Docked => docked,
-                Want::Undocked => !docked,
-                Want::Button(0) => b1,
-                Want::Button(_) => b2,
-                Want::Joint(j) => {
-                    let from = *joint_from.get_or_insert(s.counts);
-                    let d = s.counts[j] - from[j];
-                    if d.abs() >= MOVE_COUNTS {
-                        let sign: i8 = if d > 0 { 1 } else { -1 };
-                        report.encoder_sign_seen[j] = Some(sign);
-                        let msg = if sign > 0 {
-                            format!(
-                                "joint {} counts up as it should (encoder_sign[{j}] = {} is right)",
-                                j + 1,
-                                s.opts.encoder_sign[j]
-                            )
-                        } else {
-                            format!(
-                                "joint {} counts DOWN: firewire.encoder_sign[{j}] should be {}, \
-                                 not {} (docs/FIREWIRE.md §6); please report this",
-                                j + 1,
-                                -s.opts.encoder_sign[j],
-                                s.opts.encoder_sign[j]
-                            )
-                        };
-                        s.say(&msg)?;
-                        joint_from = None;
-                        true
-                    } else {
-                        false
-                    }
-                }
-            };
-            if seen {
-                done.push(text.clone());
+            if step_seen(s, report, want, sw, &mut joint_from)? {
+                done += 1;
                 todo.remove(0);
                 report.checks.push((text, true));
                 match todo.first() {
@@ -503,16 +446,7 @@ fn capture_phase<B: FireWireBus, W: Write>(
             }
         }
         if since >= per_second {
-            let window = s.window.report();
-            s.say(&format!(
-                "{:.0} s: {} packets, {} missed, {} lost by the counter; {window}; switches \
-                 {:#04x}",
-                (k + 1) as f64 / s.opts.rate_hz,
-                s.packets,
-                missed,
-                s.omni.stats().lost,
-                last_sw.unwrap_or(0)
-            ))?;
+            say_second(s, k, missed, last_sw)?;
             since = 0;
         }
         if todo.is_empty() && k + 1 >= per_second {
@@ -523,11 +457,117 @@ fn capture_phase<B: FireWireBus, W: Write>(
         report.checks.push((text, false));
     }
     s.say(&format!(
-        "capture: {} of {total} steps seen; {} packets",
-        done.len(),
+        "capture: {done} of {total} steps seen; {} packets",
         s.packets
     ))?;
     Ok(())
+}
+
+/// What changed from switch byte `prev` to `sw`, as the operator would say it.
+fn switch_change(prev: u8, sw: u8) -> String {
+    let (b1, b2, docked) = bits(sw);
+    let (p1, p2, pd) = bits(prev);
+    let mut what = Vec::new();
+    if docked != pd {
+        what.push(if docked {
+            "stylus docked"
+        } else {
+            "stylus out of the inkwell"
+        });
+    }
+    if b1 != p1 {
+        what.push(if b1 {
+            "button 1 pressed"
+        } else {
+            "button 1 released"
+        });
+    }
+    if b2 != p2 {
+        what.push(if b2 {
+            "button 2 pressed"
+        } else {
+            "button 2 released"
+        });
+    }
+    if sw & 0xF8 != prev & 0xF8 {
+        what.push("bits 3..7 of byte 19 changed");
+    }
+    format!(
+        "switch byte 19: {prev:#04x} -> {sw:#04x}: {}",
+        what.join(", ")
+    )
+}
+
+/// Whether this packet (switch byte `sw`) shows the step `want` done.
+fn step_seen<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    report: &mut ProbeReport,
+    want: Want,
+    sw: u8,
+    joint_from: &mut Option<[i64; 3]>,
+) -> Result<bool, ProbeError> {
+    let (b1, b2, docked) = bits(sw);
+    Ok(match want {
+        Want::Docked => docked,
+        Want::Undocked => !docked,
+        Want::Button(0) => b1,
+        Want::Button(_) => b2,
+        Want::Joint(j) => joint_moved(s, report, j, joint_from)?,
+    })
+}
+
+/// A joint's step: seen once joint `j` moved [`MOVE_COUNTS`] from where the step began; its
+/// direction is checked against `firewire.encoder_sign` and said.
+fn joint_moved<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    report: &mut ProbeReport,
+    j: usize,
+    joint_from: &mut Option<[i64; 3]>,
+) -> Result<bool, ProbeError> {
+    let from = *joint_from.get_or_insert(s.counts);
+    let d = s.counts[j] - from[j];
+    if d.abs() < MOVE_COUNTS {
+        return Ok(false);
+    }
+    let sign: i8 = if d > 0 { 1 } else { -1 };
+    report.encoder_sign_seen[j] = Some(sign);
+    let msg = if sign > 0 {
+        format!(
+            "joint {} counts up as it should (encoder_sign[{j}] = {} is right)",
+            j + 1,
+            s.opts.encoder_sign[j]
+        )
+    } else {
+        format!(
+            "joint {} counts DOWN: firewire.encoder_sign[{j}] should be {}, \
+             not {} (docs/FIREWIRE.md §6); please report this",
+            j + 1,
+            -s.opts.encoder_sign[j],
+            s.opts.encoder_sign[j]
+        )
+    };
+    s.say(&msg)?;
+    *joint_from = None;
+    Ok(true)
+}
+
+/// The capture's progress, once a second: packets, misses, the rate window, the switches.
+fn say_second<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    k: usize,
+    missed: usize,
+    last_sw: Option<u8>,
+) -> Result<(), ProbeError> {
+    let window = s.window.report();
+    s.say(&format!(
+        "{:.0} s: {} packets, {} missed, {} lost by the counter; {window}; switches \
+         {:#04x}",
+        (k + 1) as f64 / s.opts.rate_hz,
+        s.packets,
+        missed,
+        s.omni.stats().lost,
+        last_sw.unwrap_or(0)
+    ))
 }
 
 /// Why the output steps stopped.
@@ -586,17 +626,32 @@ fn hold<B: FireWireBus, W: Write>(
     Ok(moved)
 }
 
-/// The output steps; on any stop the caller sends safe packets and closes. Long on purpose:
-/// each step is confirmed by the operator before any torque, in the order they are asked.
+/// The output steps; on any stop the caller sends safe packets and closes. Each step is
+/// confirmed by the operator before any torque, in the order they are asked.
 fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3], Stop> {
     let per_second = s.per_second();
-    let counts = s.opts.pulse_counts.clamp(1, MAX_PULSE_COUNTS);
     let safe = MotorCommand::safe(0);
     s.say(
         "output steps: each asks first. Press a stylus button at any time to stop (zero \
          torque, amplifiers off).",
     )?;
-    // Step 1: the lamp, motors off.
+    lamp_step(s, safe)?;
+    let amps = amplifier_step(s, safe)?;
+    // Step 3: one motor at a time, + then - counts.
+    let mut signs = [0i8; 3];
+    for (j, sign) in signs.iter_mut().enumerate() {
+        *sign = motor_step(s, j, amps)?;
+    }
+    hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
+    Ok(signs)
+}
+
+/// Step 1: the lamp, motors off; the operator says whether it changed.
+fn lamp_step<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    safe: MotorCommand,
+) -> Result<(), Stop> {
+    let per_second = s.per_second();
     if !s.op.confirm(
         "step 1 of 3: set the inkwell lamp bits for 2 s with the motors OFF (no torque). Go on?",
     ) {
@@ -626,7 +681,16 @@ fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3
                 .into(),
         ));
     }
-    // Step 2: amplifiers on at zero torque.
+    Ok(())
+}
+
+/// Step 2: amplifiers on at zero torque; the operator says nothing unexpected happened.
+/// Returns that command (the motor steps add their DAC words to it).
+fn amplifier_step<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    safe: MotorCommand,
+) -> Result<MotorCommand, Stop> {
+    let per_second = s.per_second();
     if !s.op.confirm(
         "step 2 of 3: amplifiers ON at zero torque for 1 s. Hold the stylus lightly. Go on?",
     ) {
@@ -649,97 +713,109 @@ fn outputs<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>) -> Result<[i8; 3
             "the operator saw something unexpected at zero torque (or did not answer)".into(),
         ));
     }
-    // Step 3: one motor at a time, + then - counts.
-    let mut signs = [0i8; 3];
+    Ok(amps)
+}
+
+/// Step 3.`j+1`: motor `j` pulsed + then -, its sign read from the encoder and checked
+/// against what the operator saw. Returns the sign (0: no motion at this size).
+fn motor_step<B: FireWireBus, W: Write>(
+    s: &mut Session<'_, B, W>,
+    j: usize,
+    amps: MotorCommand,
+) -> Result<i8, Stop> {
+    let per_second = s.per_second();
+    let counts = s.opts.pulse_counts.clamp(1, MAX_PULSE_COUNTS);
+    let safe = MotorCommand::safe(0);
     let pulse = per_second / 2;
-    for j in 0..3 {
-        let mnm = f64::from(counts) * s.opts.nm_per_count[j] * 1e3;
-        if !s.op.confirm(&format!(
-            "step 3.{} of 3: motor {}: +{counts} DAC counts (about {mnm:.0} mN·m) for 0.5 s, \
-             zero, then -{counts} for 0.5 s, zero. Hold the stylus lightly so joint {} can \
-             move a little. Go on?",
-            j + 1,
-            j + 1,
-            j + 1
-        )) {
-            return Err(Stop::Abort(format!("step 3.{} not confirmed", j + 1)));
-        }
-        let mut dac = [DAC_ZERO; 3];
-        dac[j] = DAC_ZERO + counts;
-        s.note(&format!(
-            "step 3.{}: motor {} at {:#06x}",
-            j + 1,
-            j + 1,
-            dac[j]
-        ))?;
-        let plus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
-        hold(s, amps, pulse, SURPRISE_COUNTS)?;
-        dac[j] = DAC_ZERO - counts;
-        s.note(&format!(
-            "step 3.{}: motor {} at {:#06x}",
-            j + 1,
-            j + 1,
-            dac[j]
-        ))?;
-        let minus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
-        hold(s, amps, pulse / 2, SURPRISE_COUNTS)?;
-        // Amplifiers off while the operator answers.
-        hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
-        let (p, m) = (plus[j], minus[j]);
-        let seen = match (p.signum(), m.signum()) {
-            _ if p.abs() < PULSE_MOTION_COUNTS && m.abs() < PULSE_MOTION_COUNTS => 0,
-            (a, b) if a != 0 && a == -b => a as i8,
-            _ => {
-                return Err(Stop::Abort(format!(
-                    "motor {}: +{counts} moved joint {} by {p} counts and -{counts} by {m}: not \
-                     opposite directions",
-                    j + 1,
-                    j + 1
-                )))
-            }
-        };
-        let answer = s.op.ask(
-            &format!("which way did joint {} go on the first (+) pulse?", j + 1),
-            &[
-                ('+', JOINT_PLUS[j]),
-                ('-', "the other way"),
-                ('0', "it did not move"),
-            ],
-        );
-        let said: i8 = match answer {
-            Some('+') => 1,
-            Some('-') => -1,
-            Some('0') => 0,
-            _ => return Err(Stop::Abort(format!("no answer at step 3.{}", j + 1))),
-        };
-        if said != seen {
-            return Err(Stop::Abort(format!(
-                "joint {}: you saw {} but the encoder counted {p} counts (OpenHaptics-signed): \
-                 check firewire.encoder_sign first (the capture step checks it)",
-                j + 1,
-                match said {
-                    1 => "+",
-                    -1 => "-",
-                    _ => "no motion",
-                }
-            )));
-        }
-        signs[j] = seen;
-        s.say(&format!(
-            "motor {}: {}",
-            j + 1,
-            match seen {
-                0 => "no motion at this size: its sign stays unknown (0)".to_string(),
-                v => format!(
-                    "a positive DAC word turns joint {} {}: dac_sign[{j}] = {v}",
-                    j + 1,
-                    if v > 0 { "positive" } else { "negative" }
-                ),
-            }
-        ))?;
+    let mnm = f64::from(counts) * s.opts.nm_per_count[j] * 1e3;
+    if !s.op.confirm(&format!(
+        "step 3.{} of 3: motor {}: +{counts} DAC counts (about {mnm:.0} mN·m) for 0.5 s, \
+         zero, then -{counts} for 0.5 s, zero. Hold the stylus lightly so joint {} can \
+         move a little. Go on?",
+        j + 1,
+        j + 1,
+        j + 1
+    )) {
+        return Err(Stop::Abort(format!("step 3.{} not confirmed", j + 1)));
     }
+    let mut dac = [DAC_ZERO; 3];
+    dac[j] = DAC_ZERO + counts;
+    s.note(&format!(
+        "step 3.{}: motor {} at {:#06x}",
+        j + 1,
+        j + 1,
+        dac[j]
+    ))?;
+    let plus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
+    hold(s, amps, pulse, SURPRISE_COUNTS)?;
+    dac[j] = DAC_ZERO - counts;
+    s.note(&format!(
+        "step 3.{}: motor {} at {:#06x}",
+        j + 1,
+        j + 1,
+        dac[j]
+    ))?;
+    let minus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
+    hold(s, amps, pulse / 2, SURPRISE_COUNTS)?;
+    // Amplifiers off while the operator answers.
     hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
-    Ok(signs)
+    let (p, m) = (plus[j], minus[j]);
+    let seen = match (p.signum(), m.signum()) {
+        _ if p.abs() < PULSE_MOTION_COUNTS && m.abs() < PULSE_MOTION_COUNTS => 0,
+        (a, b) if a != 0 && a == -b => a as i8,
+        _ => {
+            return Err(Stop::Abort(format!(
+                "motor {}: +{counts} moved joint {} by {p} counts and -{counts} by {m}: not \
+                 opposite directions",
+                j + 1,
+                j + 1
+            )))
+        }
+    };
+    let said = operator_saw(s, j)?;
+    if said != seen {
+        return Err(Stop::Abort(format!(
+            "joint {}: you saw {} but the encoder counted {p} counts (OpenHaptics-signed): \
+             check firewire.encoder_sign first (the capture step checks it)",
+            j + 1,
+            match said {
+                1 => "+",
+                -1 => "-",
+                _ => "no motion",
+            }
+        )));
+    }
+    s.say(&format!(
+        "motor {}: {}",
+        j + 1,
+        match seen {
+            0 => "no motion at this size: its sign stays unknown (0)".to_string(),
+            v => format!(
+                "a positive DAC word turns joint {} {}: dac_sign[{j}] = {v}",
+                j + 1,
+                if v > 0 { "positive" } else { "negative" }
+            ),
+        }
+    ))?;
+    Ok(seen)
+}
+
+/// Which way the operator saw joint `j` go on the + pulse: 1, -1 or 0 (no motion).
+fn operator_saw<B: FireWireBus, W: Write>(s: &mut Session<'_, B, W>, j: usize) -> Result<i8, Stop> {
+    let answer = s.op.ask(
+        &format!("which way did joint {} go on the first (+) pulse?", j + 1),
+        &[
+            ('+', JOINT_PLUS[j]),
+            ('-', "the other way"),
+            ('0', "it did not move"),
+        ],
+    );
+    match answer {
+        Some('+') => Ok(1),
+        Some('-') => Ok(-1),
+        Some('0') => Ok(0),
+        _ => Err(Stop::Abort(format!("no answer at step 3.{}", j + 1))),
+    }
 }
 
 /// What `omnid probe` was asked to do.
