@@ -329,10 +329,10 @@ fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
 }
 
 /// `mock/nnidc-lagmatch.toml` follows a payload as the defaults do (docs/IDENTIFIER.md, "Third
-/// round"): with Γ ten times the defaults' its leakage σ is a tenth of theirs, so the pull
-/// back toward the pre-payload weights (σΓ) is the same. 20 g at the tip from t = 5 s; tracking
-/// RMS over 10–15 s. With the defaults' σ (the leakage ten times stronger) joint 2 stays near
-/// 1.3 mrad against the defaults' 0.33, and this fails.
+/// round"): with Γ twenty times the defaults' its leakage σ is a twentieth of theirs, so the
+/// pull back toward the pre-payload weights (σΓ) is the same. 20 g at the tip from t = 5 s;
+/// tracking RMS over 10–15 s. The old preset (Γ = 500 with the defaults' σ, the leakage ten
+/// times stronger) left joint 2 near 1.3 mrad against the defaults' 0.33, and failed this.
 #[test]
 fn the_lag_matched_preset_follows_a_payload() {
     let dir = tempfile::tempdir().unwrap();
