@@ -181,6 +181,33 @@ fn whole_tick(c: &mut Criterion) {
             })
         });
     }
+    // NNIDC with the lag-matched e1 and the preset's rates (mock/nnidc-lagmatch.toml): the
+    // lag filter's 3×3 products against the default tick above (docs/IDENTIFIER.md).
+    let preset: Config = toml::from_str(include_str!("../mock/nnidc-lagmatch.toml"))
+        .expect("mock/nnidc-lagmatch.toml parses");
+    g.bench_function(
+        "servo tick, nnidc, adapting, lag-matched preset, canned device",
+        |b| {
+            let (tx, rx) = crossbeam_channel::bounded(1 << 16);
+            let kind = ControllerKind::Nnidc;
+            let mut servo = Servo::new(
+                &preset,
+                Box::new(canned(&preset)),
+                ControllerSet::new(&preset, kind, 0.0),
+                Reference::new(Trajectory::Sine, &preset.reference, 1),
+                tx,
+                Arc::new(AtomicBool::new(false)),
+                None,
+                true,
+            );
+            let (id, _) = make_identifier(&preset, kind, None, false, None).unwrap();
+            servo.set_identifier(id);
+            b.iter(|| {
+                servo.tick();
+                while rx.try_recv().is_ok() {}
+            })
+        },
+    );
     g.bench_function("sim plant step (default RK4 substeps)", |b| {
         let mut sim = SimOmni::new(&cfg, false);
         let cmd = encode_command(&MotorCommand::safe(0));

@@ -6,12 +6,15 @@
 //!   PD, computed torque and NNIDC (those weights, adapting) on the same sine.
 //! - [`Experiment::Alpha`] (Figs. 5–6): the α sweep of the adaptation law on one log.
 //! - [`Experiment::Payload`]: a tip payload added mid-run; NNIDC adapting, frozen, and CT.
+//! - [`Experiment::Workspace`]: NNIDC and the oracle on the sine about five centres spread over
+//!   the workspace, NNIDC's ratio to the oracle per joint and centre.
 //!
 //! `--quick` shortens every run and the pre-tuning so the whole experiment takes seconds (for
 //! tests and smoke checks); its numbers are not the paper's.
 
 mod haptics;
 pub mod teleop;
+pub mod workspace;
 
 use crate::cmd::assembly::{SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
 use crate::cmd::identify::{identify, samples_from_log, IdentifyError};
@@ -41,6 +44,8 @@ pub enum Experiment {
     Alpha,
     /// A tip payload added mid-run: adapting NNIDC, frozen NNIDC and CT (`payload`).
     Payload,
+    /// NNIDC and the oracle on the sine about five centres over the workspace (`workspace`).
+    Workspace,
     /// Haptics: transparency, walls, force accuracy (`haptics`).
     Haptics,
     /// Teleoperation between two simulated Omnis: architectures, passivity, delay and loss
@@ -55,6 +60,7 @@ impl FromStr for Experiment {
             "validation" => Ok(Experiment::Validation),
             "alpha" => Ok(Experiment::Alpha),
             "payload" => Ok(Experiment::Payload),
+            "workspace" => Ok(Experiment::Workspace),
             "haptics" => Ok(Experiment::Haptics),
             "teleop" => Ok(Experiment::Teleop),
             _ => Err(format!(
@@ -68,10 +74,11 @@ impl FromStr for Experiment {
 
 impl Experiment {
     /// Every experiment, in the order help and docs list them (the one source of that list).
-    pub const ALL: [Experiment; 5] = [
+    pub const ALL: [Experiment; 6] = [
         Experiment::Validation,
         Experiment::Alpha,
         Experiment::Payload,
+        Experiment::Workspace,
         Experiment::Haptics,
         Experiment::Teleop,
     ];
@@ -82,6 +89,7 @@ impl Experiment {
             Experiment::Validation => "validation",
             Experiment::Alpha => "alpha",
             Experiment::Payload => "payload",
+            Experiment::Workspace => "workspace",
             Experiment::Haptics => "haptics",
             Experiment::Teleop => "teleop",
         }
@@ -185,7 +193,8 @@ pub fn run_experiment(
         Experiment::Validation => validation(out, quick, &mut figures)?,
         Experiment::Alpha => alpha(out, quick, &mut figures)?,
         Experiment::Payload => payload(out, quick, &mut figures)?,
-        // Writes its own report and results.json.
+        // These write their own report and results.json.
+        Experiment::Workspace => return workspace::run_workspace(out, quick),
         Experiment::Haptics => return haptics::run_haptics(out, quick),
         Experiment::Teleop => return teleop::run_teleop(out, quick),
     };
@@ -233,6 +242,7 @@ fn check_outputs(experiment: Experiment, out: &Path, quick: bool) -> Result<(), 
                 run_dir(out.join(name));
             }
         }
+        Experiment::Workspace => workspace::outputs(out, &mut dirs, &mut files),
         // Check their own outputs.
         Experiment::Haptics | Experiment::Teleop => {}
     }

@@ -1,7 +1,10 @@
 //! `omnid experiment … --quick`: each experiment runs end to end on the simulator, writes a
 //! report whose tables hold only finite numbers, and the figures it links.
 
-use omnid::experiment::{run_experiment, Experiment, PAYLOAD_RUNS, VALIDATION_CONTROLLERS};
+use omnid::experiment::workspace::{WorkspaceResults, WORKSPACE_CENTRES};
+use omnid::experiment::{
+    run_experiment, window_rms, Experiment, PAYLOAD_RUNS, VALIDATION_CONTROLLERS,
+};
 use std::path::Path;
 
 /// Every data cell of every markdown table in `md` is a finite number (a lower bound written
@@ -246,4 +249,83 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
     }
     assert!(dir.path().join("teleop-press.png").is_file());
     assert!(dir.path().join("teleop-press.svg").is_file());
+}
+
+/// `omnid experiment workspace --quick` (5 s a centre): every number of its table comes from
+/// the runs. NNIDC's tracking RMS is recomputed from its log (reference against the filtered
+/// angle after the settle time), the ratio is NNIDC ÷ oracle, each log follows its own centre,
+/// and the report prints what `results.json` holds.
+#[test]
+fn workspace_quick_numbers_come_from_its_runs() {
+    state_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let rep = run_experiment(Experiment::Workspace, dir.path(), true).unwrap();
+    let text = std::fs::read_to_string(dir.path().join("results.json")).unwrap();
+    let r: WorkspaceResults = serde_json::from_str(&text).unwrap();
+    assert_eq!(r.centres.len(), WORKSPACE_CENTRES.len());
+    let mut completed = 0;
+    for (c, centre) in r.centres.iter().zip(WORKSPACE_CENTRES) {
+        assert_eq!(c.centre, centre);
+        let oracle = c
+            .oracle_tracking_rms_rad
+            .expect("the oracle completes at every centre");
+        let log = dir.path().join(&c.log);
+        for j in 0..3 {
+            assert!(oracle[j] > 0.0 && oracle[j] < 1e-3, "{oracle:?}");
+        }
+        let Some(nnidc) = c.nnidc_tracking_rms_rad else {
+            assert!(c.fault.is_some() && c.ratio.is_none(), "{c:?}");
+            assert!(rep.markdown.contains("NNIDC stopped"), "{}", rep.markdown);
+            continue;
+        };
+        // The log follows this centre: the mean of the reference over one period (0.5 Hz) is
+        // the centre.
+        let mean_ref = mean_reference(&log, r.settle_s, r.settle_s + 2.0);
+        for j in 0..3 {
+            assert!(
+                (mean_ref[j] - centre[j]).abs() < 1e-3,
+                "{mean_ref:?} {centre:?}"
+            );
+        }
+        completed += 1;
+        let from_log = window_rms(&log, r.settle_s, f64::INFINITY).unwrap();
+        let ratio = c.ratio.unwrap();
+        for j in 0..3 {
+            assert!(
+                (from_log[j] - nnidc[j]).abs() <= 1e-9 * nnidc[j].max(1e-12),
+                "joint {j}: log {from_log:?} vs summary {nnidc:?}"
+            );
+            assert_eq!(ratio[j], nnidc[j] / oracle[j]);
+        }
+        // The report's row shows these ratios.
+        let row = format!("| {:.2} | {:.2} | {:.2} |", ratio[0], ratio[1], ratio[2]);
+        assert!(
+            rep.markdown.contains(&row),
+            "{row} not in\n{}",
+            rep.markdown
+        );
+    }
+    // The README's own centre completes under the shipped weights.
+    assert!(r.centres[0].fault.is_none() && completed >= 1, "{r:?}");
+}
+
+/// Mean of `ref1..3` over `from..to` s of a log.
+fn mean_reference(log: &Path, from: f64, to: f64) -> [f64; 3] {
+    let text = std::fs::read_to_string(log).unwrap();
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |n: &str| head.iter().position(|h| *h == n).unwrap();
+    let (t, refs) = (col("t"), [col("ref1"), col("ref2"), col("ref3")]);
+    let (mut sum, mut n) = ([0.0; 3], 0.0);
+    for line in lines {
+        let f: Vec<&str> = line.split(',').collect();
+        let time: f64 = f[t].parse().unwrap();
+        if time >= from && time < to {
+            for j in 0..3 {
+                sum[j] += f[refs[j]].parse::<f64>().unwrap();
+            }
+            n += 1.0;
+        }
+    }
+    sum.map(|s| s / n)
 }

@@ -327,3 +327,45 @@ fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
         );
     }
 }
+
+/// `mock/nnidc-lagmatch.toml` follows a payload as the defaults do (docs/IDENTIFIER.md, "Third
+/// round"): with Γ twenty times the defaults' its leakage σ is a twentieth of theirs, so the
+/// pull back toward the pre-payload weights (σΓ) is the same. 20 g at the tip from t = 5 s;
+/// tracking RMS over 10–15 s. The old preset (Γ = 500 with the defaults' σ, the leakage ten
+/// times stronger) left joint 2 near 1.3 mrad against the defaults' 0.33, and failed this.
+#[test]
+fn the_lag_matched_preset_follows_a_payload() {
+    let dir = tempfile::tempdir().unwrap();
+    let after = |cfg: &Config, name: &str| {
+        let mut cfg = cfg.clone();
+        cfg.sim.payload_kg = 0.02;
+        cfg.sim.payload_at_s = 5.0;
+        let log = dir.path().join(format!("{name}.csv"));
+        let out = run(
+            &cfg,
+            ControllerKind::Nnidc,
+            Trajectory::Sine,
+            15.0,
+            &log,
+            None,
+            DeviceSpec::Sim,
+        );
+        assert_eq!(out.end, omnid::servo::EndReason::Completed, "{name}");
+        window_rms(&log, 10.0, 15.0)
+    };
+    let defaults = after(&Config::default(), "defaults");
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("mock/nnidc-lagmatch.toml"),
+    )
+    .unwrap();
+    let preset: Config = toml::from_str(&text).unwrap();
+    let tuned = after(&preset, "preset");
+    eprintln!("after the payload: preset {tuned:?}, defaults {defaults:?}");
+    for j in 0..3 {
+        assert!(
+            tuned[j] < 1.5 * defaults[j],
+            "joint {}: preset {tuned:?} vs defaults {defaults:?}",
+            j + 1
+        );
+    }
+}

@@ -145,9 +145,19 @@ fn positive(field: &str, v: f64, hi: f64, allowed: &str) -> Result<(), ConfigErr
 
 impl IdentifierConfig {
     /// Check every value; the first problem is returned naming its field (`identifier.…`).
-    /// Long on purpose: one check per field in the fields' order, so a reader finds each
-    /// field's rule in one place; splitting it would only scatter them.
+    /// One helper per group of fields, called in the fields' order, so the first problem found
+    /// is the same as one check per field in order would find.
     pub(crate) fn validate(&self) -> Result<(), ConfigError> {
+        self.check_law()?;
+        self.check_rates()?;
+        self.check_guards()?;
+        self.check_inertia_bounds()?;
+        self.check_scalings()?;
+        self.check_init()
+    }
+
+    /// The update law: α, the hidden layer's size, the error weights λ1..λ3.
+    fn check_law(&self) -> Result<(), ConfigError> {
         positive(
             "identifier.alpha",
             self.alpha,
@@ -174,6 +184,11 @@ impl IdentifierConfig {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// The learning rates Γ of each network's two layers.
+    fn check_rates(&self) -> Result<(), ConfigError> {
         for (name, rates) in [
             ("rate_m", self.rate_m),
             ("rate_c", self.rate_c),
@@ -190,6 +205,11 @@ impl IdentifierConfig {
                 )?;
             }
         }
+        Ok(())
+    }
+
+    /// The robust modifications: dead zone, σ-modification, projection bound.
+    fn check_guards(&self) -> Result<(), ConfigError> {
         check::in_range(
             "identifier.dead_zone",
             self.dead_zone,
@@ -199,6 +219,11 @@ impl IdentifierConfig {
         )?;
         check::in_range("identifier.sigma", self.sigma, 0.0, 1e3, "0 (off) ..= 1e3")?;
         check::in_range("identifier.w_max", self.w_max, 0.0, 1e6, "0 (off) ..= 1e6")?;
+        Ok(())
+    }
+
+    /// The eigenvalue bounds on M̂ (e4): each in range, the lower below the upper.
+    fn check_inertia_bounds(&self) -> Result<(), ConfigError> {
         check::in_range(
             "identifier.eig_min",
             self.eig_min,
@@ -220,6 +245,11 @@ impl IdentifierConfig {
                 "below identifier.eig_max",
             ));
         }
+        Ok(())
+    }
+
+    /// The networks' input centres and scales and their output scales.
+    fn check_scalings(&self) -> Result<(), ConfigError> {
         for (i, v) in self.q_center.iter().enumerate() {
             check::in_range(
                 &format!("identifier.q_center[{i}]"),
@@ -257,6 +287,11 @@ impl IdentifierConfig {
                 "finite, > 0 and ≤ 10",
             )?;
         }
+        Ok(())
+    }
+
+    /// Fresh networks' start: M̂'s diagonal, the weights' spreads.
+    fn check_init(&self) -> Result<(), ConfigError> {
         for (i, v) in self.init_mass_diag.iter().enumerate() {
             check::in_range(
                 &format!("identifier.init_mass_diag[{i}]"),
