@@ -63,6 +63,13 @@ pub enum DelayControl {
     /// constant delay, so the follower keeps its full stiffness; its position is pulled back
     /// onto the leader's at `wave_drift_hz` (docs/TELEOP.md §5).
     Wave,
+    /// The default: wave variables on a channel to another daemon's arm (a network's delay
+    /// is unknown and changes: the waves hold at every delay up to 1 s and 50 % loss), the
+    /// delay-aware gains between two arms of one daemon (a round trip of a tick or two,
+    /// where the gains are at full stiffness and press a stiff floor more quietly). Chosen
+    /// when the channel opens ([`DelayControl::on_channel`]; docs/TELEOP.md §5); a coupling
+    /// given it unresolved runs the gains.
+    Auto,
 }
 
 impl DelayControl {
@@ -71,6 +78,16 @@ impl DelayControl {
         match self {
             DelayControl::Gains => "gains",
             DelayControl::Wave => "wave",
+            DelayControl::Auto => "auto",
+        }
+    }
+
+    /// What runs on a channel: `auto` is wave variables across daemons, the gains in one.
+    pub fn on_channel(self, across_daemons: bool) -> DelayControl {
+        match self {
+            DelayControl::Auto if across_daemons => DelayControl::Wave,
+            DelayControl::Auto => DelayControl::Gains,
+            chosen => chosen,
         }
     }
 }
@@ -129,8 +146,9 @@ pub struct TeleopConfig {
     /// spring is softened in proportion, so the energy its delayed springs make stays within
     /// what the arms' damping takes, ms (0: fixed gains).
     pub delay_gain_ms: f64,
-    /// How the pair stays stable under delay: `gains` (delay-aware gains) or `wave` (wave
-    /// variables with drift compensation). Both sides must agree.
+    /// How the pair stays stable under delay: `auto` (wave variables with another daemon's
+    /// arm, the delay-aware gains between two arms of this daemon), `gains` (delay-aware
+    /// gains) or `wave` (wave variables with drift compensation). Both sides must agree.
     pub delay_control: DelayControl,
     /// Wave variables: the wave impedance b, N·s/m. A stiff contact a one-way delay T away
     /// feels at most b / T in series with it; free motion drags like a mass b·T.
@@ -175,7 +193,7 @@ impl Default for TeleopConfig {
             operator: Operator::Button1,
             passivity: true,
             delay_gain_ms: 3.0,
-            delay_control: DelayControl::Gains,
+            delay_control: DelayControl::Auto,
             wave_impedance_n_s_per_m: 10.0,
             wave_drift_hz: 3.0,
             passivity_max_damping_n_s_per_m: 10.0,
@@ -188,6 +206,15 @@ impl Default for TeleopConfig {
 }
 
 impl TeleopConfig {
+    /// These settings on a channel to another daemon's arm (`across_daemons`) or between two
+    /// arms of one daemon: `delay_control = "auto"` resolved ([`DelayControl::on_channel`]).
+    pub fn on_channel(&self, across_daemons: bool) -> TeleopConfig {
+        TeleopConfig {
+            delay_control: self.delay_control.on_channel(across_daemons),
+            ..self.clone()
+        }
+    }
+
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
         let ranges: [(&str, f64, f64, f64, &str); 17] = [
@@ -331,5 +358,30 @@ impl TeleopConfig {
             )?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn auto_runs_waves_across_daemons_and_the_gains_in_one_and_a_choice_stays() {
+        let cfg: TeleopConfig = toml::from_str("").unwrap();
+        assert_eq!(cfg.delay_control, DelayControl::Auto);
+        assert_eq!(cfg.on_channel(true).delay_control, DelayControl::Wave);
+        assert_eq!(cfg.on_channel(false).delay_control, DelayControl::Gains);
+        for (text, chosen) in [("gains", DelayControl::Gains), ("wave", DelayControl::Wave)] {
+            let cfg: TeleopConfig = toml::from_str(&format!("delay_control = \"{text}\"")).unwrap();
+            for across in [false, true] {
+                assert_eq!(cfg.on_channel(across).delay_control, chosen);
+            }
+        }
+        // The rest of the settings go through untouched.
+        let cfg = TeleopConfig {
+            stiffness_n_per_mm: 1.5,
+            ..TeleopConfig::default()
+        };
+        assert_eq!(cfg.on_channel(true).stiffness_n_per_mm, 1.5);
     }
 }
