@@ -416,12 +416,17 @@ impl PairSim {
             jitter_ms: one_way * channel.jitter,
             loss: channel.loss,
         };
-        // Stability control is the passivity ports with the delay-aware gains (docs/TELEOP.md
-        // §5): off, the pair runs with fixed gains and no controller.
+        // Stability control is the passivity ports with the delay-aware gains or wave
+        // variables (docs/TELEOP.md §5): off, the pair runs with fixed gains and no controller.
         let tcfg = TeleopConfig {
             architecture: arch,
             passivity,
             delay_gain_ms: if passivity { base.delay_gain_ms } else { 0.0 },
+            delay_control: if passivity {
+                base.delay_control
+            } else {
+                DelayControl::Gains
+            },
             operator: Operator::Always,
             to_leader: imp,
             to_follower: imp,

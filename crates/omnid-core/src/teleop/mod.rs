@@ -63,12 +63,14 @@ pub enum DelayControl {
     /// constant delay, so the follower keeps its full stiffness; its position is pulled back
     /// onto the leader's at `wave_drift_hz` (docs/TELEOP.md §5).
     Wave,
-    /// The default: wave variables on a channel to another daemon's arm (a network's delay
-    /// is unknown and changes: the waves hold at every delay up to 1 s and 50 % loss), the
-    /// delay-aware gains between two arms of one daemon (a round trip of a tick or two,
-    /// where the gains are at full stiffness and press a stiff floor more quietly). Chosen
-    /// when the channel opens ([`DelayControl::on_channel`]; docs/TELEOP.md §5); a coupling
-    /// given it unresolved runs the gains.
+    /// The default: wave variables, except for a position–force pair between two arms of one
+    /// daemon, which runs the delay-aware gains. Across daemons a network's delay is unknown
+    /// and changes, and the waves hold at every delay up to 1 s and 50 % loss; in one daemon
+    /// (a round trip of a tick or two, where the gains keep full stiffness) the gains press
+    /// a stiff floor more quietly in pf, while pp's full-stiffness spring with a tick each
+    /// way rings at about 35 Hz that waves do not. Chosen when the channel opens
+    /// ([`DelayControl::on_channel`]; docs/TELEOP.md §5); a coupling given it unresolved
+    /// runs the gains.
     Auto,
 }
 
@@ -82,10 +84,13 @@ impl DelayControl {
         }
     }
 
-    /// What runs on a channel: `auto` is wave variables across daemons, the gains in one.
-    pub fn on_channel(self, across_daemons: bool) -> DelayControl {
+    /// What runs on a channel (`across_daemons` or not) for `architecture`: `auto` is wave
+    /// variables but for pf in one daemon, which runs the gains; a choice stays.
+    pub fn on_channel(self, across_daemons: bool, architecture: Architecture) -> DelayControl {
         match self {
-            DelayControl::Auto if across_daemons => DelayControl::Wave,
+            DelayControl::Auto if across_daemons || architecture == Architecture::Pp => {
+                DelayControl::Wave
+            }
             DelayControl::Auto => DelayControl::Gains,
             chosen => chosen,
         }
@@ -146,9 +151,9 @@ pub struct TeleopConfig {
     /// spring is softened in proportion, so the energy its delayed springs make stays within
     /// what the arms' damping takes, ms (0: fixed gains).
     pub delay_gain_ms: f64,
-    /// How the pair stays stable under delay: `auto` (wave variables with another daemon's
-    /// arm, the delay-aware gains between two arms of this daemon), `gains` (delay-aware
-    /// gains) or `wave` (wave variables with drift compensation). Both sides must agree.
+    /// How the pair stays stable under delay: `auto` (wave variables, but the delay-aware
+    /// gains for a pf pair of two arms of this daemon), `gains` (delay-aware gains) or `wave`
+    /// (wave variables with drift compensation). Both sides must agree.
     pub delay_control: DelayControl,
     /// Wave variables: the wave impedance b, N·s/m. A stiff contact a one-way delay T away
     /// feels at most b / T in series with it; free motion drags like a mass b·T.
@@ -207,10 +212,13 @@ impl Default for TeleopConfig {
 
 impl TeleopConfig {
     /// These settings on a channel to another daemon's arm (`across_daemons`) or between two
-    /// arms of one daemon: `delay_control = "auto"` resolved ([`DelayControl::on_channel`]).
+    /// arms of one daemon: `delay_control = "auto"` resolved for the architecture
+    /// ([`DelayControl::on_channel`]).
     pub fn on_channel(&self, across_daemons: bool) -> TeleopConfig {
         TeleopConfig {
-            delay_control: self.delay_control.on_channel(across_daemons),
+            delay_control: self
+                .delay_control
+                .on_channel(across_daemons, self.architecture),
             ..self.clone()
         }
     }
@@ -366,15 +374,29 @@ mod tests {
     use super::*;
 
     #[test]
-    fn auto_runs_waves_across_daemons_and_the_gains_in_one_and_a_choice_stays() {
+    fn auto_runs_waves_but_for_pf_in_one_daemon_and_a_choice_stays() {
         let cfg: TeleopConfig = toml::from_str("").unwrap();
         assert_eq!(cfg.delay_control, DelayControl::Auto);
-        assert_eq!(cfg.on_channel(true).delay_control, DelayControl::Wave);
-        assert_eq!(cfg.on_channel(false).delay_control, DelayControl::Gains);
+        for (architecture, in_one, across) in [
+            (Architecture::Pp, DelayControl::Wave, DelayControl::Wave),
+            (Architecture::Pf, DelayControl::Gains, DelayControl::Wave),
+        ] {
+            let cfg = TeleopConfig {
+                architecture,
+                ..cfg.clone()
+            };
+            assert_eq!(cfg.on_channel(false).delay_control, in_one);
+            assert_eq!(cfg.on_channel(true).delay_control, across);
+        }
         for (text, chosen) in [("gains", DelayControl::Gains), ("wave", DelayControl::Wave)] {
-            let cfg: TeleopConfig = toml::from_str(&format!("delay_control = \"{text}\"")).unwrap();
-            for across in [false, true] {
-                assert_eq!(cfg.on_channel(across).delay_control, chosen);
+            for arch in ["pp", "pf"] {
+                let cfg: TeleopConfig = toml::from_str(&format!(
+                    "delay_control = \"{text}\"\narchitecture = \"{arch}\""
+                ))
+                .unwrap();
+                for across in [false, true] {
+                    assert_eq!(cfg.on_channel(across).delay_control, chosen);
+                }
             }
         }
         // The rest of the settings go through untouched.
