@@ -416,16 +416,21 @@ impl PairSim {
             jitter_ms: one_way * channel.jitter,
             loss: channel.loss,
         };
-        // Stability control is the passivity ports with the delay-aware gains (docs/TELEOP.md
-        // §5): off, the pair runs with fixed gains and no controller.
+        // Stability control is the passivity ports with the delay-aware gains or wave
+        // variables (docs/TELEOP.md §5): off, the pair runs with fixed gains and no controller.
         let tcfg = TeleopConfig {
             architecture: arch,
             passivity,
             delay_gain_ms: if passivity { base.delay_gain_ms } else { 0.0 },
+            delay_control: if passivity {
+                base.delay_control
+            } else {
+                DelayControl::Gains
+            },
             operator: Operator::Always,
             to_leader: imp,
             to_follower: imp,
-            ..base.clone()
+            ..base.on_channel(link == Link::Zenoh)
         };
         let dt = 1.0 / lcfg.device.rate_hz;
         let (le, fe, zenoh) = match link {
@@ -873,7 +878,12 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
         CHANNELS.to_vec()
     };
     let (main, presses) = scenes(quick);
-    let base = TeleopConfig::default();
+    // *Before*: the delay-aware gains everywhere (the default `auto` runs them in one daemon
+    // and wave variables across daemons: docs/TELEOP.md §5).
+    let base = TeleopConfig {
+        delay_control: DelayControl::Gains,
+        ..TeleopConfig::default()
+    };
     let mut results = Vec::new();
     let mut traces: Vec<(&'static str, Trace)> = Vec::new();
     for arch in [Architecture::Pp, Architecture::Pf] {
@@ -1030,8 +1040,8 @@ fn acceptance_table(md: &mut String, all: &[PairResult]) {
     md.push_str(
         "## Acceptance at 100 ms (issue #42)\n\nPosition–force, 100 ms round trip, control on: \
          the hand should feel at least 0.5 of the floor's stiffness (1 N press into 1 N/mm) with \
-         a free path within 2 mm. *Before* is the delay-aware gains, *after* wave variables \
-         (docs/TELEOP.md §5).\n\n\
+         a free path within 2 mm. *Before* is the delay-aware gains, *after* wave variables, \
+         the default across daemons (`delay_control = \"auto\"`: docs/TELEOP.md §5).\n\n\
          | delay control | link | CPU hog | press k ratio | free path mm | press stable | free stable | meets |\n\
          |---|---|---|---|---|---|---|---|\n",
     );

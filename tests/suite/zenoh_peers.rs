@@ -495,7 +495,7 @@ mod teleop_over_zenoh {
         // the other architecture, a NaN, and well-formed frames as a second session.
         let lab = pair_key(KEY);
         let wrong = pair_key("c29tZSBvdGhlciBrZXkgb2YgMzIgYnl0ZXMgLi4uLi4=");
-        let good = Agreement::of(&cfg);
+        let good = Agreement::of(&cfg.on_channel(true));
         let pf = Agreement {
             architecture: Architecture::Pf,
             passivity: true,

@@ -187,7 +187,7 @@ fn teleop_lines(s: &Value) -> Vec<(&'static str, String)> {
     let mut lines = vec![(
         "teleop",
         format!(
-            "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {}){}",
+            "{}{} of {} ({}, motion ×{}, force ×{}, operator {}, passivity {}{}){}",
             text(&t["state"])
                 .map(|s| format!("{s}: "))
                 .unwrap_or_default(),
@@ -198,6 +198,9 @@ fn teleop_lines(s: &Value) -> Vec<(&'static str, String)> {
             t["force_scale"],
             text(&t["operator"]).unwrap_or_default(),
             if t["passivity"] == true { "on" } else { "off" },
+            text(&t["delay_control"])
+                .map(|d| format!(", delay control {d}"))
+                .unwrap_or_default(),
             t["round_trip_ms"]
                 .as_f64()
                 .map(|ms| format!("; round trip {ms:.1} ms"))

@@ -196,7 +196,8 @@ impl RemoteChannels for TeleopNet {
             }
         };
         let base = format!("omnid/teleop/{leader}/{follower}");
-        let agreement = Agreement::of(config);
+        // A channel to another daemon: `auto` is wave variables (docs/TELEOP.md §5).
+        let agreement = Agreement::of(&config.on_channel(true));
         let zid = self.session.zid().to_string();
         let (to_net, from_servo) = crossbeam_channel::bounded::<Packet>(QUEUE);
         let (to_servo, from_net) = crossbeam_channel::bounded::<Packet>(QUEUE);

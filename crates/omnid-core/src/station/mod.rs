@@ -777,6 +777,8 @@ impl Station {
             .rendezvous
             .join(&self.s.arm.name, &request.peer, role, &cfg, seed)
             .map_err(|e| OpError::Invalid(e.to_string()))?;
+        // `auto` chooses by the channel: waves to another daemon's arm (docs/TELEOP.md §5).
+        let cfg = cfg.on_channel(line.channel() == "zenoh");
         let dt = self.s.period_ns as f64 * 1e-9;
         let coupling = Box::new(crate::teleop::Coupling::new(role, &cfg, endpoint, dt));
         self.sessions[k].stopped_by = None;
@@ -790,6 +792,7 @@ impl Station {
             force_scale: cfg.force_scale,
             operator: cfg.operator,
             passivity: cfg.passivity,
+            delay_control: cfg.delay_control.as_str(),
             state: None,
             round_trip_ms: None,
             channel: line.channel(),

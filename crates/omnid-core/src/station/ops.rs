@@ -185,6 +185,9 @@ pub struct TeleopReply {
     pub operator: crate::teleop::Operator,
     /// Time-domain passivity on.
     pub passivity: bool,
+    /// What keeps the pair stable under delay on this channel: `gains` or `wave` (`[teleop]
+    /// delay_control = "auto"` resolved: docs/TELEOP.md §5).
+    pub delay_control: &'static str,
     /// In `status`: the side's state at the last tick (`down` once the arm has left
     /// `teleop`: a trip, another mode).
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -63,6 +63,15 @@ pub enum DelayControl {
     /// constant delay, so the follower keeps its full stiffness; its position is pulled back
     /// onto the leader's at `wave_drift_hz` (docs/TELEOP.md §5).
     Wave,
+    /// The default: wave variables, except for a position–force pair between two arms of one
+    /// daemon, which runs the delay-aware gains. Across daemons a network's delay is unknown
+    /// and changes, and the waves hold at every delay up to 1 s and 50 % loss; in one daemon
+    /// (a round trip of a tick or two, where the gains keep full stiffness) the gains press
+    /// a stiff floor more quietly in pf, while pp's full-stiffness spring with a tick each
+    /// way rings at about 35 Hz that waves do not. Chosen when the channel opens
+    /// ([`DelayControl::on_channel`]; docs/TELEOP.md §5); a coupling given it unresolved
+    /// runs the gains.
+    Auto,
 }
 
 impl DelayControl {
@@ -71,6 +80,19 @@ impl DelayControl {
         match self {
             DelayControl::Gains => "gains",
             DelayControl::Wave => "wave",
+            DelayControl::Auto => "auto",
+        }
+    }
+
+    /// What runs on a channel (`across_daemons` or not) for `architecture`: `auto` is wave
+    /// variables but for pf in one daemon, which runs the gains; a choice stays.
+    pub fn on_channel(self, across_daemons: bool, architecture: Architecture) -> DelayControl {
+        match self {
+            DelayControl::Auto if across_daemons || architecture == Architecture::Pp => {
+                DelayControl::Wave
+            }
+            DelayControl::Auto => DelayControl::Gains,
+            chosen => chosen,
         }
     }
 }
@@ -129,8 +151,9 @@ pub struct TeleopConfig {
     /// spring is softened in proportion, so the energy its delayed springs make stays within
     /// what the arms' damping takes, ms (0: fixed gains).
     pub delay_gain_ms: f64,
-    /// How the pair stays stable under delay: `gains` (delay-aware gains) or `wave` (wave
-    /// variables with drift compensation). Both sides must agree.
+    /// How the pair stays stable under delay: `auto` (wave variables, but the delay-aware
+    /// gains for a pf pair of two arms of this daemon), `gains` (delay-aware gains) or `wave`
+    /// (wave variables with drift compensation). Both sides must agree.
     pub delay_control: DelayControl,
     /// Wave variables: the wave impedance b, N·s/m. A stiff contact a one-way delay T away
     /// feels at most b / T in series with it; free motion drags like a mass b·T.
@@ -175,7 +198,7 @@ impl Default for TeleopConfig {
             operator: Operator::Button1,
             passivity: true,
             delay_gain_ms: 3.0,
-            delay_control: DelayControl::Gains,
+            delay_control: DelayControl::Auto,
             wave_impedance_n_s_per_m: 10.0,
             wave_drift_hz: 3.0,
             passivity_max_damping_n_s_per_m: 10.0,
@@ -188,6 +211,18 @@ impl Default for TeleopConfig {
 }
 
 impl TeleopConfig {
+    /// These settings on a channel to another daemon's arm (`across_daemons`) or between two
+    /// arms of one daemon: `delay_control = "auto"` resolved for the architecture
+    /// ([`DelayControl::on_channel`]).
+    pub fn on_channel(&self, across_daemons: bool) -> TeleopConfig {
+        TeleopConfig {
+            delay_control: self
+                .delay_control
+                .on_channel(across_daemons, self.architecture),
+            ..self.clone()
+        }
+    }
+
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
         let ranges: [(&str, f64, f64, f64, &str); 17] = [
@@ -331,5 +366,44 @@ impl TeleopConfig {
             )?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn auto_runs_waves_but_for_pf_in_one_daemon_and_a_choice_stays() {
+        let cfg: TeleopConfig = toml::from_str("").unwrap();
+        assert_eq!(cfg.delay_control, DelayControl::Auto);
+        for (architecture, in_one, across) in [
+            (Architecture::Pp, DelayControl::Wave, DelayControl::Wave),
+            (Architecture::Pf, DelayControl::Gains, DelayControl::Wave),
+        ] {
+            let cfg = TeleopConfig {
+                architecture,
+                ..cfg.clone()
+            };
+            assert_eq!(cfg.on_channel(false).delay_control, in_one);
+            assert_eq!(cfg.on_channel(true).delay_control, across);
+        }
+        for (text, chosen) in [("gains", DelayControl::Gains), ("wave", DelayControl::Wave)] {
+            for arch in ["pp", "pf"] {
+                let cfg: TeleopConfig = toml::from_str(&format!(
+                    "delay_control = \"{text}\"\narchitecture = \"{arch}\""
+                ))
+                .unwrap();
+                for across in [false, true] {
+                    assert_eq!(cfg.on_channel(across).delay_control, chosen);
+                }
+            }
+        }
+        // The rest of the settings go through untouched.
+        let cfg = TeleopConfig {
+            stiffness_n_per_mm: 1.5,
+            ..TeleopConfig::default()
+        };
+        assert_eq!(cfg.on_channel(true).stiffness_n_per_mm, 1.5);
     }
 }

@@ -147,7 +147,8 @@ pub fn encode(p: &Packet, agreement: Agreement) -> [u8; FRAME_BYTES] {
     };
     b[6] = u8::from(agreement.passivity);
     b[7] = match agreement.delay_control {
-        DelayControl::Gains => 0,
+        // An unresolved `auto` runs the gains (docs/TELEOP.md §5).
+        DelayControl::Gains | DelayControl::Auto => 0,
         DelayControl::Wave => 1,
     };
     let mut at = 8;
