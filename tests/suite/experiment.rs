@@ -1,7 +1,7 @@
 //! `omnid experiment … --quick`: each experiment runs end to end on the simulator, writes a
 //! report whose tables hold only finite numbers, and the figures it links.
 
-use omnid::experiment::workspace::{WorkspaceResults, WORKSPACE_CENTRES};
+use omnid::experiment::workspace::{WorkspaceResults, WORKSPACE_CENTRES, WORKSPACE_RUNS};
 use omnid::experiment::{
     run_experiment, window_rms, Experiment, PAYLOAD_RUNS, VALIDATION_CONTROLLERS,
 };
@@ -252,9 +252,9 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
 }
 
 /// `omnid experiment workspace --quick` (5 s a centre): every number of its table comes from
-/// the runs. NNIDC's tracking RMS is recomputed from its log (reference against the filtered
-/// angle after the settle time), the ratio is NNIDC ÷ oracle, each log follows its own centre,
-/// and the report prints what `results.json` holds.
+/// the runs. Each NNIDC run's tracking RMS is recomputed from its log (reference against the
+/// filtered angle after the settle time), each ratio is NNIDC ÷ oracle, each log follows its
+/// own centre, and the report prints the ratios `results.json` holds.
 #[test]
 fn workspace_quick_numbers_come_from_its_runs() {
     state_dir();
@@ -269,44 +269,52 @@ fn workspace_quick_numbers_come_from_its_runs() {
         let oracle = c
             .oracle_tracking_rms_rad
             .expect("the oracle completes at every centre");
-        let log = dir.path().join(&c.log);
         for j in 0..3 {
             assert!(oracle[j] > 0.0 && oracle[j] < 1e-3, "{oracle:?}");
         }
-        let Some(nnidc) = c.nnidc_tracking_rms_rad else {
-            assert!(c.fault.is_some() && c.ratio.is_none(), "{c:?}");
-            assert!(rep.markdown.contains("NNIDC stopped"), "{}", rep.markdown);
-            continue;
-        };
-        // The log follows this centre: the mean of the reference over one period (0.5 Hz) is
-        // the centre.
-        let mean_ref = mean_reference(&log, r.settle_s, r.settle_s + 2.0);
-        for j in 0..3 {
+        let names: Vec<&str> = c.runs.iter().map(|run| run.name.as_str()).collect();
+        assert_eq!(names, WORKSPACE_RUNS.map(|(n, _)| n), "{c:?}");
+        for run in &c.runs {
+            let log = dir.path().join(&run.log);
+            let Some(rms) = run.tracking_rms_rad else {
+                assert!(run.fault.is_some() && run.ratio.is_none(), "{run:?}");
+                assert!(rep.markdown.contains("NNIDC stopped"), "{}", rep.markdown);
+                continue;
+            };
+            completed += 1;
+            // The log follows this centre: the mean of the reference over one period (0.5 Hz)
+            // is the centre.
+            let mean_ref = mean_reference(&log, r.settle_s, r.settle_s + 2.0);
+            let from_log = window_rms(&log, r.settle_s, f64::INFINITY).unwrap();
+            let ratio = run.ratio.unwrap();
+            for j in 0..3 {
+                assert!(
+                    (mean_ref[j] - centre[j]).abs() < 1e-3,
+                    "{mean_ref:?} {centre:?}"
+                );
+                assert!(
+                    (from_log[j] - rms[j]).abs() <= 1e-9 * rms[j].max(1e-12),
+                    "joint {j}: log {from_log:?} vs summary {rms:?}"
+                );
+                assert_eq!(ratio[j], rms[j] / oracle[j]);
+            }
+            // The report's row shows these ratios.
+            let row = format!("| {:.2} | {:.2} | {:.2} |", ratio[0], ratio[1], ratio[2]);
             assert!(
-                (mean_ref[j] - centre[j]).abs() < 1e-3,
-                "{mean_ref:?} {centre:?}"
+                rep.markdown.contains(&row),
+                "{row} not in\n{}",
+                rep.markdown
             );
         }
-        completed += 1;
-        let from_log = window_rms(&log, r.settle_s, f64::INFINITY).unwrap();
-        let ratio = c.ratio.unwrap();
-        for j in 0..3 {
-            assert!(
-                (from_log[j] - nnidc[j]).abs() <= 1e-9 * nnidc[j].max(1e-12),
-                "joint {j}: log {from_log:?} vs summary {nnidc:?}"
-            );
-            assert_eq!(ratio[j], nnidc[j] / oracle[j]);
-        }
-        // The report's row shows these ratios.
-        let row = format!("| {:.2} | {:.2} | {:.2} |", ratio[0], ratio[1], ratio[2]);
-        assert!(
-            rep.markdown.contains(&row),
-            "{row} not in\n{}",
-            rep.markdown
-        );
+        // The two runs differ (the preset is applied).
+        assert_ne!(c.runs[0].nrmse, c.runs[1].nrmse, "{c:?}");
     }
-    // The README's own centre completes under the shipped weights.
-    assert!(r.centres[0].fault.is_none() && completed >= 1, "{r:?}");
+    // The README's own centre completes under both.
+    assert!(
+        r.centres[0].runs.iter().all(|run| run.fault.is_none()),
+        "{r:?}"
+    );
+    assert!(completed >= 2);
 }
 
 /// Mean of `ref1..3` over `from..to` s of a log.
