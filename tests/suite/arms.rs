@@ -272,6 +272,8 @@ fn ctl_teleop_couples_two_arms_of_a_daemon_and_leaves_both_holding() {
         (&json!("follower"), &json!(leader))
     );
     assert_eq!(side["state"], "engaged", "{side}");
+    // The default delay control for pp in one daemon: wave variables (docs/TELEOP.md §5).
+    assert_eq!(side["delay_control"], "wave", "{side}");
     let rtt = side["round_trip_ms"].as_f64().unwrap_or(f64::NAN);
     assert!(rtt.is_finite() && rtt > 0.0, "{side}");
     let out = console.wait_with_output().unwrap();

@@ -865,6 +865,8 @@ fn two_daemons_over_zenoh_pair_their_arms_and_a_killed_peer_leaves_the_leader_li
         let status: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         let side = &status["teleop"];
         assert_eq!(side["channel"], "zenoh", "{side}");
+        // The default delay control across daemons: wave variables (docs/TELEOP.md §5).
+        assert_eq!(side["delay_control"], "wave", "{side}");
         let net = &side["network"];
         assert!(net["received"].as_u64().unwrap_or(0) > 1000, "{side}");
         assert_eq!(net["refused"], 0, "{side}");
