@@ -1246,8 +1246,23 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         .iter()
         .filter(|r| r.link == "in_process" && r.controller == "ct" && r.delay_control == "gains")
         .collect();
-    let results = &local;
-    let mut md = String::from(
+    let mut md = String::new();
+    intro(&mut md, quick);
+    summary_table(&mut md, &local);
+    architecture_tables(&mut md, &local, channels);
+    press_table(&mut md, &local);
+    md.push_str("![press](teleop-press.png)\n\n");
+    controller_table(&mut md, all);
+    acceptance_table(&mut md, all);
+    wave_table(&mut md, all);
+    zenoh_table(&mut md, all);
+    unstable_list(&mut md, all);
+    md
+}
+
+/// The title, the setup, the `--quick` warning and what the columns mean.
+fn intro(md: &mut String, quick: bool) {
+    md.push_str(
         "# Teleoperation between two simulated Omnis\n\n\
          Two simulated Omnis in one process, ticking in lockstep at 1 kHz: the simulated hand on \
          the leader, a floor 10 mm below the workspace centre inside the follower's simulator \
@@ -1267,6 +1282,11 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
          less out at the end (≥ 0: the channel made no energy); *stable*: no trip and no \
          sustained oscillation over the last second.\n\n",
     );
+}
+
+/// Stable runs and the worst channel energy per architecture and passivity control, over the
+/// in-process runs of the fixed gains (`local`).
+fn summary_table(md: &mut String, local: &[&PairResult]) {
     md.push_str("## Summary\n\n| architecture | passivity control | stable runs | worst channel energy (mJ) |\n|---|---|---|---|\n");
     for arch in ["pp", "pf"] {
         for pc in [true, false] {
@@ -1290,6 +1310,10 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         }
     }
     md.push('\n');
+}
+
+/// One table per architecture and passivity control: each channel's scenes.
+fn architecture_tables(md: &mut String, results: &[&PairResult], channels: &[Channel]) {
     for arch in ["pp", "pf"] {
         for pc in [true, false] {
             let _ = writeln!(
@@ -1304,97 +1328,106 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
             );
             md.push_str("| channel | free: position mm | free: stable | press 1 N: force N | press: k ratio | press: stable | tapping: stable | let go: stable | min energy mJ |\n|---|---|---|---|---|---|---|---|---|\n");
             for c in channels {
-                let find = |scene: &str| {
-                    results.iter().copied().find(|r| {
-                        r.architecture == arch
-                            && r.passivity == pc
-                            && r.channel == c.name
-                            && r.scene.starts_with(scene)
-                    })
-                };
-                let st = |r: Option<&PairResult>| match r {
-                    Some(r) if r.stable => "yes".to_string(),
-                    Some(_) => "**no**".to_string(),
-                    None => "–".to_string(),
-                };
-                let free = find("free");
-                let press = find("press 1 N, 1 N/mm");
-                let min_e = results
-                    .iter()
-                    .copied()
-                    .filter(|r| r.architecture == arch && r.passivity == pc && r.channel == c.name)
-                    .map(|r| r.channel_energy_min_j)
-                    .fold(0.0, f64::min);
-                let _ = writeln!(
-                    md,
-                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-                    c.name,
-                    num(free.map_or(f64::NAN, |r| r.position_rms_mm), 2),
-                    st(free),
-                    num(press.map_or(f64::NAN, |r| r.force_rms_n), 3),
-                    num(press.map_or(f64::NAN, |r| r.stiffness_ratio), 2),
-                    st(press),
-                    st(find("tapping")),
-                    st(find("let go")),
-                    num(min_e * 1e3, 2),
-                );
+                channel_row(md, results, arch, pc, c);
             }
             md.push('\n');
         }
     }
+}
+
+/// One channel's row in its architecture's table.
+fn channel_row(md: &mut String, results: &[&PairResult], arch: &str, pc: bool, c: &Channel) {
+    let find = |scene: &str| {
+        results.iter().copied().find(|r| {
+            r.architecture == arch
+                && r.passivity == pc
+                && r.channel == c.name
+                && r.scene.starts_with(scene)
+        })
+    };
+    let st = |r: Option<&PairResult>| match r {
+        Some(r) if r.stable => "yes".to_string(),
+        Some(_) => "**no**".to_string(),
+        None => "–".to_string(),
+    };
+    let free = find("free");
+    let press = find("press 1 N, 1 N/mm");
+    let min_e = results
+        .iter()
+        .copied()
+        .filter(|r| r.architecture == arch && r.passivity == pc && r.channel == c.name)
+        .map(|r| r.channel_energy_min_j)
+        .fold(0.0, f64::min);
+    let _ = writeln!(
+        md,
+        "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+        c.name,
+        num(free.map_or(f64::NAN, |r| r.position_rms_mm), 2),
+        st(free),
+        num(press.map_or(f64::NAN, |r| r.force_rms_n), 3),
+        num(press.map_or(f64::NAN, |r| r.stiffness_ratio), 2),
+        st(press),
+        st(find("tapping")),
+        st(find("let go")),
+        num(min_e * 1e3, 2),
+    );
+}
+
+/// The press sweep on the in-process channel with passivity control (absent under `--quick`).
+fn press_table(md: &mut String, results: &[&PairResult]) {
     let presses: Vec<&PairResult> = results
         .iter()
         .copied()
         .filter(|r| r.scene.starts_with("press") && r.passivity && r.rt_ms == 0.0)
         .collect();
-    if !presses.is_empty() {
-        md.push_str("## Presses, in-process channel, with passivity control\n\n| architecture | scene | force RMS N | k ratio | estimate RMS N | stable |\n|---|---|---|---|---|---|\n");
-        for r in presses {
-            let _ = writeln!(
-                md,
-                "| {} | {} | {} | {} | {} | {} |",
-                r.architecture,
-                r.scene,
-                num(r.force_rms_n, 3),
-                num(r.stiffness_ratio, 2),
-                num(r.fext_rms_n, 3),
-                if r.stable { "yes" } else { "**no**" }
-            );
-        }
-        md.push('\n');
+    if presses.is_empty() {
+        return;
     }
-    md.push_str("![press](teleop-press.png)\n\n");
-    controller_table(&mut md, all);
-    acceptance_table(&mut md, all);
-    wave_table(&mut md, all);
-    zenoh_table(&mut md, all);
+    md.push_str("## Presses, in-process channel, with passivity control\n\n| architecture | scene | force RMS N | k ratio | estimate RMS N | stable |\n|---|---|---|---|---|---|\n");
+    for r in presses {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} |",
+            r.architecture,
+            r.scene,
+            num(r.force_rms_n, 3),
+            num(r.stiffness_ratio, 2),
+            num(r.fext_rms_n, 3),
+            if r.stable { "yes" } else { "**no**" }
+        );
+    }
+    md.push('\n');
+}
+
+/// Each unstable run and why it was called so.
+fn unstable_list(md: &mut String, all: &[PairResult]) {
     let unstable: Vec<&PairResult> = all.iter().filter(|r| !r.stable).collect();
-    if !unstable.is_empty() {
-        md.push_str("## Why the unstable runs were called so\n\n");
-        for r in unstable {
-            let _ = writeln!(
-                md,
-                "- {} {} passivity, {}, {}{}{}{}: {}",
-                r.architecture,
-                if r.passivity { "with" } else { "without" },
-                r.scene,
-                r.channel,
-                if r.link == "zenoh" { " over zenoh" } else { "" },
-                if r.delay_control == "wave" {
-                    " (wave variables)"
-                } else {
-                    ""
-                },
-                if r.cpu_hog {
-                    " (CPU hog beside it)"
-                } else {
-                    ""
-                },
-                r.why.as_deref().unwrap_or("")
-            );
-        }
+    if unstable.is_empty() {
+        return;
     }
-    md
+    md.push_str("## Why the unstable runs were called so\n\n");
+    for r in unstable {
+        let _ = writeln!(
+            md,
+            "- {} {} passivity, {}, {}{}{}{}: {}",
+            r.architecture,
+            if r.passivity { "with" } else { "without" },
+            r.scene,
+            r.channel,
+            if r.link == "zenoh" { " over zenoh" } else { "" },
+            if r.delay_control == "wave" {
+                " (wave variables)"
+            } else {
+                ""
+            },
+            if r.cpu_hog {
+                " (CPU hog beside it)"
+            } else {
+                ""
+            },
+            r.why.as_deref().unwrap_or("")
+        );
+    }
 }
 
 /// The 1 N press into 1 N/mm in process under each model-based controller.
