@@ -872,12 +872,7 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
     for f in ["report.md", "results.json"] {
         crate::output::check_file(&out.join(f))?;
     }
-    let channels: Vec<Channel> = if quick {
-        [0usize, 4, 6, 10].iter().map(|&i| CHANNELS[i]).collect()
-    } else {
-        CHANNELS.to_vec()
-    };
-    let (main, presses) = scenes(quick);
+    let plan = Plan::new(quick);
     // *Before*: the delay-aware gains everywhere (the default `auto` runs them in one daemon
     // and wave variables across daemons: docs/TELEOP.md §5).
     let base = TeleopConfig {
@@ -885,93 +880,182 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
         ..TeleopConfig::default()
     };
     let mut results = Vec::new();
+    let traces = gains_runs(&plan, &base, &mut results)?;
+    nnidc_rows(&plan, &base, &mut results)?;
+    zenoh_rows(&plan, &base, &mut results)?;
+    let wave = TeleopConfig {
+        delay_control: DelayControl::Wave,
+        ..base.clone()
+    };
+    wave_runs(&plan, &wave, &mut results)?;
+    wave_zenoh_rows(&plan, &wave, &mut results)?;
+    write_outputs(out, &plan, &results, &traces)
+}
+
+/// What one run of the experiment covers: its channels and scenes (fewer under `--quick`).
+struct Plan {
+    quick: bool,
+    channels: Vec<Channel>,
+    main: Vec<Scene>,
+    presses: Vec<Scene>,
+    /// The scenes run between two daemons over zenoh.
+    zenoh_scenes: Vec<Scene>,
+}
+
+impl Plan {
+    fn new(quick: bool) -> Plan {
+        let channels: Vec<Channel> = if quick {
+            [0usize, 4, 6, 10].iter().map(|&i| CHANNELS[i]).collect()
+        } else {
+            CHANNELS.to_vec()
+        };
+        let (main, presses) = scenes(quick);
+        let zenoh_scenes: Vec<Scene> = if quick { vec![main[1]] } else { main.clone() };
+        Plan {
+            quick,
+            channels,
+            main,
+            presses,
+            zenoh_scenes,
+        }
+    }
+}
+
+/// The in-process runs under `base`'s gains: every architecture with and without passivity
+/// control, every main scene and channel, and the press sweep at 0 and 100 ms. Returns the
+/// figure's traces.
+fn gains_runs(
+    plan: &Plan,
+    base: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<Vec<(&'static str, Trace)>, ExperimentError> {
+    let quick = plan.quick;
     let mut traces: Vec<(&'static str, Trace)> = Vec::new();
     for arch in [Architecture::Pp, Architecture::Pf] {
         for passivity in [true, false] {
-            for scene in &main {
-                for c in &channels {
-                    let (r, tr) = run_pair(&base, arch, passivity, scene, c, quick)?;
+            for scene in &plan.main {
+                for c in &plan.channels {
+                    let (r, tr) = run_pair(base, arch, passivity, scene, c, quick)?;
                     if let Some(title) = figure_panel(arch, passivity, scene, c) {
                         traces.push((title, tr));
                     }
                     results.push(r);
                 }
             }
-            for scene in &presses {
+            for scene in &plan.presses {
                 for c in [CHANNELS[0], CHANNELS[4]] {
-                    results.push(run_pair(&base, arch, passivity, scene, &c, quick)?.0);
+                    results.push(run_pair(base, arch, passivity, scene, &c, quick)?.0);
                 }
             }
         }
     }
-    // The 1 N press in process, control on, under nnidc beside the ct rows above: the
-    // compensation and the follower's force estimate then come from the learned model.
+    Ok(traces)
+}
+
+/// The 1 N press in process, control on, under nnidc beside the ct rows: the compensation and
+/// the follower's force estimate then come from the learned model.
+fn nnidc_rows(
+    plan: &Plan,
+    base: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
     for arch in [Architecture::Pp, Architecture::Pf] {
         let (r, _) = run_pair_under(
-            &base,
+            base,
             arch,
             true,
-            &main[1],
+            &plan.main[1],
             &CHANNELS[0],
-            quick,
+            plan.quick,
             Link::InProcess,
             ControllerKind::Nnidc,
         )?;
         results.push(r);
     }
-    // The same rows between two daemons over zenoh on loopback, at 0 and 100 ms, with
-    // control on (real time: these take as long as they last).
-    let zenoh_scenes: Vec<Scene> = if quick { vec![main[1]] } else { main.clone() };
+    Ok(())
+}
+
+/// The gains' rows between two daemons over zenoh on loopback, at 0 and 100 ms, with control
+/// on (real time: these take as long as they last).
+fn zenoh_rows(
+    plan: &Plan,
+    base: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
     for arch in [Architecture::Pp, Architecture::Pf] {
-        for scene in &zenoh_scenes {
+        for scene in &plan.zenoh_scenes {
             for c in [CHANNELS[0], CHANNELS[4]] {
-                results.push(run_pair_over(&base, arch, true, scene, &c, quick, Link::Zenoh)?.0);
+                results
+                    .push(run_pair_over(base, arch, true, scene, &c, plan.quick, Link::Zenoh)?.0);
             }
         }
     }
-    // Wave variables (docs/TELEOP.md §5) beside the delay-aware gains: every main scene and
-    // channel, and the press sweep at 0 and 100 ms, with control on.
-    let wave = TeleopConfig {
-        delay_control: DelayControl::Wave,
-        ..base.clone()
-    };
+    Ok(())
+}
+
+/// Wave variables (docs/TELEOP.md §5) beside the delay-aware gains: every main scene and
+/// channel, and the press sweep at 0 and 100 ms, with control on.
+fn wave_runs(
+    plan: &Plan,
+    wave: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
+    let quick = plan.quick;
     for arch in [Architecture::Pp, Architecture::Pf] {
-        for scene in &main {
-            for c in &channels {
-                results.push(run_pair(&wave, arch, true, scene, c, quick)?.0);
+        for scene in &plan.main {
+            for c in &plan.channels {
+                results.push(run_pair(wave, arch, true, scene, c, quick)?.0);
             }
         }
-        for scene in &presses {
+        for scene in &plan.presses {
             for c in [CHANNELS[0], CHANNELS[4]] {
-                results.push(run_pair(&wave, arch, true, scene, &c, quick)?.0);
+                results.push(run_pair(wave, arch, true, scene, &c, quick)?.0);
             }
         }
     }
-    // pf with wave variables over zenoh at 100 ms, alone and with a thread spinning beside
-    // it (a CPU hog: on a 2-core machine it takes a core from the two servo threads).
+    Ok(())
+}
+
+/// pf with wave variables over zenoh at 100 ms, alone and with a thread spinning beside it (a
+/// CPU hog: on a 2-core machine it takes a core from the two servo threads).
+fn wave_zenoh_rows(
+    plan: &Plan,
+    wave: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
     for hog in [false, true] {
         let _spin = hog.then(Spinner::start);
-        for scene in &zenoh_scenes {
+        for scene in &plan.zenoh_scenes {
             let (mut r, _) = run_pair_over(
-                &wave,
+                wave,
                 Architecture::Pf,
                 true,
                 scene,
                 &CHANNELS[4],
-                quick,
+                plan.quick,
                 Link::Zenoh,
             )?;
             r.cpu_hog = hog;
             results.push(r);
         }
     }
+    Ok(())
+}
+
+/// The press figure, `results.json` and `report.md` in `out`.
+fn write_outputs(
+    out: &Path,
+    plan: &Plan,
+    results: &[PairResult],
+    traces: &[(&'static str, Trace)],
+) -> Result<ExperimentReport, ExperimentError> {
     let mut figures = Vec::new();
-    press_figure(out, &traces, &mut figures)?;
-    let md = report(&results, &channels, quick);
+    press_figure(out, traces, &mut figures)?;
+    let md = report(results, &plan.channels, plan.quick);
     let json = serde_json::json!({
-        "quick": quick,
+        "quick": plan.quick,
         "floor_mm": FLOOR_MM,
-        "channels": channels,
+        "channels": plan.channels,
         "runs": results,
     });
     let text = serde_json::to_string_pretty(&json)
