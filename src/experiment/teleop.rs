@@ -872,12 +872,7 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
     for f in ["report.md", "results.json"] {
         crate::output::check_file(&out.join(f))?;
     }
-    let channels: Vec<Channel> = if quick {
-        [0usize, 4, 6, 10].iter().map(|&i| CHANNELS[i]).collect()
-    } else {
-        CHANNELS.to_vec()
-    };
-    let (main, presses) = scenes(quick);
+    let plan = Plan::new(quick);
     // *Before*: the delay-aware gains everywhere (the default `auto` runs them in one daemon
     // and wave variables across daemons: docs/TELEOP.md §5).
     let base = TeleopConfig {
@@ -885,93 +880,182 @@ pub fn run_teleop(out: &Path, quick: bool) -> Result<ExperimentReport, Experimen
         ..TeleopConfig::default()
     };
     let mut results = Vec::new();
+    let traces = gains_runs(&plan, &base, &mut results)?;
+    nnidc_rows(&plan, &base, &mut results)?;
+    zenoh_rows(&plan, &base, &mut results)?;
+    let wave = TeleopConfig {
+        delay_control: DelayControl::Wave,
+        ..base.clone()
+    };
+    wave_runs(&plan, &wave, &mut results)?;
+    wave_zenoh_rows(&plan, &wave, &mut results)?;
+    write_outputs(out, &plan, &results, &traces)
+}
+
+/// What one run of the experiment covers: its channels and scenes (fewer under `--quick`).
+struct Plan {
+    quick: bool,
+    channels: Vec<Channel>,
+    main: Vec<Scene>,
+    presses: Vec<Scene>,
+    /// The scenes run between two daemons over zenoh.
+    zenoh_scenes: Vec<Scene>,
+}
+
+impl Plan {
+    fn new(quick: bool) -> Plan {
+        let channels: Vec<Channel> = if quick {
+            [0usize, 4, 6, 10].iter().map(|&i| CHANNELS[i]).collect()
+        } else {
+            CHANNELS.to_vec()
+        };
+        let (main, presses) = scenes(quick);
+        let zenoh_scenes: Vec<Scene> = if quick { vec![main[1]] } else { main.clone() };
+        Plan {
+            quick,
+            channels,
+            main,
+            presses,
+            zenoh_scenes,
+        }
+    }
+}
+
+/// The in-process runs under `base`'s gains: every architecture with and without passivity
+/// control, every main scene and channel, and the press sweep at 0 and 100 ms. Returns the
+/// figure's traces.
+fn gains_runs(
+    plan: &Plan,
+    base: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<Vec<(&'static str, Trace)>, ExperimentError> {
+    let quick = plan.quick;
     let mut traces: Vec<(&'static str, Trace)> = Vec::new();
     for arch in [Architecture::Pp, Architecture::Pf] {
         for passivity in [true, false] {
-            for scene in &main {
-                for c in &channels {
-                    let (r, tr) = run_pair(&base, arch, passivity, scene, c, quick)?;
+            for scene in &plan.main {
+                for c in &plan.channels {
+                    let (r, tr) = run_pair(base, arch, passivity, scene, c, quick)?;
                     if let Some(title) = figure_panel(arch, passivity, scene, c) {
                         traces.push((title, tr));
                     }
                     results.push(r);
                 }
             }
-            for scene in &presses {
+            for scene in &plan.presses {
                 for c in [CHANNELS[0], CHANNELS[4]] {
-                    results.push(run_pair(&base, arch, passivity, scene, &c, quick)?.0);
+                    results.push(run_pair(base, arch, passivity, scene, &c, quick)?.0);
                 }
             }
         }
     }
-    // The 1 N press in process, control on, under nnidc beside the ct rows above: the
-    // compensation and the follower's force estimate then come from the learned model.
+    Ok(traces)
+}
+
+/// The 1 N press in process, control on, under nnidc beside the ct rows: the compensation and
+/// the follower's force estimate then come from the learned model.
+fn nnidc_rows(
+    plan: &Plan,
+    base: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
     for arch in [Architecture::Pp, Architecture::Pf] {
         let (r, _) = run_pair_under(
-            &base,
+            base,
             arch,
             true,
-            &main[1],
+            &plan.main[1],
             &CHANNELS[0],
-            quick,
+            plan.quick,
             Link::InProcess,
             ControllerKind::Nnidc,
         )?;
         results.push(r);
     }
-    // The same rows between two daemons over zenoh on loopback, at 0 and 100 ms, with
-    // control on (real time: these take as long as they last).
-    let zenoh_scenes: Vec<Scene> = if quick { vec![main[1]] } else { main.clone() };
+    Ok(())
+}
+
+/// The gains' rows between two daemons over zenoh on loopback, at 0 and 100 ms, with control
+/// on (real time: these take as long as they last).
+fn zenoh_rows(
+    plan: &Plan,
+    base: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
     for arch in [Architecture::Pp, Architecture::Pf] {
-        for scene in &zenoh_scenes {
+        for scene in &plan.zenoh_scenes {
             for c in [CHANNELS[0], CHANNELS[4]] {
-                results.push(run_pair_over(&base, arch, true, scene, &c, quick, Link::Zenoh)?.0);
+                results
+                    .push(run_pair_over(base, arch, true, scene, &c, plan.quick, Link::Zenoh)?.0);
             }
         }
     }
-    // Wave variables (docs/TELEOP.md §5) beside the delay-aware gains: every main scene and
-    // channel, and the press sweep at 0 and 100 ms, with control on.
-    let wave = TeleopConfig {
-        delay_control: DelayControl::Wave,
-        ..base.clone()
-    };
+    Ok(())
+}
+
+/// Wave variables (docs/TELEOP.md §5) beside the delay-aware gains: every main scene and
+/// channel, and the press sweep at 0 and 100 ms, with control on.
+fn wave_runs(
+    plan: &Plan,
+    wave: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
+    let quick = plan.quick;
     for arch in [Architecture::Pp, Architecture::Pf] {
-        for scene in &main {
-            for c in &channels {
-                results.push(run_pair(&wave, arch, true, scene, c, quick)?.0);
+        for scene in &plan.main {
+            for c in &plan.channels {
+                results.push(run_pair(wave, arch, true, scene, c, quick)?.0);
             }
         }
-        for scene in &presses {
+        for scene in &plan.presses {
             for c in [CHANNELS[0], CHANNELS[4]] {
-                results.push(run_pair(&wave, arch, true, scene, &c, quick)?.0);
+                results.push(run_pair(wave, arch, true, scene, &c, quick)?.0);
             }
         }
     }
-    // pf with wave variables over zenoh at 100 ms, alone and with a thread spinning beside
-    // it (a CPU hog: on a 2-core machine it takes a core from the two servo threads).
+    Ok(())
+}
+
+/// pf with wave variables over zenoh at 100 ms, alone and with a thread spinning beside it (a
+/// CPU hog: on a 2-core machine it takes a core from the two servo threads).
+fn wave_zenoh_rows(
+    plan: &Plan,
+    wave: &TeleopConfig,
+    results: &mut Vec<PairResult>,
+) -> Result<(), ExperimentError> {
     for hog in [false, true] {
         let _spin = hog.then(Spinner::start);
-        for scene in &zenoh_scenes {
+        for scene in &plan.zenoh_scenes {
             let (mut r, _) = run_pair_over(
-                &wave,
+                wave,
                 Architecture::Pf,
                 true,
                 scene,
                 &CHANNELS[4],
-                quick,
+                plan.quick,
                 Link::Zenoh,
             )?;
             r.cpu_hog = hog;
             results.push(r);
         }
     }
+    Ok(())
+}
+
+/// The press figure, `results.json` and `report.md` in `out`.
+fn write_outputs(
+    out: &Path,
+    plan: &Plan,
+    results: &[PairResult],
+    traces: &[(&'static str, Trace)],
+) -> Result<ExperimentReport, ExperimentError> {
     let mut figures = Vec::new();
-    press_figure(out, &traces, &mut figures)?;
-    let md = report(&results, &channels, quick);
+    press_figure(out, traces, &mut figures)?;
+    let md = report(results, &plan.channels, plan.quick);
     let json = serde_json::json!({
-        "quick": quick,
+        "quick": plan.quick,
         "floor_mm": FLOOR_MM,
-        "channels": channels,
+        "channels": plan.channels,
         "runs": results,
     });
     let text = serde_json::to_string_pretty(&json)
@@ -1246,8 +1330,23 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         .iter()
         .filter(|r| r.link == "in_process" && r.controller == "ct" && r.delay_control == "gains")
         .collect();
-    let results = &local;
-    let mut md = String::from(
+    let mut md = String::new();
+    intro(&mut md, quick);
+    summary_table(&mut md, &local);
+    architecture_tables(&mut md, &local, channels);
+    press_table(&mut md, &local);
+    md.push_str("![press](teleop-press.png)\n\n");
+    controller_table(&mut md, all);
+    acceptance_table(&mut md, all);
+    wave_table(&mut md, all);
+    zenoh_table(&mut md, all);
+    unstable_list(&mut md, all);
+    md
+}
+
+/// The title, the setup, the `--quick` warning and what the columns mean.
+fn intro(md: &mut String, quick: bool) {
+    md.push_str(
         "# Teleoperation between two simulated Omnis\n\n\
          Two simulated Omnis in one process, ticking in lockstep at 1 kHz: the simulated hand on \
          the leader, a floor 10 mm below the workspace centre inside the follower's simulator \
@@ -1267,6 +1366,11 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
          less out at the end (≥ 0: the channel made no energy); *stable*: no trip and no \
          sustained oscillation over the last second.\n\n",
     );
+}
+
+/// Stable runs and the worst channel energy per architecture and passivity control, over the
+/// in-process runs of the fixed gains (`local`).
+fn summary_table(md: &mut String, local: &[&PairResult]) {
     md.push_str("## Summary\n\n| architecture | passivity control | stable runs | worst channel energy (mJ) |\n|---|---|---|---|\n");
     for arch in ["pp", "pf"] {
         for pc in [true, false] {
@@ -1290,6 +1394,10 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
         }
     }
     md.push('\n');
+}
+
+/// One table per architecture and passivity control: each channel's scenes.
+fn architecture_tables(md: &mut String, results: &[&PairResult], channels: &[Channel]) {
     for arch in ["pp", "pf"] {
         for pc in [true, false] {
             let _ = writeln!(
@@ -1304,97 +1412,106 @@ fn report(all: &[PairResult], channels: &[Channel], quick: bool) -> String {
             );
             md.push_str("| channel | free: position mm | free: stable | press 1 N: force N | press: k ratio | press: stable | tapping: stable | let go: stable | min energy mJ |\n|---|---|---|---|---|---|---|---|---|\n");
             for c in channels {
-                let find = |scene: &str| {
-                    results.iter().copied().find(|r| {
-                        r.architecture == arch
-                            && r.passivity == pc
-                            && r.channel == c.name
-                            && r.scene.starts_with(scene)
-                    })
-                };
-                let st = |r: Option<&PairResult>| match r {
-                    Some(r) if r.stable => "yes".to_string(),
-                    Some(_) => "**no**".to_string(),
-                    None => "–".to_string(),
-                };
-                let free = find("free");
-                let press = find("press 1 N, 1 N/mm");
-                let min_e = results
-                    .iter()
-                    .copied()
-                    .filter(|r| r.architecture == arch && r.passivity == pc && r.channel == c.name)
-                    .map(|r| r.channel_energy_min_j)
-                    .fold(0.0, f64::min);
-                let _ = writeln!(
-                    md,
-                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-                    c.name,
-                    num(free.map_or(f64::NAN, |r| r.position_rms_mm), 2),
-                    st(free),
-                    num(press.map_or(f64::NAN, |r| r.force_rms_n), 3),
-                    num(press.map_or(f64::NAN, |r| r.stiffness_ratio), 2),
-                    st(press),
-                    st(find("tapping")),
-                    st(find("let go")),
-                    num(min_e * 1e3, 2),
-                );
+                channel_row(md, results, arch, pc, c);
             }
             md.push('\n');
         }
     }
+}
+
+/// One channel's row in its architecture's table.
+fn channel_row(md: &mut String, results: &[&PairResult], arch: &str, pc: bool, c: &Channel) {
+    let find = |scene: &str| {
+        results.iter().copied().find(|r| {
+            r.architecture == arch
+                && r.passivity == pc
+                && r.channel == c.name
+                && r.scene.starts_with(scene)
+        })
+    };
+    let st = |r: Option<&PairResult>| match r {
+        Some(r) if r.stable => "yes".to_string(),
+        Some(_) => "**no**".to_string(),
+        None => "–".to_string(),
+    };
+    let free = find("free");
+    let press = find("press 1 N, 1 N/mm");
+    let min_e = results
+        .iter()
+        .copied()
+        .filter(|r| r.architecture == arch && r.passivity == pc && r.channel == c.name)
+        .map(|r| r.channel_energy_min_j)
+        .fold(0.0, f64::min);
+    let _ = writeln!(
+        md,
+        "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+        c.name,
+        num(free.map_or(f64::NAN, |r| r.position_rms_mm), 2),
+        st(free),
+        num(press.map_or(f64::NAN, |r| r.force_rms_n), 3),
+        num(press.map_or(f64::NAN, |r| r.stiffness_ratio), 2),
+        st(press),
+        st(find("tapping")),
+        st(find("let go")),
+        num(min_e * 1e3, 2),
+    );
+}
+
+/// The press sweep on the in-process channel with passivity control (absent under `--quick`).
+fn press_table(md: &mut String, results: &[&PairResult]) {
     let presses: Vec<&PairResult> = results
         .iter()
         .copied()
         .filter(|r| r.scene.starts_with("press") && r.passivity && r.rt_ms == 0.0)
         .collect();
-    if !presses.is_empty() {
-        md.push_str("## Presses, in-process channel, with passivity control\n\n| architecture | scene | force RMS N | k ratio | estimate RMS N | stable |\n|---|---|---|---|---|---|\n");
-        for r in presses {
-            let _ = writeln!(
-                md,
-                "| {} | {} | {} | {} | {} | {} |",
-                r.architecture,
-                r.scene,
-                num(r.force_rms_n, 3),
-                num(r.stiffness_ratio, 2),
-                num(r.fext_rms_n, 3),
-                if r.stable { "yes" } else { "**no**" }
-            );
-        }
-        md.push('\n');
+    if presses.is_empty() {
+        return;
     }
-    md.push_str("![press](teleop-press.png)\n\n");
-    controller_table(&mut md, all);
-    acceptance_table(&mut md, all);
-    wave_table(&mut md, all);
-    zenoh_table(&mut md, all);
+    md.push_str("## Presses, in-process channel, with passivity control\n\n| architecture | scene | force RMS N | k ratio | estimate RMS N | stable |\n|---|---|---|---|---|---|\n");
+    for r in presses {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {} |",
+            r.architecture,
+            r.scene,
+            num(r.force_rms_n, 3),
+            num(r.stiffness_ratio, 2),
+            num(r.fext_rms_n, 3),
+            if r.stable { "yes" } else { "**no**" }
+        );
+    }
+    md.push('\n');
+}
+
+/// Each unstable run and why it was called so.
+fn unstable_list(md: &mut String, all: &[PairResult]) {
     let unstable: Vec<&PairResult> = all.iter().filter(|r| !r.stable).collect();
-    if !unstable.is_empty() {
-        md.push_str("## Why the unstable runs were called so\n\n");
-        for r in unstable {
-            let _ = writeln!(
-                md,
-                "- {} {} passivity, {}, {}{}{}{}: {}",
-                r.architecture,
-                if r.passivity { "with" } else { "without" },
-                r.scene,
-                r.channel,
-                if r.link == "zenoh" { " over zenoh" } else { "" },
-                if r.delay_control == "wave" {
-                    " (wave variables)"
-                } else {
-                    ""
-                },
-                if r.cpu_hog {
-                    " (CPU hog beside it)"
-                } else {
-                    ""
-                },
-                r.why.as_deref().unwrap_or("")
-            );
-        }
+    if unstable.is_empty() {
+        return;
     }
-    md
+    md.push_str("## Why the unstable runs were called so\n\n");
+    for r in unstable {
+        let _ = writeln!(
+            md,
+            "- {} {} passivity, {}, {}{}{}{}: {}",
+            r.architecture,
+            if r.passivity { "with" } else { "without" },
+            r.scene,
+            r.channel,
+            if r.link == "zenoh" { " over zenoh" } else { "" },
+            if r.delay_control == "wave" {
+                " (wave variables)"
+            } else {
+                ""
+            },
+            if r.cpu_hog {
+                " (CPU hog beside it)"
+            } else {
+                ""
+            },
+            r.why.as_deref().unwrap_or("")
+        );
+    }
 }
 
 /// The 1 N press into 1 N/mm in process under each model-based controller.

@@ -403,14 +403,27 @@ impl Coupling {
         V3::zeros()
     }
 
+    /// Leader: its engagement and clutch this tick, the packet it sends and the force on its
+    /// tip.
     fn lead(&mut self, x: &SideInput, link_up: bool, peer_down: bool) -> V3 {
+        self.lead_engagement(x, link_up, peer_down);
+        self.lead_clutch(x);
+        let (d, dv, engage, flags) = self.lead_motion(x);
+        if !self.wave() {
+            self.send(x, engage, flags, d, dv);
+            return self.lead_force(x, link_up, d, dv);
+        }
+        self.lead_wave(x, link_up, d, dv, engage, flags)
+    }
+
+    /// Leader: engage, fade out or go down as the operator, the link and the other side say.
+    fn lead_engagement(&mut self, x: &SideInput, link_up: bool, peer_down: bool) {
         let present = match self.cfg.operator {
             Operator::Button1 => x.buttons[0],
             Operator::Always => true,
         };
         let pressed_now = x.buttons[0] && !self.button_was;
         self.button_was = x.buttons[0];
-        let clutch = x.buttons[1];
         let following = matches!(self.state, TeleopState::Engaged | TeleopState::Clutched);
         if following && peer_down {
             // The other side ended or faulted: a later engagement is a new one.
@@ -438,20 +451,7 @@ impl Coupling {
                 }
             };
             if may {
-                if !(self.resume && self.epoch != 0) {
-                    self.epoch += 1;
-                    self.origin_mm = x.tip_mm;
-                }
-                self.resume = false;
-                // No packet of this engagement yet: no force until one (below), then the ramp
-                // from the engagement on.
-                self.matched_at = f64::NEG_INFINITY;
-                self.matched_force_n = 0.0;
-                self.silence_left = 1.0;
-                self.held_mm = V3::zeros();
-                self.engaged_at = x.t;
-                self.fresh_press_needed = false;
-                self.state = TeleopState::Engaged;
+                self.engage(x);
             }
         }
         if peer_down && !matches!(self.state, TeleopState::Engaged | TeleopState::Clutched) {
@@ -463,8 +463,30 @@ impl Coupling {
                 TeleopState::LinkLost
             };
         }
-        // The clutch: hold the scaled motion where it is, and on release measure again from
-        // where the leader is so the follower does not jump.
+    }
+
+    /// Leader: a new engagement (a new epoch and origin), or the resumed one after a lost link.
+    fn engage(&mut self, x: &SideInput) {
+        if !(self.resume && self.epoch != 0) {
+            self.epoch += 1;
+            self.origin_mm = x.tip_mm;
+        }
+        self.resume = false;
+        // No packet of this engagement yet: no force until one (see `lead_force`), then the
+        // ramp from the engagement on.
+        self.matched_at = f64::NEG_INFINITY;
+        self.matched_force_n = 0.0;
+        self.silence_left = 1.0;
+        self.held_mm = V3::zeros();
+        self.engaged_at = x.t;
+        self.fresh_press_needed = false;
+        self.state = TeleopState::Engaged;
+    }
+
+    /// Leader: the clutch holds the scaled motion where it is, and on release measures again
+    /// from where the leader is so the follower does not jump.
+    fn lead_clutch(&mut self, x: &SideInput) {
+        let clutch = x.buttons[1];
         let s = self.cfg.motion_scale;
         match self.state {
             TeleopState::Engaged if clutch => {
@@ -478,7 +500,12 @@ impl Coupling {
             }
             _ => {}
         }
-        let (d, dv, engage, flags) = match self.state {
+    }
+
+    /// Leader: the scaled motion `d` and velocity `dv` it sends, with the engagement and flags.
+    fn lead_motion(&self, x: &SideInput) -> (V3, V3, u32, u32) {
+        let s = self.cfg.motion_scale;
+        match self.state {
             TeleopState::Engaged => (
                 (x.tip_mm - self.origin_mm) * s,
                 x.vel_mm_s * s,
@@ -487,11 +514,19 @@ impl Coupling {
             ),
             TeleopState::Clutched => (self.held_mm, V3::zeros(), self.epoch, packet_flags::CLUTCH),
             _ => (V3::zeros(), V3::zeros(), 0, 0),
-        };
-        if !self.wave() {
-            self.send(x, engage, flags, d, dv);
-            return self.lead_force(x, link_up, d, dv);
         }
+    }
+
+    /// Leader under wave variables: the force on its tip, and the wave it sends.
+    fn lead_wave(
+        &mut self,
+        x: &SideInput,
+        link_up: bool,
+        d: V3,
+        dv: V3,
+        engage: u32,
+        flags: u32,
+    ) -> V3 {
         // The wave impedance is a damper on this side's velocity: on the coupling's fast,
         // noisy velocity it was felt as a buzz, so it acts on the velocity low-passed like
         // the waves (what the port relation below is kept on).

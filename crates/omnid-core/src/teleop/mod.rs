@@ -225,7 +225,18 @@ impl TeleopConfig {
 
     /// Check every value; the first problem names its field (`teleop.…`).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let ranges: [(&str, f64, f64, f64, &str); 17] = [
+        self.check_delay_control()?;
+        self.check_coupling()?;
+        self.check_link()?;
+        self.check_passivity()?;
+        self.check_estimator()?;
+        check_impairment("to_leader", &self.to_leader)?;
+        check_impairment("to_follower", &self.to_follower)
+    }
+
+    /// The delay control's settings: the wave impedance and drift, the delay-aware gains.
+    fn check_delay_control(&self) -> Result<(), ConfigError> {
+        check_ranges(&[
             (
                 "teleop.wave_impedance_n_s_per_m",
                 self.wave_impedance_n_s_per_m,
@@ -247,6 +258,12 @@ impl TeleopConfig {
                 1000.0,
                 "0 ..= 1000 ms",
             ),
+        ])
+    }
+
+    /// The coupling's gains, scales and force limits.
+    fn check_coupling(&self) -> Result<(), ConfigError> {
+        check_ranges(&[
             (
                 "teleop.leader_damping_n_s_per_m",
                 self.leader_damping_n_s_per_m,
@@ -298,6 +315,12 @@ impl TeleopConfig {
                 2.0,
                 "0 ..= 2 N",
             ),
+        ])
+    }
+
+    /// The link's watch: its timeout, the fade when it drops, the realignment when it returns.
+    fn check_link(&self) -> Result<(), ConfigError> {
+        check_ranges(&[
             (
                 "teleop.link_timeout_ms",
                 self.link_timeout_ms,
@@ -313,6 +336,12 @@ impl TeleopConfig {
                 500.0,
                 "1 ..= 500 mm/s",
             ),
+        ])
+    }
+
+    /// The passivity ports' damper cap and energy reserve.
+    fn check_passivity(&self) -> Result<(), ConfigError> {
+        check_ranges(&[
             (
                 "teleop.passivity_max_damping_n_s_per_m",
                 self.passivity_max_damping_n_s_per_m,
@@ -327,46 +356,54 @@ impl TeleopConfig {
                 1.0,
                 "0 ..= 1 J",
             ),
-        ];
-        for (field, v, lo, hi, allowed) in ranges {
-            check::in_range(field, v, lo, hi, allowed)?;
-        }
+        ])
+    }
+
+    /// The velocity estimator's process noise.
+    fn check_estimator(&self) -> Result<(), ConfigError> {
         check::in_range(
             "teleop.velocity_jerk_psd",
             self.velocity_jerk_psd,
             1.0,
             1e9,
             "1 ..= 1e9 rad²/s⁵",
-        )?;
-        for (side, imp) in [
-            ("to_leader", &self.to_leader),
-            ("to_follower", &self.to_follower),
-        ] {
-            let max = channel::MAX_DELAY_MS;
-            check::in_range(
-                &format!("teleop.{side}.delay_ms"),
-                imp.delay_ms,
-                0.0,
-                max,
-                "0 ..= 1500 ms",
-            )?;
-            check::in_range(
-                &format!("teleop.{side}.jitter_ms"),
-                imp.jitter_ms,
-                0.0,
-                max - imp.delay_ms,
-                "0 ..= 1500 ms minus the delay",
-            )?;
-            check::in_range(
-                &format!("teleop.{side}.loss"),
-                imp.loss,
-                0.0,
-                1.0,
-                "0 ..= 1",
-            )?;
-        }
-        Ok(())
+        )
     }
+}
+
+/// Each `(field, value, lo, hi, allowed)` in order; the first out of range is the error.
+fn check_ranges(ranges: &[(&str, f64, f64, f64, &str)]) -> Result<(), ConfigError> {
+    for &(field, v, lo, hi, allowed) in ranges {
+        check::in_range(field, v, lo, hi, allowed)?;
+    }
+    Ok(())
+}
+
+/// One direction's injected channel (`teleop.{side}.…`): delay, jitter within what is left of
+/// the delay's ceiling, loss.
+fn check_impairment(side: &str, imp: &Impairment) -> Result<(), ConfigError> {
+    let max = channel::MAX_DELAY_MS;
+    check::in_range(
+        &format!("teleop.{side}.delay_ms"),
+        imp.delay_ms,
+        0.0,
+        max,
+        "0 ..= 1500 ms",
+    )?;
+    check::in_range(
+        &format!("teleop.{side}.jitter_ms"),
+        imp.jitter_ms,
+        0.0,
+        max - imp.delay_ms,
+        "0 ..= 1500 ms minus the delay",
+    )?;
+    check::in_range(
+        &format!("teleop.{side}.loss"),
+        imp.loss,
+        0.0,
+        1.0,
+        "0 ..= 1",
+    )
 }
 
 #[cfg(test)]
