@@ -1529,9 +1529,15 @@ fn controller_table(md: &mut String, all: &[PairResult]) {
         return;
     }
     md.push_str(
-        "## The press under each controller
-
-The 1 N press into 1 N/mm in process with          passivity control, both arms under the controller: its compensation holds them, and          the follower's force estimate (*estimate*, against the floor's true force) is the          momentum observer on its model — the parametric one under ct, the learned one under          nnidc (docs/TELEOP.md §2). *vibration* is the leader's force above its 50 ms average          over the last second (RMS): what the hand feels above about 20 Hz.\n\n         | controller | architecture | force RMS N | estimate RMS N | vibration N | follower tip jitter mm | stable |\n         |---|---|---|---|---|---|---|\n",
+        "## The press under each controller\n\n\
+         The 1 N press into 1 N/mm in process with passivity control, both arms under the \
+         controller: its compensation holds them, and the follower's force estimate (*estimate*, \
+         against the floor's true force) is the momentum observer on its model — the parametric \
+         one under ct, the learned one under nnidc (docs/TELEOP.md §2). *vibration* is the \
+         leader's force above its 50 ms average over the last second (RMS): what the hand feels \
+         above about 20 Hz.\n\n\
+         | controller | architecture | force RMS N | estimate RMS N | vibration N | follower tip \
+         jitter mm | stable |\n|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
         let _ = writeln!(

@@ -238,6 +238,14 @@ fn the_teleop_experiment_writes_its_report_results_and_figure() {
     ] {
         assert!(report.contains(heading), "{heading}");
     }
+    // Every table renders as one: a row indented four spaces or more is a code block in
+    // Markdown (the controllers' table was, from a string that lost its line continuations).
+    for line in report.lines() {
+        assert!(
+            !(line.starts_with("    ") && line.trim_start().starts_with('|')),
+            "an indented table row: {line:?}"
+        );
+    }
     // The acceptance table: before (gains) and after (waves) in process, and the row over
     // zenoh with a CPU hog beside it.
     for row in [
