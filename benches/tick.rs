@@ -181,13 +181,12 @@ fn whole_tick(c: &mut Criterion) {
             })
         });
     }
-    // NNIDC with the paper's rates and e1 as written (mock/nnidc-paper-rates.toml, the
-    // defaults before issue #39): the default tick above carries the lag-matched e1's 3×3
-    // products, this one does not (docs/IDENTIFIER.md).
-    let preset: Config = toml::from_str(include_str!("../mock/nnidc-paper-rates.toml"))
-        .expect("mock/nnidc-paper-rates.toml parses");
+    // NNIDC with the lag-matched e1 and the preset's rates (mock/nnidc-lagmatch.toml): the
+    // lag filter's 3×3 products against the default tick above (docs/IDENTIFIER.md).
+    let preset: Config = toml::from_str(include_str!("../mock/nnidc-lagmatch.toml"))
+        .expect("mock/nnidc-lagmatch.toml parses");
     g.bench_function(
-        "servo tick, nnidc, adapting, paper's rates, canned device",
+        "servo tick, nnidc, adapting, lag-matched preset, canned device",
         |b| {
             let (tx, rx) = crossbeam_channel::bounded(1 << 16);
             let kind = ControllerKind::Nnidc;

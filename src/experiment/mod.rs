@@ -635,8 +635,7 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
         "# α sweep of the adaptation law (paper Figs. 5–6)\n\n\
          One PD multisine log of {secs} s (simulated Omni, seed {seed}); for each α the \
          identifier starts from the same weights (the shipped pre-tuned ones) and adapts on \
-         every sample with the log's {:.0} ms, the paper's rates (every Γ = 50, e1 as written), \
-         `unit_gain_filter = true` (α sets only the \
+         every sample with the log's {:.0} ms, `unit_gain_filter = true` (α sets only the \
          filter's bandwidth) and σ = 0 (no leakage toward the start weights), as in \
          `tests/suite/identifier_paper.rs`.{}\n\n\
          Time to threshold: the first time (after the first {ALPHA_WINDOW_S} s) the running RMS \
@@ -684,8 +683,6 @@ fn alpha_run(
     let span = n as f64 * dt;
     let stride = (n / 3000).max(1);
     let mut c = cfg.clone();
-    // The paper's law at the paper's rates (docs/DESIGN.md §3), α swept.
-    c.identifier = c.identifier.with_paper_rates();
     c.identifier.alpha = alpha;
     c.identifier.unit_gain_filter = true;
     c.identifier.sigma = 0.0;

@@ -2,9 +2,8 @@
 //! README's sine (`omnid run --fast --duration 30`, NNIDC from the shipped weights, learning)
 //! moved to five centres spread over the Omni's workspace, and beside each the oracle —
 //! computed torque with the simulator's exact model and its friction — on the same sine in the
-//! same process. NNIDC runs twice per centre: with the defaults (the lag-matched e1, α = Γ =
-//! 1000) and with the paper's rates `mock/nnidc-paper-rates.toml` (the defaults before issue
-//! #39). Per centre: the tracking RMS, NNIDC's ratio to the oracle per
+//! same process. NNIDC runs twice per centre: with the defaults and with the lag-matched preset
+//! `mock/nnidc-lagmatch.toml`. Per centre: the tracking RMS, NNIDC's ratio to the oracle per
 //! joint and the identifier's torque NRMSE. Writes `report.md`, `results.json` and each NNIDC
 //! run's log.
 //!
@@ -42,12 +41,11 @@ pub fn workspace_secs(quick: bool) -> f64 {
     }
 }
 
-/// The paper's rates NNIDC also runs with, the defaults before issue #39 (docs/IDENTIFIER.md,
-/// "Third round").
-pub const PAPER_RATES: &str = include_str!("../../mock/nnidc-paper-rates.toml");
+/// The lag-matched preset NNIDC also runs with (docs/IDENTIFIER.md, "Third round").
+pub const PRESET: &str = include_str!("../../mock/nnidc-lagmatch.toml");
 
-/// The NNIDC runs of each centre: name (and log file stem) and whether the paper's rates apply.
-pub const WORKSPACE_RUNS: [(&str, bool); 2] = [("nnidc", false), ("paper", true)];
+/// The NNIDC runs of each centre: name (and log file stem) and whether the preset applies.
+pub const WORKSPACE_RUNS: [(&str, bool); 2] = [("nnidc", false), ("preset", true)];
 
 /// One centre's outcome, as `results.json` holds it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -111,8 +109,8 @@ pub(super) fn outputs(out: &Path, dirs: &mut Vec<PathBuf>, files: &mut Vec<PathB
 pub(super) fn run_workspace(out: &Path, quick: bool) -> Result<ExperimentReport, ExperimentError> {
     let secs = workspace_secs(quick);
     let base = Config::default();
-    let paper: Config =
-        toml::from_str(PAPER_RATES).map_err(|e| ExperimentError::Internal(e.to_string()))?;
+    let preset: Config =
+        toml::from_str(PRESET).map_err(|e| ExperimentError::Internal(e.to_string()))?;
     let bar = crate::progress::bar(WORKSPACE_CENTRES.len() as u64, "workspace");
     let mut centres = Vec::new();
     for (i, &centre) in WORKSPACE_CENTRES.iter().enumerate() {
@@ -129,10 +127,10 @@ pub(super) fn run_workspace(out: &Path, quick: bool) -> Result<ExperimentReport,
         };
         let oracle = oracle_tracking(&opts, &cfg);
         let mut runs = Vec::new();
-        for (name, with_paper) in WORKSPACE_RUNS {
+        for (name, with_preset) in WORKSPACE_RUNS {
             let mut run_cfg = cfg.clone();
-            if with_paper {
-                run_cfg.identifier = paper.identifier.clone();
+            if with_preset {
+                run_cfg.identifier = preset.identifier.clone();
             }
             let rel = format!("{}/{name}.csv", centre_dir(i));
             let label = format!("centre {} ({centre:?}), {name}", i + 1);
@@ -226,8 +224,8 @@ fn report(r: &WorkspaceResults, quick: bool, seed: u64) -> String {
         "# NNIDC against the oracle across the workspace\n\n\
          Simulated Omni, `--fast`, seed {seed}, the README's 0.5 Hz sine for {} s{} about five \
          centres (`[reference] center`, rad). NNIDC starts from the shipped weights and learns, \
-         with the defaults (`nnidc`: the lag-matched e1, α = Γ = 1000) and with the paper's \
-         rates `mock/nnidc-paper-rates.toml` (`paper`); the oracle is computed torque with the simulator's exact model and its \
+         with the defaults (`nnidc`) and with the lag-matched preset `mock/nnidc-lagmatch.toml` \
+         (`preset`); the oracle is computed torque with the simulator's exact model and its \
          friction on the same sine. Tracking RMS after {} s (mrad), NNIDC ÷ oracle per joint, \
          and the identifier's torque NRMSE over the run (last 20 % in brackets).\n\n\
          | centre | run | NNIDC J1 | J2 | J3 | oracle J1 | J2 | J3 | ratio J1 | J2 | J3 | NRMSE |\n\
@@ -291,7 +289,7 @@ fn report(r: &WorkspaceResults, quick: bool, seed: u64) -> String {
         md.push('\n');
     }
     md.push_str(
-        "\nLogs: `centre-N/nnidc.csv` and `centre-N/paper.csv`; numbers: `results.json`.\n",
+        "\nLogs: `centre-N/nnidc.csv` and `centre-N/preset.csv`; numbers: `results.json`.\n",
     );
     md
 }

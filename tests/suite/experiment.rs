@@ -314,7 +314,7 @@ fn workspace_quick_numbers_come_from_its_runs() {
                 rep.markdown
             );
         }
-        // The two runs differ (the paper's rates are applied).
+        // The two runs differ (the preset is applied).
         assert_ne!(c.runs[0].nrmse, c.runs[1].nrmse, "{c:?}");
     }
     // The README's own centre completes under both.

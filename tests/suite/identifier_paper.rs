@@ -147,12 +147,11 @@ fn larger_alpha_converges_sooner_and_moves_the_weights_more() {
     for alpha in [5.0, 50.0, 500.0] {
         // σ-modification off: the study is of the update law itself (the leakage pulls the
         // weights back toward θ0 and would mask how far each α moves them).
-        // The paper's rates (every Γ = 50, e1 as written): omnid's defaults raise them.
         let cfg = IdentifierConfig {
             alpha,
             unit_gain_filter: true,
             sigma: 0.0,
-            ..IdentifierConfig::default().with_paper_rates()
+            ..IdentifierConfig::default()
         };
         let mut id = Identifier::from_weights_file(&cfg, &weights, None).unwrap();
         id.set_anchor();

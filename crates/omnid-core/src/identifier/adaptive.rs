@@ -1268,38 +1268,19 @@ mod tests {
         std::array::from_fn(|j| (e2[j] / t2[j]).sqrt())
     }
 
-    /// The paper's update law learning from fresh random weights, at the paper's rates
-    /// (α = every Γ = 50, e1 as written: mock/nnidc-paper-rates.toml). omnid's defaults
-    /// (α = Γ = 1000) learn twenty times faster, so most of what they learn is learnt within
-    /// the first 5 s and the stream's later part shows less further gain; they are checked
-    /// for that: better than the paper's rates already in the first 5 s, and as good at the end.
     #[test]
     fn online_identification_from_scratch_improves_over_the_stream() {
-        let paper = IdentifierConfig::default().with_paper_rates();
+        let mut id = Identifier::new(&IdentifierConfig::default()).unwrap();
         let s = multisine_samples(60.0, 1e-3, 3);
-        let stream = |cfg: &IdentifierConfig| {
-            let mut id = Identifier::new(cfg).unwrap();
-            let first = online_nrmse(&mut id, &s[..5000]);
-            online_nrmse(&mut id, &s[5000..55000]);
-            let last = online_nrmse(&mut id, &s[55000..]);
-            assert!(id.healthy());
-            (first, last)
-        };
-        let (first, last) = stream(&paper);
-        eprintln!("paper's rates: online NRMSE first 5 s {first:.3?}, last 5 s {last:.3?}");
+        let first = online_nrmse(&mut id, &s[..5000]);
+        online_nrmse(&mut id, &s[5000..55000]);
+        let last = online_nrmse(&mut id, &s[55000..]);
+        eprintln!("online NRMSE first 5 s {first:.3?}, last 5 s {last:.3?}");
         for j in 0..3 {
             assert!(last[j] < 0.6 * first[j], "joint {j}: {first:?} → {last:?}");
             assert!(last[j] < 0.2, "joint {j}: {last:?}");
         }
-        let (fast_first, fast_last) = stream(&IdentifierConfig::default());
-        eprintln!("defaults: online NRMSE first 5 s {fast_first:.3?}, last 5 s {fast_last:.3?}");
-        for j in 0..3 {
-            assert!(
-                fast_first[j] < first[j],
-                "joint {j}: first 5 s, defaults {fast_first:?} vs paper's rates {first:?}"
-            );
-            assert!(fast_last[j] < 0.2, "joint {j}: {fast_last:?}");
-        }
+        assert!(id.healthy());
     }
 
     #[test]

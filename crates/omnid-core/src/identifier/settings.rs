@@ -43,9 +43,8 @@ pub struct IdentifierConfig {
     pub dead_zone: f64,
     /// σ-modification: leakage −σΓ(θ − θ0) toward the pre-tuned (or loaded) weights; 0 switches
     /// it off. Fresh random weights are no anchor: it acts only once weights are pre-tuned or
-    /// loaded. With too little of it (σΓ = 0.005 /s: σ = 1e-4 at Γ = 50, before) NNIDC's
-    /// weights drift and the arm goes unstable after ~50 s of the sine; the default keeps
-    /// σΓ = 0.15 /s (docs/IDENTIFIER.md, "Third round").
+    /// loaded. Without it (1e-4 before) NNIDC's weights drift and the arm goes unstable after
+    /// ~50 s of the sine.
     pub sigma: f64,
     /// Lag-matched e1 (docs/IDENTIFIER.md, "Lag-matched e1"): online, τ − Ĉq̇ − Ĝ − F̂ passes
     /// through the Kalman filter's own acceleration response before it meets M̂·q̈ (so the
@@ -100,7 +99,7 @@ pub struct IdentifierConfig {
 impl Default for IdentifierConfig {
     fn default() -> Self {
         IdentifierConfig {
-            alpha: 1000.0,
+            alpha: 50.0,
             unit_gain_filter: false,
             hidden: 16,
             adapt: true,
@@ -108,13 +107,13 @@ impl Default for IdentifierConfig {
             lambda1: 2.0,
             lambda2: 2.0,
             lambda3: 2.0,
-            rate_m: [1000.0, 1000.0],
-            rate_c: [1000.0, 1000.0],
-            rate_g: [1000.0, 1000.0],
-            rate_f: [1000.0, 1000.0],
+            rate_m: [50.0, 50.0],
+            rate_c: [50.0, 50.0],
+            rate_g: [50.0, 50.0],
+            rate_f: [50.0, 50.0],
             dead_zone: 1e-4,
-            sigma: 1.5e-4,
-            lag_match: true,
+            sigma: 3e-3,
+            lag_match: false,
             w_max: 100.0,
             eig_min: 2e-4,
             eig_max: 1.5e-2,
@@ -145,22 +144,6 @@ fn positive(field: &str, v: f64, hi: f64, allowed: &str) -> Result<(), ConfigErr
 }
 
 impl IdentifierConfig {
-    /// These settings with the paper's rates and e1 as the paper writes it (docs/DESIGN.md §3,
-    /// "The paper's values and omnid's defaults"; the defaults before issue #39, as
-    /// `mock/nnidc-paper-rates.toml`): α = 50 1/s, every Γ = 50, σ = 3e-3, no lag match.
-    pub fn with_paper_rates(self) -> Self {
-        IdentifierConfig {
-            alpha: 50.0,
-            rate_m: [50.0; 2],
-            rate_c: [50.0; 2],
-            rate_g: [50.0; 2],
-            rate_f: [50.0; 2],
-            sigma: 3e-3,
-            lag_match: false,
-            ..self
-        }
-    }
-
     /// Check every value; the first problem is returned naming its field (`identifier.…`).
     /// One helper per group of fields, called in the fields' order, so the first problem found
     /// is the same as one check per field in order would find.
@@ -356,23 +339,8 @@ mod tests {
     fn defaults_are_valid_and_match_design() {
         let c = IdentifierConfig::default();
         c.validate().unwrap();
-        // omnid's defaults, not the paper's rates (docs/DESIGN.md §3; the paper's are
-        // mock/nnidc-paper-rates.toml): the lag-matched e1, α = every Γ = 1000, σΓ = 0.15 /s.
-        assert_eq!((c.alpha, c.hidden, c.adapt), (1000.0, 16, true));
-        assert!(c.friction_net && c.lag_match && !c.unit_gain_filter);
-        for rates in [c.rate_m, c.rate_c, c.rate_g, c.rate_f] {
-            assert_eq!(rates, [1000.0, 1000.0]);
-        }
-        assert_eq!(c.sigma, 1.5e-4);
-        let paper = c.clone().with_paper_rates();
-        paper.validate().unwrap();
-        assert_eq!(
-            (paper.alpha, paper.rate_g, paper.sigma),
-            (50.0, [50.0; 2], 3e-3)
-        );
-        assert!(!paper.lag_match);
-        // σΓ, the leak's pull toward θ0, is the same under both.
-        assert!((paper.sigma * paper.rate_m[0] - c.sigma * c.rate_m[0]).abs() < 1e-12);
+        assert_eq!((c.alpha, c.hidden, c.adapt), (50.0, 16, true));
+        assert!(c.friction_net);
         assert_eq!(parse("[identifier]\n").unwrap(), c);
     }
 
