@@ -4,8 +4,32 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+/// The binary under test, with a state directory of its own ([`fresh_state_dir`]; a test that
+/// wants another sets `OMNID_STATE_DIR` after): a run's motor heat and learned weights are
+/// neither read from nor written to the user's, nor carried from one test to another.
 pub fn omnid() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_omnid"))
+    let mut c = Command::new(env!("CARGO_BIN_EXE_omnid"));
+    c.env("OMNID_STATE_DIR", fresh_state_dir());
+    c
+}
+
+/// A new directory path for one run's state, inside one directory of this test process that is
+/// removed when the process exits.
+pub fn fresh_state_dir() -> std::path::PathBuf {
+    static ROOT: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    extern "C" fn remove_root() {
+        if let Some(root) = ROOT.get() {
+            let _ = std::fs::remove_dir_all(root.path());
+        }
+    }
+    let root = ROOT.get_or_init(|| {
+        // SAFETY: registering a plain extern "C" function.
+        unsafe { libc::atexit(remove_root) };
+        tempfile::tempdir().unwrap()
+    });
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    root.path().join(format!("state-{n}"))
 }
 
 pub fn run_ok(args: &[&str]) -> Output {
