@@ -118,10 +118,7 @@ fn run(
     dir: &Path,
     haptics: HapticRun,
 ) -> Result<Log, ExperimentError> {
-    std::fs::create_dir_all(dir).map_err(|source| ExperimentError::Write {
-        path: dir.to_path_buf(),
-        source,
-    })?;
+    super::make_dir(dir)?;
     let log = dir.join("log.csv");
     let opts = RunOptions {
         controller,

@@ -272,10 +272,7 @@ fn sim_run(
     // Cold motors every run, so the experiment reproduces.
     cfg.safety.persist_heat = false;
     if let Some(dir) = log.parent() {
-        std::fs::create_dir_all(dir).map_err(|source| ExperimentError::Write {
-            path: dir.to_path_buf(),
-            source,
-        })?;
+        make_dir(dir)?;
     }
     let opts = RunOptions {
         controller,
@@ -313,6 +310,14 @@ fn sim_run(
         )));
     }
     Ok(out.summary)
+}
+
+/// Create `dir` (and its parents) for an experiment's outputs; a failure names it.
+pub(crate) fn make_dir(dir: &Path) -> Result<(), ExperimentError> {
+    std::fs::create_dir_all(dir).map_err(|source| ExperimentError::Write {
+        path: dir.to_path_buf(),
+        source,
+    })
 }
 
 /// Figures of one run's log into `dir`; returns the markdown that shows them.

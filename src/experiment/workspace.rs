@@ -174,10 +174,7 @@ fn one_run(
 ) -> Result<NnidcResult, ExperimentError> {
     let log = out.join(&rel);
     if let Some(dir) = log.parent() {
-        std::fs::create_dir_all(dir).map_err(|source| ExperimentError::Write {
-            path: dir.to_path_buf(),
-            source,
-        })?;
+        super::make_dir(dir)?;
     }
     let opts = RunOptions {
         log: Some(log),

@@ -738,25 +738,21 @@ fn motor_step<B: FireWireBus, W: Write>(
     )) {
         return Err(Stop::Abort(format!("step 3.{} not confirmed", j + 1)));
     }
-    let mut dac = [DAC_ZERO; 3];
-    dac[j] = DAC_ZERO + counts;
-    s.note(&format!(
-        "step 3.{}: motor {} at {:#06x}",
-        j + 1,
-        j + 1,
-        dac[j]
-    ))?;
-    let plus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
-    hold(s, amps, pulse, SURPRISE_COUNTS)?;
-    dac[j] = DAC_ZERO - counts;
-    s.note(&format!(
-        "step 3.{}: motor {} at {:#06x}",
-        j + 1,
-        j + 1,
-        dac[j]
-    ))?;
-    let minus = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
-    hold(s, amps, pulse / 2, SURPRISE_COUNTS)?;
+    // One pulse of motor j at DAC `value`, then zero for `rest` ticks: what the pulse moved.
+    let mut pulse_at = |value, rest| {
+        let mut dac = [DAC_ZERO; 3];
+        dac[j] = value;
+        s.note(&format!(
+            "step 3.{}: motor {} at {value:#06x}",
+            j + 1,
+            j + 1
+        ))?;
+        let moved = hold(s, MotorCommand { dac, ..amps }, pulse, SURPRISE_COUNTS)?;
+        hold(s, amps, rest, SURPRISE_COUNTS)?;
+        Ok::<_, Stop>(moved)
+    };
+    let plus = pulse_at(DAC_ZERO + counts, pulse)?;
+    let minus = pulse_at(DAC_ZERO - counts, pulse / 2)?;
     // Amplifiers off while the operator answers.
     hold(s, safe, per_second / 10, SURPRISE_COUNTS)?;
     let (p, m) = (plus[j], minus[j]);
