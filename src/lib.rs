@@ -47,8 +47,9 @@
 #![warn(missing_docs)]
 
 pub use omnid_core::{
-    arm, clock, config, control, convert, device, diag, estimate, haptics, human, identifier,
-    input, omni, output, progress, ros2, servo, station, telemetry, teleop, text, toml_place,
+    arm, clock, config, control, convert, device, diag, estimate, handoff, haptics, human,
+    identifier, input, omni, output, progress, ros2, servo, station, telemetry, teleop, text,
+    toml_place,
 };
 pub use omnid_core::{errln, out, outln};
 

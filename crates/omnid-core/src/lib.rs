@@ -91,6 +91,7 @@ pub mod device;
 pub mod diag;
 pub mod estimate;
 pub(crate) mod fast_tanh;
+pub mod handoff;
 pub mod haptics;
 pub mod human;
 pub mod identifier;

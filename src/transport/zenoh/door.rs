@@ -1,15 +1,18 @@
-//! The two bounded pipes between an arm's hub and its zenoh side: requests in (remote clients'
-//! messages, their comings and goings, ROS 2 commands), and out (messages for remote clients,
-//! with the ticks the tap hands over on the same queue). Neither side ever waits on the other:
-//! a full pipe drops, and the drop is counted.
+//! The bounded pipes between an arm's host and its zenoh side: requests in (remote clients'
+//! messages, their comings and goings, ROS 2 commands), and out (messages for remote clients
+//! from the port, ticks from the tap). Neither side ever waits on the other: the host runs at
+//! SCHED_FIFO and zenoh's threads do not, so the pipes are `handoff` queues (docs/DESIGN.md
+//! §4.7), and a full pipe drops, and the drop is counted.
 
+use crate::handoff::{self, Bell, Inlet, Outlet, Refused, SharedInlet};
 use crate::servo::Wake;
 use crate::station::Op;
 use crate::telemetry::record::TickRecord;
-use crossbeam_channel::{Receiver, Sender, TrySendError};
 use serde::Serialize;
+use std::cell::RefCell;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 /// Messages and ticks queued toward the network per arm before new ones are dropped.
 const OUT_QUEUE: usize = 4096;
@@ -39,8 +42,6 @@ pub(crate) enum Outbound {
     ToClient { cid: Arc<str>, bytes: Arc<[u8]> },
     /// A remote client has gone: its publisher is undeclared.
     Forget(Arc<str>),
-    /// The arm has ended: the network thread stops.
-    Stop,
 }
 
 /// What the zenoh side of one arm counted (in `status` as `zenoh`, and said at exit).
@@ -99,8 +100,9 @@ impl ZenohStats {
 
 /// The hub's side of an arm's zenoh transport.
 pub struct Door {
-    pub(crate) inbox: Receiver<Inbound>,
-    pub(crate) out: Sender<Outbound>,
+    pub(crate) inbox: Outlet<Inbound>,
+    /// Messages for remote clients (the port's `&self` methods send too; one thread).
+    out: RefCell<Inlet<Outbound>>,
     pub(crate) wake: Arc<Wake>,
     pub(crate) stats: Arc<ZenohStats>,
     /// Commands over zenoh are allowed (`[zenoh] allow_commands`).
@@ -112,12 +114,47 @@ pub struct Door {
 /// The network's side (cloned into every zenoh callback of the arm).
 #[derive(Clone)]
 pub(crate) struct NetSide {
-    inbox: Sender<Inbound>,
+    inbox: Arc<SharedInlet<Inbound>>,
     wake: Arc<Wake>,
     pub(crate) stats: Arc<ZenohStats>,
-    pub(crate) out_tx: Sender<Outbound>,
-    pub(crate) out_rx: Receiver<Outbound>,
     pub(crate) max_sample_bytes: usize,
+}
+
+/// The way out to the network: the tap's end for ticks, and what the network thread reads.
+pub(crate) struct Outbox {
+    pub(crate) ticks: Inlet<Outbound>,
+    pub(crate) feed: Feed,
+}
+
+/// The network thread's end of the pipes out: it sleeps on a bell both producers ring.
+pub(crate) struct Feed {
+    messages: Outlet<Outbound>,
+    ticks: Outlet<Outbound>,
+    bell: Arc<Bell>,
+    /// Which pipe is read first next time (each in turn, so neither starves the other).
+    ticks_first: bool,
+}
+
+impl Feed {
+    /// What to publish next, waiting for it; None once the tap has let go of its end and both
+    /// pipes are drained (the arm has ended).
+    pub(crate) fn next(&mut self) -> Option<Outbound> {
+        loop {
+            self.ticks_first = !self.ticks_first;
+            let (a, b) = if self.ticks_first {
+                (&mut self.ticks, &mut self.messages)
+            } else {
+                (&mut self.messages, &mut self.ticks)
+            };
+            if let Some(m) = a.pop().or_else(|| b.pop()) {
+                return Some(m);
+            }
+            if self.ticks.is_closed() {
+                return None;
+            }
+            self.bell.wait(Duration::from_millis(100));
+        }
+    }
 }
 
 impl Door {
@@ -126,27 +163,36 @@ impl Door {
         inbox: usize,
         allow_commands: bool,
         lease_lapse_ms: f64,
-    ) -> std::io::Result<(Door, NetSide)> {
-        let (in_tx, in_rx) = crossbeam_channel::bounded(inbox);
-        let (out_tx, out_rx) = crossbeam_channel::bounded(OUT_QUEUE);
+    ) -> std::io::Result<(Door, NetSide, Outbox)> {
+        let (in_tx, in_rx) = handoff::queue(inbox);
+        let bell = Arc::new(Bell::new()?);
+        let (out_tx, out_rx) = handoff::queue(OUT_QUEUE);
+        let (ticks_tx, ticks_rx) = handoff::queue(OUT_QUEUE);
         let wake = Arc::new(Wake::new()?);
         let stats = Arc::new(ZenohStats::default());
         Ok((
             Door {
                 inbox: in_rx,
-                out: out_tx.clone(),
+                out: RefCell::new(out_tx.ringing(bell.clone())),
                 wake: wake.clone(),
                 stats: stats.clone(),
                 allow_commands,
                 lease_lapse_ms,
             },
             NetSide {
-                inbox: in_tx,
+                inbox: Arc::new(in_tx.shared()),
                 wake,
                 stats,
-                out_tx,
-                out_rx,
                 max_sample_bytes: usize::MAX,
+            },
+            Outbox {
+                ticks: ticks_tx.ringing(bell.clone()),
+                feed: Feed {
+                    messages: out_rx,
+                    ticks: ticks_rx,
+                    bell,
+                    ticks_first: false,
+                },
             },
         ))
     }
@@ -157,7 +203,7 @@ impl Door {
             cid: cid.clone(),
             bytes,
         };
-        if self.out.try_send(m).is_err() {
+        if self.out.borrow_mut().push(m).is_err() {
             ZenohStats::count(&self.stats.dropped_out);
         }
     }
@@ -167,7 +213,12 @@ impl Door {
     /// Remote client `cid` has gone: the network side drops what it kept for it (queued
     /// behind its last messages, so they still leave).
     pub(crate) fn forget(&self, cid: &Arc<str>) {
-        if self.out.try_send(Outbound::Forget(cid.clone())).is_err() {
+        if self
+            .out
+            .borrow_mut()
+            .push(Outbound::Forget(cid.clone()))
+            .is_err()
+        {
             ZenohStats::count(&self.stats.dropped_out);
         }
     }
@@ -177,10 +228,10 @@ impl NetSide {
     /// Hand a request to the hub and wake it; a full inbox drops it (counted).
     pub(crate) fn send(&self, m: Inbound) {
         ZenohStats::count(&self.stats.received);
-        match self.inbox.try_send(m) {
+        match self.inbox.push(m) {
             Ok(()) => self.wake.notify(),
-            Err(TrySendError::Full(_)) => ZenohStats::count(&self.stats.dropped_in),
-            Err(TrySendError::Disconnected(_)) => {}
+            Err(Refused::Full) => ZenohStats::count(&self.stats.dropped_in),
+            Err(Refused::Closed) => {}
         }
     }
 

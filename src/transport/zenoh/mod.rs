@@ -533,7 +533,7 @@ impl ZenohNet {
         s: &crate::station::StationSetup,
         serve: &crate::transport::ServeConfig,
     ) -> Result<(Box<dyn Tap>, door::Door), ZenohError> {
-        let (host_side, mut net_side) = door::Door::pair(
+        let (host_side, mut net_side, outbox) = door::Door::pair(
             self.cfg.inbox,
             self.cfg.allow_commands,
             serve.lease_lapse_ms,
@@ -567,7 +567,7 @@ impl ZenohNet {
         } else {
             None
         };
-        let tap = ros::NetTap::start(&s.arm.name, ros, remote, net_side);
+        let tap = ros::NetTap::start(&s.arm.name, ros, remote, net_side, outbox);
         Ok((tap, host_side))
     }
 }

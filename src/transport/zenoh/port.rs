@@ -131,7 +131,7 @@ impl Port for ZenohPort {
             if start.elapsed() > WAKE_BUDGET {
                 break;
             }
-            let Ok(m) = self.door.inbox.try_recv() else {
+            let Some(m) = self.door.inbox.pop() else {
                 break;
             };
             match m {

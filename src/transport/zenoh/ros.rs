@@ -4,9 +4,10 @@
 //! feeds them and remote clients from the arm's taps.
 
 use super::config::ZenohConfig;
-use super::door::{Inbound, NetSide, Outbound, ZenohStats};
+use super::door::{Feed, Inbound, NetSide, Outbound, Outbox, ZenohStats};
 use super::remote::RemoteArm;
 use super::ZenohError;
+use crate::handoff::Inlet;
 use crate::omni::kinematics::Geometry;
 use crate::ros2::msgs::{self, Header, Stamp};
 use crate::ros2::rmw_zenoh::{self as rmw, HashForm, Kind, Node, Qos, RosType};
@@ -499,7 +500,8 @@ impl RosArm {
 
 /// The station's side of an arm's zenoh transport: ticks onto the network thread's queue.
 pub(super) struct NetTap {
-    tx: crossbeam_channel::Sender<Outbound>,
+    /// Ticks to the network thread (dropped at the end: the thread then stops).
+    tx: Option<Inlet<Outbound>>,
     stats: Arc<ZenohStats>,
     thread: Option<JoinHandle<()>>,
 }
@@ -510,14 +512,15 @@ impl NetTap {
         ros: Option<RosArm>,
         remote: Option<RemoteArm>,
         net: NetSide,
+        outbox: Outbox,
     ) -> Box<dyn Tap> {
-        let rx = net.out_rx.clone();
+        let Outbox { ticks, feed: rx } = outbox;
         let thread = std::thread::Builder::new()
             .name(format!("omnid-zenoh-{arm}"))
             .spawn(move || feed(rx, ros, remote))
             .ok();
         Box::new(NetTap {
-            tx: net.out_tx.clone(),
+            tx: Some(ticks),
             stats: net.stats.clone(),
             thread,
         })
@@ -526,12 +529,8 @@ impl NetTap {
 
 /// The network thread of one arm: ticks to the ROS topics, messages to remote clients, until
 /// the tap finishes.
-fn feed(
-    rx: crossbeam_channel::Receiver<Outbound>,
-    mut ros: Option<RosArm>,
-    mut remote: Option<RemoteArm>,
-) {
-    for m in rx {
+fn feed(mut rx: Feed, mut ros: Option<RosArm>, mut remote: Option<RemoteArm>) {
+    while let Some(m) = rx.next() {
         match m {
             Outbound::Tick(r) => {
                 if let Some(ros) = ros.as_mut() {
@@ -548,7 +547,6 @@ fn feed(
                     remote.forget(&cid);
                 }
             }
-            Outbound::Stop => break,
         }
     }
 }
@@ -557,7 +555,8 @@ impl Tap for NetTap {
     fn on_tick(&mut self, record: &TickRecord) {
         // A full queue (the network behind) drops the tick: subscribers see a sequence gap
         // in rmw_zenoh's attachment, nothing else waits.
-        if self.tx.try_send(Outbound::Tick(Box::new(*record))).is_err() {
+        let Some(tx) = self.tx.as_mut() else { return };
+        if tx.push(Outbound::Tick(Box::new(*record))).is_err() {
             ZenohStats::count(&self.stats.dropped_out);
         }
     }
@@ -568,7 +567,7 @@ impl Tap for NetTap {
     }
 
     fn finish(&mut self) {
-        let _ = self.tx.send(Outbound::Stop);
+        self.tx = None;
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }

@@ -16,9 +16,9 @@
 //! force fades and the follower holds, as for a cut link in one daemon.
 
 use super::ZenohConfig;
+use crate::handoff::{self, Bell, Refused, SharedInlet};
 use crate::teleop::wire::{self, Agreement, PairKey, ReplayWindow};
 use crate::teleop::{Endpoint, LineStats, Packet, RemoteChannels, RemoteLine, Role, TeleopConfig};
-use crossbeam_channel::{Sender, TrySendError};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -199,8 +199,13 @@ impl RemoteChannels for TeleopNet {
         // A channel to another daemon: `auto` is wave variables (docs/TELEOP.md §5).
         let agreement = Agreement::of(&config.on_channel(true));
         let zid = self.session.zid().to_string();
-        let (to_net, from_servo) = crossbeam_channel::bounded::<Packet>(QUEUE);
-        let (to_servo, from_net) = crossbeam_channel::bounded::<Packet>(QUEUE);
+        // The servo's side of both queues never waits for this side (docs/DESIGN.md §4.7):
+        // the publishing thread sleeps on a bell the servo rings, zenoh's callbacks take turns
+        // on the inlet toward the servo.
+        let bell = Arc::new(Bell::new().map_err(|e| format!("eventfd: {e}"))?);
+        let (to_net, mut from_servo) = handoff::queue::<Packet>(QUEUE);
+        let to_net = to_net.ringing(bell.clone());
+        let (to_servo, from_net) = handoff::queue::<Packet>(QUEUE);
         let shared = Arc::new(Shared::default());
         let declare_err = |what: &str, e: zenoh::Error| format!("zenoh: {what}: {e}");
         let out_key = format!("{base}/{mine}/{zid}");
@@ -221,7 +226,7 @@ impl RemoteChannels for TeleopNet {
                 agreement,
                 key.clone(),
                 self.seals.clone(),
-                to_servo,
+                to_servo.shared(),
                 shared.clone(),
             ))
             .wait()
@@ -232,12 +237,18 @@ impl RemoteChannels for TeleopNet {
             .name(format!("omnid-teleop-{me}"))
             .spawn(move || {
                 // Ends when the endpoint (the coupling) is dropped.
-                while let Ok(p) = from_servo.recv() {
-                    let seq = seals.counter.fetch_add(1, Ordering::Relaxed) + 1;
-                    let frame = wire::seal(&wire::encode(&p, agreement), seq, &out_key, &key);
-                    if publisher.put(frame.to_vec()).wait().is_ok() {
-                        sent.sent.fetch_add(1, Ordering::Relaxed);
+                loop {
+                    while let Some(p) = from_servo.pop() {
+                        let seq = seals.counter.fetch_add(1, Ordering::Relaxed) + 1;
+                        let frame = wire::seal(&wire::encode(&p, agreement), seq, &out_key, &key);
+                        if publisher.put(frame.to_vec()).wait().is_ok() {
+                            sent.sent.fetch_add(1, Ordering::Relaxed);
+                        }
                     }
+                    if from_servo.is_closed() {
+                        break;
+                    }
+                    bell.wait(Duration::from_millis(100));
                 }
             })
             .map_err(|e| format!("cannot start the network thread: {e}"))?;
@@ -258,7 +269,7 @@ fn receiver(
     agreement: Agreement,
     key: PairKey,
     seals: Arc<Seals>,
-    to_servo: Sender<Packet>,
+    to_servo: SharedInlet<Packet>,
     shared: Arc<Shared>,
 ) -> impl Fn(zenoh::sample::Sample) + Send + Sync + 'static {
     move |sample| {
@@ -279,15 +290,15 @@ fn receiver(
         if let Err(why) = shared.admit(sender) {
             return shared.refuse(&arm, why);
         }
-        match to_servo.try_send(packet) {
+        match to_servo.push(packet) {
             Ok(()) => {
                 shared.received.fetch_add(1, Ordering::Relaxed);
             }
-            Err(TrySendError::Full(_)) => {
+            Err(Refused::Full) => {
                 shared.refuse(&arm, "the queue to the arm is full (a flood)".into())
             }
             // This side has ended; the subscriber goes with it.
-            Err(TrySendError::Disconnected(_)) => {}
+            Err(Refused::Closed) => {}
         }
     }
 }

@@ -6,10 +6,10 @@
 
 use super::timing::TickTiming;
 use crate::control::{ControllerKind, Trajectory};
+use crate::handoff::Bell;
 use crate::identifier::{Fault, Identifier};
 use crate::servo::summary::RunStats;
 use crate::telemetry::record::Mode;
-use std::os::fd::{AsRawFd, OwnedFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What the loop does with the arm (the mode a client asks for; `Track` shows as `blend`
@@ -202,12 +202,13 @@ impl Snapshot {
 pub use crate::telemetry::record::ServoEvent;
 
 /// Wakes the thread that serves clients when a tick's record is wanted at once: one
-/// non-blocking `write` to an eventfd (no lock, no allocation), so a client can answer within
-/// the tick. Only ticks some client streams (every `every`-th), replies and events wake it;
-/// otherwise it drains the records on its own schedule and the loop makes no syscall.
+/// non-blocking `write` to an eventfd (a [`Bell`]: no lock, no allocation), so a client can
+/// answer within the tick. Only ticks some client streams (every `every`-th), replies and
+/// events wake it; otherwise it drains the records on its own schedule and the loop makes no
+/// syscall.
 #[derive(Debug)]
 pub struct Wake {
-    fd: OwnedFd,
+    bell: Bell,
     /// The greatest common divisor of the streaming clients' sample intervals (0: none).
     every: AtomicU64,
 }
@@ -215,15 +216,8 @@ pub struct Wake {
 impl Wake {
     /// A fresh eventfd; fails only when the process or system is out of descriptors.
     pub fn new() -> std::io::Result<Wake> {
-        // SAFETY: eventfd has no pointer arguments; the result is checked before use.
-        let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
-        if fd < 0 {
-            return Err(std::io::Error::last_os_error());
-        }
-        // SAFETY: `fd` is a fresh descriptor that nothing else owns.
-        let fd = unsafe { <OwnedFd as std::os::fd::FromRawFd>::from_raw_fd(fd) };
         Ok(Wake {
-            fd,
+            bell: Bell::new()?,
             every: AtomicU64::new(0),
         })
     }
@@ -241,24 +235,19 @@ impl Wake {
         }
     }
 
-    /// Signal (never blocks: the counter saturates only after 2⁶⁴ − 2 signals).
+    /// Signal (never blocks).
     pub fn notify(&self) {
-        let one = 1u64.to_ne_bytes();
-        // SAFETY: writes 8 bytes from a live local buffer to an owned descriptor.
-        let _ = unsafe { libc::write(self.fd.as_raw_fd(), one.as_ptr().cast(), 8) };
+        self.bell.ring();
     }
 
     /// Reset the counter (the reader's side, after waking).
     pub fn clear(&self) {
-        let mut buf = [0u8; 8];
-        // SAFETY: reads at most 8 bytes into a live local buffer; EAGAIN when not signalled.
-        let _ = unsafe { libc::read(self.fd.as_raw_fd(), buf.as_mut_ptr().cast(), 8) };
+        self.bell.clear();
     }
 
     /// The end to poll for readability.
     pub fn fd(&self) -> std::os::fd::BorrowedFd<'_> {
-        use std::os::fd::AsFd;
-        self.fd.as_fd()
+        self.bell.fd()
     }
 }
 

@@ -5,7 +5,7 @@
 //! Both endpoints of a pair in one daemon are joined directly; across daemons each endpoint's
 //! far side is a network thread (zenoh) feeding the same queues.
 
-use crossbeam_channel::{Receiver, Sender, TrySendError};
+use crate::handoff::{Inlet, Outlet};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -96,8 +96,8 @@ pub struct ChannelStats {
 
 /// One end of a channel.
 pub struct Endpoint {
-    tx: Sender<Packet>,
-    rx: Receiver<Packet>,
+    tx: Inlet<Packet>,
+    rx: Outlet<Packet>,
     impairment: Impairment,
     rng: ChaCha8Rng,
     /// Packets on their way, in delivery order: (due time, packet).
@@ -126,8 +126,8 @@ pub const PLAYOUT_STEP_S: f64 = 1e-4;
 /// Two joined endpoints (the leader's, the follower's), each impaired as given on what it
 /// receives.
 pub fn pair(to_leader: Impairment, to_follower: Impairment, seed: u64) -> (Endpoint, Endpoint) {
-    let (a_tx, a_rx) = crossbeam_channel::bounded(QUEUE);
-    let (b_tx, b_rx) = crossbeam_channel::bounded(QUEUE);
+    let (a_tx, a_rx) = crate::handoff::queue(QUEUE);
+    let (b_tx, b_rx) = crate::handoff::queue(QUEUE);
     (
         Endpoint::new(a_tx, b_rx, to_leader, seed),
         Endpoint::new(b_tx, a_rx, to_follower, seed ^ 0x7E1E_0F00),
@@ -135,10 +135,11 @@ pub fn pair(to_leader: Impairment, to_follower: Impairment, seed: u64) -> (Endpo
 }
 
 impl Endpoint {
-    /// An endpoint sending on `tx` and receiving from `rx` (a network thread's queues).
+    /// An endpoint sending on `tx` and receiving from `rx` (a network thread's queues: the
+    /// servo never waits on either, docs/DESIGN.md §4.7).
     pub fn new(
-        tx: Sender<Packet>,
-        rx: Receiver<Packet>,
+        tx: Inlet<Packet>,
+        rx: Outlet<Packet>,
         impairment: Impairment,
         seed: u64,
     ) -> Endpoint {
@@ -167,18 +168,16 @@ impl Endpoint {
 
     /// Send without waiting (a full queue drops the packet: the next one supersedes it).
     pub fn send(&mut self, p: Packet) {
-        match self.tx.try_send(p) {
+        match self.tx.push(p) {
             Ok(()) => self.stats.sent += 1,
-            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
-                self.stats.send_dropped += 1
-            }
+            Err(_) => self.stats.send_dropped += 1,
         }
     }
 
     /// At local time `now` (s): take what has arrived into the delay line, and return the
     /// newest packet whose delay has passed (older ones due at the same time are superseded).
     pub fn receive(&mut self, now: f64) -> Option<Packet> {
-        while let Ok(p) = self.rx.try_recv() {
+        while let Some(p) = self.rx.pop() {
             self.stats.received += 1;
             let imp = self.impairment;
             if imp.loss > 0.0 && self.rng.random::<f64>() < imp.loss {
@@ -225,7 +224,7 @@ impl Endpoint {
     /// Forget everything queued and on its way (a fresh start: what a link check sent
     /// before a run is not delivered in it).
     pub fn clear(&mut self) {
-        while self.rx.try_recv().is_ok() {}
+        self.rx.clear();
         self.head = 0;
         self.len = 0;
         self.last_due = f64::NEG_INFINITY;
