@@ -107,7 +107,16 @@ impl<T> Inlet<T> {
         if self.ring.is_abandoned() {
             return Err(Refused::Closed);
         }
-        self.ring.push(v).map_err(|_| Refused::Full)?;
+        self.push_or_return(v).map_err(|_| Refused::Full)
+    }
+
+    /// Queue `v` without waiting, or hand it back when it cannot be queued (full, or the
+    /// consumer gone): for a value the caller keeps to use again.
+    pub fn push_or_return(&mut self, v: T) -> Result<(), T> {
+        if self.ring.is_abandoned() {
+            return Err(v);
+        }
+        self.ring.push(v).map_err(|rtrb::PushError::Full(v)| v)?;
         if let Some(b) = &self.bell {
             b.ring();
         }

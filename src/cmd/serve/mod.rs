@@ -268,8 +268,8 @@ pub fn prepare_arm(
     let wake = Arc::new(Wake::new().map_err(|e| RunError::Internal(format!("eventfd: {e}")))?);
     let signals = Arc::new(ArmSignals::new(global.serve.stale_fallback.activity()));
     let (tx, records) = crossbeam_channel::bounded(cfg.telemetry.channel_capacity);
-    let (commands, command_rx) = crossbeam_channel::bounded(256);
-    let (reply_tx, replies) = crossbeam_channel::bounded(64);
+    let (commands, command_rx) = crate::handoff::queue(256);
+    let (reply_tx, replies) = crate::handoff::queue(64);
     let mut pipeline = assemble(&run_opts, cfg, &faults, tx, stop.clone())?;
     pipeline.weights_store = keep_weights(&run_opts, cfg, &arm.name, &mut pipeline);
     pipeline.servo.attach(ServoLink {

@@ -326,10 +326,11 @@ fn activity(code: u64) -> Activity {
 
 /// The loop's side of `omnid serve`'s connection.
 pub struct ServoLink {
-    /// Commands for the servo, stamped.
-    pub commands: crossbeam_channel::Receiver<Stamped>,
+    /// Commands for the servo, stamped (a `handoff` queue: the servo never waits for the
+    /// station's thread, whatever its priority; docs/DESIGN.md §4.7).
+    pub commands: crate::handoff::Outlet<Stamped>,
     /// What the servo hands back.
-    pub replies: crossbeam_channel::Sender<ServoReply>,
+    pub replies: crate::handoff::Inlet<ServoReply>,
     /// Wakes the station's host when a reply is sent.
     pub wake: std::sync::Arc<Wake>,
     /// Ownership, fallback and stop requests, read every tick.

@@ -975,7 +975,7 @@ impl Servo {
                 epoch,
                 halts,
                 command,
-            }) = self.link.as_ref().and_then(|l| l.commands.try_recv().ok())
+            }) = self.link.as_mut().and_then(|l| l.commands.pop())
             else {
                 break;
             };
@@ -1191,10 +1191,10 @@ impl Servo {
     }
 
     fn reply(&mut self, reply: ServoReply) {
-        if let Some(link) = &self.link {
+        if let Some(link) = &mut self.link {
             // The receiver keeps far more room than requests in flight; should it be gone,
             // the box is dropped here (the daemon is shutting down anyway).
-            let _ = link.replies.try_send(reply);
+            let _ = link.replies.push(reply);
             link.wake.notify();
         }
     }
@@ -1407,12 +1407,13 @@ mod tests {
     /// A servo on the simulator with `Off` (no compensation, so the commanded torque is the
     /// stream's alone), attached to a link; its record channel and the command sender.
     /// The station's side of a test link: commands stamped with the current owner epoch.
-    struct Commands(crossbeam_channel::Sender<Stamped>);
+    struct Commands(std::cell::RefCell<crate::handoff::Inlet<Stamped>>);
 
     impl Commands {
         fn send(&self, command: ServoCommand) -> Result<(), ()> {
             self.0
-                .send(Stamped {
+                .borrow_mut()
+                .push(Stamped {
                     epoch: 0,
                     halts: 0,
                     command,
@@ -1446,15 +1447,15 @@ mod tests {
             None,
             false,
         );
-        let (ctx, crx) = crossbeam_channel::bounded(8);
-        let (rtx, _rrx) = crossbeam_channel::bounded(8);
+        let (ctx, crx) = crate::handoff::queue(8);
+        let (rtx, _rrx) = crate::handoff::queue(8);
         servo.attach(ServoLink {
             commands: crx,
             replies: rtx,
             wake: Arc::new(Wake::new().unwrap()),
             signals: Arc::new(ArmSignals::new(Activity::Hold)),
         });
-        (servo, rx, Commands(ctx))
+        (servo, rx, Commands(std::cell::RefCell::new(ctx)))
     }
 
     fn next(servo: &mut Servo, rx: &crossbeam_channel::Receiver<TickRecord>) -> TickRecord {

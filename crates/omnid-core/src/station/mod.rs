@@ -26,6 +26,7 @@ pub use view::ArmState;
 
 use crate::arm::ArmIdentity;
 use crate::control::ControllerKind;
+use crate::handoff::{Inlet, Outlet};
 use crate::identifier::{Identifier, IdentifierConfig};
 use crate::omni::kinematics::Geometry;
 use crate::servo::summary::{FaultEntry, IdentifierState, RunSummary, SummaryLabels};
@@ -35,7 +36,7 @@ use crate::servo::{
 use crate::telemetry::mcap_log::LogFormat;
 use crate::telemetry::record::{LogSchema, Mode, TickRecord};
 use crate::telemetry::{LogError, LogFile};
-use crossbeam_channel::{Receiver, Sender, TryRecvError};
+use crossbeam_channel::{Receiver, TryRecvError};
 use ops::{LeaseHolder, RecordingStatus};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -51,9 +52,9 @@ pub struct StationSetup {
     /// Every tick's record from the servo.
     pub records: Receiver<TickRecord>,
     /// The servo's mailbox.
-    pub commands: Sender<Stamped>,
+    pub commands: Inlet<Stamped>,
     /// What the servo hands back.
-    pub replies: Receiver<ServoReply>,
+    pub replies: Outlet<ServoReply>,
     /// Ownership, fallback and stop requests, read by the servo every tick.
     pub signals: Arc<ArmSignals>,
     /// Ends the daemon (`shutdown`).
@@ -525,7 +526,7 @@ impl Station {
     }
 
     /// Hand the servo `command`; once it is in the mailbox the answer is `reply`.
-    fn command(&self, command: ServoCommand, reply: Reply) -> Result<Answer, OpError> {
+    fn command(&mut self, command: ServoCommand, reply: Reply) -> Result<Answer, OpError> {
         self.send(command)?;
         Ok(Answer::Now(reply))
     }
@@ -852,14 +853,15 @@ impl Station {
     }
 
     /// Hand a command to the servo, stamped with the owner epoch.
-    fn send(&self, command: ServoCommand) -> Result<(), OpError> {
+    fn send(&mut self, command: ServoCommand) -> Result<(), OpError> {
+        let stamped = Stamped {
+            epoch: self.epoch,
+            halts: self.halts,
+            command,
+        };
         self.s
             .commands
-            .try_send(Stamped {
-                epoch: self.epoch,
-                halts: self.halts,
-                command,
-            })
+            .push(stamped)
             .map_err(|_| OpError::ServoBusy)
     }
 
@@ -930,8 +932,8 @@ impl Station {
                 halts: self.halts,
                 command: ServoCommand::Snapshot(spare),
             };
-            if let Err(e) = self.s.commands.try_send(stamped) {
-                if let ServoCommand::Snapshot(b) = e.into_inner().command {
+            if let Err(stamped) = self.s.commands.push_or_return(stamped) {
+                if let ServoCommand::Snapshot(b) = stamped.command {
                     self.spare = Some(b);
                 }
             }
@@ -985,7 +987,7 @@ impl Station {
                 Err(TryRecvError::Disconnected) => break true,
             }
         };
-        while let Ok(reply) = self.s.replies.try_recv() {
+        while let Some(reply) = self.s.replies.pop() {
             match reply {
                 ServoReply::Snapshot(snap) => self.answer_snapshot(snap),
                 ServoReply::Identifier(_old) => match self.loads.pop_front() {
