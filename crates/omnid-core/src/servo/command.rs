@@ -162,6 +162,9 @@ pub enum ServoReply {
 
 /// The loop's results so far, copied into memory the caller provided.
 pub struct Snapshot {
+    /// The tick it was filled in: that tick's record is the first to carry every command
+    /// sent before it (the station answers with both).
+    pub seq: u64,
     /// The run's statistics so far.
     pub stats: RunStats,
     /// Tick timing so far.
@@ -186,6 +189,7 @@ impl Snapshot {
     /// Storage shaped like the loop's own (`period_ns` as the servo's).
     pub fn new(period_ns: u64, weights: Option<Identifier>) -> Self {
         Snapshot {
+            seq: 0,
             stats: RunStats::default(),
             timing: TickTiming::new(period_ns),
             weights,

@@ -202,6 +202,8 @@ pub struct Servo {
     /// The stylus sits in its inkwell at this tick's sample: the inkwell holds the arm.
     docked: bool,
     cmd_seq: u64,
+    /// A reply went to the station this tick (its record wakes the station's host).
+    replied: bool,
     stream_deadline: f64,
     event: Option<ServoEvent>,
     /// The owner epoch and stop count last read from the link's signals.
@@ -330,6 +332,7 @@ impl Servo {
             buttons: [false; 2],
             docked: false,
             cmd_seq: 0,
+            replied: false,
             stream_deadline: f64::NEG_INFINITY,
             event: None,
             owner_epoch: 0,
@@ -854,8 +857,10 @@ impl Servo {
         if !sent {
             self.dropped += 1;
         }
+        let replied = std::mem::take(&mut self.replied);
         if let Some(link) = &self.link {
-            if record.live.event.is_some() || record.mode == Mode::Stop {
+            // A reply sent this tick is answered with this record (a snapshot's status).
+            if record.live.event.is_some() || record.mode == Mode::Stop || replied {
                 link.wake.notify();
             } else {
                 link.wake.tick(record.live.seq);
@@ -1195,11 +1200,13 @@ impl Servo {
             // The receiver keeps far more room than requests in flight; should it be gone,
             // the box is dropped here (the daemon is shutting down anyway).
             let _ = link.replies.push(reply);
+            self.replied = true;
             link.wake.notify();
         }
     }
 
     fn fill(&self, snap: &mut Snapshot) {
+        snap.seq = self.tick;
         snap.stats.copy_from(&self.stats);
         snap.timing.copy_from(&self.timing);
         snap.weights_copied = match (&mut snap.weights, &self.identifier) {

@@ -253,6 +253,8 @@ pub struct Station {
     halts: u64,
     /// One snapshot box circulates: here when `Some`, at the servo otherwise.
     spare: Option<Box<Snapshot>>,
+    /// A snapshot back before the record of its tick: answered once that record is here.
+    held: Option<Box<Snapshot>>,
     waiting: Vec<Waiting>,
     /// Weight loads sent to the servo, answered when the old identifier comes back (`None`:
     /// a reset to the shipped weights).
@@ -318,6 +320,7 @@ impl Station {
             epoch,
             halts: s.signals.halts(),
             spare,
+            held: None,
             waiting: Vec::new(),
             loads: Default::default(),
             adapt,
@@ -989,7 +992,7 @@ impl Station {
         };
         while let Some(reply) = self.s.replies.pop() {
             match reply {
-                ServoReply::Snapshot(snap) => self.answer_snapshot(snap),
+                ServoReply::Snapshot(snap) => self.held = Some(snap),
                 ServoReply::Identifier(_old) => match self.loads.pop_front() {
                     Some((ticket, session, Some(path))) => {
                         self.pending.push(PendingOut::Done {
@@ -1023,6 +1026,15 @@ impl Station {
                 },
                 // A coupling that ended: freed here, off the servo thread.
                 ServoReply::Teleop(_old) => {}
+            }
+        }
+        // A status names the mode of the tick its snapshot was taken in, so it shows every
+        // command sent before it (the record comes after the reply; its emit wakes the host).
+        if let Some(snap) = self.held.take() {
+            if ended || self.last.as_ref().is_some_and(|r| r.live.seq >= snap.seq) {
+                self.answer_snapshot(snap);
+            } else {
+                self.held = Some(snap);
             }
         }
         if let Some(due) = self.persist_due {
