@@ -59,6 +59,12 @@ fn teleop_clock(paced: bool, t: f64) -> f64 {
     }
 }
 
+/// The identifier learns nothing for this long after the stylus leaves its inkwell, s
+/// (docs/IDENTIFIER.md, "Across the workspace"): the arm pressed into the inkwell by a growing
+/// torque jumps free when the inkwell lets go, a step the estimated q̈ lags; learning from those
+/// ticks swung M̂ and Ĝ so far that at centre 5 joint 3 passed the safety layer's 10 rad/s.
+pub const UNDOCK_SETTLE_S: f64 = 0.1;
+
 /// A paced loop whose next sample comes more than this after the previous one has stalled
 /// (the log's and the state's `flags` bit [`flags::STALL`]; libHD raises `HD_TIMER_ERROR`,
 /// docs/HDAPI.md, Errors), ns. Fifty periods at 1 kHz: far beyond a loaded machine's
@@ -201,6 +207,8 @@ pub struct Servo {
     buttons: [bool; 2],
     /// The stylus sits in its inkwell at this tick's sample: the inkwell holds the arm.
     docked: bool,
+    /// The time of the last sample with the stylus in its inkwell (−∞: never docked).
+    docked_t: f64,
     cmd_seq: u64,
     /// A reply went to the station this tick (its record wakes the station's host).
     replied: bool,
@@ -331,6 +339,7 @@ impl Servo {
             measurement_var: cfg.kalman.measurement_var,
             buttons: [false; 2],
             docked: false,
+            docked_t: f64::NEG_INFINITY,
             cmd_seq: 0,
             replied: false,
             stream_deadline: f64::NEG_INFINITY,
@@ -450,6 +459,9 @@ impl Servo {
         // sample at the same point (one network pass serves both).
         self.buttons = s.buttons;
         self.docked = s.inkwell;
+        if s.inkwell {
+            self.docked_t = s.t;
+        }
         let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
         let (tau_hat, ident_flag) = self.identify(s.t, &est);
         let tau_model = self.oracle(&est);
@@ -542,8 +554,13 @@ impl Servo {
             // wall's push teaches the model the wall (anti-windup).
             // The stylus in its inkwell: the inkwell holds the arm up, and learning there
             // teaches the model that nothing is needed to hold it (then the first motion out of
-            // the inkwell runs on a model without gravity).
-            Some(_) if !self.activity.learns() || self.limited || self.docked => {
+            // the inkwell runs on a model without gravity), and for UNDOCK_SETTLE_S after it
+            // let go (the arm's jump out of it is not in the torque either).
+            Some(_)
+                if !self.activity.learns()
+                    || self.limited
+                    || t - self.docked_t < UNDOCK_SETTLE_S =>
+            {
                 tau_hat = id.predict(&est.q, &est.qd, &est.qdd).into()
             }
             Some(acting) => {
@@ -1662,6 +1679,51 @@ mod tests {
             assert!(next(&mut servo, &rx).live.inkwell);
         }
         assert_eq!((prediction(&servo) - before).norm(), 0.0);
+    }
+
+    #[test]
+    fn the_identifier_learns_nothing_just_after_the_inkwell_lets_go() {
+        // A run's blend out of the inkwell under NNIDC: the arm jumps free when the inkwell lets
+        // go, and learning from that jump tripped the safety layer (docs/IDENTIFIER.md,
+        // "Across the workspace"). Nothing is learnt for UNDOCK_SETTLE_S, then learning resumes.
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(SimOmni::new(&cfg, false)),
+            ControllerSet::new(&cfg, ControllerKind::Nnidc, 0.0),
+            Reference::new(Trajectory::Sine, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        assert!(
+            next(&mut servo, &rx).live.inkwell,
+            "the simulator starts docked"
+        );
+        let mut docked_t = 0.0;
+        let free_t = loop {
+            let r = next(&mut servo, &rx);
+            if !r.live.inkwell {
+                break r.t;
+            }
+            docked_t = r.t;
+            assert!(r.t < 1.0, "the blend never left the inkwell");
+        };
+        let before = prediction(&servo);
+        let mut t = free_t;
+        while t + 1e-3 < docked_t + UNDOCK_SETTLE_S - 1e-9 {
+            let r = next(&mut servo, &rx);
+            assert!(!r.live.inkwell);
+            t = r.t;
+            assert_eq!(prediction(&servo), before, "learnt at t = {t}");
+        }
+        for _ in 0..50 {
+            next(&mut servo, &rx);
+        }
+        assert_ne!(prediction(&servo), before, "learning did not resume");
     }
 
     #[test]
