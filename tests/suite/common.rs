@@ -180,33 +180,28 @@ impl Served {
         Served::spawn_in(tempfile::tempdir().unwrap(), args, config, None)
     }
 
+    /// `omnid serve ARGS` in `dir`. The daemon gets SIGTERM when the thread that started it
+    /// ends (Linux's parent-death signal): a test's own daemon when its test's thread ends,
+    /// even when the test process is killed outright (no `Drop` runs then, and a daemon left
+    /// running went on ticking at 1 kHz for as long as nobody stopped it).
     fn spawn_in(
         dir: tempfile::TempDir,
         args: &[&str],
         config: Option<&str>,
         nofile: Option<u64>,
     ) -> Served {
-        Served::spawn_with(dir, args, config, nofile, false)
-    }
-
-    /// As `spawn_in`; with `end_with_parent`, the daemon gets SIGTERM when the thread that
-    /// started it ends (Linux's parent-death signal).
-    fn spawn_with(
-        dir: tempfile::TempDir,
-        args: &[&str],
-        config: Option<&str>,
-        nofile: Option<u64>,
-        end_with_parent: bool,
-    ) -> Served {
         let mut cmd = omnid();
-        if end_with_parent {
-            // SAFETY: only async-signal-safe calls between fork and exec.
-            unsafe {
-                std::os::unix::process::CommandExt::pre_exec(&mut cmd, || {
-                    libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-                    Ok(())
-                });
-            }
+        let parent = std::process::id() as libc::pid_t;
+        // SAFETY: only async-signal-safe calls between fork and exec.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut cmd, move || {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                // The parent may have died before the signal was asked for (no allocation here).
+                if libc::getppid() != parent {
+                    return Err(std::io::Error::from_raw_os_error(libc::ESRCH));
+                }
+                Ok(())
+            });
         }
         if let Some(n) = nofile {
             // SAFETY: only async-signal-safe calls between fork and exec.
@@ -375,7 +370,7 @@ pub fn shared_sim() -> &'static Served {
                 "--foxglove",
                 "127.0.0.1:0",
             ];
-            let mut served = Served::spawn_with(dir, &args, None, None, true);
+            let mut served = Served::spawn_in(dir, &args, None, None);
             served.sock = sock;
             served.url = served.read_live_view_address();
             let _ = tx.send(served);

@@ -228,3 +228,23 @@ fn every_array_refuses_a_value_more_or_less() {
     }
     assert!(arrays >= 25, "only {arrays} arrays found");
 }
+
+/// The `config` fuzz target's seed `tests/fuzz/seeds/config/default.toml` is what
+/// `omnid config --print-default` prints today (tests/fuzz/README.md): a key added or a comment
+/// changed in the code without the seed regenerated fails here, not months later in a fuzz run
+/// seeded with an older default.
+#[test]
+fn the_fuzz_seeds_default_config_is_what_print_default_prints() {
+    let out = crate::common::run_ok(&["config", "--print-default"]);
+    let seed = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fuzz/seeds/config/default.toml");
+    let kept = std::fs::read(&seed).unwrap();
+    assert!(
+        kept == out.stdout,
+        "{} differs from `omnid config --print-default` ({} bytes kept, {} printed); regenerate \
+         it: cargo run -q -- config --print-default > tests/fuzz/seeds/config/default.toml",
+        seed.display(),
+        kept.len(),
+        out.stdout.len()
+    );
+}

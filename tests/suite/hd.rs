@@ -13,8 +13,6 @@ pub struct HD {
     pub prefix: PathBuf,
     /// The call-order replays every test uses (shared, read only).
     bin: PathBuf,
-    /// Programs a test compiles itself (`compile_with`): this process's own.
-    own: tempfile::TempDir,
 }
 
 fn root() -> &'static Path {
@@ -147,13 +145,15 @@ impl HD {
             HD {
                 prefix: ready.join("prefix"),
                 bin: ready.join("bin"),
-                own: tempfile::tempdir().unwrap(),
             }
         })
     }
 
     /// Compile `tests/c/<src>` against the installed headers, linking `libs` from the
-    /// installed `lib/` (panics with the compiler's messages if it fails).
+    /// installed `lib/` (panics with the compiler's messages if it fails): the program, in a
+    /// directory the calling test owns and removes when it drops it. (Not in `HD`, which lives in
+    /// a static: a static is never dropped, so a directory it held stayed in /tmp after every
+    /// test process.)
     pub fn compile_with(
         &self,
         name: &str,
@@ -161,25 +161,16 @@ impl HD {
         compiler: &str,
         flags: &[&str],
         libs: &[&str],
-    ) {
-        compile(
-            &self.prefix,
-            &self.own.path().join(name),
-            src,
-            compiler,
-            flags,
-            libs,
-        );
+    ) -> (tempfile::TempDir, PathBuf) {
+        let dir = tempfile::tempdir().unwrap();
+        let exe = dir.path().join(name);
+        compile(&self.prefix, &exe, src, compiler, flags, libs);
+        (dir, exe)
     }
 
-    /// A program compiled by `compile_with` in this process, else one of the shared ones.
+    /// One of the shared programs (`PROGRAMS`).
     pub fn exe(&self, name: &str) -> PathBuf {
-        let own = self.own.path().join(name);
-        if own.exists() {
-            own
-        } else {
-            self.bin.join(name)
-        }
+        self.bin.join(name)
     }
 }
 

@@ -699,7 +699,7 @@ const SDK_LIBS: [&str; 4] = ["-lHDU", "-lHD", "-lrt", "-lncurses"];
 #[ignore = "paced"]
 fn a_program_linked_with_only_lhdu_lhd_gets_libm_and_ncurses() {
     let hd = HD::get();
-    hd.compile_with(
+    let (_own, exe) = hd.compile_with(
         "unnamed_libs",
         "unnamed_libs.c",
         "cc",
@@ -708,11 +708,7 @@ fn a_program_linked_with_only_lhdu_lhd_gets_libm_and_ncurses() {
     );
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("none.sock");
-    let out = run(
-        hd.exe("unnamed_libs"),
-        &[],
-        &[("OMNID_SOCKET", missing.to_str().unwrap())],
-    );
+    let out = run(exe, &[], &[("OMNID_SOCKET", missing.to_str().unwrap())]);
     assert!(out.contains(&format!("sin {:.6}", 0.5f64.sin())), "{out}");
 }
 
@@ -721,14 +717,10 @@ fn a_program_linked_with_only_lhdu_lhd_gets_libm_and_ncurses() {
 fn hdu_c_functions_and_error_helpers_link_as_the_sdk_examples_do() {
     use nalgebra::Vector3;
     let hd = HD::get();
-    hd.compile_with("hdu_c", "hdu.c", "cc", &["-std=c11", "-Wextra"], &SDK_LIBS);
+    let (_own, exe) = hd.compile_with("hdu_c", "hdu.c", "cc", &["-std=c11", "-Wextra"], &SDK_LIBS);
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("none.sock");
-    let out = run(
-        hd.exe("hdu_c"),
-        &[],
-        &[("OMNID_SOCKET", missing.to_str().unwrap())],
-    );
+    let out = run(exe, &[], &[("OMNID_SOCKET", missing.to_str().unwrap())]);
     let v = |x: Vector3<f64>| [x.x, x.y, x.z];
     let a = Vector3::new(1.0, 2.0, 3.0);
     let b = Vector3::new(-4.0, 0.5, 2.0);
@@ -828,14 +820,14 @@ fn hdu_c_functions_and_error_helpers_link_as_the_sdk_examples_do() {
 fn hdu_cpp_vectors_matrices_and_quaternions_agree_with_nalgebra() {
     use nalgebra::{Matrix4, Rotation3, Unit, UnitQuaternion, Vector3};
     let hd = HD::get();
-    hd.compile_with(
+    let (_own, exe) = hd.compile_with(
         "hdu_cpp",
         "hdu.cpp",
         "c++",
         &["-std=c++11", "-Wextra"],
         &SDK_LIBS,
     );
-    let out = run(hd.exe("hdu_cpp"), &[], &[]);
+    let out = run(exe, &[], &[]);
     let v = |x: Vector3<f64>| [x.x, x.y, x.z];
     let eps = 1e-12;
     let a = Vector3::new(1.0, 2.0, 3.0);
@@ -921,14 +913,14 @@ fn hdu_vectors_in_cpp_linked_by_gcc_need_no_cpp_runtime() {
     use nalgebra::Vector3;
     let hd = HD::get();
     // As the SDK's CommandJointTorque builds: gcc on a .cpp, "-lHDU -lHD -lrt", no libstdc++.
-    hd.compile_with(
+    let (_own, exe) = hd.compile_with(
         "hdu_gcc",
         "hdu_gcc.cpp",
         "cc",
         &["-std=c++11", "-Wextra"],
         &["-lHDU", "-lHD", "-lrt"],
     );
-    let out = run(hd.exe("hdu_gcc"), &[], &[]);
+    let out = run(exe, &[], &[]);
     let f = (Vector3::new(10.0, -20.0, 5.0) - Vector3::new(12.0, -18.0, 4.0)) * 0.25;
     let max_torque = Vector3::new(188.0, 188.0, 48.0);
     let expected = [

@@ -253,10 +253,79 @@ fn mock(name: &str) -> PathBuf {
 
 /// Every recorded session in `mock/`, with the config it was recorded with.
 const SESSIONS: [(&str, Option<&str>); 3] = [
-    ("pd-multisine.csv", None),
+    ("pd-multisine.csv", Some("undocked.toml")),
     ("pd-sine-payload.csv", Some("payload.toml")),
-    ("nnidc-sine.csv", None),
+    ("nnidc-sine.csv", Some("undocked.toml")),
 ];
+
+/// mock/README.md's regeneration block (the first `sh` block under "## Regenerating"), run as
+/// written with this build's binary as `$B`, in a directory of its own (a copy of `mock/`'s
+/// configs, and its own `/tmp`): every session it records is byte for byte the committed one.
+/// (The sessions had drifted once unnoticed: recorded before the simulator's stylus started in
+/// its inkwell, under a command that no longer made them.)
+#[test]
+fn mock_sessions_are_what_their_documented_commands_record() {
+    let readme = std::fs::read_to_string(mock("README.md")).unwrap();
+    let block = readme
+        .split("## Regenerating")
+        .nth(1)
+        .and_then(|r| r.split("```sh\n").nth(1))
+        .and_then(|b| b.split("```").next())
+        .expect("mock/README.md has a Regenerating section with a sh block");
+    let dir = tempfile::tempdir().unwrap();
+    let (work, tmp) = (dir.path().join("repo"), dir.path().join("tmp"));
+    std::fs::create_dir_all(work.join("mock")).unwrap();
+    std::fs::create_dir_all(&tmp).unwrap();
+    for e in std::fs::read_dir(mock("")).unwrap().flatten() {
+        if e.path().extension().is_some_and(|x| x == "toml") {
+            std::fs::copy(e.path(), work.join("mock").join(e.file_name())).unwrap();
+        }
+    }
+    let binary = env!("CARGO_BIN_EXE_omnid");
+    let script = block
+        .replace("B=target/release/omnid", &format!("B='{binary}'"))
+        .replace("/tmp/", &format!("{}/", tmp.display()));
+    assert!(
+        script.contains(binary),
+        "the block sets no `B=target/release/omnid`:\n{block}"
+    );
+    let out = std::process::Command::new("sh")
+        .arg("-ec")
+        .arg(&script)
+        .current_dir(&work)
+        .env("TMPDIR", &tmp)
+        .env_remove("OMNID_STATE_DIR")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "mock/README.md's block failed: {}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for (name, _) in SESSIONS {
+        let made = std::fs::read_to_string(work.join("mock").join(name))
+            .unwrap_or_else(|e| panic!("the block made no mock/{name}: {e}"));
+        let kept = std::fs::read_to_string(mock(name)).unwrap();
+        if let Some((n, (a, b))) = kept
+            .lines()
+            .zip(made.lines())
+            .enumerate()
+            .find(|(_, (a, b))| a != b)
+        {
+            panic!(
+                "mock/{name} is not what mock/README.md's commands record: line {} is\n  {a}\n\
+                 recorded now\n  {b}\n(regenerate it with those commands, or fix them)",
+                n + 1
+            );
+        }
+        assert_eq!(
+            kept.len(),
+            made.len(),
+            "mock/{name}: as many bytes as its commands record now"
+        );
+    }
+}
 
 #[test]
 fn mock_sessions_replay_end_to_end() {
