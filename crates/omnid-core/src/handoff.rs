@@ -104,10 +104,13 @@ impl<T> Inlet<T> {
 
     /// Queue `v` without waiting.
     pub fn push(&mut self, v: T) -> Result<(), Refused> {
-        if self.ring.is_abandoned() {
-            return Err(Refused::Closed);
-        }
-        self.push_or_return(v).map_err(|_| Refused::Full)
+        self.push_or_return(v).map_err(|_| {
+            if self.ring.is_abandoned() {
+                Refused::Closed
+            } else {
+                Refused::Full
+            }
+        })
     }
 
     /// Queue `v` without waiting, or hand it back when it cannot be queued (full, or the

@@ -205,9 +205,8 @@ pub struct Servo {
     measurement_var: f64,
     /// The stylus buttons at this tick's sample.
     buttons: [bool; 2],
-    /// The stylus sits in its inkwell at this tick's sample: the inkwell holds the arm.
-    docked: bool,
-    /// The time of the last sample with the stylus in its inkwell (−∞: never docked).
+    /// The time of the last sample with the stylus in its inkwell, where the inkwell holds the
+    /// arm (−∞: never docked).
     docked_t: f64,
     cmd_seq: u64,
     /// A reply went to the station this tick (its record wakes the station's host).
@@ -338,7 +337,6 @@ impl Servo {
             teleop_kalman: KalmanBank::new(cfg.kalman),
             measurement_var: cfg.kalman.measurement_var,
             buttons: [false; 2],
-            docked: false,
             docked_t: f64::NEG_INFINITY,
             cmd_seq: 0,
             replied: false,
@@ -458,7 +456,6 @@ impl Servo {
         // Control, with the weights as they are; the update below then learns from this
         // sample at the same point (one network pass serves both).
         self.buttons = s.buttons;
-        self.docked = s.inkwell;
         if s.inkwell {
             self.docked_t = s.t;
         }
@@ -1460,17 +1457,7 @@ mod tests {
             cfg.sim.start_pose = cfg.reference.center;
             cfg.sim.docked = false;
         }
-        let (tx, rx) = crossbeam_channel::unbounded();
-        let mut servo = Servo::new(
-            &cfg,
-            Box::new(SimOmni::new(&cfg, false)),
-            ControllerSet::new(&cfg, ControllerKind::Off, 0.0),
-            Reference::new(Trajectory::Hold, &cfg.reference, 1),
-            tx,
-            Arc::new(AtomicBool::new(false)),
-            None,
-            false,
-        );
+        let (mut servo, rx) = sim_servo(&cfg, ControllerKind::Off, Trajectory::Hold);
         let (ctx, crx) = crate::handoff::queue(8);
         let (rtx, _rrx) = crate::handoff::queue(8);
         servo.attach(ServoLink {
@@ -1480,6 +1467,26 @@ mod tests {
             signals: Arc::new(ArmSignals::new(Activity::Hold)),
         });
         (servo, rx, Commands(std::cell::RefCell::new(ctx)))
+    }
+
+    /// An unpaced servo on the simulator under `kind` following `trajectory`, and its records.
+    fn sim_servo(
+        cfg: &Config,
+        kind: ControllerKind,
+        trajectory: Trajectory,
+    ) -> (Servo, crossbeam_channel::Receiver<TickRecord>) {
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let servo = Servo::new(
+            cfg,
+            Box::new(SimOmni::new(cfg, false)),
+            ControllerSet::new(cfg, kind, 0.0),
+            Reference::new(trajectory, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        (servo, rx)
     }
 
     fn next(servo: &mut Servo, rx: &crossbeam_channel::Receiver<TickRecord>) -> TickRecord {
@@ -1688,17 +1695,7 @@ mod tests {
         // "Across the workspace"). Nothing is learnt for UNDOCK_SETTLE_S, then learning resumes.
         let mut cfg = Config::default();
         cfg.sim.torque_noise_nm = 0.0;
-        let (tx, rx) = crossbeam_channel::unbounded();
-        let mut servo = Servo::new(
-            &cfg,
-            Box::new(SimOmni::new(&cfg, false)),
-            ControllerSet::new(&cfg, ControllerKind::Nnidc, 0.0),
-            Reference::new(Trajectory::Sine, &cfg.reference, 1),
-            tx,
-            Arc::new(AtomicBool::new(false)),
-            None,
-            false,
-        );
+        let (mut servo, rx) = sim_servo(&cfg, ControllerKind::Nnidc, Trajectory::Sine);
         assert!(
             next(&mut servo, &rx).live.inkwell,
             "the simulator starts docked"

@@ -857,15 +857,20 @@ impl Station {
 
     /// Hand a command to the servo, stamped with the owner epoch.
     fn send(&mut self, command: ServoCommand) -> Result<(), OpError> {
-        let stamped = Stamped {
-            epoch: self.epoch,
-            halts: self.halts,
-            command,
-        };
+        let stamped = self.stamp(command);
         self.s
             .commands
             .push(stamped)
             .map_err(|_| OpError::ServoBusy)
+    }
+
+    /// `command` stamped with the owner epoch and the stop count.
+    fn stamp(&self, command: ServoCommand) -> Stamped {
+        Stamped {
+            epoch: self.epoch,
+            halts: self.halts,
+            command,
+        }
     }
 
     /// Read a weights file here, off the servo thread, and hand the servo a ready identifier.
@@ -930,11 +935,7 @@ impl Station {
     fn ask_snapshot(&mut self, w: Waiting) {
         self.waiting.push(w);
         if let Some(spare) = self.spare.take() {
-            let stamped = Stamped {
-                epoch: self.epoch,
-                halts: self.halts,
-                command: ServoCommand::Snapshot(spare),
-            };
+            let stamped = self.stamp(ServoCommand::Snapshot(spare));
             if let Err(stamped) = self.s.commands.push_or_return(stamped) {
                 if let ServoCommand::Snapshot(b) = stamped.command {
                     self.spare = Some(b);
