@@ -17,6 +17,10 @@ pub(crate) struct IdentifyArgs {
     /// TOML configuration file (its [identifier] and [kalman] sections apply).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// The joint states to learn from: the whole log smoothed (no filter lag), or the live
+    /// loop's causal filter.
+    #[arg(long, value_enum, default_value_t = omnid::cmd::identify::States::Smoothed)]
+    states: omnid::cmd::identify::States,
 }
 
 pub(crate) fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
@@ -35,6 +39,7 @@ pub(crate) fn identify_cmd(args: IdentifyArgs) -> Result<u8, anyhow::Error> {
         &args.out,
         &cfg,
         &pretune_cfg,
+        args.states,
         Some(&stop),
         |p| match p {
             omnid::identifier::Progress::Batch { .. } => {}

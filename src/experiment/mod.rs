@@ -17,7 +17,7 @@ pub mod teleop;
 pub mod workspace;
 
 use crate::cmd::assembly::{SHIPPED_WEIGHTS, SHIPPED_WEIGHTS_NAME};
-use crate::cmd::identify::{identify, samples_from_log, IdentifyError};
+use crate::cmd::identify::{identify, samples_from_log, IdentifyError, States};
 use crate::cmd::run::{execute, oracle_tracking, RunError, RunOptions};
 use crate::config::Config;
 use crate::control::{ControllerKind, Trajectory};
@@ -514,11 +514,19 @@ fn validation_pretune(
         ..PretuneConfig::default()
     };
     let epoch_bar = crate::progress::bar(plan.epochs as u64, "pre-tuning");
-    let report = identify(&logs, &weights, &Config::default(), &pcfg, None, |p| {
-        if let Progress::Epoch(_) = p {
-            epoch_bar.inc(1);
-        }
-    })?;
+    let report = identify(
+        &logs,
+        &weights,
+        &Config::default(),
+        &pcfg,
+        States::Smoothed,
+        None,
+        |p| {
+            if let Progress::Epoch(_) = p {
+                epoch_bar.inc(1);
+            }
+        },
+    )?;
     epoch_bar.finish_and_clear();
     bar.inc(1);
     Ok((weights, report))
@@ -619,7 +627,7 @@ fn alpha(out: &Path, quick: bool, files: &mut Vec<PathBuf>) -> Result<String, Ex
         None,
         false,
     )?;
-    let samples = samples_from_log(&log, &cfg, None)?;
+    let samples = samples_from_log(&log, &cfg, States::Filtered, None)?;
     if samples.is_empty() {
         return Err(ExperimentError::Internal(
             "the α sweep log has no samples".into(),

@@ -4,7 +4,7 @@
 //! networks, pre-tuned and adapting, track better than PD and close to computed torque.
 
 use nalgebra::Matrix3;
-use omnid::cmd::identify::samples_from_log;
+use omnid::cmd::identify::{samples_from_log, States};
 use omnid::cmd::run::{execute, RunOptions, RunOutcome};
 use omnid::config::Config;
 use omnid::control::{ControllerKind, Trajectory};
@@ -55,7 +55,7 @@ fn multisine_samples(dir: &Path, seed: u64, secs: f64) -> Vec<Sample> {
         &log,
         None,
     );
-    samples_from_log(&log, &cfg, None).unwrap()
+    samples_from_log(&log, &cfg, States::Filtered, None).unwrap()
 }
 
 /// ‖Ĉ − C‖_F/‖C‖_F over the states of `samples` against the simulator's plant: the ratio of
@@ -235,7 +235,13 @@ fn three_net_nnidc_beats_pd_and_stays_near_computed_torque() {
     }
     // The feedback gain NNIDC multiplies by: M̂ of each weights file against the plant's M on
     // the states of the PD run (the torque's total variation scales with it).
-    let states = samples_from_log(&dir.path().join("pd.csv"), &Config::default(), None).unwrap();
+    let states = samples_from_log(
+        &dir.path().join("pd.csv"),
+        &Config::default(),
+        States::Filtered,
+        None,
+    )
+    .unwrap();
     let plant = Dynamics::new(ModelParams::default(), Geometry::default());
     for (file, cfg) in [
         ("nnidc-pretuned.json", IdentifierConfig::default()),

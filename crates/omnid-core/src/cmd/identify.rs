@@ -4,7 +4,7 @@
 //! tuned here predict what the identifier sees online.
 
 use crate::config::Config;
-use crate::estimate::KalmanBank;
+use crate::estimate::{smoother, KalmanBank};
 use crate::identifier::{
     pretune, save, Identifier, PretuneConfig, PretuneError, PretuneReport, Progress, Sample,
     WeightsError,
@@ -30,7 +30,11 @@ pub enum IdentifyError {
     #[error("{0}")]
     Ident(String),
     /// No log had more rows than the Kalman warm-up drops.
-    #[error("no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows)")]
+    #[error(
+        "no usable samples in {0:?} (each log needs more than {WARMUP_SAMPLES} rows, {twice} \
+         when smoothed)",
+        twice = 2 * WARMUP_SAMPLES
+    )]
     NoSamples(Vec<PathBuf>),
     /// A joint has zero torque throughout: nothing to learn it from.
     #[error(
@@ -81,47 +85,84 @@ impl IdentifyError {
     }
 }
 
+/// Which estimates of the joint states the training samples carry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum States {
+    /// The whole log smoothed (fixed-interval Kalman smoother): q̇ and q̈ without the live
+    /// filter's lag, so the networks learn the arm's dynamics rather than a lagged version of
+    /// them (docs/IDENTIFIER.md, "Pre-tuning on smoothed states").
+    #[default]
+    Smoothed,
+    /// The live loop's causal Kalman filter, sample by sample (what the servo sees online).
+    Filtered,
+}
+
 /// The identifier's training samples from one log (`stop`: the operator's, see
-/// [`LogReader::open`]).
+/// [`LogReader::open`]). Each log is estimated on its own, with the servo's `[kalman]` model and
+/// the log's own time steps; the first and (smoothed) last [`WARMUP_SAMPLES`] are dropped.
 pub fn samples_from_log(
     path: &Path,
     cfg: &Config,
+    states: States,
     stop: Option<&Arc<AtomicBool>>,
 ) -> Result<Vec<Sample>, IdentifyError> {
     let mut reader = LogReader::open(path, false, stop)?;
-    let mut kalman = KalmanBank::new(&cfg.kalman);
     let rad_per_count = cfg.device.rad_per_count();
-    let mut acting: Option<[f64; 3]> = None;
-    let mut out = Vec::new();
-    let mut n = 0usize;
+    let (mut t, mut q, mut tau) = (Vec::new(), Vec::new(), Vec::new());
     while let Some(row) = reader.next_row()? {
         if row.is_stop() {
             break;
         }
         // The live loop sees encoder counts: use them when the log has them.
-        let q = match row.enc {
+        q.push(match row.enc {
             Some(e) => Joint3::new(
                 e[0] as f64 * rad_per_count,
                 e[1] as f64 * rad_per_count,
                 e[2] as f64 * rad_per_count,
             ),
             None => Joint3::from(row.q),
-        };
-        let est = kalman.update(row.t, &q);
-        if let Some(tau) = acting {
-            if n >= WARMUP_SAMPLES {
-                out.push(Sample {
-                    q: est.q,
-                    qd: est.qd,
-                    qdd: est.qdd,
-                    tau: Joint3::from(tau),
-                });
-            }
-        }
-        acting = Some(row.tau);
-        n += 1;
+        });
+        t.push(row.t);
+        tau.push(Joint3::from(row.tau));
     }
-    Ok(out)
+    Ok(match states {
+        States::Filtered => filtered_samples(cfg, &t, &q, &tau),
+        States::Smoothed => smoothed_samples(cfg, &t, &q, &tau),
+    })
+}
+
+/// Each sample's estimate with the torque that acted up to it (the previous row's).
+fn filtered_samples(cfg: &Config, t: &[f64], q: &[Joint3], tau: &[Joint3]) -> Vec<Sample> {
+    let mut kalman = KalmanBank::new(&cfg.kalman);
+    let mut out = Vec::new();
+    for k in 0..t.len() {
+        let est = kalman.update(t[k], &q[k]);
+        if k >= WARMUP_SAMPLES.max(1) {
+            out.push(Sample {
+                q: est.q,
+                qd: est.qd,
+                qdd: est.qdd,
+                tau: tau[k - 1],
+            });
+        }
+    }
+    out
+}
+
+/// The smoothed estimate at each sample, with the mean of the torques held before and after it:
+/// a torque is held over a tick, so the acceleration at the sample's instant steps from the one
+/// to the other, and the smoothed q̈ (an estimate from both sides) sits between them.
+fn smoothed_samples(cfg: &Config, t: &[f64], q: &[Joint3], tau: &[Joint3]) -> Vec<Sample> {
+    let est = smoother::smooth(&cfg.kalman, t, q);
+    let n = est.len();
+    (WARMUP_SAMPLES.max(1)..n.saturating_sub(WARMUP_SAMPLES))
+        .map(|k| Sample {
+            q: est[k].q,
+            qd: est[k].qd,
+            qdd: est[k].qdd,
+            tau: (tau[k - 1] + tau[k]) * 0.5,
+        })
+        .collect()
 }
 
 /// Pre-tune fresh networks on `logs` and save them to `out`. `stop` (the operator's) ends the
@@ -131,6 +172,7 @@ pub fn identify(
     out: &Path,
     cfg: &Config,
     pretune_cfg: &PretuneConfig,
+    states: States,
     stop: Option<&Arc<AtomicBool>>,
     progress: impl FnMut(Progress<'_>),
 ) -> Result<PretuneReport, IdentifyError> {
@@ -138,7 +180,7 @@ pub fn identify(
     crate::output::check_file(out)?;
     let mut samples = Vec::new();
     for log in logs {
-        samples.extend(samples_from_log(log, cfg, stop)?);
+        samples.extend(samples_from_log(log, cfg, states, stop)?);
     }
     if samples.is_empty() {
         return Err(IdentifyError::NoSamples(logs.to_vec()));

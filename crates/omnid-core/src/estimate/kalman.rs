@@ -125,11 +125,21 @@ impl JointKalman {
 
     /// Predict over `dt` seconds, then correct with measurement `z`.
     pub(crate) fn step(&mut self, dt: f64, z: f64) {
+        self.predict(dt);
+        self.correct(z);
+    }
+
+    /// The model's prediction over `dt` seconds (none for `dt` ≤ 0).
+    pub(crate) fn predict(&mut self, dt: f64) {
         if dt > 0.0 {
             self.model(dt);
             self.x = self.f * self.x;
             self.p = self.f * self.p * self.f.transpose() + self.q;
         }
+    }
+
+    /// The correction by measurement `z`.
+    pub(crate) fn correct(&mut self, z: f64) {
         // H = [1, 0, 0]: innovation and gain use only the first row/column of P.
         let s = self.p[(0, 0)] + self.r;
         let k: Vector3<f64> = self.p.column(0) / s;
@@ -144,6 +154,17 @@ impl JointKalman {
     /// [q, q̇, q̈].
     pub(crate) fn state(&self) -> Vector3<f64> {
         self.x
+    }
+
+    /// The state's covariance.
+    pub(crate) fn covariance(&self) -> Matrix3<f64> {
+        self.p
+    }
+
+    /// The transition F and process noise Q of a step of `dt` seconds.
+    pub(crate) fn transition(&mut self, dt: f64) -> (Matrix3<f64>, Matrix3<f64>) {
+        self.model(dt);
+        (self.f, self.q)
     }
 }
 
