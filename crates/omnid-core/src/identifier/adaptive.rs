@@ -497,10 +497,11 @@ impl Identifier {
         self.mhat * v + self.chat * qd + self.ghat + self.fhat
     }
 
-    /// The learned model's M̂(q) and n̂(q, q̇) = Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(q̇), for the momentum
-    /// observer (docs/TELEOP.md §2). At the point this tick's prediction or update already
-    /// evaluated, the values it saw (with the weights before that tick's adaptation step) are
-    /// returned without another network pass.
+    /// The learned model's M̂(q) and n̂(q, q̇) = Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(0), for the momentum
+    /// observer (docs/TELEOP.md §2): like the parametric observer's model, without friction (a
+    /// learned Coulomb step on the near-rest, noisy q̇ of a contact shakes the estimate). At the
+    /// point this tick's prediction or update already evaluated, M̂, Ĉ and Ĝ are the values it
+    /// saw (with the weights before that tick's adaptation step), without another pass.
     pub(crate) fn momentum_model(
         &mut self,
         q: &Vector3<f64>,
@@ -509,14 +510,31 @@ impl Identifier {
         if self.model_at != Some((*q, *qd)) {
             self.forward(q, qd, false);
         }
-        (self.mhat, self.chat * qd + self.ghat + self.fhat)
+        let n = self.chat * qd + self.ghat + self.friction_at_rest();
+        (self.mhat, n)
     }
 
-    /// Ĉ(q, q̇)·q̇ + Ĝ(q): the learned model's torque at rest and in motion, without its
+    /// F̂(0): the F-net's output at rest. The G- and F-nets share the constant part of the
+    /// torque (only Ĝ + F̂ is learned, not how a constant splits between them), so what the
+    /// learned model holds at rest is Ĝ(q) + F̂(0); F̂(q̇) − F̂(0) is its friction. Costs one
+    /// F-net pass; the networks' cached point is invalidated (their activations are this one's).
+    fn friction_at_rest(&mut self) -> Vector3<f64> {
+        match &mut self.f {
+            Some(f) => {
+                self.forward_at = None;
+                self.model_at = None;
+                Vector3::from_column_slice(f.forward(&[0.0; 3]))
+            }
+            None => Vector3::zeros(),
+        }
+    }
+
+    /// Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(0): the learned model's torque at rest and in motion, without its
     /// friction (a teleoperation coupling's compensation: docs/TELEOP.md §2).
     pub fn gravity_coriolis(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Vector3<f64> {
         self.forward(q, qd, false);
-        self.chat * qd + self.ghat
+        let cg = self.chat * qd + self.ghat;
+        cg + self.friction_at_rest()
     }
 
     /// τ̂ = M̂q̈ + Ĉq̇ + Ĝ (+ F̂) without adapting.
