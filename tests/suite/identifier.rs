@@ -367,7 +367,7 @@ fn paper_law() -> Config {
 
 /// The lag-matched e1 (docs/IDENTIFIER.md): alone it halves joint 1's tracking on the README's
 /// sine against the paper's e1; the preset `mock/nnidc-lagmatch.toml` and the defaults (both
-/// lag-matched) track every joint better than the paper's e1.
+/// lag-matched) track every joint better than the paper's e1, the defaults by a fifth at least.
 #[test]
 fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
     let dir = tempfile::tempdir().unwrap();
@@ -401,13 +401,16 @@ fn the_lag_matched_error_tracks_the_sine_closer_to_the_oracle() {
         "joint 1: lag-matched {lag_only:?} vs the paper's e1 {paper:?}"
     );
     for j in 0..3 {
-        for (name, r) in [("preset", tuned), ("defaults", defaults)] {
-            assert!(
-                r[j] < 0.8 * paper[j],
-                "joint {}: {name} {r:?} vs the paper's e1 {paper:?}",
-                j + 1
-            );
-        }
+        assert!(
+            tuned[j] < paper[j],
+            "joint {}: preset {tuned:?} vs the paper's e1 {paper:?}",
+            j + 1
+        );
+        assert!(
+            defaults[j] < 0.8 * paper[j],
+            "joint {}: defaults {defaults:?} vs the paper's e1 {paper:?}",
+            j + 1
+        );
     }
 }
 

@@ -299,7 +299,8 @@ mod tests {
 
     #[test]
     fn the_learned_observer_finds_a_push_on_an_arm_that_moves_as_the_networks_say() {
-        // A plant whose dynamics are the shipped networks' own: q̈ = M̂⁻¹(τ − Ĉ q̇ − Ĝ − F̂),
+        // A plant whose dynamics are the shipped networks' own without friction (what the
+        // learned observer models, as the parametric one does): q̈ = M̂⁻¹(τ − Ĉ q̇ − Ĝ − F̂(0)),
         // integrated by RK4 through the networks' single-net accessors. The observer sees
         // only (q, q̇) and the motor torque (no q̈); once settled it must find the push while
         // the arm swings. Nothing adapts: the model is the plant.
@@ -323,7 +324,7 @@ mod tests {
                 let rhs = motor + ext
                     - plant_id.coriolis(q, qd) * qd
                     - plant_id.gravity(q)
-                    - plant_id.friction(qd);
+                    - plant_id.friction(&Vector3::zeros());
                 m.lu().solve(&rhs).unwrap_or_else(Joint3::zeros)
             });
             // The servo's order: the identifier evaluates this sample, then the observer.
