@@ -142,9 +142,8 @@ mod tests {
         let coupled = c.coupling_compensation(&x, Some(&mut id));
         let free = c.compensation(&x, Some(&mut id));
         // The learned rest torque is Ĝ + F̂(0) (the G- and F-nets share a constant).
-        let expected = id.gravity(&x.q)
-            + id.coriolis(&x.q, &x.qd) * x.qd
-            + id.friction(&Joint3::zeros());
+        let expected =
+            id.gravity(&x.q) + id.coriolis(&x.q, &x.qd) * x.qd + id.friction(&Joint3::zeros());
         assert!(
             (coupled - expected).norm() < 1e-12,
             "{coupled} vs {expected}"

@@ -174,6 +174,9 @@ pub struct Identifier {
     lag: Option<LagMatch>,
 }
 
+/// Lag-match states below this (N·m-scale values) are zero (see `LagMatch::step`).
+const FLUSH_BELOW: f64 = 1e-150;
+
 /// The lag-matched e1's filter (docs/IDENTIFIER.md, "Lag-matched e1"): τ − Ĉq̇ − Ĝ − F̂ per
 /// joint through the estimator's acceleration response L.
 #[derive(Debug, Clone, Copy)]
@@ -206,6 +209,13 @@ impl LagMatch {
             } else {
                 Vector3::zeros()
             };
+            // On a constant input the state decays geometrically into subnormal numbers, whose
+            // arithmetic is many times slower: flush what is far below any torque to zero.
+            self.d[j].apply(|x| {
+                if x.abs() < FLUSH_BELOW {
+                    *x = 0.0;
+                }
+            });
             out[j] += self.d[j][2];
         }
         self.prev = *u;
