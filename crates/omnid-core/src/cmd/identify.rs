@@ -99,7 +99,8 @@ pub enum States {
 
 /// The identifier's training samples from one log (`stop`: the operator's, see
 /// [`LogReader::open`]). Each log is estimated on its own, with the servo's `[kalman]` model and
-/// the log's own time steps; the first and (smoothed) last [`WARMUP_SAMPLES`] are dropped.
+/// the log's own time steps; the first and (smoothed) last 200 samples (`WARMUP_SAMPLES`)
+/// are dropped.
 pub fn samples_from_log(
     path: &Path,
     cfg: &Config,

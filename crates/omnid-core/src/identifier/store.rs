@@ -16,8 +16,24 @@ struct Stored {
     arm: String,
     serial: Option<String>,
     unix_time_s: f64,
+    /// Which shipped weights the arm's learning started from ([`shipped_fingerprint`]); absent
+    /// in files saved before the shipped weights were re-tuned on smoothed states.
+    #[serde(default)]
+    base: Option<String>,
     /// The weights file's text (`WeightsFile::to_json`).
     weights: String,
+}
+
+/// A fingerprint of the shipped weights (FNV-1a, 64 bits, of their file): kept weights learned
+/// from other shipped weights are not a start for this build's defaults (docs/IDENTIFIER.md,
+/// "Kept per arm").
+pub fn shipped_fingerprint() -> String {
+    let hash = SHIPPED_WEIGHTS
+        .bytes()
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+        });
+    format!("{hash:016x}")
 }
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
@@ -77,6 +93,7 @@ pub fn save(path: &Path, id: &Identifier, arm: &str, serial: Option<&str>) -> Re
         arm: arm.to_string(),
         serial: serial.map(String::from),
         unix_time_s: now_s(),
+        base: Some(shipped_fingerprint()),
         weights: text,
     };
     let json = serde_json::to_string(&stored).map_err(|e| e.to_string())? + "\n";
@@ -96,8 +113,8 @@ pub enum Loaded {
 }
 
 /// The weights saved for the arm with `serial` at `path`, on an identifier of `cfg`. Refused:
-/// another arm's serial, a file that does not parse, non-finite or absurd weights, weights of
-/// other network sizes.
+/// another arm's serial, a file that does not parse, weights learned from other shipped
+/// weights, non-finite or absurd weights, weights of other network sizes.
 pub fn load(path: &Path, cfg: &IdentifierConfig, serial: Option<&str>) -> Loaded {
     let shown = path.display().to_string();
     let text = match crate::input::read_capped(path, 16 << 20, None) {
@@ -118,6 +135,14 @@ pub fn load(path: &Path, cfg: &IdentifierConfig, serial: Option<&str>) -> Loaded
                 crate::text::cut(now)
             ));
         }
+    }
+    if stored.base.as_deref() != Some(shipped_fingerprint().as_str()) {
+        return Loaded::Refused(format!(
+            "{shown} was learned from other shipped weights than this omnid's (they were \
+             re-tuned since; learning on top of the old ones would track worse than starting \
+             afresh): the arm starts from {SHIPPED_WEIGHTS_NAME}, and the next save replaces \
+             the file"
+        ));
     }
     let w = match WeightsFile::from_json(&stored.weights, &shown) {
         Ok(w) => w,
@@ -189,6 +214,35 @@ mod tests {
         match load(&path, &cfg, Some("S2")) {
             Loaded::Refused(why) => assert!(why.contains("S1") && why.contains("S2"), "{why}"),
             other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn weights_learned_from_other_shipped_weights_are_refused() {
+        // A file saved before the shipped weights were re-tuned has no base; one saved on top
+        // of other shipped weights has another. Both are refused, saying why; the file's own
+        // save of this build loads.
+        let dir = tempfile::tempdir().unwrap();
+        let path = weights_file(dir.path(), "arm");
+        let cfg = IdentifierConfig::default();
+        save(&path, &learned(), "arm", None).unwrap();
+        assert!(matches!(load(&path, &cfg, None), Loaded::Weights(..)));
+        let text = std::fs::read_to_string(&path).unwrap();
+        let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(v["base"], serde_json::json!(shipped_fingerprint()));
+        for base in [None, Some("0123456789abcdef")] {
+            match base {
+                None => v.as_object_mut().unwrap().remove("base"),
+                Some(b) => v.as_object_mut().unwrap().insert("base".into(), b.into()),
+            };
+            std::fs::write(&path, v.to_string()).unwrap();
+            match load(&path, &cfg, None) {
+                Loaded::Refused(why) => assert!(
+                    why.contains("other shipped weights") && why.contains(SHIPPED_WEIGHTS_NAME),
+                    "{why}"
+                ),
+                other => panic!("{base:?}: {other:?}"),
+            }
         }
     }
 
