@@ -151,6 +151,10 @@ pub struct Identifier {
     chat: Matrix3<f64>,
     ghat: Vector3<f64>,
     fhat: Vector3<f64>,
+    /// F̂(0) with the same weights as `fhat`: the G- and F-nets share the torque's constant part
+    /// (only Ĝ + F̂ is learned, not how a constant splits between them), so the learned model's
+    /// torque at rest is Ĝ(q) + F̂(0) and F̂(q̇) − F̂(0) its friction.
+    frest: Vector3<f64>,
     tau_hat: Vector3<f64>,
     qd: Vector3<f64>,
     qdd: Vector3<f64>,
@@ -286,6 +290,7 @@ impl Identifier {
             chat: Matrix3::zeros(),
             ghat: Vector3::zeros(),
             fhat: Vector3::zeros(),
+            frest: Vector3::zeros(),
             tau_hat: Vector3::zeros(),
             qd: Vector3::zeros(),
             qdd: Vector3::zeros(),
@@ -510,8 +515,8 @@ impl Identifier {
     /// The learned model's M̂(q) and n̂(q, q̇) = Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(0), for the momentum
     /// observer (docs/TELEOP.md §2): like the parametric observer's model, without friction (a
     /// learned Coulomb step on the near-rest, noisy q̇ of a contact shakes the estimate). At the
-    /// point this tick's prediction or update already evaluated, M̂, Ĉ and Ĝ are the values it
-    /// saw (with the weights before that tick's adaptation step), without another pass.
+    /// point this tick's prediction or update already evaluated, the values it saw (with the
+    /// weights before that tick's adaptation step) are returned without another network pass.
     pub(crate) fn momentum_model(
         &mut self,
         q: &Vector3<f64>,
@@ -520,31 +525,14 @@ impl Identifier {
         if self.model_at != Some((*q, *qd)) {
             self.forward(q, qd, false);
         }
-        let n = self.chat * qd + self.ghat + self.friction_at_rest();
-        (self.mhat, n)
-    }
-
-    /// F̂(0): the F-net's output at rest. The G- and F-nets share the constant part of the
-    /// torque (only Ĝ + F̂ is learned, not how a constant splits between them), so what the
-    /// learned model holds at rest is Ĝ(q) + F̂(0); F̂(q̇) − F̂(0) is its friction. Costs one
-    /// F-net pass; the networks' cached point is invalidated (their activations are this one's).
-    fn friction_at_rest(&mut self) -> Vector3<f64> {
-        match &mut self.f {
-            Some(f) => {
-                self.forward_at = None;
-                self.model_at = None;
-                Vector3::from_column_slice(f.forward(&[0.0; 3]))
-            }
-            None => Vector3::zeros(),
-        }
+        (self.mhat, self.chat * qd + self.ghat + self.frest)
     }
 
     /// Ĉ(q, q̇)·q̇ + Ĝ(q) + F̂(0): the learned model's torque at rest and in motion, without its
     /// friction (a teleoperation coupling's compensation: docs/TELEOP.md §2).
     pub fn gravity_coriolis(&mut self, q: &Vector3<f64>, qd: &Vector3<f64>) -> Vector3<f64> {
         self.forward(q, qd, false);
-        let cg = self.chat * qd + self.ghat;
-        cg + self.friction_at_rest()
+        self.chat * qd + self.ghat + self.frest
     }
 
     /// τ̂ = M̂q̈ + Ĉq̇ + Ĝ (+ F̂) without adapting.
@@ -576,9 +564,13 @@ impl Identifier {
             let x = [q[0], q[1], q[2], qd[0], qd[1], qd[2]];
             self.chat = Matrix3::from_row_slice(self.c.forward(&x));
             self.ghat = Vector3::from_column_slice(self.g.forward(q.as_slice()));
-            self.fhat = match &mut self.f {
-                Some(f) => Vector3::from_column_slice(f.forward(qd.as_slice())),
-                None => Vector3::zeros(),
+            (self.frest, self.fhat) = match &mut self.f {
+                // At rest first, so the F-net's activations are the ones at q̇ (the update's).
+                Some(f) => (
+                    Vector3::from_column_slice(f.forward(&[0.0; 3])),
+                    Vector3::from_column_slice(f.forward(qd.as_slice())),
+                ),
+                None => (Vector3::zeros(), Vector3::zeros()),
             };
             self.forward_at = Some((*q, *qd));
             self.model_at = Some((*q, *qd));

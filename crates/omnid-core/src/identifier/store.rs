@@ -24,16 +24,14 @@ struct Stored {
     weights: String,
 }
 
-/// A fingerprint of the shipped weights (FNV-1a, 64 bits, of their file): kept weights learned
+/// A fingerprint of the shipped weights (XXH3, 64 bits, of their file): kept weights learned
 /// from other shipped weights are not a start for this build's defaults (docs/IDENTIFIER.md,
 /// "Kept per arm").
 pub fn shipped_fingerprint() -> String {
-    let hash = SHIPPED_WEIGHTS
-        .bytes()
-        .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
-        });
-    format!("{hash:016x}")
+    format!(
+        "{:016x}",
+        xxhash_rust::xxh3::xxh3_64(SHIPPED_WEIGHTS.as_bytes())
+    )
 }
 
 /// Weights pre-tuned on the simulator, shipped so that `--controller nnidc` works out of the
