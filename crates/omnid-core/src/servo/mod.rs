@@ -23,6 +23,7 @@ use crate::haptics::external::ExternalForce;
 use crate::haptics::HapticsConfig;
 use crate::haptics::{
     held_back, limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop,
+    InertiaGate,
 };
 use crate::identifier::Identifier;
 use crate::identifier::IdentifierConfig;
@@ -189,6 +190,12 @@ pub struct Servo {
     max_force_n: f64,
     /// Forces at the tip: effects, passivity, Jᵀ F (docs/HAPTICS.md).
     haptics: HapticLoop,
+    /// The haptic modes' partial inertia compensation: the fraction of the law's inertia
+    /// times q̈ they add, gated off in contact (docs/HAPTICS.md §3).
+    inertia: InertiaGate,
+    /// This tick's estimated q̈ can be believed: not in the inkwell nor just out of it, not
+    /// just after the estimator restarted across a gap.
+    qdd_trusted: bool,
     /// The outside's force on the tip, from the motors and a model (docs/TELEOP.md §2).
     external: ExternalForce,
     external_model: ExternalModel,
@@ -325,6 +332,8 @@ impl Servo {
             stream_force_limited: false,
             max_force_n: cfg.haptics.max_force_n,
             haptics: HapticLoop::new(cfg.haptics, *cfg.geometry),
+            inertia: InertiaGate::new(cfg.haptics.inertia_compensation),
+            qdd_trusted: false,
             external: ExternalForce::new(cfg.haptics.external_cutoff_hz, 1.0 / cfg.device.rate_hz),
             external_model: cfg.haptics.external_model,
             parametric: {
@@ -459,6 +468,13 @@ impl Servo {
         if s.inkwell {
             self.docked_t = s.t;
         }
+        // The estimated q̈ lags a step: the inkwell letting go, or the filter restarting from
+        // rest across a gap; it is believed again UNDOCK_SETTLE_S after either.
+        self.qdd_trusted = s.t - self.docked_t >= UNDOCK_SETTLE_S
+            && !self
+                .kalman
+                .last_gap()
+                .is_some_and(|(at, _)| s.t_dev - at < UNDOCK_SETTLE_S);
         let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
         let (tau_hat, ident_flag) = self.identify(s.t, &est);
         let tau_model = self.oracle(&est);
@@ -913,6 +929,7 @@ impl Servo {
         let dt = 1e-9 * self.period_ns as f64;
         if !matches!(self.activity, Activity::Free | Activity::ServoCf) {
             self.haptics.observe(q);
+            self.inertia.reset();
         }
         self.teleop_force = Force3::zeros();
         let teleop_t = teleop_clock(self.paced, t);
@@ -942,15 +959,27 @@ impl Servo {
                 (reference, self.controllers.torque(&input, id))
             }
             // The haptic modes: the compensation plus the tip force (effects and a client's).
+            // The compensation takes the gated fraction of q̈ (partial inertia compensation,
+            // off in contact: docs/HAPTICS.md §3).
             Activity::Free | Activity::ServoCf => {
                 let force = self
                     .haptics
                     .torque(t, dt, q, &est.qd, &self.stream_force, true);
-                (here, self.controllers.compensation(t, est, id) + force)
+                let beta = self.inertia.step(
+                    dt,
+                    Force3::from(self.haptics.force).norm(),
+                    self.haptics.dissipating(),
+                    self.qdd_trusted,
+                );
+                let accel = est.qdd * beta;
+                (
+                    here,
+                    self.controllers.compensation(t, est, &accel, id) + force,
+                )
             }
             Activity::ServoJf => (
                 here,
-                self.controllers.compensation(t, est, id) + self.stream_tau,
+                self.controllers.compensation(t, est, &Joint3::zeros(), id) + self.stream_tau,
             ),
         }
     }
