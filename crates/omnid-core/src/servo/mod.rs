@@ -1757,4 +1757,59 @@ mod tests {
         // The realtime loop keeps going: 16 rows fit, the other 185 are dropped and counted.
         assert_eq!(run_with_slow_writer(true, 200), (185, 16));
     }
+
+    #[test]
+    fn free_mode_compensates_the_gated_fraction_of_the_inertia_and_none_near_the_inkwell() {
+        // docs/HAPTICS.md §3. Under CT (its parametric model, no identifier in the way) with
+        // no effects, the commanded torque is the compensation at the acceleration g·q̈: the
+        // fraction g is read back from each tick's record. The simulated hand pulls the stylus
+        // out of its inkwell and traces the path.
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        cfg.haptics.hand.pattern = crate::haptics::HandPattern::Path;
+        cfg.haptics.inertia_compensation = 0.4;
+        let (mut servo, rx) = sim_servo(&cfg, ControllerKind::Ct, Trajectory::Hold);
+        servo.start_free();
+        let mut ct = crate::control::ComputedTorque::from_config(&cfg);
+        let model = Dynamics::new(cfg.model, cfg.geometry);
+        let (mut docked_t, mut last_g, mut opened) = (None, 0.0, false);
+        for _ in 0..3000 {
+            let r = next(&mut servo, &rx);
+            let est = Estimate {
+                q: r.qf.into(),
+                qd: r.qd.into(),
+                qdd: r.qdd.into(),
+            };
+            let rest = crate::control::Controller::compensation(&mut ct, &est, None);
+            let residual = Joint3::from(r.tau_cmd) - rest;
+            let mq = model.mass(&est.q) * est.qdd;
+            if r.live.inkwell {
+                docked_t = Some(r.t);
+            }
+            if docked_t.is_none_or(|t0| r.t - t0 < UNDOCK_SETTLE_S) {
+                // In the inkwell and just out of it, q̈ is not believed: nothing of it.
+                assert_eq!(residual, Joint3::zeros(), "at {} s", r.t);
+                continue;
+            }
+            if mq.norm() < 1e-6 {
+                continue;
+            }
+            let g = residual.dot(&mq) / mq.norm_squared();
+            assert!(
+                (residual - mq * g).norm() < 1e-12,
+                "not along M·q̈ at {} s",
+                r.t
+            );
+            // Never more than β, and it opens no faster than β per RETURN_S.
+            assert!((-1e-9..=0.4 + 1e-9).contains(&g), "{g} at {} s", r.t);
+            assert!(g - last_g <= 0.4 * 1e-3 / crate::haptics::inertia::RETURN_S + 1e-9);
+            opened |= (g - 0.4).abs() < 1e-9;
+            last_g = g;
+        }
+        assert!(
+            docked_t.is_some_and(|t| t < 2.0),
+            "the stylus never left the inkwell"
+        );
+        assert!(opened, "the gate never opened fully");
+    }
 }
