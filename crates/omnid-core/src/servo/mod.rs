@@ -1812,4 +1812,93 @@ mod tests {
         );
         assert!(opened, "the gate never opened fully");
     }
+
+    /// The simulator, its device time jumping by `gap_s` after `at` exchanges (a gap in the
+    /// data, as a USB stall makes).
+    struct Gappy {
+        sim: SimOmni,
+        exchanges: u64,
+        at: u64,
+        gap_s: f64,
+    }
+
+    impl Device for Gappy {
+        fn kind(&self) -> &'static str {
+            "sim"
+        }
+
+        fn exchange(
+            &mut self,
+            command: &[u8; crate::device::COMMAND_LEN],
+        ) -> Result<crate::device::RawSample, DeviceError> {
+            let mut raw = self.sim.exchange(command)?;
+            self.exchanges += 1;
+            if self.exchanges > self.at {
+                raw.device_time_s += self.gap_s;
+            }
+            Ok(raw)
+        }
+
+        fn hand_force(&self) -> Option<[f64; 3]> {
+            self.sim.hand_force()
+        }
+    }
+
+    #[test]
+    fn free_mode_compensates_no_inertia_just_after_the_estimator_restarted() {
+        // As above, undocked at the centre; 0.1 s without data after 1.5 s restarts the
+        // estimator, whose q̈ is then not believed for UNDOCK_SETTLE_S.
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        cfg.sim.start_pose = cfg.reference.center;
+        cfg.sim.docked = false;
+        cfg.haptics.hand.pattern = crate::haptics::HandPattern::Path;
+        cfg.haptics.inertia_compensation = 0.4;
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let device = Gappy {
+            sim: SimOmni::new(&cfg, false),
+            exchanges: 0,
+            at: 1500,
+            gap_s: 0.1,
+        };
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(device),
+            ControllerSet::new(&cfg, ControllerKind::Ct, 0.0),
+            Reference::new(Trajectory::Hold, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        servo.start_free();
+        let mut ct = crate::control::ComputedTorque::from_config(&cfg);
+        let model = Dynamics::new(cfg.model, cfg.geometry);
+        let (mut before, mut held, mut after) = (0.0_f64, 0, 0.0_f64);
+        for k in 0..2000 {
+            let r = next(&mut servo, &rx);
+            let est = Estimate {
+                q: r.qf.into(),
+                qd: r.qd.into(),
+                qdd: r.qdd.into(),
+            };
+            let rest = crate::control::Controller::compensation(&mut ct, &est, None);
+            let residual = Joint3::from(r.tau_cmd) - rest;
+            let mq = model.mass(&est.q) * est.qdd;
+            let g = residual.dot(&mq) / mq.norm_squared().max(1e-300);
+            match k {
+                1000..1500 => before = before.max(g),
+                1500..1599 => {
+                    assert_eq!(residual, Joint3::zeros(), "tick {k}, {} s", r.t);
+                    held += 1;
+                }
+                1800.. => after = after.max(g),
+                _ => {}
+            }
+        }
+        assert_eq!(servo.kalman.restarts(), 1);
+        assert_eq!(held, 99);
+        assert!((before - 0.4).abs() < 1e-9, "before the gap: {before}");
+        assert!((after - 0.4).abs() < 1e-9, "after the gap: {after}");
+    }
 }
