@@ -206,11 +206,25 @@ fn free_run(
     beta: f64,
     secs: f64,
 ) -> Log {
+    free_run_released(dir, name, hand, effects, beta, secs, 0.0)
+}
+
+/// As [`free_run`], the hand letting go at `release_s` (0: never).
+fn free_run_released(
+    dir: &std::path::Path,
+    name: &str,
+    hand: omnid::haptics::HandPattern,
+    effects: Vec<omnid::haptics::Effect>,
+    beta: f64,
+    secs: f64,
+    release_s: f64,
+) -> Log {
     use omnid::cmd::run::{execute, RunOptions};
     let mut cfg = omnid::config::Config::default();
     cfg.sim.start_pose = cfg.reference.center;
     cfg.safety.persist_heat = false;
     cfg.haptics.hand.pattern = hand;
+    cfg.haptics.hand.release_s = release_s;
     cfg.haptics.inertia_compensation = beta;
     let log = dir.join(format!("{name}.csv"));
     let opts = RunOptions {
@@ -292,4 +306,32 @@ fn inertia_compensation_lightens_the_free_arm_and_a_wall_still_holds() {
     assert!(hi < surface, "the tip is not on the floor: {hi} mm");
     let pushing = -hand[last.clone()].iter().sum::<f64>() / last.len() as f64;
     assert!(pushing >= 0.8, "the hand pushes with {pushing} N");
+}
+
+#[test]
+fn a_released_arm_with_inertia_compensation_comes_to_rest() {
+    // docs/HAPTICS.md §3: the soft walls are a contact too. Without the gate shutting near
+    // them, an arm let go in free mode bounced between them, each bounce with the lagged q̈
+    // fed back adding energy: 1-2 rad/s still 20 s after the hand let go, and growing.
+    let dir = tempfile::tempdir().unwrap();
+    let path = omnid::haptics::HandPattern::Path;
+    let l = free_run_released(dir.path(), "let-go", path, vec![], 0.3, 30.0, 8.0);
+    let t = l.f64s("t");
+    let qd: Vec<Vec<f64>> = (1..=3).map(|i| l.f64s(&format!("qd{i}"))).collect();
+    let fastest = |from: f64, to: f64| {
+        (0..t.len())
+            .filter(|&k| t[k] >= from && t[k] < to)
+            .flat_map(|k| qd.iter().map(move |c| c[k].abs()))
+            .fold(0.0, f64::max)
+    };
+    let moving = fastest(8.0, 12.0);
+    assert!(
+        moving > 0.2,
+        "the arm hardly moved after the release: {moving} rad/s"
+    );
+    let late = fastest(26.0, 30.0);
+    assert!(
+        late < 0.1,
+        "still {late} rad/s 18 s after the hand let go (at {moving} rad/s just after)"
+    );
 }

@@ -7,6 +7,7 @@
 //! to be trusted; it comes back over [`RETURN_S`]. Fixed-size state only: it runs every tick.
 
 use crate::control::reference::quintic;
+use crate::omni::Joint3;
 
 /// The largest fraction of the inertia that may be compensated (`[haptics]
 /// inertia_compensation`): beyond it the measurements showed walls that no longer hold, and
@@ -22,6 +23,17 @@ pub(crate) const CONTACT_FORCE_N: f64 = 0.1;
 /// over this time at the fastest, s (a tip bouncing off a wall gets none of it between the
 /// bounces).
 pub(crate) const RETURN_S: f64 = 0.2;
+
+/// Within this of a soft wall (rad, any joint) the gate is shut: the wall's spring is a
+/// contact like a rendered wall's, and it engages from the estimate or the encoders, whichever
+/// is further out (docs/HAPTICS.md §3). At 2.5 rad/s that is 20 ticks before the wall.
+pub(crate) const WALL_MARGIN_RAD: f64 = 0.05;
+
+/// Some joint is within [`WALL_MARGIN_RAD`] of its soft wall, or beyond it (or its angle is
+/// not finite).
+pub(crate) fn near_walls(q: &Joint3, lower: &[f64; 3], upper: &[f64; 3]) -> bool {
+    (0..3).any(|j| !(q[j] > lower[j] + WALL_MARGIN_RAD && q[j] < upper[j] - WALL_MARGIN_RAD))
+}
 
 /// The static gate: `beta` with no force at the tip, falling smoothly (a quintic, continuous
 /// with its first two derivatives) to 0 at [`CONTACT_FORCE_N`], 0 beyond it. A force that is
@@ -121,6 +133,28 @@ mod tests {
             last = g;
         }
         assert_eq!(contact_gate(0.0, 0.0), 0.0);
+    }
+
+    #[test]
+    fn near_walls_is_within_the_margin_of_either_wall_on_any_joint() {
+        let (lo, hi) = ([-1.0, 0.0, -0.5], [1.0, 1.5, 1.0]);
+        let m = WALL_MARGIN_RAD;
+        assert!(!near_walls(&Joint3::new(0.0, 0.75, 0.2), &lo, &hi));
+        // Just inside the margin on one joint, at either wall, or beyond the wall.
+        for j in 0..3 {
+            for q in [lo[j] + 0.99 * m, hi[j] - 0.99 * m, lo[j] - 1.0, hi[j] + 1.0] {
+                let mut x = Joint3::new(0.0, 0.75, 0.2);
+                x[j] = q;
+                assert!(near_walls(&x, &lo, &hi), "joint {j} at {q}");
+            }
+            let mut x = Joint3::new(0.0, 0.75, 0.2);
+            x[j] = lo[j] + 1.01 * m;
+            assert!(
+                !near_walls(&x, &lo, &hi),
+                "joint {j} just outside the margin"
+            );
+        }
+        assert!(near_walls(&Joint3::new(f64::NAN, 0.75, 0.2), &lo, &hi));
     }
 
     #[test]

@@ -18,8 +18,8 @@ pub(crate) use effects::MAX_EFFECTS;
 pub use external::ExternalModel;
 pub(crate) use hand::Hand;
 pub use hand::{HandConfig, HandPattern};
-pub(crate) use inertia::InertiaGate;
 pub use inertia::MAX_INERTIA_COMPENSATION;
+pub(crate) use inertia::{near_walls, InertiaGate};
 pub(crate) use render::HapticLoop;
 
 use crate::omni::{jacobian, Geometry, Joint3};

@@ -22,8 +22,8 @@ use crate::estimate::KalmanBank;
 use crate::haptics::external::ExternalForce;
 use crate::haptics::HapticsConfig;
 use crate::haptics::{
-    held_back, limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop,
-    InertiaGate,
+    held_back, limit_force, near_walls, tip_force_torque, Effect, ExternalModel, Force3,
+    HapticLoop, InertiaGate,
 };
 use crate::identifier::Identifier;
 use crate::identifier::IdentifierConfig;
@@ -965,10 +965,14 @@ impl Servo {
                 let force = self
                     .haptics
                     .torque(t, dt, q, &est.qd, &self.stream_force, true);
+                // The soft walls are a contact too: a bounce on one with the lagged q̈ fed
+                // back gains energy, and a released arm bounced ever faster between them.
+                let at_wall = near_walls(q, &self.wall_lower, &self.wall_upper)
+                    || near_walls(&est.q, &self.wall_lower, &self.wall_upper);
                 let beta = self.inertia.step(
                     dt,
                     Force3::from(self.haptics.force).norm(),
-                    self.haptics.dissipating(),
+                    self.haptics.dissipating() || at_wall,
                     self.qdd_trusted,
                 );
                 let accel = est.qdd * beta;
