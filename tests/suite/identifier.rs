@@ -356,12 +356,14 @@ fn the_default_controller_blends_out_of_the_inkwell_at_workspace_centre_5() {
 }
 
 /// The paper's law as written: e1 = τ − τ̂ (no lag match) and every network's rate 50, the
-/// defaults before the lag match became one (docs/IDENTIFIER.md, "Fourth round").
+/// defaults before the lag match became one (docs/IDENTIFIER.md, "Fourth round"), no
+/// velocity-reversal mask (the fifth round's).
 fn paper_law() -> Config {
     let mut cfg = Config::default();
     cfg.identifier.lag_match = false;
     cfg.identifier.rate_g = [50.0, 50.0];
     cfg.identifier.rate_f = [50.0, 50.0];
+    cfg.identifier.reversal_speed = 0.0;
     cfg
 }
 

@@ -176,6 +176,9 @@ pub struct Identifier {
     /// The lag-matched e1's filters (`lag_match`), once the servo has said what its estimator's
     /// acceleration response is.
     lag: Option<LagMatch>,
+    /// Per joint, seconds its e1 row stays out of the update after a velocity reversal
+    /// (`reversal_speed`).
+    reversal_left: [f64; 3],
 }
 
 /// Lag-match states below this (N·m-scale values) are zero (see `LagMatch::step`).
@@ -300,6 +303,7 @@ impl Identifier {
             tangent_done: false,
             model_at: None,
             lag: None,
+            reversal_left: [0.0; 3],
         };
         id.set_anchor();
         id.anchored = false;
@@ -743,6 +747,7 @@ impl Identifier {
         if self.lag.is_some() {
             self.lag_match_e1(&mut eps, qd, qdd, tau);
         }
+        self.mask_reversals(&mut eps, qd, dt.min(MAX_DT));
         if !(eps.iter().all(|x| x.is_finite()) && finite3(&self.tau_hat)) {
             self.trip(Fault::NonFiniteOutput);
             self.snap.tau_hat = Vector3::zeros();
@@ -767,6 +772,32 @@ impl Identifier {
             self.adapt_step(t);
         }
         self.tau_hat
+    }
+
+    /// Velocity reversals: a joint whose estimated speed is below `reversal_speed`, or was
+    /// within the last `reversal_hold_s`, has its row of e1 set to zero for this tick. The
+    /// plant's Coulomb step comes at the true velocity's zero, the filter's q̇ crosses zero some
+    /// 10 ms later, so e1 spikes at every reversal whatever the model; learning from the
+    /// spikes moved every network and left a low-frequency error after each reversal
+    /// (docs/IDENTIFIER.md, "fifth round"). Like the dead zone, it only decides when the
+    /// update runs (on which error); the law is unchanged. Only with the friction net.
+    fn mask_reversals(&mut self, eps: &mut Wae, qd: &Vector3<f64>, dt: f64) {
+        let v = self.cfg.reversal_speed;
+        // Without the F-net no network holds a Coulomb step, and the online law is what
+        // compensates it along the path (docs/IDENTIFIER.md, "Measured"): it needs these rows.
+        if v <= 0.0 || self.f.is_none() {
+            return;
+        }
+        for j in 0..3 {
+            // NaN speeds are caught (and trip the identifier) before this.
+            self.reversal_left[j] -= dt;
+            if qd[j].abs() < v {
+                self.reversal_left[j] = self.cfg.reversal_hold_s;
+                eps[j] = 0.0;
+            } else if self.reversal_left[j] > 0.0 {
+                eps[j] = 0.0;
+            }
+        }
     }
 
     /// The lag-matched e1: e1 = L[τ − Ĉq̇ − Ĝ − F̂] − M̂·q̈ with L the estimator's acceleration
@@ -1152,6 +1183,43 @@ mod tests {
             }
             assert_eq!(params(&id) != before, moves, "dead zone {d0}");
             assert_eq!(id.last_errors().updated, moves);
+        }
+    }
+
+    #[test]
+    fn a_reversing_joint_leaves_its_e1_row_out_for_the_hold() {
+        let mut id = Identifier::new(&IdentifierConfig {
+            reversal_speed: 0.02,
+            reversal_hold_s: 0.005,
+            ..IdentifierConfig::default()
+        })
+        .unwrap();
+        let ones = Wae::from_element(1.0);
+        let mut step = |qd: [f64; 3]| {
+            let mut eps = ones;
+            id.mask_reversals(&mut eps, &Vector3::from(qd), 1e-3);
+            eps
+        };
+        // Joint 2 slow: only its row is zeroed; the WAE terms beyond e1 are kept.
+        let e = step([0.5, 0.01, -0.5]);
+        assert_eq!([e[0], e[1], e[2]], [1.0, 0.0, 1.0]);
+        assert!(e.rows(3, 9).iter().all(|&x| x == 1.0));
+        // Fast again: still out for the hold (5 ms), then back.
+        for _ in 0..4 {
+            assert_eq!(step([0.5, -0.3, -0.5])[1], 0.0);
+        }
+        assert_eq!(step([0.5, -0.3, -0.5])[1], 1.0);
+        // Off, or the paper's three nets: nothing is masked, however slow.
+        for (speed, friction_net) in [(0.0, true), (0.02, false)] {
+            let mut off = Identifier::new(&IdentifierConfig {
+                reversal_speed: speed,
+                friction_net,
+                ..IdentifierConfig::default()
+            })
+            .unwrap();
+            let mut eps = ones;
+            off.mask_reversals(&mut eps, &Vector3::zeros(), 1e-3);
+            assert_eq!(eps, ones);
         }
     }
 

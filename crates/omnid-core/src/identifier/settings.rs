@@ -46,6 +46,15 @@ pub struct IdentifierConfig {
     /// loaded. Without it (1e-4 before) NNIDC's weights drift and the arm goes unstable after
     /// ~50 s of the sine.
     pub sigma: f64,
+    /// Velocity reversals (docs/IDENTIFIER.md, "fifth round"): while a joint's estimated speed
+    /// is below this, and for `reversal_hold_s` after, its row of e1 does not drive the update
+    /// (the Coulomb step the plant takes at the true velocity's zero, the filter's q̇ crosses
+    /// some 10 ms later: no model of the filtered state explains it), rad/s; 0 switches it off.
+    /// Only with the friction net (without it the update is what compensates the step).
+    pub reversal_speed: f64,
+    /// How long a joint's e1 stays out of the update after its speed rose above
+    /// `reversal_speed`, s.
+    pub reversal_hold_s: f64,
     /// Lag-matched e1 (docs/IDENTIFIER.md, "Lag-matched e1"): online, τ − Ĉq̇ − Ĝ − F̂ passes
     /// through the Kalman filter's own acceleration response before it meets M̂·q̈ (so the
     /// torque and the estimated q̈ carry the same lag); false is e1 = τ − τ̂ as the paper
@@ -113,6 +122,8 @@ impl Default for IdentifierConfig {
             rate_f: [25.0, 25.0],
             dead_zone: 1e-4,
             sigma: 3e-3,
+            reversal_speed: 0.01,
+            reversal_hold_s: 0.01,
             lag_match: true,
             w_max: 100.0,
             eig_min: 2e-4,
@@ -218,6 +229,20 @@ impl IdentifierConfig {
             "0 (off) ..= 1 N·m",
         )?;
         check::in_range("identifier.sigma", self.sigma, 0.0, 1e3, "0 (off) ..= 1e3")?;
+        check::in_range(
+            "identifier.reversal_speed",
+            self.reversal_speed,
+            0.0,
+            10.0,
+            "0 (off) ..= 10 rad/s",
+        )?;
+        check::in_range(
+            "identifier.reversal_hold_s",
+            self.reversal_hold_s,
+            0.0,
+            10.0,
+            "0 ..= 10 s",
+        )?;
         check::in_range("identifier.w_max", self.w_max, 0.0, 1e6, "0 (off) ..= 1e6")?;
         Ok(())
     }
