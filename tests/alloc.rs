@@ -172,10 +172,12 @@ fn every_effect(centre: [f64; 3]) -> Vec<omnid::haptics::Effect> {
     ]
 }
 
-/// Free mode with every effect, the passivity controller on, and the simulated hand doing
-/// `hand` (each pattern in turn), through the scene changes a client makes.
-fn haptic_ticks_allocate_nothing(hand: &str) {
+/// Free mode with every effect (or none), the passivity controller on, and the simulated hand
+/// doing `hand` (each pattern in turn), through the scene changes a client makes; `inertia`:
+/// the partial inertia compensation's fraction.
+fn haptic_ticks_allocate_nothing(hand: &str, effects: bool, inertia: f64) {
     let mut cfg = Config::default();
+    cfg.haptics.inertia_compensation = inertia;
     cfg.sim.start_pose = cfg.reference.center;
     cfg.haptics.hand.pattern = omnid::haptics::HandPattern::try_from(hand.to_string()).unwrap();
     cfg.haptics.hand.release_s = 4.0;
@@ -193,7 +195,9 @@ fn haptic_ticks_allocate_nothing(hand: &str) {
     servo.start_free();
     let centre: [f64; 3] =
         omnid::omni::tip_position_mm(&cfg.geometry, &cfg.reference.center.into()).into();
-    servo.set_effects(&every_effect(centre));
+    if effects {
+        servo.set_effects(&every_effect(centre));
+    }
     for _ in 0..1_500 {
         assert!(servo.tick().is_none());
     }
@@ -211,7 +215,18 @@ fn haptic_ticks_allocate_nothing(hand: &str) {
 #[test]
 fn free_mode_with_every_effect_and_each_hand_allocates_nothing() {
     for hand in ["path", "push-y", "hold"] {
-        haptic_ticks_allocate_nothing(hand);
+        haptic_ticks_allocate_nothing(hand, true, 0.0);
+    }
+}
+
+#[test]
+fn free_mode_with_inertia_compensation_allocates_nothing() {
+    // Without effects the gate stays open (the compensation acts every tick); with them it
+    // closes and reopens as the tip meets them.
+    let most = omnid::haptics::MAX_INERTIA_COMPENSATION;
+    haptic_ticks_allocate_nothing("path", false, most);
+    for hand in ["path", "push-y"] {
+        haptic_ticks_allocate_nothing(hand, true, most);
     }
 }
 

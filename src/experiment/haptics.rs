@@ -203,8 +203,10 @@ fn series(t: &[f64], y: &[f64], scale: f64) -> Vec<(f64, f64)> {
 // ---------------------------------------------------------------------------------------------
 // transparency
 
-/// The four compensations: name, controller, the config change it needs, what it is.
-const TRANSPARENCY: [(&str, ControllerKind, &str); 4] = [
+/// The compensations: name, controller, the config change it needs, what it is. The rows
+/// named `…_inertia` add the default partial inertia compensation (`[haptics]
+/// inertia_compensation`, docs/HAPTICS.md §3); the others compensate no inertia.
+const TRANSPARENCY: [(&str, ControllerKind, &str); 6] = [
     ("none", ControllerKind::Off, "no compensation"),
     (
         "ct",
@@ -220,6 +222,16 @@ const TRANSPARENCY: [(&str, ControllerKind, &str); 4] = [
         "exact",
         ControllerKind::Ct,
         "the plant's exact model with its friction (the oracle)",
+    ),
+    (
+        "nnidc_inertia",
+        ControllerKind::Nnidc,
+        "the learned model, and β·M̂·q̈ (partial inertia compensation, the default)",
+    ),
+    (
+        "exact_inertia",
+        ControllerKind::Ct,
+        "the exact model, and β·M·q̈ (partial inertia compensation, the default)",
     ),
 ];
 
@@ -271,7 +283,10 @@ fn transparency(
     for (name, controller, _) in TRANSPARENCY {
         let mut cfg = base_config();
         cfg.haptics.hand.pattern = HandPattern::Path;
-        cfg.control.ct_friction = name == "exact";
+        cfg.control.ct_friction = name.starts_with("exact");
+        if !name.ends_with("_inertia") {
+            cfg.haptics.inertia_compensation = 0.0;
+        }
         let log = run(
             &format!("free-{name}"),
             &cfg,
@@ -299,7 +314,10 @@ fn transparency(
             "nnidc" => Role::Measured,
             _ => Role::Error,
         };
-        lines.push((name, role, series(&t, &norm, 1.0)));
+        // The figure shows the four model compensations (no inertia).
+        if !name.ends_with("_inertia") {
+            lines.push((name, role, series(&t, &norm, 1.0)));
+        }
     }
     figure(
         out,
@@ -311,13 +329,14 @@ fn transparency(
     )?;
     let drift = let_go(out, secs)?;
     let none = rms[0].1;
-    md.push_str("## Transparency\n\nThe simulated hand (grip 500 N/m, 5 N·s/m) traces a closed 3-D path around the workspace centre at 0.1 m/s in free mode; the table gives the RMS of the force in the grip from 3 s on (what the user would feel).\n\n| compensation | what | hand force RMS (N) | × none |\n|---|---|---:|---:|\n");
+    let _ = write!(md, "## Transparency\n\nThe simulated hand (grip 500 N/m, 5 N·s/m) traces a closed 3-D path around the workspace centre at 0.1 m/s in free mode; the table gives the RMS of the force in the grip from 3 s on (what the user would feel). The rows `…_inertia` add the partial inertia compensation at its default β = {} (`[haptics] inertia_compensation`); the others compensate no inertia.\n\n", base_config().haptics.inertia_compensation);
+    md.push_str("| compensation | what | hand force RMS (N) | × none |\n|---|---|---:|---:|\n");
     for ((name, r), (_, _, what)) in rms.iter().zip(TRANSPARENCY) {
         let _ = writeln!(md, "| {name} | {what} | {r:.4} | {:.3} |", r / none);
     }
     let _ = writeln!(
         md,
-        "\nLet go (nnidc): the hand releases the stylus at {:.0} s; over the last second the tip moved {drift:.3} mm.\n\n![Hand force in free mode](transparency.png) ([SVG](transparency.svg))\n",
+        "\nLet go (nnidc, with the default inertia compensation): the hand releases the stylus at {:.0} s; over the last second the tip moved {drift:.3} mm.\n\n![Hand force in free mode](transparency.png) ([SVG](transparency.svg))\n",
         secs - 2.0
     );
     Ok(Transparency {

@@ -63,8 +63,13 @@ impl Controller for ComputedTorque {
         self.model.inverse_dynamics(&x.q, &x.qd, &v)
     }
 
-    fn compensation(&mut self, x: &Estimate, _learned: Option<&mut Identifier>) -> Joint3 {
-        self.model.inverse_dynamics(&x.q, &x.qd, &Joint3::zeros())
+    fn compensation_at(
+        &mut self,
+        x: &Estimate,
+        accel: &Joint3,
+        _learned: Option<&mut Identifier>,
+    ) -> Joint3 {
+        self.model.inverse_dynamics(&x.q, &x.qd, accel)
     }
 }
 

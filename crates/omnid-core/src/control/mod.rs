@@ -102,7 +102,20 @@ pub trait Controller: Send {
     /// The law's own model of what holds the arm up and drags on it (gravity, Coriolis and
     /// friction at zero commanded acceleration): what free mode sends, so the arm feels
     /// weightless. Laws without a model compensate nothing.
-    fn compensation(&mut self, _estimate: &Estimate, _learned: Option<&mut Identifier>) -> Joint3 {
+    fn compensation(&mut self, estimate: &Estimate, learned: Option<&mut Identifier>) -> Joint3 {
+        self.compensation_at(estimate, &Joint3::zeros(), learned)
+    }
+
+    /// The law's model at the estimated state and the joint acceleration `accel`:
+    /// M(q)·accel plus [`compensation`](Self::compensation). The haptic modes pass a gated
+    /// fraction of the estimated q̈ (partial inertia compensation, docs/HAPTICS.md §3);
+    /// laws without a model compensate nothing.
+    fn compensation_at(
+        &mut self,
+        _estimate: &Estimate,
+        _accel: &Joint3,
+        _learned: Option<&mut Identifier>,
+    ) -> Joint3 {
         Joint3::zeros()
     }
 

@@ -28,8 +28,13 @@ impl Controller for NanAfter {
 
     // The wrapped law's model stays its own: free mode and a coupling under the injection
     // compensate as the law would (the fault is in its tracking output only).
-    fn compensation(&mut self, estimate: &Estimate, learned: Option<&mut Identifier>) -> Joint3 {
-        self.inner.compensation(estimate, learned)
+    fn compensation_at(
+        &mut self,
+        estimate: &Estimate,
+        accel: &Joint3,
+        learned: Option<&mut Identifier>,
+    ) -> Joint3 {
+        self.inner.compensation_at(estimate, accel, learned)
     }
 
     fn coupling_compensation(

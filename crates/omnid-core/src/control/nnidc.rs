@@ -58,13 +58,14 @@ impl Controller for Nnidc {
         }
     }
 
-    fn compensation(
+    fn compensation_at(
         &mut self,
         x: &crate::estimate::kalman::Estimate,
+        accel: &Joint3,
         learned: Option<&mut Identifier>,
     ) -> Joint3 {
         match learned {
-            Some(id) if id.healthy() => id.inverse_dynamics(&x.q, &x.qd, &Joint3::zeros()),
+            Some(id) if id.healthy() => id.inverse_dynamics(&x.q, &x.qd, accel),
             // The PD fallback has no model to compensate with.
             _ => Joint3::zeros(),
         }

@@ -108,18 +108,22 @@ impl ControllerSet {
         }
     }
 
-    /// The active law's compensation (free mode), crossfaded like [`torque`](Self::torque).
+    /// The active law's compensation (the haptic modes) at the joint acceleration `accel`
+    /// (zero, or the gated fraction of q̈ of partial inertia compensation), crossfaded like
+    /// [`torque`](Self::torque).
     pub(crate) fn compensation(
         &mut self,
         t: f64,
         estimate: &Estimate,
+        accel: &Joint3,
         mut learned: Option<&mut Identifier>,
     ) -> Joint3 {
-        let new = self.laws[slot(self.active)].compensation(estimate, learned.as_deref_mut());
+        let new =
+            self.laws[slot(self.active)].compensation_at(estimate, accel, learned.as_deref_mut());
         match self.weight(t) {
             None => new,
             Some((old, w)) => {
-                let before = self.laws[slot(old)].compensation(estimate, learned);
+                let before = self.laws[slot(old)].compensation_at(estimate, accel, learned);
                 before * (1.0 - w) + new * w
             }
         }

@@ -25,6 +25,9 @@ pub struct HapticsConfig {
     pub passivity_max_damping_n_s_per_m: f64,
     /// Most energy the passivity observer keeps in hand, J.
     pub passivity_reserve_j: f64,
+    /// Free mode and `servo_cf`: compensate this fraction β of the law's inertia, β·M(q)·q̈, so
+    /// the hand carries less of the arm's mass; off in contact (docs/HAPTICS.md §3), 0 ..= 0.5.
+    pub inertia_compensation: f64,
     /// The simulated hand on the stylus (simulator only; `omnid run --hand`).
     pub hand: HandConfig,
     /// Which model the external-force estimate subtracts (active, parametric or learned;
@@ -44,6 +47,7 @@ impl Default for HapticsConfig {
             passivity: true,
             passivity_max_damping_n_s_per_m: 20.0,
             passivity_reserve_j: 1e-3,
+            inertia_compensation: 0.3,
             hand: HandConfig::default(),
             external_model: super::ExternalModel::Active,
             external_cutoff_hz: 15.0,
@@ -88,6 +92,13 @@ impl HapticsConfig {
             0.0,
             1.0,
             "0 ..= 1 J",
+        )?;
+        check::in_range(
+            "haptics.inertia_compensation",
+            self.inertia_compensation,
+            0.0,
+            super::MAX_INERTIA_COMPENSATION,
+            "0 ..= 0.5",
         )?;
         check::in_range(
             "haptics.external_cutoff_hz",
@@ -169,6 +180,26 @@ mod tests {
             .validate()
             .unwrap_err();
             assert!(e.to_string().contains("haptics.max_force_n"), "{e}");
+        }
+        for bad in [-0.1, 0.51, f64::NAN, f64::INFINITY] {
+            let e = HapticsConfig {
+                inertia_compensation: bad,
+                ..Default::default()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(
+                e.to_string().contains("haptics.inertia_compensation"),
+                "{e}"
+            );
+        }
+        for good in [0.0, 0.25, super::super::MAX_INERTIA_COMPENSATION] {
+            HapticsConfig {
+                inertia_compensation: good,
+                ..Default::default()
+            }
+            .validate()
+            .unwrap();
         }
         let mut bad = HapticsConfig::default();
         bad.hand.stiffness_n_per_m = 0.0;

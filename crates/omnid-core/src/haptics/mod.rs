@@ -7,6 +7,7 @@ pub(crate) mod config;
 pub(crate) mod effects;
 pub(crate) mod external;
 pub(crate) mod hand;
+pub(crate) mod inertia;
 pub(crate) mod passivity;
 pub(crate) mod render;
 pub mod scene;
@@ -17,6 +18,8 @@ pub(crate) use effects::MAX_EFFECTS;
 pub use external::ExternalModel;
 pub(crate) use hand::Hand;
 pub use hand::{HandConfig, HandPattern};
+pub use inertia::MAX_INERTIA_COMPENSATION;
+pub(crate) use inertia::{near_walls, InertiaGate};
 pub(crate) use render::HapticLoop;
 
 use crate::omni::{jacobian, Geometry, Joint3};

@@ -92,6 +92,11 @@ impl HapticLoop {
         self.passivity.enabled = on;
     }
 
+    /// The passivity controller added damping at this tick (it is taking energy back).
+    pub(crate) fn dissipating(&self) -> bool {
+        self.passivity.damping > 0.0
+    }
+
     /// A tick without haptics (another mode): note where the tip is, for the log, and start
     /// the passivity observer afresh when haptics resume.
     pub(crate) fn observe(&mut self, q: &Joint3) {

@@ -22,7 +22,8 @@ use crate::estimate::KalmanBank;
 use crate::haptics::external::ExternalForce;
 use crate::haptics::HapticsConfig;
 use crate::haptics::{
-    held_back, limit_force, tip_force_torque, Effect, ExternalModel, Force3, HapticLoop,
+    held_back, limit_force, near_walls, tip_force_torque, Effect, ExternalModel, Force3,
+    HapticLoop, InertiaGate,
 };
 use crate::identifier::Identifier;
 use crate::identifier::IdentifierConfig;
@@ -189,6 +190,12 @@ pub struct Servo {
     max_force_n: f64,
     /// Forces at the tip: effects, passivity, Jᵀ F (docs/HAPTICS.md).
     haptics: HapticLoop,
+    /// The haptic modes' partial inertia compensation: the fraction of the law's inertia
+    /// times q̈ they add, gated off in contact (docs/HAPTICS.md §3).
+    inertia: InertiaGate,
+    /// This tick's estimated q̈ can be believed: not in the inkwell nor just out of it, not
+    /// just after the estimator restarted across a gap.
+    qdd_trusted: bool,
     /// The outside's force on the tip, from the motors and a model (docs/TELEOP.md §2).
     external: ExternalForce,
     external_model: ExternalModel,
@@ -325,6 +332,8 @@ impl Servo {
             stream_force_limited: false,
             max_force_n: cfg.haptics.max_force_n,
             haptics: HapticLoop::new(cfg.haptics, *cfg.geometry),
+            inertia: InertiaGate::new(cfg.haptics.inertia_compensation),
+            qdd_trusted: false,
             external: ExternalForce::new(cfg.haptics.external_cutoff_hz, 1.0 / cfg.device.rate_hz),
             external_model: cfg.haptics.external_model,
             parametric: {
@@ -459,6 +468,13 @@ impl Servo {
         if s.inkwell {
             self.docked_t = s.t;
         }
+        // The estimated q̈ lags a step: the inkwell letting go, or the filter restarting from
+        // rest across a gap; it is believed again UNDOCK_SETTLE_S after either.
+        self.qdd_trusted = s.t - self.docked_t >= UNDOCK_SETTLE_S
+            && !self
+                .kalman
+                .last_gap()
+                .is_some_and(|(at, _)| s.t_dev - at < UNDOCK_SETTLE_S);
         let (reference, tau_cmd) = self.control(s.t, &s.q, &est);
         let (tau_hat, ident_flag) = self.identify(s.t, &est);
         let tau_model = self.oracle(&est);
@@ -913,6 +929,7 @@ impl Servo {
         let dt = 1e-9 * self.period_ns as f64;
         if !matches!(self.activity, Activity::Free | Activity::ServoCf) {
             self.haptics.observe(q);
+            self.inertia.reset();
         }
         self.teleop_force = Force3::zeros();
         let teleop_t = teleop_clock(self.paced, t);
@@ -942,15 +959,31 @@ impl Servo {
                 (reference, self.controllers.torque(&input, id))
             }
             // The haptic modes: the compensation plus the tip force (effects and a client's).
+            // The compensation takes the gated fraction of q̈ (partial inertia compensation,
+            // off in contact: docs/HAPTICS.md §3).
             Activity::Free | Activity::ServoCf => {
                 let force = self
                     .haptics
                     .torque(t, dt, q, &est.qd, &self.stream_force, true);
-                (here, self.controllers.compensation(t, est, id) + force)
+                // The soft walls are a contact too: a bounce on one with the lagged q̈ fed
+                // back gains energy, and a released arm bounced ever faster between them.
+                let at_wall = near_walls(q, &self.wall_lower, &self.wall_upper)
+                    || near_walls(&est.q, &self.wall_lower, &self.wall_upper);
+                let beta = self.inertia.step(
+                    dt,
+                    Force3::from(self.haptics.force).norm(),
+                    self.haptics.dissipating() || at_wall,
+                    self.qdd_trusted,
+                );
+                let accel = est.qdd * beta;
+                (
+                    here,
+                    self.controllers.compensation(t, est, &accel, id) + force,
+                )
             }
             Activity::ServoJf => (
                 here,
-                self.controllers.compensation(t, est, id) + self.stream_tau,
+                self.controllers.compensation(t, est, &Joint3::zeros(), id) + self.stream_tau,
             ),
         }
     }
@@ -1727,5 +1760,149 @@ mod tests {
     fn paced_runs_never_wait_for_the_writer() {
         // The realtime loop keeps going: 16 rows fit, the other 185 are dropped and counted.
         assert_eq!(run_with_slow_writer(true, 200), (185, 16));
+    }
+
+    #[test]
+    fn free_mode_compensates_the_gated_fraction_of_the_inertia_and_none_near_the_inkwell() {
+        // docs/HAPTICS.md §3. Under CT (its parametric model, no identifier in the way) with
+        // no effects, the commanded torque is the compensation at the acceleration g·q̈: the
+        // fraction g is read back from each tick's record. The simulated hand pulls the stylus
+        // out of its inkwell and traces the path.
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        cfg.haptics.hand.pattern = crate::haptics::HandPattern::Path;
+        cfg.haptics.inertia_compensation = 0.4;
+        let (mut servo, rx) = sim_servo(&cfg, ControllerKind::Ct, Trajectory::Hold);
+        servo.start_free();
+        let mut ct = crate::control::ComputedTorque::from_config(&cfg);
+        let model = Dynamics::new(cfg.model, cfg.geometry);
+        let (mut docked_t, mut last_g, mut opened) = (None, 0.0, false);
+        for _ in 0..3000 {
+            let r = next(&mut servo, &rx);
+            let est = Estimate {
+                q: r.qf.into(),
+                qd: r.qd.into(),
+                qdd: r.qdd.into(),
+            };
+            let rest = crate::control::Controller::compensation(&mut ct, &est, None);
+            let residual = Joint3::from(r.tau_cmd) - rest;
+            let mq = model.mass(&est.q) * est.qdd;
+            if r.live.inkwell {
+                docked_t = Some(r.t);
+            }
+            if docked_t.is_none_or(|t0| r.t - t0 < UNDOCK_SETTLE_S) {
+                // In the inkwell and just out of it, q̈ is not believed: nothing of it.
+                assert_eq!(residual, Joint3::zeros(), "at {} s", r.t);
+                continue;
+            }
+            if mq.norm() < 1e-6 {
+                continue;
+            }
+            let g = residual.dot(&mq) / mq.norm_squared();
+            assert!(
+                (residual - mq * g).norm() < 1e-12,
+                "not along M·q̈ at {} s",
+                r.t
+            );
+            // Never more than β, and it opens no faster than β per RETURN_S.
+            assert!((-1e-9..=0.4 + 1e-9).contains(&g), "{g} at {} s", r.t);
+            assert!(g - last_g <= 0.4 * 1e-3 / crate::haptics::inertia::RETURN_S + 1e-9);
+            opened |= (g - 0.4).abs() < 1e-9;
+            last_g = g;
+        }
+        assert!(
+            docked_t.is_some_and(|t| t < 2.0),
+            "the stylus never left the inkwell"
+        );
+        assert!(opened, "the gate never opened fully");
+    }
+
+    /// The simulator, its device time jumping by `gap_s` after `at` exchanges (a gap in the
+    /// data, as a USB stall makes).
+    struct Gappy {
+        sim: SimOmni,
+        exchanges: u64,
+        at: u64,
+        gap_s: f64,
+    }
+
+    impl Device for Gappy {
+        fn kind(&self) -> &'static str {
+            "sim"
+        }
+
+        fn exchange(
+            &mut self,
+            command: &[u8; crate::device::COMMAND_LEN],
+        ) -> Result<crate::device::RawSample, DeviceError> {
+            let mut raw = self.sim.exchange(command)?;
+            self.exchanges += 1;
+            if self.exchanges > self.at {
+                raw.device_time_s += self.gap_s;
+            }
+            Ok(raw)
+        }
+
+        fn hand_force(&self) -> Option<[f64; 3]> {
+            self.sim.hand_force()
+        }
+    }
+
+    #[test]
+    fn free_mode_compensates_no_inertia_just_after_the_estimator_restarted() {
+        // As above, undocked at the centre; 0.1 s without data after 1.5 s restarts the
+        // estimator, whose q̈ is then not believed for UNDOCK_SETTLE_S.
+        let mut cfg = Config::default();
+        cfg.sim.torque_noise_nm = 0.0;
+        cfg.sim.start_pose = cfg.reference.center;
+        cfg.sim.docked = false;
+        cfg.haptics.hand.pattern = crate::haptics::HandPattern::Path;
+        cfg.haptics.inertia_compensation = 0.4;
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let device = Gappy {
+            sim: SimOmni::new(&cfg, false),
+            exchanges: 0,
+            at: 1500,
+            gap_s: 0.1,
+        };
+        let mut servo = Servo::new(
+            &cfg,
+            Box::new(device),
+            ControllerSet::new(&cfg, ControllerKind::Ct, 0.0),
+            Reference::new(Trajectory::Hold, &cfg.reference, 1),
+            tx,
+            Arc::new(AtomicBool::new(false)),
+            None,
+            false,
+        );
+        servo.start_free();
+        let mut ct = crate::control::ComputedTorque::from_config(&cfg);
+        let model = Dynamics::new(cfg.model, cfg.geometry);
+        let (mut before, mut held, mut after) = (0.0_f64, 0, 0.0_f64);
+        for k in 0..2000 {
+            let r = next(&mut servo, &rx);
+            let est = Estimate {
+                q: r.qf.into(),
+                qd: r.qd.into(),
+                qdd: r.qdd.into(),
+            };
+            let rest = crate::control::Controller::compensation(&mut ct, &est, None);
+            let residual = Joint3::from(r.tau_cmd) - rest;
+            let mq = model.mass(&est.q) * est.qdd;
+            let g = residual.dot(&mq) / mq.norm_squared().max(1e-300);
+            match k {
+                1000..1500 => before = before.max(g),
+                1500..1599 => {
+                    assert_eq!(residual, Joint3::zeros(), "tick {k}, {} s", r.t);
+                    held += 1;
+                }
+                1800.. => after = after.max(g),
+                _ => {}
+            }
+        }
+        assert_eq!(servo.kalman.restarts(), 1);
+        assert_eq!(held, 99);
+        assert!((before - 0.4).abs() < 1e-9, "before the gap: {before}");
+        assert!((after - 0.4).abs() < 1e-9, "after the gap: {after}");
     }
 }

@@ -95,6 +95,36 @@ fn prefault_stack(kib: usize) {
     std::hint::black_box(&buf);
 }
 
+/// Lock the process's memory: every page mapped now, populated at once (the servo's, built
+/// before its first tick), and every page mapped later as it is first touched
+/// (`MCL_ONFAULT`). Not `MCL_FUTURE` alone: then each later `mmap`, heap growth or thread
+/// stack of any thread (zenoh's, a client's arrival) is filled page by page while that thread
+/// holds the process's memory-map lock, and a thread of the normal scheduler preempted there
+/// by a busy CPU kept an arm's SCHED_FIFO host waiting in its own heap growth for tens of ms
+/// (docs/DESIGN.md §4.7). A kernel without `MCL_ONFAULT` (before 4.4) locks future memory as
+/// before.
+fn lock_memory() -> std::io::Result<()> {
+    // SAFETY: mlockall has no memory-safety preconditions.
+    if unsafe { libc::mlockall(libc::MCL_CURRENT) } != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    // MCL_FUTURE without MCL_CURRENT leaves the mappings just locked as they are.
+    // SAFETY: as above.
+    if unsafe { libc::mlockall(libc::MCL_FUTURE | libc::MCL_ONFAULT) } == 0 {
+        return Ok(());
+    }
+    let e = std::io::Error::last_os_error();
+    if e.raw_os_error() != Some(libc::EINVAL) {
+        return Err(e);
+    }
+    // SAFETY: as above.
+    if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
 /// Apply the configured steps to the calling thread (the servo thread, before its first tick).
 pub fn apply(cfg: &RealtimeConfig) -> RealtimeReport {
     let mut r = RealtimeReport::default();
@@ -111,14 +141,11 @@ pub fn apply(cfg: &RealtimeConfig) -> RealtimeReport {
     }
 
     if cfg.lock_memory {
-        // SAFETY: mlockall has no memory-safety preconditions.
-        if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } == 0 {
-            r.memory_locked = true;
-        } else {
-            r.warnings.push(format!(
-                "memory lock not permitted ({}): {LIMITS_HINT}",
-                std::io::Error::last_os_error()
-            ));
+        match lock_memory() {
+            Ok(()) => r.memory_locked = true,
+            Err(e) => r
+                .warnings
+                .push(format!("memory lock not permitted ({e}): {LIMITS_HINT}")),
         }
     }
 
@@ -178,6 +205,96 @@ mod tests {
         assert!(!r.memory_locked && r.cpu.is_none() && r.warnings.is_empty());
         assert!(r.signals_blocked);
         assert_eq!(r.stack_prefaulted_kib, 64);
+    }
+
+    /// A field of /proc/self/status, kB.
+    fn status_kb(field: &str) -> u64 {
+        let text = std::fs::read_to_string("/proc/self/status").unwrap();
+        text.lines()
+            .find_map(|l| l.strip_prefix(field))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+            .unwrap()
+    }
+
+    /// The child's half of the test below, in a process of its own (the lock is the whole
+    /// process's): lock, map 32 MiB, say how much of it was resident before and after touching
+    /// it and how much of it was locked after.
+    fn lock_then_map() {
+        let cfg = RealtimeConfig {
+            fifo_priority: 0,
+            cpu: -1,
+            prefault_stack_kib: 0,
+            lock_memory: true,
+        };
+        let r = apply(&cfg);
+        if !r.memory_locked {
+            println!("MLOCK not permitted: {:?}", r.warnings);
+            return;
+        }
+        let len = 32 << 20;
+        let (rss0, lck0) = (status_kb("VmRSS:"), status_kb("VmLck:"));
+        // SAFETY: a fresh private anonymous mapping, checked before use and unmapped here.
+        let p = unsafe {
+            libc::mmap(
+                std::ptr::null_mut(),
+                len,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+                -1,
+                0,
+            )
+        };
+        assert_ne!(p, libc::MAP_FAILED);
+        let mapped = status_kb("VmRSS:").saturating_sub(rss0);
+        for i in (0..len).step_by(4096) {
+            // SAFETY: inside the mapping.
+            unsafe { std::ptr::write_volatile(p.cast::<u8>().add(i), 1) };
+        }
+        let touched = status_kb("VmRSS:").saturating_sub(rss0);
+        let locked = status_kb("VmLck:").saturating_sub(lck0);
+        // SAFETY: the mapping made above.
+        unsafe { libc::munmap(p, len) };
+        println!("MLOCK mapped={mapped} touched={touched} locked={locked}");
+    }
+
+    /// docs/DESIGN.md §4.7: memory a thread maps after the servo locked the process is not
+    /// filled at `mmap` (which a thread does holding the process's memory-map lock, where the
+    /// normal scheduler may preempt it while an arm's SCHED_FIFO host waits on that lock), but
+    /// it is locked once touched.
+    #[test]
+    fn memory_mapped_after_the_lock_is_locked_as_it_is_touched_not_filled_at_mmap() {
+        if std::env::var_os("OMNID_TEST_LOCK_THEN_MAP").is_some() {
+            lock_then_map();
+            return;
+        }
+        let out = std::process::Command::new(std::env::current_exe().unwrap())
+            .args([
+                "--exact",
+                "servo::realtime::tests::memory_mapped_after_the_lock_is_locked_as_it_is_touched_not_filled_at_mmap",
+                "--nocapture",
+                "--test-threads=1",
+            ])
+            .env("OMNID_TEST_LOCK_THEN_MAP", "1")
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{text}");
+        let line = text
+            .lines()
+            .find_map(|l| l.find("MLOCK").map(|i| &l[i..]))
+            .unwrap_or_else(|| panic!("the child said nothing: {text}"));
+        if line.contains("not permitted") {
+            eprintln!("skipped, loudly: {line}");
+            return;
+        }
+        let kb = |k: &str| -> u64 {
+            let v = line.split(&format!("{k}=")).nth(1).unwrap();
+            v.split_whitespace().next().unwrap().parse().unwrap()
+        };
+        // 32 MiB = 32768 kB; other threads of the child may move RSS a little.
+        assert!(kb("mapped") < 8192, "filled at mmap: {line}");
+        assert!(kb("touched") >= 30000, "{line}");
+        assert!(kb("locked") >= 30000, "locked as touched: {line}");
     }
 
     #[test]
