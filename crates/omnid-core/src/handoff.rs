@@ -126,6 +126,11 @@ impl<T> Inlet<T> {
         Ok(())
     }
 
+    /// The consumer has gone.
+    pub fn is_closed(&self) -> bool {
+        self.ring.is_abandoned()
+    }
+
     /// This end for several producers of the normal scheduler.
     pub fn shared(self) -> SharedInlet<T> {
         SharedInlet {

@@ -112,6 +112,181 @@ fn ticks(servo: &mut Servo, t: &mut Loopback, n: usize) {
     }
 }
 
+/// Tick until the late answer `ticket` is in (a removal is done on the saver thread), at most
+/// a minute.
+fn until_done(servo: &mut Servo, t: &mut Loopback, ticket: u64) -> Result<Reply, OpError> {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        if let Some(i) = t.done.iter().position(|(k, _)| *k == ticket) {
+            return t.done.remove(i).1;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no answer to {ticket}"
+        );
+        ticks(servo, t, 1);
+        std::thread::yield_now();
+    }
+}
+
+/// A writer of the kept weights that says when a save starts, then waits for the gate (a
+/// message, or the gate's sender dropped) before writing it as the store does.
+fn gated_writer() -> (
+    WeightsWriter,
+    std::sync::mpsc::Receiver<()>,
+    std::sync::mpsc::Sender<()>,
+) {
+    let (started, entered) = std::sync::mpsc::channel();
+    let (gate, opened) = std::sync::mpsc::channel::<()>();
+    let writer: WeightsWriter = Box::new(move |path, id, arm, serial| {
+        let _ = started.send(());
+        let _ = opened.recv();
+        crate::identifier::store::save(path, id, arm, serial)
+    });
+    (writer, entered, gate)
+}
+
+/// Tick until the saver has started a save, at most a minute.
+fn until_a_save_starts(
+    servo: &mut Servo,
+    t: &mut Loopback,
+    entered: &std::sync::mpsc::Receiver<()>,
+) {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while entered.try_recv().is_err() {
+        assert!(std::time::Instant::now() < deadline, "no save started");
+        ticks(servo, t, 1);
+        std::thread::yield_now();
+    }
+}
+
+/// A served arm whose weights are kept in its temporary directory, saved at every pump by
+/// a gated writer.
+fn kept_by_gated_writer() -> (
+    Servo,
+    Loopback,
+    tempfile::TempDir,
+    std::path::PathBuf,
+    std::sync::mpsc::Receiver<()>,
+    std::sync::mpsc::Sender<()>,
+) {
+    let (servo, mut setup, dir) = served_sim();
+    let path = crate::identifier::store::weights_file(dir.path(), "sim");
+    setup.weights_store = Some((path.clone(), "sim".into(), None));
+    setup.weights_every_s = 0.0;
+    let mut station = Station::new(setup);
+    let (writer, entered, gate) = gated_writer();
+    station.set_weights_writer(writer);
+    (
+        servo,
+        Loopback::new(station, "keeper"),
+        dir,
+        path,
+        entered,
+        gate,
+    )
+}
+
+#[test]
+fn the_host_streams_and_answers_while_a_save_waits_on_the_disk() {
+    // docs/DESIGN.md §4.7: the save is the saver thread's; here it is held at its start (a
+    // disk that does not answer) while the station serves.
+    let (mut servo, mut t, _dir, path, entered, gate) = kept_by_gated_writer();
+    assert!(t.call(Op::Stream { rate_hz: 500.0 }).is_ok());
+    assert!(t.call(Op::Mode(ModeRequest::Hold)).is_ok());
+    until_a_save_starts(&mut servo, &mut t, &entered);
+    let before = t.states.len();
+    let Ok(Answer::Later(status)) = t.call(Op::Status) else {
+        panic!("status not taken")
+    };
+    ticks(&mut servo, &mut t, 200);
+    assert_eq!(
+        t.states.len() - before,
+        100,
+        "states streamed during the save"
+    );
+    assert!(
+        t.done.iter().any(|(k, r)| *k == status && r.is_ok()),
+        "status not answered during the save"
+    );
+    assert!(!path.exists(), "the held save was written");
+    drop(gate);
+    let _ = t.station.finish();
+    assert!(path.exists());
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
+
+#[test]
+fn the_station_s_end_waits_for_the_save_in_progress() {
+    let (mut servo, mut t, _dir, path, entered, gate) = kept_by_gated_writer();
+    until_a_save_starts(&mut servo, &mut t, &entered);
+    assert!(!path.exists());
+    // Opened from another thread while the end waits for the saver.
+    let opener = std::thread::spawn(move || drop(gate));
+    let _ = t.station.finish();
+    assert!(
+        path.exists(),
+        "the station ended before its save was written"
+    );
+    opener.join().unwrap();
+    let cfg = crate::config::Config::default();
+    assert!(matches!(
+        crate::identifier::store::load(&path, &cfg.identifier, None),
+        crate::identifier::store::Loaded::Weights(..)
+    ));
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
+
+#[test]
+fn weights_reset_removes_the_file_after_a_save_asked_before_it() {
+    // A save of what the arm learned is held at its start; the reset asked meanwhile is
+    // answered only once that save is written and then removed: the forgotten weights do not
+    // come back.
+    let (mut servo, mut t, _dir, path, entered, gate) = kept_by_gated_writer();
+    assert!(t
+        .call(Op::Mode(ModeRequest::Track(
+            crate::control::Trajectory::Sine
+        )))
+        .is_ok());
+    ticks(&mut servo, &mut t, 300);
+    until_a_save_starts(&mut servo, &mut t, &entered);
+    assert!(t.call(Op::Adapt(false)).is_ok());
+    let Ok(Answer::Later(ticket)) = t.call(Op::WeightsReset) else {
+        panic!("reset not taken")
+    };
+    ticks(&mut servo, &mut t, 50);
+    assert!(
+        t.done.iter().all(|(k, _)| *k != ticket),
+        "the reset was answered before the save asked before it was written"
+    );
+    drop(gate);
+    match until_done(&mut servo, &mut t, ticket) {
+        Ok(Reply::WeightsReset { removed, .. }) => {
+            // The held save wrote the file; the removal came after it.
+            assert_eq!(removed.as_deref(), Some(path.as_path()));
+        }
+        other => panic!("{other:?}"),
+    }
+    // What is kept from here on is the shipped weights (frozen), never the forgotten ones.
+    ticks(&mut servo, &mut t, 20);
+    let _ = t.station.finish();
+    let cfg = crate::config::Config::default();
+    let shipped = crate::identifier::store::shipped(&cfg.identifier).unwrap();
+    let q = crate::omni::Joint3::new(0.1, 0.6, 0.3);
+    let z = crate::omni::Joint3::zeros();
+    match crate::identifier::store::load(&path, &cfg.identifier, None) {
+        crate::identifier::store::Loaded::Weights(mut id, _) => {
+            assert_eq!(id.predict(&q, &z, &z), shipped.clone().predict(&q, &z, &z))
+        }
+        crate::identifier::store::Loaded::None => {}
+        other => panic!("{other:?}"),
+    }
+    let report = servo.finish(EndReason::OperatorStop);
+    assert!(report.last_command.is_safe());
+}
+
 #[test]
 fn a_station_serves_a_transport_and_a_recorder_of_a_few_lines_each() {
     let (mut servo, setup, _dir) = served_sim();
@@ -299,6 +474,8 @@ fn the_station_saves_what_the_arm_learned_while_it_runs() {
         Ok(Answer::Now(_))
     ));
     ticks(&mut servo, &mut t, 500);
+    // The saver thread writes them: its end waits for every save asked.
+    let _ = t.station.finish();
     assert!(path.exists(), "no weights kept at {}", path.display());
     let crate::identifier::store::Loaded::Weights(mut kept, _) =
         crate::identifier::store::load(&path, &cfg, Some("S1"))
@@ -353,11 +530,10 @@ fn weights_reset_puts_the_shipped_weights_back_and_removes_what_the_arm_learned(
     let Ok(Answer::Later(ticket)) = t.call(Op::WeightsReset) else {
         panic!("reset not taken")
     };
-    ticks(&mut servo, &mut t, 20);
-    let reply = t.done.iter().find(|(k, _)| *k == ticket).map(|(_, r)| r);
+    let reply = until_done(&mut servo, &mut t, ticket);
     match reply {
-        Some(Ok(Reply::WeightsReset { weights, removed })) => {
-            assert_eq!(*weights, "mock/nnidc-pretuned.json");
+        Ok(Reply::WeightsReset { weights, removed }) => {
+            assert_eq!(weights, "mock/nnidc-pretuned.json");
             assert_eq!(removed.as_deref(), Some(path.as_path()));
         }
         other => panic!("{other:?}"),
@@ -371,6 +547,8 @@ fn weights_reset_puts_the_shipped_weights_back_and_removes_what_the_arm_learned(
         shipped
     );
     // The saves after the reset keep the shipped weights, not the forgotten ones.
+    ticks(&mut servo, &mut t, 20);
+    let _ = t.station.finish();
     assert_eq!(load(&path), shipped);
     let report = servo.finish(EndReason::OperatorStop);
     assert!(report.last_command.is_safe());

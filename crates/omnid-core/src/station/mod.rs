@@ -14,6 +14,7 @@
 pub mod device_info;
 pub mod files;
 pub mod ops;
+mod saver;
 mod taps;
 mod view;
 
@@ -21,6 +22,7 @@ pub use files::FileRights;
 pub use ops::{
     ModeRequest, Op, OpError, Reply, SessionId, SessionInfo, Status, TeleopReply, TeleopRequest,
 };
+pub use saver::Writer as WeightsWriter;
 pub use taps::Tap;
 pub use view::ArmState;
 
@@ -285,6 +287,8 @@ pub struct Station {
     teleop: Option<(TeleopReply, crate::teleop::OnTheLine)>,
     /// When the learned weights are next saved (with a store).
     persist_due: Option<std::time::Instant>,
+    /// The thread that writes them, off the host (with a store).
+    saver: Option<saver::Saver>,
 }
 
 enum PendingOut {
@@ -342,8 +346,38 @@ impl Station {
                 std::time::Instant::now()
                     + std::time::Duration::from_secs_f64(s.weights_every_s.max(0.0))
             }),
+            saver: s.weights_store.as_ref().and_then(|(path, arm, serial)| {
+                saver::Saver::spawn(path.clone(), arm.clone(), serial.clone(), s.wake.clone())
+                    .map_err(|e| {
+                        crate::errln!(
+                            "omnid: warning: arm {arm}: no thread for saving the learned \
+                             weights ({e}): they are kept only when the daemon ends"
+                        )
+                    })
+                    .ok()
+            }),
             s,
         }
+    }
+
+    /// The kept weights are written by `writer` instead of the store (a test's writer that
+    /// blocks, to show the host serving meanwhile); without a store, nothing changes.
+    #[doc(hidden)]
+    pub fn set_weights_writer(&mut self, writer: WeightsWriter) {
+        let Some((path, arm, serial)) = &self.s.weights_store else {
+            return;
+        };
+        if let Some(mut old) = self.saver.take() {
+            old.finish();
+        }
+        self.saver = saver::Saver::spawn_with(
+            path.clone(),
+            arm.clone(),
+            serial.clone(),
+            self.s.wake.clone(),
+            writer,
+        )
+        .ok();
     }
 
     /// Who the arm is.
@@ -906,30 +940,55 @@ impl Station {
         Ok(Answer::Later(ticket))
     }
 
-    /// The shipped weights are in: remove the arm's saved ones; the answer.
-    fn weights_reset_done(&self) -> Result<Reply, OpError> {
-        let weights = crate::identifier::store::SHIPPED_WEIGHTS_NAME;
-        let Some((path, _, _)) = &self.s.weights_store else {
-            return Ok(Reply::WeightsReset {
-                weights,
-                removed: None,
-            });
+    /// The shipped weights are in: remove the arm's saved ones, on the saver thread after the
+    /// saves asked before (the answer comes when it is done), or here without one.
+    fn weights_reset_done(&mut self, ticket: u64, session: SessionId) {
+        if let Some(saver) = &mut self.saver {
+            saver.ask(saver::Job::Remove { ticket, session });
+            return;
+        }
+        let result = match &self.s.weights_store {
+            Some((path, _, _)) => match std::fs::remove_file(path) {
+                Ok(()) => Ok(true),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+                Err(e) => Err(e.to_string()),
+            },
+            None => Ok(false),
         };
-        match std::fs::remove_file(path) {
-            Ok(()) => Ok(Reply::WeightsReset {
+        self.weights_reset_answer(ticket, session, result);
+    }
+
+    /// The reset's answer once the arm's file is removed (`Ok(true)`), was not there, or could
+    /// not be removed.
+    fn weights_reset_answer(
+        &mut self,
+        ticket: u64,
+        session: SessionId,
+        removed: Result<bool, String>,
+    ) {
+        let weights = crate::identifier::store::SHIPPED_WEIGHTS_NAME;
+        let path = self.s.weights_store.as_ref().map(|(p, _, _)| p.clone());
+        let result = match (removed, path) {
+            (Ok(true), Some(path)) => Ok(Reply::WeightsReset {
                 weights,
-                removed: Some(path.clone()),
+                removed: Some(path),
             }),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Reply::WeightsReset {
+            (Ok(_), _) => Ok(Reply::WeightsReset {
                 weights,
                 removed: None,
             }),
-            Err(e) => Err(OpError::Failed(format!(
+            (Err(e), path) => Err(OpError::Failed(format!(
                 "the identifier is back on the shipped weights, but {} could not be removed: \
                  {e} (the next start would load it)",
-                path.display()
+                path.map(|p| p.display().to_string()).unwrap_or_default()
             ))),
-        }
+        };
+        self.pending.push(PendingOut::Done {
+            ticket,
+            session,
+            op: "weights_reset",
+            result,
+        });
     }
 
     fn ask_snapshot(&mut self, w: Waiting) {
@@ -1008,13 +1067,12 @@ impl Station {
                         });
                     }
                     Some((ticket, session, None)) => {
-                        let result = self.weights_reset_done();
-                        self.pending.push(PendingOut::Done {
-                            ticket,
-                            session,
-                            op: "weights_reset",
-                            result,
-                        });
+                        // A snapshot still held was taken before the swap (replies come in
+                        // the servo's order): its weights are the forgotten ones, not saved.
+                        if self.held.is_some() {
+                            self.waiting.retain(|w| !matches!(w, Waiting::Persist));
+                        }
+                        self.weights_reset_done(ticket, session);
                         self.announce(Event {
                             message: Some(format!(
                                 "weights reset to the shipped ones ({})",
@@ -1045,6 +1103,12 @@ impl Station {
                     Some(now + std::time::Duration::from_secs_f64(self.s.weights_every_s.max(0.0)));
                 self.ask_snapshot(Waiting::Persist);
             }
+        }
+        if let Some(saver) = &mut self.saver {
+            saver.hand_on();
+        }
+        while let Some(r) = self.saver.as_mut().and_then(|s| s.removed()) {
+            self.weights_reset_answer(r.ticket, r.session, r.result);
         }
         self.flush_pending(out);
         ended
@@ -1322,6 +1386,8 @@ impl Station {
                         status: status.clone(),
                     }),
                 },
+                // Written here, on the host, unlike the periodic save (docs/DESIGN.md §4.7):
+                // its answer says the file is there, so it comes once the file is written.
                 Waiting::Save {
                     ticket,
                     session,
@@ -1355,23 +1421,27 @@ impl Station {
         self.spare = Some(snap);
     }
 
-    /// Save what the arm has learned (a healthy identifier only), whole; a failure is said.
-    fn persist(&self, snap: &Snapshot) {
-        let (Some((path, arm, serial)), Some(w), true, None) = (
-            &self.s.weights_store,
+    /// Save what the arm has learned (a healthy identifier only): a copy goes to the saver
+    /// thread, which writes it whole and says a failure (the host does not wait on the disk).
+    fn persist(&mut self, snap: &Snapshot) {
+        let (Some(saver), Some(w), true, None) = (
+            &mut self.saver,
             &snap.weights,
             snap.weights_copied,
             snap.ident_fault,
         ) else {
             return;
         };
-        if let Err(e) = crate::identifier::store::save(path, w, arm, serial.as_deref()) {
-            crate::errln!("omnid: warning: arm {arm}: learned weights not kept: {e}");
-        }
+        saver.ask(saver::Job::Save(Box::new(w.clone())));
     }
 
     /// The servo has ended: finish the recording and the taps, hand back the report.
     pub fn finish(mut self) -> StationReport {
+        // The saves asked for are written (and a reset's removal done) before the daemon's
+        // last save, which comes after this.
+        if let Some(saver) = &mut self.saver {
+            saver.finish();
+        }
         let recording_error = self.record_stop().and_then(|(_, _, e)| e);
         for tap in &mut self.taps {
             tap.finish();
