@@ -1762,6 +1762,22 @@ mod tests {
         assert_eq!(run_with_slow_writer(true, 200), (185, 16));
     }
 
+    /// A free-mode tick under CT: what it commanded beyond CT's compensation at zero
+    /// acceleration, and M(q)·q̈ at its estimate (the inertia compensation is a fraction of it).
+    fn beyond_compensation(
+        ct: &mut crate::control::ComputedTorque,
+        model: &Dynamics,
+        r: &TickRecord,
+    ) -> (Joint3, Joint3) {
+        let est = Estimate {
+            q: r.qf.into(),
+            qd: r.qd.into(),
+            qdd: r.qdd.into(),
+        };
+        let rest = crate::control::Controller::compensation(ct, &est, None);
+        (Joint3::from(r.tau_cmd) - rest, model.mass(&est.q) * est.qdd)
+    }
+
     #[test]
     fn free_mode_compensates_the_gated_fraction_of_the_inertia_and_none_near_the_inkwell() {
         // docs/HAPTICS.md §3. Under CT (its parametric model, no identifier in the way) with
@@ -1779,14 +1795,7 @@ mod tests {
         let (mut docked_t, mut last_g, mut opened) = (None, 0.0, false);
         for _ in 0..3000 {
             let r = next(&mut servo, &rx);
-            let est = Estimate {
-                q: r.qf.into(),
-                qd: r.qd.into(),
-                qdd: r.qdd.into(),
-            };
-            let rest = crate::control::Controller::compensation(&mut ct, &est, None);
-            let residual = Joint3::from(r.tau_cmd) - rest;
-            let mq = model.mass(&est.q) * est.qdd;
+            let (residual, mq) = beyond_compensation(&mut ct, &model, &r);
             if r.live.inkwell {
                 docked_t = Some(r.t);
             }
@@ -1881,14 +1890,7 @@ mod tests {
         let (mut before, mut held, mut after) = (0.0_f64, 0, 0.0_f64);
         for k in 0..2000 {
             let r = next(&mut servo, &rx);
-            let est = Estimate {
-                q: r.qf.into(),
-                qd: r.qd.into(),
-                qdd: r.qdd.into(),
-            };
-            let rest = crate::control::Controller::compensation(&mut ct, &est, None);
-            let residual = Joint3::from(r.tau_cmd) - rest;
-            let mq = model.mass(&est.q) * est.qdd;
+            let (residual, mq) = beyond_compensation(&mut ct, &model, &r);
             let g = residual.dot(&mq) / mq.norm_squared().max(1e-300);
             match k {
                 1000..1500 => before = before.max(g),

@@ -948,11 +948,7 @@ impl Station {
             return;
         }
         let result = match &self.s.weights_store {
-            Some((path, _, _)) => match std::fs::remove_file(path) {
-                Ok(()) => Ok(true),
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
-                Err(e) => Err(e.to_string()),
-            },
+            Some((path, _, _)) => saver::remove_kept(path),
             None => Ok(false),
         };
         self.weights_reset_answer(ticket, session, result);

@@ -104,15 +104,10 @@ impl Saver {
                                 }
                             }
                             Job::Remove { ticket, session } => {
-                                let result = match std::fs::remove_file(&path) {
-                                    Ok(()) => Ok(true),
-                                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
-                                    Err(e) => Err(e.to_string()),
-                                };
                                 let mut r = Removed {
                                     ticket,
                                     session,
-                                    result,
+                                    result: remove_kept(&path),
                                 };
                                 // The host takes them at every pump: wait for room (this
                                 // thread may wait; the host never does).
@@ -195,6 +190,15 @@ impl Saver {
 impl Drop for Saver {
     fn drop(&mut self) {
         self.finish();
+    }
+}
+
+/// Remove the kept weights at `path`: `Ok(true)` removed, `Ok(false)` there was none.
+pub(crate) fn remove_kept(path: &Path) -> Result<bool, String> {
+    match std::fs::remove_file(path) {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(e) => Err(e.to_string()),
     }
 }
 
