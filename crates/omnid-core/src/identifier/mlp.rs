@@ -12,7 +12,7 @@
 //! Parameters live in one flat vector `[W1 (H×P, row-major) | b1 (H) | W2 (O×H) | b2 (O)]`, so
 //! leakage, projection, norms, saving and Adam all work on plain slices.
 
-use crate::fast_tanh::tanh;
+use crate::fast_tanh::tanh_in_place;
 use nalgebra::{Const, Dim, Dyn};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
@@ -343,8 +343,10 @@ impl Mlp {
         let w2 = &self.params[self.w2_at()..self.b2_at()];
         let b2 = &self.params[self.b2_at()..];
         for ((hj, row), bj) in self.h.iter_mut().zip(w1.chunks_exact(inp)).zip(b1) {
-            *hj = tanh(dot_short(row, xs) + bj);
+            *hj = dot_short(row, xs) + bj;
         }
+        // The layer's units at once: the tanh vectorises (src/fast_tanh.rs).
+        tanh_in_place(&mut self.h[..hid]);
         let out_rows = w2.chunks_exact(hid).zip(&b2[..out]);
         for ((yo, (row, bo)), so) in self.y[..out]
             .iter_mut()
