@@ -237,15 +237,19 @@ fn adaptation_absorbs_a_payload_change() {
         eprintln!("{name}: tracking RMS 2–10 s {before:?}, 20–30 s {late:?}");
         if name == "nnidc" {
             // The payload costs the frozen networks ~14 mrad on joints 2–3 (below); adapting,
-            // the error stays within a few times the pre-payload one, itself at the oracle's
-            // floor (~0.1 mrad).
+            // the error stays within a few times the pre-payload one. That one is at the
+            // oracle's floor (~0.1 mrad), finer than the encoders resolve: below their own
+            // quantisation noise (one count/√12, 0.12 mrad RMS) the bar is a few times that,
+            // so a better pre-payload tracking does not tighten it past what the arm can see.
+            let quantisation = c.device.rad_per_count() / 12f64.sqrt();
             for j in 0..3 {
                 assert!(
-                    late[j] <= 3.0 * before[j],
-                    "joint {}: {} vs {}",
+                    late[j] <= 3.0 * before[j].max(quantisation),
+                    "joint {}: {} vs {} (quantisation {})",
                     j + 1,
                     late[j],
-                    before[j]
+                    before[j],
+                    quantisation
                 );
             }
         }

@@ -2,8 +2,9 @@
 //! cost more than the accuracy they buy.
 
 /// tanh through a single `exp`: 1 − 2/(e^{2a} + 1). It agrees with `f64::tanh` to a few
-/// 1e-16 absolute (what a hidden unit or a friction curve needs) at about half the cost:
-/// libm's tanh goes through `expm1`. Saturates cleanly (e^{2a} = ∞ gives 1, 0 gives −1).
+/// 1e-16 absolute (what the simulator's friction curve needs) at about half the cost: libm's
+/// tanh goes through `expm1`. Saturates cleanly (e^{2a} = ∞ gives 1, 0 gives −1). The
+/// networks' hidden layers use `tanh_in_place`.
 #[inline]
 pub(crate) fn tanh(a: f64) -> f64 {
     // Beyond |a| = 19.1 the formula rounds to exactly ±1 (2/(e^{2a}+1) < 2⁻⁵⁴ above, e^{2a} <
