@@ -249,6 +249,69 @@ fn free_run_released(
     Log::read(&log)
 }
 
+/// How far the tip moves over [from, to) s of a run: the largest peak-to-peak of its three
+/// coordinates, mm.
+fn tip_span(l: &Log, from: f64, to: f64) -> f64 {
+    let t = l.f64s("t");
+    (1..=3)
+        .map(|i| {
+            let c = l.f64s(&format!("tip{i}"));
+            let (lo, hi) = (0..t.len())
+                .filter(|&k| t[k] >= from && t[k] < to)
+                .fold((f64::MAX, f64::MIN), |(a, b), k| (a.min(c[k]), b.max(c[k])));
+            hi - lo
+        })
+        .fold(0.0, f64::max)
+}
+
+/// RMS of the hand's force (N, all three axes) over [from, to) s of a run.
+fn hand_rms(l: &Log, from: f64, to: f64) -> f64 {
+    let t = l.f64s("t");
+    let f: Vec<Vec<f64>> = (1..=3).map(|i| l.f64s(&format!("fhand{i}"))).collect();
+    let ks: Vec<usize> = (0..t.len())
+        .filter(|&k| t[k] >= from && t[k] < to)
+        .collect();
+    let sum: f64 = ks
+        .iter()
+        .map(|&k| f.iter().map(|c| c[k] * c[k]).sum::<f64>())
+        .sum();
+    (sum / ks.len() as f64).sqrt()
+}
+
+#[test]
+fn a_light_damper_in_the_scene_stops_a_released_arm_for_little_hand_force() {
+    // docs/HAPTICS.md §3, "A stylus let go": free mode adds no damping of its own, so an arm
+    // the hand lets go of coasts; a 0.2 N·s/m damper in the scene stops it within seconds and
+    // costs the hand about a tenth more force on the path.
+    let dir = tempfile::tempdir().unwrap();
+    let path = omnid::haptics::HandPattern::Path;
+    let damper = vec![omnid::haptics::Effect::Damper {
+        damping_n_s_per_m: 0.2,
+    }];
+    let beta = omnid::config::Config::default()
+        .haptics
+        .inertia_compensation;
+    let bare = free_run_released(dir.path(), "bare", path, vec![], beta, 20.0, 10.0);
+    let damped = free_run_released(dir.path(), "damped", path, damper, beta, 20.0, 10.0);
+    let (coasting, resting) = (tip_span(&bare, 16.0, 20.0), tip_span(&damped, 16.0, 20.0));
+    let (light, heavier) = (hand_rms(&bare, 3.0, 10.0), hand_rms(&damped, 3.0, 10.0));
+    eprintln!("6–10 s after the release: the tip moves {coasting} mm bare, {resting} mm damped; hand {light} N bare, {heavier} N damped");
+    assert!(
+        coasting > 20.0,
+        "the bare arm moves {coasting} mm 6–10 s after the release: not coasting"
+    );
+    // The damped arm comes to rest but for a creep (about 0.1 mm/s: with its friction
+    // compensated, only the damper holds against what the model's gravity misses).
+    assert!(
+        resting < 2.0,
+        "the damped arm still moves {resting} mm 6–10 s after the release"
+    );
+    assert!(
+        heavier <= 1.2 * light,
+        "the damper costs the hand {heavier} N against {light} N"
+    );
+}
+
 #[test]
 fn inertia_compensation_lightens_the_free_arm_and_a_wall_still_holds() {
     // docs/HAPTICS.md §3: a fraction of the learned inertia times q̈ in free mode, gated off
