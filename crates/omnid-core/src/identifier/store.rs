@@ -136,10 +136,9 @@ pub fn load(path: &Path, cfg: &IdentifierConfig, serial: Option<&str>) -> Loaded
     }
     if stored.base.as_deref() != Some(shipped_fingerprint().as_str()) {
         return Loaded::Refused(format!(
-            "{shown} was learned from other shipped weights than this omnid's (they were \
-             re-tuned since; learning on top of the old ones would track worse than starting \
-             afresh): the arm starts from {SHIPPED_WEIGHTS_NAME}, and the next save replaces \
-             the file"
+            "{shown} was learned from other shipped weights than this omnid's \
+             {SHIPPED_WEIGHTS_NAME} (those were re-made since, and this build's defaults \
+             were measured from the new ones); the next save replaces the file"
         ));
     }
     let w = match WeightsFile::from_json(&stored.weights, &shown) {
