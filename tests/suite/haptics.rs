@@ -197,20 +197,9 @@ fn bad_haptic_options_are_refused_naming_the_problem() {
 }
 
 /// One `--fast` free-mode run under nnidc from the workspace centre, with the simulated hand
-/// doing `hand`, the effects `effects` and the inertia compensation `beta`; its log.
+/// doing `hand` and letting go at `release_s` (0: never), the effects `effects` and the
+/// inertia compensation `beta`; its log.
 fn free_run(
-    dir: &std::path::Path,
-    name: &str,
-    hand: omnid::haptics::HandPattern,
-    effects: Vec<omnid::haptics::Effect>,
-    beta: f64,
-    secs: f64,
-) -> Log {
-    free_run_released(dir, name, hand, effects, beta, secs, 0.0)
-}
-
-/// As [`free_run`], the hand letting go at `release_s` (0: never).
-fn free_run_released(
     dir: &std::path::Path,
     name: &str,
     hand: omnid::haptics::HandPattern,
@@ -264,11 +253,12 @@ fn tip_span(l: &Log, from: f64, to: f64) -> f64 {
         .fold(0.0, f64::max)
 }
 
-/// RMS of the hand's force (N, all three axes) over [from, to) s of a run.
+/// RMS of the hand's force (N, all three axes) over [from, to) s of a run, its last row (the
+/// stop packet's) left out.
 fn hand_rms(l: &Log, from: f64, to: f64) -> f64 {
     let t = l.f64s("t");
     let f: Vec<Vec<f64>> = (1..=3).map(|i| l.f64s(&format!("fhand{i}"))).collect();
-    let ks: Vec<usize> = (0..t.len())
+    let ks: Vec<usize> = (0..t.len() - 1)
         .filter(|&k| t[k] >= from && t[k] < to)
         .collect();
     let sum: f64 = ks
@@ -291,8 +281,8 @@ fn a_light_damper_in_the_scene_stops_a_released_arm_for_little_hand_force() {
     let beta = omnid::config::Config::default()
         .haptics
         .inertia_compensation;
-    let bare = free_run_released(dir.path(), "bare", path, vec![], beta, 20.0, 10.0);
-    let damped = free_run_released(dir.path(), "damped", path, damper, beta, 20.0, 10.0);
+    let bare = free_run(dir.path(), "bare", path, vec![], beta, 20.0, 10.0);
+    let damped = free_run(dir.path(), "damped", path, damper, beta, 20.0, 10.0);
     let (coasting, resting) = (tip_span(&bare, 16.0, 20.0), tip_span(&damped, 16.0, 20.0));
     let (light, heavier) = (hand_rms(&bare, 3.0, 10.0), hand_rms(&damped, 3.0, 10.0));
     eprintln!("6–10 s after the release: the tip moves {coasting} mm bare, {resting} mm damped; hand {light} N bare, {heavier} N damped");
@@ -318,20 +308,17 @@ fn inertia_compensation_lightens_the_free_arm_and_a_wall_still_holds() {
     // in contact. The same path traced by the same hand with and without it.
     let dir = tempfile::tempdir().unwrap();
     let beta = 0.4;
-    let rms_from = |l: &Log, from_s: f64| {
-        let t = l.f64s("t");
-        let f: Vec<Vec<f64>> = (1..=3).map(|i| l.f64s(&format!("fhand{i}"))).collect();
-        let k0 = t.iter().position(|&x| x >= from_s).unwrap();
-        let n = t.len() - 1 - k0;
-        ((k0..t.len() - 1)
-            .map(|k| f.iter().map(|c| c[k] * c[k]).sum::<f64>())
-            .sum::<f64>()
-            / n as f64)
-            .sqrt()
-    };
     let path = omnid::haptics::HandPattern::Path;
-    let without = rms_from(&free_run(dir.path(), "off", path, vec![], 0.0, 6.0), 3.0);
-    let with = rms_from(&free_run(dir.path(), "on", path, vec![], beta, 6.0), 3.0);
+    let without = hand_rms(
+        &free_run(dir.path(), "off", path, vec![], 0.0, 6.0, 0.0),
+        3.0,
+        f64::INFINITY,
+    );
+    let with = hand_rms(
+        &free_run(dir.path(), "on", path, vec![], beta, 6.0, 0.0),
+        3.0,
+        f64::INFINITY,
+    );
     assert!(
         with < 0.9 * without,
         "hand force {with} N with β = {beta}, {without} N without"
@@ -355,7 +342,7 @@ fn inertia_compensation_lightens_the_free_arm_and_a_wall_still_holds() {
         axis: 1,
         sign: -1.0,
     };
-    let l = free_run(dir.path(), "floor", push, vec![floor], beta, 4.0);
+    let l = free_run(dir.path(), "floor", push, vec![floor], beta, 4.0, 0.0);
     let (t, tip, hand) = (l.f64s("t"), l.f64s("tip2"), l.f64s("fhand2"));
     let last = t.iter().position(|&x| x >= 3.0).unwrap()..t.len() - 1;
     let (lo, hi) = tip[last.clone()]
@@ -378,7 +365,7 @@ fn a_released_arm_with_inertia_compensation_comes_to_rest() {
     // fed back adding energy: 1-2 rad/s still 20 s after the hand let go, and growing.
     let dir = tempfile::tempdir().unwrap();
     let path = omnid::haptics::HandPattern::Path;
-    let l = free_run_released(dir.path(), "let-go", path, vec![], 0.3, 30.0, 8.0);
+    let l = free_run(dir.path(), "let-go", path, vec![], 0.3, 30.0, 8.0);
     let t = l.f64s("t");
     let qd: Vec<Vec<f64>> = (1..=3).map(|i| l.f64s(&format!("qd{i}"))).collect();
     let fastest = |from: f64, to: f64| {

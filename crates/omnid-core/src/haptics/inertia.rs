@@ -4,7 +4,8 @@
 //! lags, and a lagged acceleration fed back takes from the stability margin of a stiff
 //! contact, so the fraction is gated: it falls to zero as the rendered tip force grows past
 //! [`CONTACT_FORCE_N`], while the passivity controller is dissipating or a joint is at its soft
-//! wall ([`near_walls`]), and wherever q̈ is not to be trusted; it comes back over [`RETURN_S`]. Fixed-size state only: it runs every tick.
+//! wall ([`near_walls`]), and wherever q̈ is not to be trusted; it comes back over
+//! [`RETURN_S`]. Fixed-size state only: it runs every tick.
 
 use crate::control::reference::quintic;
 use crate::omni::Joint3;
@@ -67,8 +68,9 @@ impl InertiaGate {
 
     /// The fraction of the inertia to compensate this tick (`dt` s after the last), with
     /// `force_n` the norm of the tip force rendered this tick, `held_off` when something else
-    /// shuts it (the passivity controller taking energy back, a joint at its soft wall), `trusted` when the estimated q̈ can be
-    /// believed (not just after the estimator restarted or the inkwell let go).
+    /// shuts it (the passivity controller taking energy back, a joint at its soft wall),
+    /// `trusted` when the estimated q̈ can be believed (not just after the estimator restarted
+    /// or the inkwell let go).
     pub(crate) fn step(&mut self, dt: f64, force_n: f64, held_off: bool, trusted: bool) -> f64 {
         let target = if trusted && !held_off {
             contact_gate(self.beta, force_n)
